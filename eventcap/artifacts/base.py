@@ -1,0 +1,342 @@
+"""Typed artifacts: frozen dataclasses with declared arrays (dtype, dims, units), validated, stored as zarr v3 groups.
+
+An artifact type is declared once::
+
+    @dataclass(frozen=True)
+    class FrameStack(Artifact):
+        schema_version: ClassVar[int] = 1
+        images: np.ndarray = array("uint8", ("n", "height", "width"), units="DN")
+        t_us: np.ndarray = array("int64", ("n",), units="us")
+        height: int = attr(units="px")
+        width: int = attr(units="px")
+
+Dimension names are checked for consistency across all arrays of the instance, and a dimension named after an int
+attribute (``height`` above) must equal it. Arrays are made read-only. Fields whose annotation is another Artifact
+type are stored as sub-groups. Errors show the artifact, the field, what was expected and what was given.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+
+class ArtifactError(ValueError):
+    """An artifact does not match its declared schema."""
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What an array field must look like."""
+
+    dtype: np.dtype
+    dims: tuple[str | int, ...]
+    units: str = ""
+    doc: str = ""
+    optional: bool = False
+
+    def describe(self) -> str:
+        dims = ", ".join(str(d) for d in self.dims)
+        return f"{_dtype_str(self.dtype)}[{dims}]" + (f" ({self.units})" if self.units else "")
+
+
+@dataclass(frozen=True)
+class AttrSpec:
+    """A scalar or JSON-like field stored in the group's attributes."""
+
+    units: str = ""
+    doc: str = ""
+
+
+def array(dtype, dims, *, units: str = "", doc: str = "", optional: bool = False):
+    """Declare an array field: numpy dtype, dimension names (str) or fixed sizes (int), units."""
+    spec = ArraySpec(np.dtype(dtype), tuple(dims), units, doc, optional)
+    if optional:
+        return field(default=None, metadata={"array": spec})
+    return field(metadata={"array": spec})
+
+
+def attr(default: Any = dataclasses.MISSING, *, units: str = "", doc: str = ""):
+    """Declare a scalar/JSON attribute field (int, float, str, bool, list, dict)."""
+    return field(default=default, metadata={"attr": AttrSpec(units, doc)})
+
+
+def _dtype_str(dt: np.dtype) -> str:
+    if dt.names:
+        return "{" + ", ".join(f"{n}: {dt.fields[n][0].str}" for n in dt.names) + "}"
+    return dt.str
+
+
+_TYPE_CACHE: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls) -> dict[str, Any]:
+    if cls not in _TYPE_CACHE:
+        _TYPE_CACHE[cls] = typing.get_type_hints(cls)
+    return _TYPE_CACHE[cls]
+
+
+def _child_type(hint) -> type[Artifact] | None:
+    """The Artifact class of a field annotated ``SomeArtifact`` or ``SomeArtifact | None``."""
+    candidates = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, _UnionType) else (hint,)
+    for c in candidates:
+        if isinstance(c, type) and issubclass(c, Artifact):
+            return c
+    return None
+
+
+_UnionType = type(int | None)
+
+
+@dataclass(frozen=True)
+class Artifact:
+    """Base of every artifact type. Subclasses are frozen dataclasses declaring fields with array()/attr()."""
+
+    schema_version: ClassVar[int] = 1
+
+    # -- schema -----------------------------------------------------------------------------------------------
+    @classmethod
+    def array_fields(cls) -> dict[str, ArraySpec]:
+        return {f.name: f.metadata["array"] for f in dataclasses.fields(cls) if "array" in f.metadata}
+
+    @classmethod
+    def attr_fields(cls) -> dict[str, AttrSpec]:
+        return {f.name: f.metadata["attr"] for f in dataclasses.fields(cls) if "attr" in f.metadata}
+
+    @classmethod
+    def child_fields(cls) -> dict[str, tuple[type[Artifact], bool]]:
+        """Sub-artifact fields: name -> (type, optional)."""
+        out = {}
+        hints = _hints(cls)
+        for f in dataclasses.fields(cls):
+            if "array" in f.metadata or "attr" in f.metadata:
+                continue
+            child = _child_type(hints[f.name])
+            if child is None:
+                raise TypeError(
+                    f"{cls.__name__}.{f.name}: every artifact field must be declared with array(), attr() "
+                    f"or annotated with an Artifact type"
+                )
+            out[f.name] = (child, f.default is None)
+        return out
+
+    @classmethod
+    def type_name(cls) -> str:
+        return cls.__name__
+
+    @classmethod
+    def describe_schema(cls) -> str:
+        lines = [f"{cls.__name__} (schema v{cls.schema_version})"]
+        lines += [f"  {n}: {s.describe()}" for n, s in cls.array_fields().items()]
+        lines += [f"  {n}: attr" + (f" ({s.units})" if s.units else "") for n, s in cls.attr_fields().items()]
+        lines += [f"  {n}: {t.__name__}" + (" | None" if o else "") for n, (t, o) in cls.child_fields().items()]
+        return "\n".join(lines)
+
+    # -- validation ---------------------------------------------------------------------------------------------
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Check every declared field; raise ArtifactError showing expected vs. actual."""
+        cls = type(self)
+        name = cls.__name__
+        sizes: dict[str, tuple[int, str]] = {}
+        attrs = cls.attr_fields()
+        for fname in attrs:
+            v = getattr(self, fname)
+            if isinstance(v, (np.integer, np.floating, np.bool_)):
+                object.__setattr__(self, fname, v.item())
+        for fname, spec in cls.array_fields().items():
+            value = getattr(self, fname)
+            if value is None:
+                if spec.optional:
+                    continue
+                raise ArtifactError(f"{name}.{fname}: expected {spec.describe()}, got None")
+            if not isinstance(value, np.ndarray):
+                raise ArtifactError(f"{name}.{fname}: expected a numpy array {spec.describe()}, got {type(value).__name__}")
+            if value.dtype != spec.dtype:
+                raise ArtifactError(
+                    f"{name}.{fname}: expected dtype {_dtype_str(spec.dtype)}, got {_dtype_str(value.dtype)}"
+                )
+            if value.ndim != len(spec.dims):
+                raise ArtifactError(
+                    f"{name}.{fname}: expected {len(spec.dims)} dims {spec.dims}, got shape {value.shape}"
+                )
+            for axis, (dim, size) in enumerate(zip(spec.dims, value.shape)):
+                if isinstance(dim, int):
+                    if size != dim:
+                        raise ArtifactError(
+                            f"{name}.{fname}: axis {axis} must have size {dim}, got shape {value.shape}"
+                        )
+                    continue
+                if dim in attrs and isinstance(getattr(self, dim), int) and getattr(self, dim) != size:
+                    raise ArtifactError(
+                        f"{name}.{fname}: axis {axis} ('{dim}') must equal {name}.{dim} = {getattr(self, dim)}, "
+                        f"got shape {value.shape}"
+                    )
+                if dim in sizes and sizes[dim][0] != size:
+                    other_size, other_field = sizes[dim]
+                    raise ArtifactError(
+                        f"{name}.{fname}: dim '{dim}' is {other_size} in {other_field} but {size} here "
+                        f"(shape {value.shape})"
+                    )
+                sizes.setdefault(dim, (size, fname))
+            if spec.dtype.kind == "f" and value.size and not np.isfinite(value).all() and "nan" not in spec.units:
+                # NaN/inf are never silently accepted unless a field declares it may hold them (units mention nan).
+                bad = np.argwhere(~np.isfinite(value))[0]
+                raise ArtifactError(f"{name}.{fname}: non-finite value at index {tuple(int(i) for i in bad)}")
+            if value.flags.writeable:
+                ro = value.view()
+                ro.flags.writeable = False
+                object.__setattr__(self, fname, ro)
+        for fname, (ctype, optional) in cls.child_fields().items():
+            value = getattr(self, fname)
+            if value is None and optional:
+                continue
+            if not isinstance(value, ctype):
+                raise ArtifactError(f"{name}.{fname}: expected {ctype.__name__}, got {type(value).__name__}")
+
+    # -- zarr I/O -----------------------------------------------------------------------------------------------
+    def to_zarr(self, group) -> None:
+        """Write this artifact into an (empty) zarr v3 group; validates first."""
+        self.validate()
+        cls = type(self)
+        group.attrs.update(
+            {"artifact": cls.type_name(), "schema_version": cls.schema_version, "attrs": self._attr_values()}
+        )
+        for fname, spec in cls.array_fields().items():
+            value = getattr(self, fname)
+            if value is None:
+                continue
+            if spec.dtype.names:
+                sub = group.create_group(fname)
+                sub.attrs["structured"] = [[n, spec.dtype.fields[n][0].str] for n in spec.dtype.names]
+                for n in spec.dtype.names:
+                    _write_array(sub, n, np.ascontiguousarray(value[n]), spec.units)
+            else:
+                _write_array(group, fname, value, spec.units)
+        for fname in cls.child_fields():
+            value = getattr(self, fname)
+            if value is not None:
+                value.to_zarr(group.create_group(fname))
+
+    def _attr_values(self) -> dict[str, Any]:
+        return {n: _jsonable(getattr(self, n)) for n in type(self).attr_fields()}
+
+    @classmethod
+    def from_zarr(cls, group, where: str = ""):
+        """Read and validate an artifact of this type from a zarr group written by to_zarr."""
+        where = where or str(getattr(group, "store_path", "zarr group"))
+        meta = dict(group.attrs)
+        if meta.get("artifact") != cls.type_name():
+            raise ArtifactError(f"{where}: expected a {cls.type_name()} artifact, found {meta.get('artifact')!r}")
+        if meta.get("schema_version") != cls.schema_version:
+            raise ArtifactError(
+                f"{where}: {cls.type_name()} schema version {meta.get('schema_version')} on disk, "
+                f"this code reads version {cls.schema_version}"
+            )
+        kwargs: dict[str, Any] = dict(meta.get("attrs", {}))
+        members = set(group.keys())
+        for fname, spec in cls.array_fields().items():
+            if fname not in members:
+                if spec.optional:
+                    kwargs[fname] = None
+                    continue
+                raise ArtifactError(f"{where}: array '{fname}' missing (expected {spec.describe()})")
+            if spec.dtype.names:
+                sub = group[fname]
+                n = None
+                cols = {}
+                for col in spec.dtype.names:
+                    if col not in sub:
+                        raise ArtifactError(f"{where}/{fname}: column '{col}' missing")
+                    cols[col] = sub[col][...]
+                    n = cols[col].shape[0]
+                out = np.empty(n or 0, dtype=spec.dtype)
+                for col, values in cols.items():
+                    out[col] = values
+                kwargs[fname] = out
+            else:
+                kwargs[fname] = np.asarray(group[fname][...])
+        for fname, (ctype, optional) in cls.child_fields().items():
+            kwargs[fname] = ctype.from_zarr(group[fname], f"{where}/{fname}") if fname in members else None
+        for fname, value in list(kwargs.items()):
+            if isinstance(value, list):
+                kwargs[fname] = _tuplify(value)
+        try:
+            return cls(**kwargs)
+        except TypeError as exc:
+            raise ArtifactError(f"{where}: cannot build {cls.type_name()}: {exc}") from exc
+
+    # -- comparison helpers -------------------------------------------------------------------------------------
+    def equals(self, other: Artifact) -> bool:
+        """Exact equality of every field (arrays compared element-wise, NaNs equal)."""
+        if type(self) is not type(other):
+            return False
+        for fname in type(self).array_fields():
+            a, b = getattr(self, fname), getattr(other, fname)
+            if (a is None) != (b is None):
+                return False
+            if a is not None and not (a.shape == b.shape and _array_equal(a, b)):
+                return False
+        if self._attr_values() != other._attr_values():
+            return False
+        for fname in type(self).child_fields():
+            a, b = getattr(self, fname), getattr(other, fname)
+            if (a is None) != (b is None) or (a is not None and not a.equals(b)):
+                return False
+        return True
+
+
+def _array_equal(a: np.ndarray, b: np.ndarray) -> bool:
+    if a.dtype.names:
+        return all(_array_equal(a[n], b[n]) for n in a.dtype.names)
+    return bool(np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"))
+
+
+def _tuplify(v):
+    return tuple(_tuplify(x) for x in v) if isinstance(v, list) else v
+
+
+def _jsonable(v):
+    if isinstance(v, (tuple, list)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (np.integer, np.floating, np.bool_)):
+        return v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return repr(v)
+    return v
+
+
+#: Target size of one chunk; small enough that a batch's arrays are a handful of files.
+_CHUNK_BYTES = 4 << 20
+
+
+def _chunks_for(shape: tuple[int, ...], itemsize: int) -> tuple[int, ...]:
+    if not shape:
+        return ()
+    row = max(1, itemsize * math.prod(shape[1:]))
+    first = max(1, min(shape[0], _CHUNK_BYTES // row))
+    return (first, *shape[1:]) if shape[0] else (1, *shape[1:])
+
+
+def _write_array(group, name: str, value: np.ndarray, units: str) -> None:
+    value = np.ascontiguousarray(value)
+    arr = group.create_array(
+        name,
+        shape=value.shape,
+        dtype=value.dtype,
+        chunks=_chunks_for(value.shape, value.dtype.itemsize),
+        # Every chunk is written, so a chunk file missing on disk is corruption, never "all fill values".
+        config={"write_empty_chunks": True},
+    )
+    if value.size:
+        arr[...] = value
+    arr.attrs["units"] = units
