@@ -1,0 +1,94 @@
+"""Turning a node's config mapping into the stage's typed config dataclass, and back into cache-key material."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from .registry import unknown_name_message
+from .stage import StageSpec
+
+
+class ConfigError(ValueError):
+    """A config key or value is wrong; the message names the full key and what was expected."""
+
+
+def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
+    """The stage's config dataclass from ``values`` (a plain mapping); unknown keys and wrong types name ``where.key``."""
+    known = [f.name for f in dataclasses.fields(spec.config)]
+    for key in values:
+        if key not in known:
+            raise ConfigError(
+                f"{where}.{key}: " + unknown_name_message("config key", key, known, f"the config of stage {spec.name!r}")
+            )
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(spec.config), OmegaConf.create(dict(values)))
+        obj = OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", "") or ""
+        msg = str(exc).splitlines()[0]
+        raise ConfigError(f"{where}{'.' + key if key else ''}: {msg} (stage {spec.name!r})") from None
+    missing = [f.name for f in dataclasses.fields(obj) if getattr(obj, f.name) is dataclasses.MISSING]
+    if missing:
+        raise ConfigError(f"{where}.{missing[0]}: required by stage {spec.name!r} but not set")
+    return obj
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """All fields as plain JSON-able values."""
+    return {k: _plain(v) for k, v in dataclasses.asdict(config).items()}
+
+
+def _plain(v):
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, Path):
+        return str(v)
+    if hasattr(v, "value") and hasattr(v, "name") and type(v).__class__.__name__ == "EnumMeta":
+        return v.name
+    return v
+
+
+def result_config(spec: StageSpec, config: Any) -> dict[str, Any]:
+    """Only the fields that affect the stage's result: what goes into the cache key."""
+    full = config_to_dict(config)
+    return {k: full[k] for k in spec.result_fields()}
+
+
+def file_digest(path: str | Path, chunk: int = 1 << 22) -> str:
+    """Content digest of a file or a directory tree (sorted relative paths + contents); mtimes never matter."""
+    p = Path(path)
+    h = hashlib.sha256()
+    if p.is_dir():
+        for f in sorted(q for q in p.rglob("*") if q.is_file()):
+            h.update(str(f.relative_to(p)).encode() + b"\0")
+            h.update(file_digest(f).encode())
+        return h.hexdigest()
+    if not p.is_file():
+        raise ConfigError(f"file not found: {p}")
+    with open(p, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def file_digests(spec: StageSpec, config: Any, where: str) -> dict[str, str]:
+    """Digest of every ``file=True`` config field that is set (empty string / None means unused)."""
+    out = {}
+    for name in spec.file_fields():
+        value = getattr(config, name)
+        if value in (None, ""):
+            continue
+        try:
+            out[name] = file_digest(value)
+        except ConfigError:
+            raise ConfigError(f"{where}.{name}: file not found: {value}") from None
+    return out

@@ -1,0 +1,143 @@
+"""The stage contract: a small spec object a plugin exposes through the ``eventcap.stages`` entry-point group.
+
+A spec names the stage, its kind, a hand-bumped ``version``, a config dataclass whose fields say whether they affect
+the result, typed input and output ports, whether it runs per batch, and the run function as a ``"module:function"``
+string imported only when the stage runs (so listing stages imports no solver)::
+
+    SPEC = StageSpec(
+        name="edi", kind="sharpen", version=1, description="EDI deblurring of intensity frames (Eq. 2)",
+        config=EdiConfig, inputs={"recording": Port(Recording)}, outputs={"latent": Port(LatentFrames)},
+        run="eventcap_sharpen._edi:run",
+    )
+
+The run function is pure: ``run(inputs: dict[str, Artifact], config, ctx: StageContext) -> dict[str, Artifact]``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from .artifacts import Artifact, Batch
+
+
+def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True, file: bool = False,
+          default_factory: Any = dataclasses.MISSING):
+    """A config field. ``affects_result=False`` keeps it out of the cache key (e.g. logging, sleeps, workers).
+
+    ``file=True`` marks a path whose *content digest* enters the cache key (input recordings, templates).
+    """
+    meta = {"help": help, "affects_result": affects_result, "file": file}
+    if default_factory is not dataclasses.MISSING:
+        return field(default_factory=default_factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class Port:
+    """A typed input or output of a stage.
+
+    ``all_batches=True`` on an input of a whole-recording stage means: all batches of a per-batch upstream output,
+    delivered as a lazy sequence (see runner.BatchSequence).
+    """
+
+    type: type[Artifact]
+    doc: str = ""
+    optional: bool = False
+    all_batches: bool = False
+
+
+class StageSpecError(TypeError):
+    """A stage spec is malformed (a plugin bug, reported with the plugin's name)."""
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """Everything the framework needs to know about a stage, without importing its implementation."""
+
+    name: str
+    kind: str
+    version: int
+    description: str
+    config: type
+    inputs: Mapping[str, Port]
+    outputs: Mapping[str, Port]
+    run: str
+    per_batch: bool = False
+    origin: str = ""  # where the registry found it (filled by the registry)
+
+    def __post_init__(self) -> None:
+        where = f"stage spec {self.name!r}" + (f" ({self.origin})" if self.origin else "")
+        if not self.name or not self.name.replace("_", "").isalnum() or not self.name[0].isalpha():
+            raise StageSpecError(f"{where}: name must be an identifier-like word, got {self.name!r}")
+        if not isinstance(self.version, int):
+            raise StageSpecError(f"{where}: version must be an int you bump when outputs change")
+        if not dataclasses.is_dataclass(self.config):
+            raise StageSpecError(f"{where}: config must be a dataclass type, got {self.config!r}")
+        for f in dataclasses.fields(self.config):
+            if "help" not in f.metadata:
+                raise StageSpecError(f"{where}: config field {f.name!r} must be declared with eventcap.stage.param()")
+        if ":" not in self.run:
+            raise StageSpecError(f"{where}: run must be 'module:function', got {self.run!r}")
+        for direction, ports in (("input", self.inputs), ("output", self.outputs)):
+            for pname, port in ports.items():
+                if not isinstance(port, Port) or not (isinstance(port.type, type) and issubclass(port.type, Artifact)):
+                    raise StageSpecError(f"{where}: {direction} {pname!r} must be Port(<Artifact type>)")
+        for pname, port in self.outputs.items():
+            if port.all_batches or port.optional:
+                raise StageSpecError(f"{where}: output {pname!r} cannot be optional or all_batches")
+        if not self.outputs:
+            raise StageSpecError(f"{where}: a stage must declare at least one output")
+        object.__setattr__(self, "inputs", MappingProxyType(dict(self.inputs)))
+        object.__setattr__(self, "outputs", MappingProxyType(dict(self.outputs)))
+
+    # -- config ---------------------------------------------------------------------------------------------------
+    def result_fields(self) -> list[str]:
+        return [f.name for f in dataclasses.fields(self.config) if f.metadata.get("affects_result", True)]
+
+    def file_fields(self) -> list[str]:
+        return [f.name for f in dataclasses.fields(self.config) if f.metadata.get("file", False)]
+
+    def load_run(self) -> Callable[..., Mapping[str, Artifact]]:
+        module, _, attr = self.run.partition(":")
+        try:
+            fn = getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as exc:
+            raise StageSpecError(f"stage {self.name!r}: cannot import its run function {self.run!r}: {exc}") from exc
+        return fn
+
+
+@dataclass
+class StageContext:
+    """What the runner gives a running stage besides inputs and config."""
+
+    node: str
+    stage: str
+    batch: Batch | None = None
+    log: logging.Logger = field(default_factory=lambda: logging.getLogger("eventcap.stage"))
+    progress: Callable[[int, int], None] | None = None
+
+    def rng(self, seed: int, *extra: int) -> np.random.Generator:
+        """A generator seeded by (seed, batch index, extra...) so batches get independent, reproducible streams."""
+        parts = [int(seed)] + ([self.batch.index] if self.batch is not None else []) + [int(e) for e in extra]
+        return np.random.default_rng(parts)
+
+    def report(self, done: int, total: int) -> None:
+        if self.progress is not None:
+            self.progress(done, total)
+
+
+class StageFailed(RuntimeError):
+    """Raised by a stage whose computation did not succeed (e.g. a solver status); recorded, never cached."""
+
+    def __init__(self, message: str, status: str = "failed", details: dict[str, Any] | None = None):
+        super().__init__(message)
+        self.status = status
+        self.details = details or {}

@@ -1,0 +1,66 @@
+"""Shared fixtures: the toy test stages (tests/toy_stages.py) and a toy pipeline config."""
+
+from __future__ import annotations
+
+import copy
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
+
+TOY_PIPELINE = {
+    "nodes": {
+        "signal": {},
+        "smooth": {"inputs": {"series": "signal.series", "batches": "signal.batches"}},
+        "scale": {"inputs": {"chunk": "smooth.chunk"}},
+        "total": {"inputs": {"chunks": "scale.chunk"}},
+    }
+}
+TOY_STAGES = {
+    "signal": {"stage": "toy_signal", "n_batches": 4, "samples_per_batch": 50, "seed": 0},
+    "smooth": {"stage": "toy_smooth", "window": 5},
+    "scale": {"stage": "toy_scale", "factor": 2.0},
+    "total": {"stage": "toy_sum"},
+}
+
+
+def toy_env() -> dict[str, str]:
+    """Environment for subprocesses that should see the toy stages."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env["EVENTCAP_STAGES"] = "toy_stages:SPECS"
+    return env
+
+
+@pytest.fixture
+def toy(monkeypatch):
+    """Register the toy stages in this process."""
+    from eventcap.runner import reset_process_caches
+
+    monkeypatch.setenv("EVENTCAP_STAGES", "toy_stages:SPECS")
+    monkeypatch.setenv("PYTHONPATH", toy_env()["PYTHONPATH"])
+    monkeypatch.syspath_prepend(str(TESTS))
+    reset_process_caches()
+    yield
+    reset_process_caches()
+
+
+@pytest.fixture
+def toy_cfg(tmp_path, toy):
+    """A fresh toy pipeline config (plain dict) with its own cache directory."""
+
+    def make(**stage_changes):
+        stages = copy.deepcopy(TOY_STAGES)
+        for node, changes in stage_changes.items():
+            stages[node].update(changes)
+        return {"pipeline": copy.deepcopy(TOY_PIPELINE), "stages": stages, "cache_dir": str(tmp_path / "cache")}
+
+    return make
+
+
+def eventcap_cmd() -> list[str]:
+    return [sys.executable, "-m", "eventcap.cli"]
