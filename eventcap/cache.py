@@ -1,0 +1,340 @@
+"""Content-addressed stage cache with atomic commits (DESIGN §4).
+
+Layout under the cache root::
+
+    entries/<stage>/<key>/manifest.json   key document, outputs, every file with size and sha256
+    entries/<stage>/<key>/data/           zarr v3 group, one sub-group per output port
+    tmp/<key>.<host>.<pid>.<nonce>/       an entry being written; renamed into entries/ when complete
+    failures/<key>.json                   a failed computation (never a hit; removed when it later succeeds)
+
+A key is the sha256 of the canonical JSON of its key document (stage, version, result-affecting config, file
+digests, input keys, batch). An entry exists for readers only once its directory has been renamed into place with its
+manifest inside; a killed writer leaves only a ``tmp/`` orphan, removed by :meth:`Cache.clean_orphans`. Reading checks
+every file against the manifest, so a missing or damaged chunk raises instead of reading back as fill values.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import errno
+import hashlib
+import json
+import logging
+import os
+import shutil
+import socket
+import time
+import uuid
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .artifacts import Artifact
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+FORMAT = 1
+_HOST = socket.gethostname()
+
+
+class CacheError(RuntimeError):
+    """The cache cannot be used as asked (bad key prefix, unusable directory)."""
+
+
+class CacheCorruptError(CacheError):
+    """A committed entry does not match its manifest (missing or damaged file)."""
+
+
+def canonical_json(doc: Any) -> str:
+    return json.dumps(doc, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
+
+
+def make_key(doc: Mapping[str, Any]) -> str:
+    return hashlib.sha256(canonical_json(doc).encode()).hexdigest()[:40]
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(1 << 22):
+            h.update(block)
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Entry:
+    """A committed cache entry."""
+
+    path: Path
+    manifest: dict[str, Any]
+
+    @property
+    def key(self) -> str:
+        return self.manifest["key"]
+
+    @property
+    def stage(self) -> str:
+        return self.manifest["stage"]
+
+    def size_bytes(self) -> int:
+        return sum(int(v[0]) for v in self.manifest["files"].values())
+
+
+class Cache:
+    """The cache rooted at ``root`` (a local directory; created on first use)."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root).expanduser().resolve()
+        self._verified: set[Path] = set()
+        for sub in ("entries", "tmp", "failures", "trash"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+
+    # -- paths ----------------------------------------------------------------------------------------------------
+    def entry_path(self, stage: str, key: str) -> Path:
+        return self.root / "entries" / stage / key
+
+    # -- lookup ---------------------------------------------------------------------------------------------------
+    def lookup(self, stage: str, key: str) -> Entry | None:
+        """The committed entry for ``key``, or None. A directory without a readable manifest does not exist."""
+        path = self.entry_path(stage, key)
+        try:
+            manifest = json.loads((path / MANIFEST).read_text())
+        except FileNotFoundError:
+            return None
+        except (OSError, json.JSONDecodeError) as exc:
+            self.quarantine(path, f"unreadable manifest: {exc}")
+            return None
+        if manifest.get("format") != FORMAT or manifest.get("key") != key:
+            self.quarantine(path, "manifest does not match its key or format")
+            return None
+        return Entry(path, manifest)
+
+    def verify(self, entry: Entry) -> None:
+        """Check every file of the entry against the manifest (size and sha256); raise CacheCorruptError."""
+        if entry.path in self._verified:
+            return
+        data = entry.path
+        listed = entry.manifest["files"]
+        for rel, (size, digest) in listed.items():
+            f = data / rel
+            try:
+                actual = f.stat().st_size
+            except FileNotFoundError:
+                raise CacheCorruptError(f"cache entry {entry.path}: file {rel} is missing (deleted or never synced)") from None
+            if actual != size:
+                raise CacheCorruptError(f"cache entry {entry.path}: file {rel} has {actual} bytes, manifest says {size}")
+            if _sha256(f) != digest:
+                raise CacheCorruptError(f"cache entry {entry.path}: file {rel} does not match its checksum")
+        extra = [str(p.relative_to(data)) for p in (data / "data").rglob("*") if p.is_file()]
+        extra = [p for p in extra if p not in listed]
+        if extra:
+            raise CacheCorruptError(f"cache entry {entry.path}: files not in the manifest: {extra[:3]}")
+        self._verified.add(entry.path)
+
+    def load(self, entry: Entry, port: str, cls: type[Artifact]) -> Artifact:
+        """Read one output port of a committed entry as ``cls`` (verified first)."""
+        import zarr
+
+        self.verify(entry)
+        outputs = entry.manifest["outputs"]
+        if port not in outputs:
+            raise CacheCorruptError(f"cache entry {entry.path}: no output {port!r} (has {sorted(outputs)})")
+        group = zarr.open_group(str(entry.path / "data"), mode="r")
+        return cls.from_zarr(group[port], where=f"{entry.path}/data/{port}")
+
+    # -- commit ---------------------------------------------------------------------------------------------------
+    def commit(self, stage: str, key: str, doc: Mapping[str, Any], outputs: Mapping[str, Artifact],
+               info: Mapping[str, Any] | None = None) -> Entry:
+        """Write ``outputs`` atomically as the entry for ``key``; if another writer won the race, keep theirs."""
+        import zarr
+
+        tmp = self.root / "tmp" / f"{key}.{_HOST}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
+        tmp.mkdir(parents=True)
+        try:
+            group = zarr.open_group(str(tmp / "data"), mode="w")
+            for port, artifact in outputs.items():
+                artifact.to_zarr(group.create_group(port))
+            files = {}
+            for f in sorted(p for p in (tmp / "data").rglob("*") if p.is_file()):
+                rel = str(f.relative_to(tmp))
+                if rel.endswith(".partial"):
+                    raise CacheError(f"zarr left a partial file {rel} while committing {stage}/{key}")
+                files[rel] = [f.stat().st_size, _sha256(f)]
+            manifest = {
+                "format": FORMAT,
+                "key": key,
+                "stage": stage,
+                "doc": doc,
+                "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                "outputs": {p: {"type": a.type_name(), "schema_version": a.schema_version} for p, a in outputs.items()},
+                "files": files,
+                **(dict(info) if info else {}),
+            }
+            with open(tmp / MANIFEST, "w") as fh:
+                fh.write(json.dumps(manifest, indent=1, sort_keys=True))
+                fh.flush()
+                os.fsync(fh.fileno())
+            final = self.entry_path(stage, key)
+            final.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                os.rename(tmp, final)
+            except OSError as exc:
+                if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY):
+                    raise
+                log.debug("entry %s/%s was committed concurrently; keeping the existing one", stage, key)
+                shutil.rmtree(tmp, ignore_errors=True)
+            _fsync_dir(final.parent)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        self.clear_failure(key)
+        entry = self.lookup(stage, key)
+        if entry is None:
+            raise CacheError(f"entry {stage}/{key} vanished right after commit")
+        return entry
+
+    # -- failures -------------------------------------------------------------------------------------------------
+    def record_failure(self, stage: str, key: str, doc: Mapping[str, Any], record: Mapping[str, Any]) -> Path:
+        path = self.root / "failures" / f"{key}.json"
+        body = {"key": key, "stage": stage, "doc": doc,
+                "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), **record}
+        _atomic_write_text(path, json.dumps(body, indent=1, sort_keys=True, default=str))
+        return path
+
+    def failure(self, key: str) -> dict[str, Any] | None:
+        try:
+            return json.loads((self.root / "failures" / f"{key}.json").read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+
+    def clear_failure(self, key: str) -> None:
+        (self.root / "failures" / f"{key}.json").unlink(missing_ok=True)
+
+    # -- housekeeping ---------------------------------------------------------------------------------------------
+    def quarantine(self, path: Path, why: str) -> None:
+        """Move a damaged entry out of the way (so it is recomputed) and say so."""
+        log.warning("cache entry %s is damaged (%s): removing it; it will be recomputed", path, why)
+        dest = self.root / "trash" / f"{path.name}.{uuid.uuid4().hex[:8]}"
+        try:
+            os.rename(path, dest)
+        except FileNotFoundError:
+            return
+        shutil.rmtree(dest, ignore_errors=True)
+        self._verified.discard(path)
+
+    def clean_orphans(self, max_age_s: float = 24 * 3600) -> list[Path]:
+        """Remove temporary directories of writers that are gone (dead pid on this host, or older than max_age_s)."""
+        removed = []
+        now = time.time()
+        for d in list((self.root / "tmp").iterdir()) + list((self.root / "trash").iterdir()):
+            parts = d.name.split(".")
+            dead = False
+            if d.parent.name == "trash":
+                dead = True
+            elif len(parts) >= 4 and parts[-3] == _HOST:
+                dead = not _pid_alive(int(parts[-2])) if parts[-2].isdigit() else True
+            else:
+                try:
+                    dead = now - d.stat().st_mtime > max_age_s
+                except FileNotFoundError:
+                    continue
+            if dead:
+                shutil.rmtree(d, ignore_errors=True) if d.is_dir() else d.unlink(missing_ok=True)
+                removed.append(d)
+        if removed:
+            log.info("cache: removed %d orphaned temporary entr%s", len(removed), "y" if len(removed) == 1 else "ies")
+        return removed
+
+    def entries(self) -> list[Entry]:
+        out = []
+        for mf in sorted((self.root / "entries").glob(f"*/*/{MANIFEST}")):
+            e = self.lookup(mf.parent.parent.name, mf.parent.name)
+            if e is not None:
+                out.append(e)
+        return out
+
+    def find(self, prefix: str) -> Entry:
+        """The entry whose key starts with ``prefix`` (unique)."""
+        if len(prefix) < 4:
+            raise CacheError("give at least 4 characters of the key")
+        matches = [mf.parent for mf in (self.root / "entries").glob(f"*/{prefix}*/{MANIFEST}")]
+        if not matches:
+            fails = list((self.root / "failures").glob(f"{prefix}*.json"))
+            hint = f" (a failure is recorded for it: {fails[0]})" if fails else ""
+            raise CacheError(f"no cache entry with key {prefix!r} under {self.root}{hint}")
+        if len(matches) > 1:
+            raise CacheError(f"key prefix {prefix!r} is ambiguous: {', '.join(m.name[:12] for m in matches[:5])}")
+        entry = self.lookup(matches[0].parent.name, matches[0].name)
+        if entry is None:
+            raise CacheError(f"entry {matches[0]} is not readable")
+        return entry
+
+    def latest_for(self, stage: str, node: str, batch_index: int | None) -> dict[str, Any] | None:
+        """The newest manifest of ``stage`` written for ``node`` (and batch), to explain why a key changed."""
+        best, best_t = None, -1.0
+        stage_dir = self.root / "entries" / stage
+        if not stage_dir.is_dir():
+            return None
+        for mf in stage_dir.glob(f"*/{MANIFEST}"):
+            try:
+                t = mf.stat().st_mtime
+                if t <= best_t:
+                    continue
+                m = json.loads(mf.read_text())
+            except (OSError, json.JSONDecodeError):
+                continue
+            if m.get("node") == node and (m.get("batch") or {}).get("index") == batch_index:
+                best, best_t = m, t
+        return best
+
+
+def explain_difference(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """Readable differences between two key documents: ``config.window: 3 -> 5``."""
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k, "<absent>"), new.get(k, "<absent>")
+        if a == b:
+            continue
+        path = f"{prefix}{k}"
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            out += explain_difference(a, b, path + ".")
+        elif path.startswith("inputs."):
+            out.append(f"{path} changed (upstream result differs)")
+        else:
+            out.append(f"{path}: {json.dumps(a)} -> {json.dumps(b)}")
+    return out
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:6]}.tmp")
+    with open(tmp, "w") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)

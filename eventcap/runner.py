@@ -1,0 +1,478 @@
+"""Runs a validated pipeline: cache lookups, per-batch fan-out, failures, progress and the run summary.
+
+The runner owns all I/O: a task (one node, or one batch of a per-batch node) loads its inputs from the cache, calls the
+stage's pure run function and commits the outputs atomically. The same task function runs in-process (``serial``) or
+in worker processes (``processes``), so results do not depend on the executor. Resuming is running the same command
+again: every committed node and batch is a cache hit.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+import time
+import traceback
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
+from .cache import Cache, CacheCorruptError, Entry, explain_difference, make_key
+from .config import build_config, config_to_dict, file_digests, result_config
+from .pipeline import Node, build_pipeline
+from .registry import Registry, load_registry
+from .stage import StageContext, StageFailed, StageSpec
+
+log = logging.getLogger("eventcap.runner")
+
+#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines costs 10-30x (NOTES.md).
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Tasks: picklable descriptions of one unit of work, executed by execute_task in any process.
+# ---------------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class InputRefSpec:
+    """Where a task reads one input: a single entry, or all batches of a per-batch upstream node."""
+
+    stage: str
+    port: str
+    keys: tuple[str, ...]
+    all_batches: bool = False
+    plan: tuple[tuple[int, int, int, int], ...] = ()  # (index, t0_us, t1_us, frame0) per key when all_batches
+
+
+@dataclass(frozen=True)
+class Task:
+    cache_root: str
+    node: str
+    stage: str
+    config: dict[str, Any]
+    config_path: str
+    inputs: dict[str, InputRefSpec]
+    key: str
+    doc: dict[str, Any]
+    batch: Batch | None = None
+    n_batches: int = 0
+
+
+@dataclass
+class TaskResult:
+    node: str
+    key: str
+    batch: int | None
+    status: str  # "computed" | "failed"
+    elapsed_s: float = 0.0
+    error: str = ""
+    failure_status: str = ""
+
+
+class BatchSequence(Sequence):
+    """All batches of a per-batch output, loaded one at a time from the cache (the driver never holds them all)."""
+
+    def __init__(self, cache: Cache, ref: InputRefSpec, cls: type[Artifact]):
+        self._cache, self._ref, self._cls = cache, ref, cls
+        self.batches = [Batch(*row) for row in ref.plan]
+
+    def __len__(self) -> int:
+        return len(self._ref.keys)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        return _load(str(self._cache.root), self._ref.stage, self._ref.keys[i], self._ref.port, self._cls)
+
+
+@functools.lru_cache(maxsize=16)
+def _cache_at(root: str) -> Cache:
+    return Cache(root)
+
+
+@functools.lru_cache(maxsize=8)
+def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact]) -> Artifact:
+    cache = _cache_at(root)
+    entry = cache.lookup(stage, key)
+    if entry is None:
+        raise CacheCorruptError(f"input {stage}/{key} ({port}) is not in the cache at {root}")
+    return cache.load(entry, port, cls)
+
+
+@functools.lru_cache(maxsize=1)
+def _registry() -> Registry:
+    return load_registry()
+
+
+def execute_task(task: Task) -> TaskResult:
+    """Load inputs, run the stage, commit or record the failure. Never raises for a stage's own error."""
+    t0 = time.perf_counter()
+    bidx = task.batch.index if task.batch is not None else None
+    cache = _cache_at(task.cache_root)
+    try:
+        spec = _registry().get(task.stage)
+        config = build_config(spec, task.config, task.config_path)
+        inputs: dict[str, Any] = {}
+        for port, ref in task.inputs.items():
+            cls = spec.inputs[port].type
+            if ref.all_batches:
+                inputs[port] = BatchSequence(cache, ref, cls)
+            else:
+                inputs[port] = _load(task.cache_root, ref.stage, ref.keys[0], ref.port, cls)
+        ctx = StageContext(node=task.node, stage=task.stage, batch=task.batch,
+                           log=logging.getLogger(f"eventcap.stage.{task.node}"))
+        outputs = spec.load_run()(inputs, config, ctx)
+        _check_outputs(spec, task.node, outputs)
+        info = {"node": task.node, "batch": task.batch.as_key() if task.batch else None,
+                "elapsed_s": round(time.perf_counter() - t0, 6)}
+        cache.commit(task.stage, task.key, task.doc, outputs, info)
+        return TaskResult(task.node, task.key, bidx, "computed", time.perf_counter() - t0)
+    except Exception as exc:  # recorded, reported, never cached as success
+        status = exc.status if isinstance(exc, StageFailed) else type(exc).__name__
+        record = {"node": task.node, "batch": task.batch.as_key() if task.batch else None, "status": status,
+                  "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc(),
+                  "details": getattr(exc, "details", {})}
+        try:
+            cache.record_failure(task.stage, task.key, task.doc, record)
+        except OSError as werr:  # the failure itself is still reported to the driver
+            log.error("could not record failure of %s: %s", task.node, werr)
+        return TaskResult(task.node, task.key, bidx, "failed", time.perf_counter() - t0,
+                          f"{type(exc).__name__}: {exc}", status)
+
+
+def _check_outputs(spec: StageSpec, node: str, outputs: Any) -> None:
+    if not isinstance(outputs, Mapping):
+        raise ArtifactError(f"node {node!r}: stage {spec.name!r} returned {type(outputs).__name__}, expected a dict of outputs")
+    if set(outputs) != set(spec.outputs):
+        raise ArtifactError(
+            f"node {node!r}: stage {spec.name!r} returned outputs {sorted(outputs)}, declared {sorted(spec.outputs)}"
+        )
+    for port, value in outputs.items():
+        want = spec.outputs[port].type
+        if not isinstance(value, want):
+            raise ArtifactError(f"node {node!r}: output {port!r} must be a {want.__name__}, got {type(value).__name__}")
+
+
+def base_doc(spec: StageSpec, config: Any, where: str) -> dict[str, Any]:
+    """The part of a cache key document that comes from the stage itself: name, version, config, file digests."""
+    return {
+        "stage": spec.name,
+        "version": spec.version,
+        "config": result_config(spec, config),
+        "files": file_digests(spec, config, where),
+    }
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Executors
+# ---------------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ExecutorConfig:
+    kind: str = "serial"  # serial | processes
+    workers: int = 2
+    threads_per_worker: int = 1
+
+
+def _init_worker(level: int) -> None:
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+
+@contextmanager
+def _executor(cfg: ExecutorConfig) -> Iterator[Any]:
+    if cfg.kind == "serial":
+        yield None
+        return
+    if cfg.kind != "processes":
+        raise ValueError(f"executor.kind: expected 'serial' or 'processes', got {cfg.kind!r}")
+    import multiprocessing as mp
+
+    saved = {k: os.environ.get(k) for k in THREAD_ENV}
+    os.environ.update({k: str(cfg.threads_per_worker) for k in THREAD_ENV})
+    try:
+        # spawn, not fork: zarr and tqdm run background threads, and forking a threaded process can deadlock.
+        with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("spawn"),
+                                 initializer=_init_worker, initargs=(logging.getLogger().level,)) as pool:
+            yield pool
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The run
+# ---------------------------------------------------------------------------------------------------------------------
+@dataclass
+class NodeReport:
+    node: str
+    stage: str
+    per_batch: bool
+    keys: list[str] = field(default_factory=list)
+    computed_keys: list[str] = field(default_factory=list)
+    cached: int = 0
+    computed: int = 0
+    failed: list[dict[str, Any]] = field(default_factory=list)
+    skipped: int = 0
+    elapsed_s: float = 0.0
+
+
+@dataclass
+class RunResult:
+    nodes: dict[str, NodeReport]
+    metrics: dict[str, Any]
+
+    @property
+    def ok(self) -> bool:
+        return all(not r.failed and not r.skipped for r in self.nodes.values())
+
+    def computed_keys(self) -> int:
+        return sum(r.computed for r in self.nodes.values())
+
+
+class Runner:
+    """Executes the pipeline described by a composed config mapping (see conf/config.yaml)."""
+
+    def __init__(self, cfg: Mapping[str, Any], registry: Registry | None = None):
+        self.cfg = cfg
+        self.registry = registry or load_registry()
+        self.nodes = build_pipeline(cfg, self.registry)
+        self.cache = Cache(cfg.get("cache_dir") or "runs/cache")
+        ex = cfg.get("executor") or {}
+        self.executor = ExecutorConfig(**{k: v for k, v in ex.items() if k in ("kind", "workers", "threads_per_worker")})
+        self.selection = _parse_selection(cfg.get("batches"))
+
+    def _base_doc(self, node: Node) -> dict[str, Any]:
+        return base_doc(node.spec, node.config, node.config_path)
+
+    def run(self, run_dir: str | Path | None = None) -> RunResult:
+        self.cache.clean_orphans()
+        reports: dict[str, NodeReport] = {}
+        node_keys: dict[str, str] = {}  # node-level key (whole nodes: the entry key)
+        batch_keys: dict[str, dict[int, str]] = {}  # per-batch nodes: batch index -> key (only successful ones)
+        plans: dict[str, list[Batch]] = {}
+        t_run = time.perf_counter()
+        with _executor(self.executor) as pool:
+            for i, node in enumerate(self.nodes, 1):
+                t0 = time.perf_counter()
+                rep = NodeReport(node.name, node.spec.name, node.spec.per_batch)
+                reports[node.name] = rep
+                label = f"[{i}/{len(self.nodes)}] {node.name} ({node.spec.name} v{node.spec.version})"
+                upstream_bad = [r.node for r in node.inputs.values() if reports[r.node].failed or reports[r.node].skipped]
+                base = self._base_doc(node)
+                if not node.spec.per_batch:
+                    if upstream_bad:
+                        rep.skipped = 1
+                        log.error("%s: skipped, upstream failed: %s", label, ", ".join(sorted(set(upstream_bad))))
+                        continue
+                    self._run_whole(node, base, node_keys, batch_keys, plans, rep, label)
+                else:
+                    self._run_batches(node, base, node_keys, batch_keys, plans, rep, label, pool)
+                rep.elapsed_s = time.perf_counter() - t0
+        metrics = self._collect_metrics(reports, node_keys)
+        result = RunResult(reports, metrics)
+        n_comp = result.computed_keys()
+        n_hit = sum(r.cached for r in reports.values())
+        n_fail = sum(len(r.failed) for r in reports.values())
+        log.info("run finished in %.1f s: %d computed, %d cached, %d failed", time.perf_counter() - t_run,
+                 n_comp, n_hit, n_fail)
+        if run_dir is not None:
+            self._write_summary(Path(run_dir), result, node_keys, batch_keys)
+        return result
+
+    def _input_specs(self, node: Node, node_keys, batch_keys, plans, batch: Batch | None) -> tuple[dict, dict]:
+        """Input references for a task and the matching key material."""
+        refs, keydoc = {}, {}
+        for port, ref in node.inputs.items():
+            up = next(n for n in self.nodes if n.name == ref.node)
+            if up.spec.per_batch and node.spec.per_batch:
+                k = batch_keys[ref.node][batch.index]
+                refs[port] = InputRefSpec(up.spec.name, ref.port, (k,))
+                keydoc[port] = k
+            elif up.spec.per_batch:
+                sel = plans[ref.node]
+                keys = tuple(batch_keys[ref.node][b.index] for b in sel)
+                refs[port] = InputRefSpec(up.spec.name, ref.port, keys, True,
+                                          tuple((b.index, b.t0_us, b.t1_us, b.frame0) for b in sel))
+                keydoc[port] = node_keys[ref.node]
+                if self.selection is not None:
+                    keydoc[port] = {"node_key": node_keys[ref.node], "batches": [b.index for b in sel]}
+            else:
+                refs[port] = InputRefSpec(up.spec.name, ref.port, (node_keys[ref.node],))
+                keydoc[port] = node_keys[ref.node]
+        return refs, keydoc
+
+    def _why(self, node: Node, doc: dict[str, Any], batch: int | None) -> str:
+        old = self.cache.latest_for(node.spec.name, node.name, batch)
+        if old is None:
+            return "no earlier result for this node"
+        diff = explain_difference(old["doc"], doc)
+        return "; ".join(diff[:4]) + (" ..." if len(diff) > 4 else "") if diff else "entry was removed"
+
+    def _run_whole(self, node, base, node_keys, batch_keys, plans, rep, label) -> None:
+        refs, keydoc = self._input_specs(node, node_keys, batch_keys, plans, None)
+        doc = {**base, "inputs": keydoc}
+        key = make_key(doc)
+        node_keys[node.name] = key
+        rep.keys = [key]
+        entry = self._lookup(node.spec.name, key)
+        if entry is not None:
+            rep.cached = 1
+            log.info("%s: cached (key %s, computed %s)", label, key[:12], entry.manifest.get("created"))
+            return
+        log.info("%s: computing (key %s; cache miss: %s)", label, key[:12], self._why(node, doc, None))
+        task = Task(str(self.cache.root), node.name, node.spec.name, config_to_dict(node.config), node.config_path,
+                    refs, key, doc)
+        res = execute_task(task)
+        if res.status == "computed":
+            rep.computed = 1
+            rep.computed_keys.append(key)
+            log.info("%s: computed in %.2f s", label, res.elapsed_s)
+        else:
+            rep.failed.append({"batch": None, "status": res.failure_status, "error": res.error, "key": key})
+            log.error("%s: FAILED (%s): %s", label, res.failure_status, res.error)
+
+    def _lookup(self, stage: str, key: str) -> Entry | None:
+        entry = self.cache.lookup(stage, key)
+        if entry is None:
+            return None
+        try:
+            self.cache.verify(entry)
+        except CacheCorruptError as exc:
+            self.cache.quarantine(entry.path, str(exc))
+            return None
+        return entry
+
+    def _plan_for(self, node: Node, node_keys) -> list[Batch]:
+        plan_node = next(n for n in self.nodes if n.name == node.plan_node)
+        plan = _load(str(self.cache.root), plan_node.spec.name, node_keys[plan_node.name], node.plan_port, BatchPlan)
+        batches = plan.batches()
+        if self.selection is not None:
+            start, stop = self.selection
+            batches = batches[start:stop]
+        return batches
+
+    def _run_batches(self, node, base, node_keys, batch_keys, plans, rep, label, pool) -> None:
+        from tqdm import tqdm
+
+        whole_bad = [r.node for r in node.inputs.values()
+                     if not next(n for n in self.nodes if n.name == r.node).spec.per_batch and r.node not in node_keys]
+        if whole_bad or node.plan_node not in node_keys:
+            rep.skipped = 1
+            log.error("%s: skipped, upstream failed: %s", label, ", ".join(sorted(set(whole_bad or [node.plan_node]))))
+            plans[node.name] = []
+            batch_keys[node.name] = {}
+            return
+        batches = self._plan_for(node, node_keys)
+        plans[node.name] = batches
+        # Node-level key: the per-batch upstreams enter by their node-level keys; used by whole-recording consumers.
+        node_doc = {**base, "inputs": {p: node_keys[r.node] for p, r in node.inputs.items()}}
+        node_keys[node.name] = make_key(node_doc)
+        keys: dict[int, str] = {}
+        batch_keys[node.name] = keys
+        todo: list[Task] = []
+        for b in batches:
+            ups = [r.node for r in node.inputs.values() if r.node in batch_keys and b.index not in batch_keys[r.node]
+                   and next(n for n in self.nodes if n.name == r.node).spec.per_batch]
+            if ups:
+                rep.skipped += 1
+                continue
+            refs, keydoc = self._input_specs(node, node_keys, batch_keys, plans, b)
+            doc = {**base, "inputs": keydoc, "batch": b.as_key()}
+            key = make_key(doc)
+            rep.keys.append(key)
+            if self._lookup(node.spec.name, key) is not None:
+                keys[b.index] = key
+                rep.cached += 1
+                continue
+            todo.append(Task(str(self.cache.root), node.name, node.spec.name, config_to_dict(node.config),
+                             node.config_path, refs, key, doc, b, len(batches)))
+        why = f"; cache miss: {self._why(node, todo[0].doc, todo[0].batch.index)}" if todo else ""
+        log.info("%s: %d batches: %d cached, %d to compute%s%s", label, len(batches), rep.cached, len(todo),
+                 f", {rep.skipped} skipped (upstream failed)" if rep.skipped else "", why)
+        if not todo:
+            return
+        bar = tqdm(total=len(batches), initial=rep.cached, desc=node.name, unit="batch", leave=False,
+                   disable=None, dynamic_ncols=True)
+        try:
+            for res in self._execute(todo, pool):
+                bar.update(1)
+                if res.status == "computed":
+                    keys[res.batch] = res.key
+                    rep.computed += 1
+                    rep.computed_keys.append(res.key)
+                    log.info("%s: batch %d/%d computed in %.2f s", node.name, res.batch + 1, len(batches), res.elapsed_s)
+                else:
+                    rep.failed.append({"batch": res.batch, "status": res.failure_status, "error": res.error,
+                                       "key": res.key})
+                    log.error("%s: batch %d FAILED (%s): %s", node.name, res.batch, res.failure_status, res.error)
+        finally:
+            bar.close()
+
+    def _execute(self, tasks: list[Task], pool) -> Iterator[TaskResult]:
+        if pool is None:
+            for t in tasks:
+                yield execute_task(t)
+            return
+        pending = {pool.submit(execute_task, t) for t in tasks}
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in done:
+                yield fut.result()
+
+    # -- outputs --------------------------------------------------------------------------------------------------
+    def _collect_metrics(self, reports, node_keys) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for node in self.nodes:
+            if node.spec.per_batch or node.name not in node_keys or reports[node.name].failed or reports[node.name].skipped:
+                continue
+            for port, p in node.spec.outputs.items():
+                if issubclass(p.type, Metrics):
+                    m = _load(str(self.cache.root), node.spec.name, node_keys[node.name], port, Metrics)
+                    out[f"{node.name}.{port}"] = m.values
+        return out
+
+    def _write_summary(self, run_dir: Path, result: RunResult, node_keys, batch_keys) -> None:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        summary = {
+            "ok": result.ok,
+            "cache_dir": str(self.cache.root),
+            "nodes": {
+                n: {"stage": r.stage, "per_batch": r.per_batch, "cached": r.cached, "computed": r.computed,
+                    "skipped": r.skipped, "failed": r.failed, "elapsed_s": round(r.elapsed_s, 3),
+                    "keys": r.keys, "computed_keys": r.computed_keys}
+                for n, r in result.nodes.items()
+            },
+        }
+        (run_dir / "run.json").write_text(json.dumps(summary, indent=1))
+        (run_dir / "metrics.json").write_text(json.dumps(result.metrics, indent=1, default=str))
+
+
+def _parse_selection(value) -> tuple[int | None, int | None] | None:
+    """``batches=`` config: null (all), ``N`` (first N) or ``start:stop``."""
+    if value in (None, "", "all"):
+        return None
+    if isinstance(value, int):
+        return (0, value)
+    text = str(value)
+    if ":" in text:
+        a, _, b = text.partition(":")
+        try:
+            return (int(a) if a else None, int(b) if b else None)
+        except ValueError:
+            pass
+    elif text.isdigit():
+        return (0, int(text))
+    raise ValueError(f"batches: expected null, N or 'start:stop', got {value!r}")
+
+
+def reset_process_caches() -> None:
+    """Forget memoised registry, caches and loaded inputs (after changing EVENTCAP_STAGES or files on disk)."""
+    _registry.cache_clear()
+    _cache_at.cache_clear()
+    _load.cache_clear()
