@@ -1,0 +1,227 @@
+"""The ``eventcap`` command: run pipelines (Hydra), list stages, inspect and clean the cache.
+
+    eventcap run [hydra overrides]       run the configured pipeline; -m for sweeps; --cfg job / --help show config
+    eventcap stages [--kind K]           installed stages with one-line descriptions (imports no implementation)
+    eventcap cache ls | explain KEY | gc inspect and clean the stage cache
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+log = logging.getLogger("eventcap")
+
+
+def config_dir() -> Path:
+    """The hydra config directory: $EVENTCAP_CONFIG_DIR, else ``conf/`` next to the package (source checkout)."""
+    env = os.environ.get("EVENTCAP_CONFIG_DIR")
+    candidates = [Path(env)] if env else []
+    candidates.append(Path(__file__).resolve().parent.parent / "conf")
+    for c in candidates:
+        if (c / "config.yaml").is_file():
+            return c.resolve()
+    raise SystemExit(
+        f"eventcap: no config directory found (looked in {', '.join(str(c) for c in candidates)}); "
+        f"set EVENTCAP_CONFIG_DIR to the project's conf/ folder"
+    )
+
+
+def default_cache_dir() -> str:
+    return os.environ.get("EVENTCAP_CACHE_DIR", "runs/cache")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# eventcap run
+# ---------------------------------------------------------------------------------------------------------------------
+_RUN_FAILURES: list[str] = []
+
+
+def _run_job(cfg) -> bool:
+    """One hydra job: compose -> validate -> run. Returns True on success."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    from .cache import CacheError
+    from .config import ConfigError
+    from .pipeline import PipelineError
+    from .registry import UnknownStageError
+    from .runner import Runner
+
+    logging.getLogger().setLevel(str(cfg.get("log_level", "INFO")).upper())
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    data = OmegaConf.to_container(cfg, resolve=True)
+    overrides = list(HydraConfig.get().overrides.task)
+    log.info("run folder: %s%s", run_dir, f" (overrides: {' '.join(overrides)})" if overrides else "")
+    try:
+        runner = Runner(data)
+        result = runner.run(run_dir)
+    except (PipelineError, ConfigError, UnknownStageError, CacheError, ValueError) as exc:
+        log.error("%s", exc)
+        _RUN_FAILURES.append(f"{run_dir}: {exc}")
+        return False
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    if result.metrics:
+        log.info("metrics: %s", json.dumps(result.metrics, default=str)[:2000])
+    if not result.ok:
+        failed = [f"{n} batch {f['batch']}" if f["batch"] is not None else n
+                  for n, r in result.nodes.items() for f in r.failed]
+        skipped = [n for n, r in result.nodes.items() if r.skipped]
+        msg = f"failed: {', '.join(failed) or '-'}; skipped (upstream failed): {', '.join(skipped) or '-'}"
+        log.error("run incomplete: %s. Fix the cause and run the same command again: committed results are reused.", msg)
+        _RUN_FAILURES.append(f"{run_dir}: {msg}")
+        return False
+    return True
+
+
+def cmd_run(argv: list[str]) -> int:
+    import hydra
+
+    cdir = str(config_dir())
+    _RUN_FAILURES.clear()
+
+    @hydra.main(version_base="1.3", config_path=cdir, config_name="config")
+    def _main(cfg) -> None:
+        _run_job(cfg)
+
+    sys.argv = ["eventcap run", *argv]
+    try:
+        _main()
+    except SystemExit as exc:  # hydra exits for --help, --cfg, and its own config errors
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        return code
+    return 1 if _RUN_FAILURES else 0
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# eventcap stages / cache
+# ---------------------------------------------------------------------------------------------------------------------
+def cmd_stages(args) -> int:
+    from .registry import load_registry
+
+    reg = load_registry()
+    specs = [s for s in reg.specs() if args.kind is None or s.kind == args.kind]
+    if not specs:
+        print("no stages installed" + (f" of kind {args.kind!r}" if args.kind else ""))
+    width = max((len(s.name) for s in specs), default=4)
+    for kind in sorted({s.kind for s in specs}):
+        print(f"{kind}:")
+        for s in (s for s in specs if s.kind == kind):
+            batch = "per batch" if s.per_batch else "whole"
+            print(f"  {s.name:<{width}}  v{s.version:<3} {batch:<9}  {s.description}")
+            if args.verbose:
+                print(f"  {'':<{width}}  from {s.origin}")
+    for p in reg.problems:
+        print(f"warning: {p}", file=sys.stderr)
+    return 0
+
+
+def cmd_cache(args) -> int:
+    from .cache import Cache, CacheError
+
+    cache = Cache(args.cache_dir)
+    try:
+        if args.action == "ls":
+            entries = cache.entries()
+            total = 0
+            print(f"{'stage':<16} {'key':<14} {'node':<14} {'batch':>5} {'size':>10}  created")
+            for e in entries:
+                m = e.manifest
+                b = (m.get("batch") or {}).get("index")
+                size = e.size_bytes()
+                total += size
+                print(f"{e.stage:<16} {e.key[:12]:<14} {str(m.get('node', '')):<14} {'' if b is None else b:>5} "
+                      f"{_human(size):>10}  {m.get('created', '')}")
+            nfail = len(list((cache.root / "failures").glob("*.json")))
+            print(f"{len(entries)} entries, {_human(total)} in {cache.root}; {nfail} recorded failures")
+        elif args.action == "explain":
+            _explain(cache, args.key)
+        elif args.action == "gc":
+            removed = cache.clean_orphans(max_age_s=0 if args.all else 24 * 3600)
+            n = 0
+            import shutil
+            import time
+
+            cutoff = time.time() - args.older_than * 86400 if args.older_than is not None else None
+            for e in cache.entries():
+                if args.all or (cutoff is not None and (e.path / "manifest.json").stat().st_mtime < cutoff):
+                    shutil.rmtree(e.path, ignore_errors=True)
+                    n += 1
+            for f in (cache.root / "failures").glob(".*.tmp"):
+                f.unlink(missing_ok=True)
+            print(f"removed {len(removed)} orphaned temporary entries and {n} cache entries from {cache.root}")
+    except CacheError as exc:
+        print(f"eventcap cache: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _explain(cache, prefix: str) -> None:
+    e = cache.find(prefix)
+    m = e.manifest
+    doc = m["doc"]
+    print(f"key      {e.key}")
+    print(f"stage    {doc['stage']} v{doc['version']}   node {m.get('node')}   created {m.get('created')}")
+    if m.get("batch"):
+        b = m["batch"]
+        print(f"batch    {b['index']}  [{b['t0_us']} us, {b['t1_us']} us)")
+    outs = ", ".join(f"{p}: {o['type']} v{o['schema_version']}" for p, o in m["outputs"].items())
+    print(f"outputs  {outs}")
+    print(f"size     {_human(e.size_bytes())} in {len(m['files'])} files; computed in {m.get('elapsed_s', '?')} s")
+    print("config (fields that affect the result):")
+    for k, v in sorted(doc["config"].items()):
+        print(f"  {k} = {json.dumps(v)}")
+    for k, v in sorted(doc.get("files", {}).items()):
+        print(f"  file {k}: sha256 {v[:16]}…")
+    print("inputs:")
+    for port, key in sorted(doc.get("inputs", {}).items()):
+        keys = key if isinstance(key, str) else key.get("node_key", "")
+        try:
+            up = cache.find(keys[:40])
+            desc = f"{up.stage} (node {up.manifest.get('node')})"
+        except Exception:
+            desc = "per-batch node or not in cache"
+        print(f"  {port} <- {keys[:12]}  {desc}")
+
+
+def _human(n: int) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "run":
+        return cmd_run(argv[1:])
+    parser = argparse.ArgumentParser(prog="eventcap", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("run", help="run the pipeline (hydra overrides follow; see `eventcap run --help`)")
+    p = sub.add_parser("stages", help="list installed stages")
+    p.add_argument("--kind", help="only stages of this kind (e.g. track)")
+    p.add_argument("-v", "--verbose", action="store_true", help="show where each stage comes from")
+    p = sub.add_parser("cache", help="inspect or clean the stage cache")
+    p.add_argument("action", choices=["ls", "explain", "gc"])
+    p.add_argument("key", nargs="?", help="key (or unique prefix) for explain")
+    p.add_argument("--cache-dir", default=default_cache_dir(), help="cache root (default: %(default)s)")
+    p.add_argument("--older-than", type=float, default=None, help="gc: also remove entries older than this many days")
+    p.add_argument("--all", action="store_true", help="gc: remove every entry")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.command == "stages":
+        return cmd_stages(args)
+    if args.command == "cache":
+        if args.action == "explain" and not args.key:
+            parser.error("cache explain needs a KEY")
+        return cmd_cache(args)
+    return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

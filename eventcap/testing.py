@@ -1,0 +1,118 @@
+"""Conformance tests every stage inherits (ours and third parties'), in the manner of Hydra's launcher test suite.
+
+    from eventcap.testing import StageConformance
+
+    class TestMyStage(StageConformance):
+        stage_name = "my_stage"
+        sensitive = ("threshold", 0.3)          # a result-affecting field and another value for it
+
+        def make_inputs(self):                  # a tiny, seeded input for every declared input port
+            return {"recording": tiny_recording(seed=0)}
+
+The suite checks discovery through the registry, config round trip and rejection of unknown keys, cache-key
+stability and sensitivity, the output schema (declared types, zarr round trip) and determinism.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+from .artifacts import Artifact, Batch, BatchPlan
+from .cache import make_key
+from .config import ConfigError, build_config, config_to_dict
+from .registry import load_registry
+from .stage import StageContext, StageSpec
+
+
+class StageConformance:
+    """Subclass in a pytest module; set ``stage_name`` and implement ``make_inputs``."""
+
+    stage_name: ClassVar[str] = ""
+    config_overrides: ClassVar[dict[str, Any]] = {}
+    sensitive: ClassVar[tuple[str, Any] | None] = None
+    insensitive: ClassVar[tuple[str, Any] | None] = None
+
+    def make_inputs(self) -> dict[str, Any]:
+        raise NotImplementedError("return a tiny seeded input for each input port of the stage")
+
+    # -- helpers ------------------------------------------------------------------------------------------------
+    def spec(self) -> StageSpec:
+        assert self.stage_name, "set stage_name on the conformance test class"
+        return load_registry().get(self.stage_name)
+
+    def config(self, **changes: Any):
+        return build_config(self.spec(), {**self.config_overrides, **changes}, f"stages.{self.stage_name}")
+
+    def batch(self, inputs: dict[str, Any]) -> Batch | None:
+        if not self.spec().per_batch:
+            return None
+        plans = [v for v in inputs.values() if isinstance(v, BatchPlan)]
+        return plans[0].batch(0) if plans else Batch(0, 0, 40_000, 0)
+
+    def run_once(self, **changes: Any) -> dict[str, Artifact]:
+        spec = self.spec()
+        inputs = self.make_inputs()
+        ctx = StageContext(node=f"conformance_{spec.name}", stage=spec.name, batch=self.batch(inputs))
+        return dict(spec.load_run()(inputs, self.config(**changes), ctx))
+
+    def key(self, **changes: Any) -> str:
+        from .runner import base_doc
+
+        spec = self.spec()
+        return make_key({**base_doc(spec, self.config(**changes), f"stages.{spec.name}"), "inputs": {}})
+
+    # -- the suite ------------------------------------------------------------------------------------------------
+    def test_discovery(self):
+        spec = self.spec()
+        assert spec.name == self.stage_name
+        assert spec.kind and spec.description and isinstance(spec.version, int)
+        assert callable(spec.load_run())
+
+    def test_config_roundtrip(self):
+        spec = self.spec()
+        cfg = self.config()
+        again = build_config(spec, config_to_dict(cfg), "roundtrip")
+        assert config_to_dict(again) == config_to_dict(cfg)
+        for f in dataclasses.fields(spec.config):
+            assert f.metadata.get("help"), f"config field {f.name} has no help text"
+
+    def test_unknown_config_key_rejected(self):
+        try:
+            self.config(no_such_key_xyz=1)
+        except ConfigError as exc:
+            assert "no_such_key_xyz" in str(exc)
+        else:
+            raise AssertionError("an unknown config key was accepted")
+
+    def test_cache_key_stable(self):
+        assert self.key() == self.key()
+        if self.insensitive is not None:
+            name, value = self.insensitive
+            assert name not in self.spec().result_fields()
+            assert self.key(**{name: value}) == self.key()
+
+    def test_cache_key_sensitive(self):
+        if self.sensitive is None:
+            return
+        name, value = self.sensitive
+        assert name in self.spec().result_fields()
+        assert self.key(**{name: value}) != self.key()
+
+    def test_output_schema(self, tmp_path):
+        import zarr
+
+        spec = self.spec()
+        outputs = self.run_once()
+        assert set(outputs) == set(spec.outputs)
+        group = zarr.open_group(str(tmp_path / "out.zarr"), mode="w")
+        for port, value in outputs.items():
+            assert isinstance(value, spec.outputs[port].type)
+            value.to_zarr(group.create_group(port))
+            back = spec.outputs[port].type.from_zarr(zarr.open_group(str(tmp_path / "out.zarr"), mode="r")[port])
+            assert back.equals(value), f"output {port} does not survive a zarr round trip"
+
+    def test_determinism(self):
+        a, b = self.run_once(), self.run_once()
+        for port in a:
+            assert a[port].equals(b[port]), f"output {port} differs between two runs on the same input"

@@ -1,0 +1,24 @@
+"""A run killed with SIGKILL at random moments and resumed ends with identical outputs and recomputes nothing
+committed. The quick version runs 3 trials; the full 20-trial soak is `slow` (and benchmarks/kill_resume.py)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import kill_resume  # noqa: E402
+
+
+def test_kill_resume_quick(capsys):
+    assert kill_resume.main(["--trials", "3", "--executor", "mixed", "--seed", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "3 passed, 0 failed" in out
+
+
+@pytest.mark.slow
+def test_kill_resume_soak(capsys):
+    assert kill_resume.main(["--trials", "20", "--executor", "mixed", "--seed", "7"]) == 0
+    assert "20 passed, 0 failed" in capsys.readouterr().out
