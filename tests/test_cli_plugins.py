@@ -5,11 +5,10 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-from conftest import ROOT, TESTS, toy_env
+from conftest import TESTS, toy_env
 
 TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "+experiment=toy"]
 

@@ -53,11 +53,13 @@ class AttrSpec:
     doc: str = ""
 
 
-def array(dtype, dims, *, units: str = "", doc: str = "", optional: bool = False):
+def array(dtype, dims, *, units: str = "", doc: str = "", optional: bool = False, default_factory=None):
     """Declare an array field: numpy dtype, dimension names (str) or fixed sizes (int), units."""
     spec = ArraySpec(np.dtype(dtype), tuple(dims), units, doc, optional)
     if optional:
         return field(default=None, metadata={"array": spec})
+    if default_factory is not None:
+        return field(default_factory=default_factory, metadata={"array": spec})
     return field(metadata={"array": spec})
 
 
@@ -263,7 +265,7 @@ class Artifact:
                 kwargs[fname] = out
             else:
                 kwargs[fname] = np.asarray(group[fname][...])
-        for fname, (ctype, optional) in cls.child_fields().items():
+        for fname, (ctype, _optional) in cls.child_fields().items():
             kwargs[fname] = ctype.from_zarr(group[fname], f"{where}/{fname}") if fname in members else None
         for fname, value in list(kwargs.items()):
             if isinstance(value, list):
