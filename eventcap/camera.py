@@ -1,0 +1,307 @@
+"""The event camera's geometry: pinhole + OpenCV distortion, projection in numpy and CasADi, calibration I/O.
+
+Conventions (DESIGN §2):
+
+- World: metres, y up; the synthetic actor stands on y = 0 facing +z.
+- Camera axes as in OpenCV: x right, y down, z forward. ``x_cam = R @ x_world + t``.
+- Pixels: origin top-left; pixel ``(x, y)`` covers ``[x - 0.5, x + 0.5] × [y - 0.5, y + 0.5]``, so integer
+  coordinates are pixel centres (the OpenCV convention).
+- Distortion ``dist = (k1, k2, p1, p2, k3)`` in OpenCV / rpg order, applied to normalised coordinates
+  ``(x/z, y/z)`` before the intrinsics.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+from pathlib import Path
+
+import numpy as np
+
+from eventcap.artifacts.base import Artifact, array, attr
+
+#: Public calibration of a DAVIS240C (rpg Event Camera Dataset), order fx fy cx cy k1 k2 p1 p2 k3.
+DAVIS240C_CALIBRATION = (199.092, 198.829, 132.192, 110.713, -0.3684, 0.1509, -0.0003, -0.0008, 0.0)
+
+#: Default synthetic placement: ~4 m in front of the actor (who faces +z), lens at chest height, looking
+#: slightly down, so that a box x ±1.1 m, y 0..2.6 m, z -0.6..0.9 m (jumping jacks with a 0.3 m jump, kicks)
+#: projects inside 240×180 (rows ~22..173 with distortion).
+DEFAULT_EYE_M = (0.0, 1.3, 4.0)
+DEFAULT_TARGET_M = (0.0, 1.0, 0.0)
+
+
+def _as_float_array(value, shape: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.array(value, dtype=np.float64)
+    if arr.shape != shape:
+        raise ValueError(f"Camera.{name}: expected shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"Camera.{name}: expected finite values, got {arr.tolist()}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Camera(Artifact):
+    """A calibrated camera: image size (pixels), intrinsics (pixels), distortion and world→camera extrinsics.
+
+    ``dist`` is (5,) = k1 k2 p1 p2 k3; ``R`` (3,3) rotation and ``t`` (3,) metres map world to camera
+    coordinates, ``x_cam = R x_world + t``. Arrays are stored read-only; equality is identity (use
+    :meth:`to_dict` to compare values).
+    """
+
+    schema_version: ClassVar[int] = 1
+    width: int = attr(units="px")
+    height: int = attr(units="px")
+    fx: float = attr(units="px")
+    fy: float = attr(units="px")
+    cx: float = attr(units="px")
+    cy: float = attr(units="px")
+    dist: np.ndarray = array("float64", (5,), doc="k1 k2 p1 p2 k3", default_factory=lambda: np.zeros(5))
+    R: np.ndarray = array("float64", (3, 3), doc="world -> camera rotation", default_factory=lambda: np.eye(3))
+    t: np.ndarray = array("float64", (3,), units="m", default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self):
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value <= 0:
+                raise ValueError(f"Camera.{name}: expected a positive integer number of pixels, got {value!r}")
+            object.__setattr__(self, name, int(value))
+        for name in ("fx", "fy", "cx", "cy"):
+            value = float(getattr(self, name))
+            if not math.isfinite(value):
+                raise ValueError(f"Camera.{name}: expected a finite number, got {value!r}")
+            object.__setattr__(self, name, value)
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"Camera focal lengths must be positive pixels, got fx={self.fx}, fy={self.fy}")
+        object.__setattr__(self, "dist", _as_float_array(self.dist, (5,), "dist"))
+        R = _as_float_array(self.R, (3, 3), "R")
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise ValueError(f"Camera.R: expected a rotation matrix (orthonormal, det +1), got {R.tolist()}")
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "t", _as_float_array(self.t, (3,), "t"))
+        Artifact.validate(self)
+
+    # ----------------------------------------------------------------------------------------- properties
+    @property
+    def K(self) -> np.ndarray:
+        """(3,3) intrinsic matrix in pixels."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0.0))
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates, metres."""
+        return -self.R.T @ self.t
+
+    @property
+    def max_valid_radius(self) -> float:
+        """Normalised radius up to which the radial distortion is monotonic (``inf`` if it always is).
+
+        Beyond it the OpenCV polynomial folds back, so far-off points would land inside the image; the
+        renderer drops triangles with a vertex beyond this radius.
+        """
+        k1, k2, _, _, k3 = self.dist
+        # d/dr [r (1 + k1 r² + k2 r⁴ + k3 r⁶)] = 1 + 3 k1 s + 5 k2 s² + 7 k3 s³ with s = r².
+        coeffs = np.trim_zeros(np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]), "f")
+        if coeffs.size <= 1:
+            return math.inf
+        roots = np.roots(coeffs)
+        s = [r.real for r in roots if abs(r.imag) < 1e-12 and r.real > 0]
+        return math.sqrt(min(s)) if s else math.inf
+
+    def with_pose(self, R, t) -> Camera:
+        """The same intrinsics with other extrinsics."""
+        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy, self.dist, R, t)
+
+    def without_distortion(self) -> Camera:
+        """The same camera with ``dist = 0`` (an ideal pinhole)."""
+        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy, np.zeros(5), self.R, self.t)
+
+    def to_dict(self) -> dict:
+        """Plain-JSON form (lists of floats); :meth:`from_dict` inverts it."""
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx,
+                "cy": self.cy, "dist": self.dist.tolist(), "R": self.R.tolist(), "t": self.t.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Camera:
+        return cls(**{k: d[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "dist", "R", "t")})
+
+    # ----------------------------------------------------------------------------------------- numpy
+    def to_camera(self, points) -> np.ndarray:
+        """World points (...,3) metres → camera coordinates (...,3) metres."""
+        p = _check_points(points)
+        return p @ self.R.T + self.t
+
+    def depth(self, points) -> np.ndarray:
+        """Camera z (...,) in metres of world points (...,3); positive in front of the camera."""
+        p = _check_points(points)
+        return p @ self.R[2] + self.t[2]
+
+    def distort(self, normalised) -> np.ndarray:
+        """Apply the lens distortion to normalised coordinates (...,2) ``(x/z, y/z)``."""
+        xy = np.asarray(normalised, dtype=np.float64)
+        x, y = xy[..., 0], xy[..., 1]
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        return np.stack([xd, yd], axis=-1)
+
+    def project(self, points) -> np.ndarray:
+        """World points (...,3) metres → pixels (...,2) with distortion; NaN for points with z ≤ 0.
+
+        Matches ``cv2.projectPoints`` (same distortion model) for points in front of the camera.
+        """
+        pc = self.to_camera(points)
+        z = pc[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            normalised = pc[..., :2] / np.where(z > 0, z, np.nan)[..., None]
+        xd = self.distort(normalised)
+        return np.stack([self.fx * xd[..., 0] + self.cx, self.fy * xd[..., 1] + self.cy], axis=-1)
+
+    def undistort_points(self, pixels, iterations: int = 20) -> np.ndarray:
+        """Pixels (...,2) → normalised coordinates (...,2) ``(x/z, y/z)`` of their rays (inverse distortion).
+
+        Gauss–Newton on the distortion polynomial, started at the distorted coordinates; converges to
+        ~1e-12 inside the image for real lenses. Rays in world coordinates: ``R.T @ [x, y, 1]``.
+        """
+        uv = np.asarray(pixels, dtype=np.float64)
+        if uv.ndim == 0 or uv.shape[-1] != 2:
+            raise ValueError(f"undistort_points: expected pixels of shape (..., 2), got {uv.shape}")
+        target = np.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy], axis=-1)
+        if not self.has_distortion:
+            return target
+        k1, k2, p1, p2, k3 = self.dist
+        xy = target.copy()
+        for _ in range(iterations):
+            x, y = xy[..., 0], xy[..., 1]
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+            residual = self.distort(xy) - target
+            # Jacobian of distort() w.r.t. (x, y).
+            j00 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+            j01 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+            j10 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+            j11 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+            det = j00 * j11 - j01 * j10
+            xy = xy - np.stack([(j11 * residual[..., 0] - j01 * residual[..., 1]) / det,
+                                (-j10 * residual[..., 0] + j00 * residual[..., 1]) / det], axis=-1)
+        return xy
+
+    def backproject(self, pixels, depth) -> np.ndarray:
+        """Pixels (...,2) and camera depths z (...,) metres → world points (...,3)."""
+        xy = self.undistort_points(pixels)
+        z = np.asarray(depth, dtype=np.float64)
+        pc = np.concatenate([xy * z[..., None], z[..., None]], axis=-1)
+        return (pc - self.t) @ self.R
+
+    # ----------------------------------------------------------------------------------------- CasADi
+    def project_sym(self, points):
+        """CasADi projection π: points 3×n (SX, MX, DM or a numpy (3,) / (3,n) array, metres) → pixels 2×n.
+
+        Same model as :meth:`project` (no NaN guard: the caller keeps points in front of the camera).
+        """
+        import casadi as ca
+
+        if isinstance(points, (ca.SX, ca.MX, ca.DM)):
+            P = points
+        else:
+            arr = np.asarray(points, dtype=np.float64)
+            if arr.ndim == 1:
+                arr = arr[:, None]
+            if arr.ndim != 2:
+                raise ValueError(f"project_sym: expected a 3×n matrix of points, got shape {arr.shape}")
+            P = ca.DM(arr)
+        if P.size1() != 3:
+            raise ValueError(f"project_sym: expected a 3×n matrix (one point per column), got "
+                             f"{P.size1()}×{P.size2()}")
+        n = P.size2()
+        Pc = ca.mtimes(ca.DM(self.R), P) + ca.repmat(ca.DM(self.t), 1, n)
+        x = Pc[0, :] / Pc[2, :]
+        y = Pc[1, :] / Pc[2, :]
+        if self.has_distortion:
+            k1, k2, p1, p2, k3 = (float(v) for v in self.dist)
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                    y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+        return ca.vertcat(self.fx * x + self.cx, self.fy * y + self.cy)
+
+
+def _check_points(points) -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim == 0 or p.shape[-1] != 3:
+        raise ValueError(f"expected points of shape (..., 3) in metres, got {p.shape}")
+    return p
+
+
+def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """World→camera ``(R (3,3), t (3,))`` of a camera at ``eye`` looking at ``target`` (metres, world).
+
+    The image's "up" (−y of the OpenCV camera) is as close to ``up`` as possible.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    up = np.asarray(up, dtype=np.float64)
+    for name, v in (("eye", eye), ("target", target), ("up", up)):
+        if v.shape != (3,):
+            raise ValueError(f"look_at: expected {name} of shape (3,), got {v.shape}")
+    forward = target - eye
+    if np.linalg.norm(forward) < 1e-12:
+        raise ValueError(f"look_at: eye and target coincide ({eye.tolist()})")
+    z = forward / np.linalg.norm(forward)
+    x = np.cross(-up, z)  # right-handed: x = y × z with y pointing down
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError(f"look_at: up {up.tolist()} is parallel to the viewing direction {z.tolist()}")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ eye
+
+
+def davis240c_default(distortion: bool = True, eye=DEFAULT_EYE_M, target=DEFAULT_TARGET_M) -> Camera:
+    """A DAVIS240C (240×180, rpg calibration) placed for the synthetic capture (see ``DEFAULT_EYE_M``)."""
+    fx, fy, cx, cy, *dist = DAVIS240C_CALIBRATION
+    R, t = look_at(eye, target)
+    return Camera(240, 180, fx, fy, cx, cy, np.array(dist) if distortion else np.zeros(5), R, t)
+
+
+def read_rpg_calibration(path, width: int, height: int, R=None, t=None) -> Camera:
+    """Read an rpg Event Camera Dataset ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or ``fx fy cx cy``).
+
+    Blank lines and ``#`` comments are ignored. Extrinsics default to the identity (camera = world frame).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read calibration file ({exc})") from exc
+    lines = [(i + 1, ln.split("#", 1)[0].strip()) for i, ln in enumerate(text.splitlines())]
+    lines = [(i, ln) for i, ln in lines if ln]
+    if len(lines) != 1:
+        raise ValueError(f"{path}: expected exactly one calibration line 'fx fy cx cy [k1 k2 p1 p2 k3]', "
+                         f"found {len(lines)} non-empty lines")
+    lineno, line = lines[0]
+    tokens = line.replace(",", " ").split()
+    if len(tokens) not in (4, 9):
+        raise ValueError(f"{path}:{lineno}: expected 4 numbers (fx fy cx cy) or 9 (fx fy cx cy k1 k2 p1 p2 k3), "
+                         f"got {len(tokens)}: {line!r}")
+    values = []
+    for k, tok in enumerate(tokens):
+        try:
+            v = float(tok)
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: value {k + 1} is not a number: {tok!r}") from None
+        if not math.isfinite(v):
+            raise ValueError(f"{path}:{lineno}: value {k + 1} is not finite: {tok!r}")
+        values.append(v)
+    fx, fy, cx, cy = values[:4]
+    dist = np.array(values[4:]) if len(values) == 9 else np.zeros(5)
+    return Camera(width, height, fx, fy, cx, cy, dist, np.eye(3) if R is None else R,
+                  np.zeros(3) if t is None else t)
