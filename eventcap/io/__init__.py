@@ -1,0 +1,55 @@
+"""Reading and writing event-camera recordings, robust to bad input (DESIGN §8).
+
+Formats (detected from the content, then the extension; or ``format=``):
+
+=========  ================================================  ========================  =======
+format     what                                               extras                    library
+=========  ================================================  ========================  =======
+aedat4     iniVation DV AEDAT 4.0                             frames + exposure         aedat (read), faery (write)
+hdf5       ``events/{t,x,y,p}``, compound or (N, 4) ``events``  frames, calibration, GT   h5py
+rpg        rpg Event Camera Dataset folder (events.txt, ...)  frames, calib.txt, GT     numpy, OpenCV
+evt2/evt3  Prophesee RAW                                      —                         faery
+dat        Prophesee DAT (CD events)                          —                         faery
+npy/npz    structured / column arrays                         npz: frames, calibration  numpy
+=========  ================================================  ========================  =======
+
+Everything comes out in the project's conventions: ``EVENT_DTYPE`` events sorted by time, µs since the first
+event (the file's time of that event is ``t_offset_us``), polarity ±1, coordinates inside the sensor; frames as
+float32 in [0, 1] with exposure-centre times on the same clock.
+
+Bad input either loads with every repair listed in ``RawRecording.repairs`` (and logged as a warning on the
+``eventcap.io`` logger) or raises :class:`RecordingError` (a ``ValueError``) naming the file, the position (line,
+event index, packet, dataset) and the problem:
+
+- repaired: events out of time order (sorted), exact duplicate events (dropped), 32-bit timestamp wrap-around
+  (unwrapped), a truncated tail (the complete part kept: AEDAT4 packets, npy rows, a text line, a partial
+  EVT/DAT word), a missing sensor size (inferred from the events), unnamed (N, 4) columns (recognised by the
+  time-ordered column), colour frames (to grey), unsorted or repeated frame times;
+- rejected: empty or unrecognised files, missing datasets or keys, coordinates outside a declared sensor,
+  negative or non-integer coordinates, non-finite times, polarity values outside {0, 1} / {-1, +1} or mixing
+  them, corrupted containers (whatever the decoding library reports).
+
+Prophesee decoders (faery) clamp backwards time steps and unwrap their counters themselves, so those repairs
+are not visible for evt2/evt3/dat. Decoding libraries' panics are caught; the fuzz script
+``benchmarks/fuzz_readers.py`` checks that no mutated file crashes or hangs the interpreter.
+"""
+
+from eventcap.io.detect import READ_FORMATS, detect_format
+from eventcap.io.readers import EventChunks, Roi, iter_event_chunks, read_recording
+from eventcap.io.recording import Frames, RawRecording, RecordingError
+from eventcap.io.writers import WRITE_FORMATS, write_events, write_recording
+
+__all__ = [
+    "READ_FORMATS",
+    "WRITE_FORMATS",
+    "EventChunks",
+    "Frames",
+    "RawRecording",
+    "RecordingError",
+    "Roi",
+    "detect_format",
+    "iter_event_chunks",
+    "read_recording",
+    "write_events",
+    "write_recording",
+]

@@ -1,0 +1,60 @@
+"""Which reader a path needs: by content (magic bytes, Prophesee header) first, extension second."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from eventcap.io.aedat4 import MAGIC as AEDAT4_MAGIC
+from eventcap.io.arrays import NPY_MAGIC, ZIP_MAGICS
+from eventcap.io.hdf5 import MAGIC as HDF5_MAGIC
+from eventcap.io.prophesee import header_kind, read_header
+from eventcap.io.recording import RecordingError
+from eventcap.io.rpg import EVENTS
+
+#: Formats :func:`eventcap.io.read_recording` accepts as ``format=``.
+READ_FORMATS = ("aedat4", "hdf5", "rpg", "evt2", "evt3", "dat", "npy", "npz")
+
+_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".hdf": "hdf5", ".raw": "evt", ".dat": "dat",
+               ".npy": "npy", ".npz": "npz", ".txt": "rpg"}
+
+
+def detect_format(path) -> str:
+    """The format name of ``path`` (one of ``READ_FORMATS``, or ``"evt"`` for a RAW file whose header names no
+    version); raises :class:`RecordingError` for missing, empty or unrecognised files."""
+    path = Path(path)
+    if path.is_dir():
+        if (path / EVENTS).is_file():
+            return "rpg"
+        raise RecordingError(path, f"a folder without {EVENTS}: expected the rpg layout (events.txt, images.txt, …)")
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError as exc:
+        raise RecordingError(path, f"cannot read the file: {exc.strerror or exc}") from exc
+    if size == 0:
+        raise RecordingError(path, "the file is empty (0 bytes)")
+    if head.startswith(AEDAT4_MAGIC):
+        return "aedat4"
+    if head.startswith(b"#!AER-DAT"):
+        version = head[9:16].split(b"\r")[0].decode("ascii", "replace")
+        raise RecordingError(path, f"AEDAT version {version} is not supported (only AEDAT 4.0): convert it with "
+                                   f"DV or jAER", "file header")
+    if head.startswith(HDF5_MAGIC):
+        return "hdf5"
+    if head.startswith(NPY_MAGIC):
+        return "npy"
+    if head.startswith(ZIP_MAGICS):
+        return "npz"
+    ext = _EXTENSIONS.get(path.suffix.lower())
+    if head.startswith(b"%"):
+        kind = header_kind(read_header(path)[0])
+        if kind is not None:
+            return kind
+        if ext in ("evt", "dat"):
+            return ext
+    elif ext is not None and ext not in ("aedat4", "hdf5", "npy", "npz"):
+        return ext
+    expected = ", ".join(sorted(_EXTENSIONS))
+    raise RecordingError(path, f"unrecognised format: first bytes {head[:16]!r}, extension {path.suffix!r} "
+                               f"(expected {expected}, an rpg folder, or format=…)")

@@ -1,0 +1,239 @@
+"""Prophesee event files: RAW (EVT 2.0 / EVT 3.0) and DAT (CD events), read and written with ``faery``.
+
+Events only. ``faery`` unwraps the formats' short time counters (EVT3: 24 bit, EVT2: 34 bit, DAT: 32 bit) and
+clamps a time stamp that goes backwards to the previous one, so out-of-order events in these formats come out
+in order without a repair note. It rejects an event outside the header's sensor size (a
+:class:`RecordingError` here naming the event index after which decoding stopped).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from eventcap.io.checks import RawChunk
+from eventcap.io.recording import RecordingError
+from eventcap.io.source import DEFAULT_CHUNK_EVENTS, Source, file_size, native_call, rechunk
+
+_MAX_HEADER_BYTES = 1 << 20
+# Passed to faery when the header has no size: large enough to disable its range check; the size is then
+# inferred from the events by the reader (and reported).
+_NO_SIZE = (65535, 65535)
+
+
+def read_header(path: Path) -> tuple[list[str], int]:
+    """The ``%`` header lines of a Prophesee file (without the ``%``) and the header length in bytes."""
+    lines, length = [], 0
+    with open(path, "rb") as f:
+        while length < _MAX_HEADER_BYTES:
+            line = f.readline(4096)
+            if not line.startswith(b"%"):
+                break
+            length += len(line)
+            lines.append(line[1:].decode("utf-8", "replace").strip())
+            if not line.endswith(b"\n"):
+                break
+    return lines, length
+
+
+def header_kind(lines: list[str]) -> str | None:
+    """"evt2" / "evt3" / "evt" (version not named) / "dat" from header lines, or ``None`` if they do not say."""
+    for line in lines:
+        words = line.replace(";", " ").split()
+        if not words:
+            continue
+        key = words[0].lower()
+        value = words[1].lower() if len(words) > 1 else ""
+        if key == "evt" or (key == "format" and value.startswith("evt")):
+            version = value.removeprefix("evt")
+            return {"2": "evt2", "2.0": "evt2", "3": "evt3", "3.0": "evt3"}.get(version, "evt")
+    for line in lines:
+        if line.lower().startswith(("data file containing", "version")):
+            return "dat"
+    return None
+
+
+def _size_from(decoder_dims, path: Path) -> tuple[int | None, int | None]:
+    if tuple(decoder_dims) == _NO_SIZE:
+        return None, None
+    w, h = (int(v) for v in decoder_dims)
+    if w <= 0 or h <= 0:
+        raise RecordingError(path, f"header declares an empty sensor ({w} × {h})", "file header")
+    return w, h
+
+
+class EvtSource(Source):
+    """A Prophesee RAW file, EVT 2.0 or 3.0 (the version from the header, or ``version`` if it has none)."""
+
+    def __init__(self, path: Path, version: str | None = None, time_unit: str | None = None):
+        super().__init__(path, time_unit)
+        import faery
+
+        self._faery = faery
+        lines, self._header_length = read_header(path)
+        kind = header_kind(lines)
+        header_version = kind if kind in ("evt2", "evt3") else None
+        if header_version and version and header_version != version:
+            raise RecordingError(path, f"the header says {header_version.upper()} but format={version!r} was asked",
+                                 "file header")
+        self.version = header_version or version
+        if self.version is None:
+            raise RecordingError(path, "the header names no EVT version (no '% evt 2.0/3.0' or '% format EVT…' "
+                                       "line): pass format='evt2' or format='evt3'", "file header")
+        self.format = self.version
+        with native_call(path, "EVT decoder (faery)", "file header"), \
+                faery.evt.Decoder(path, _NO_SIZE, self.version) as decoder:
+            dims = decoder.dimensions
+        self.width, self.height = _size_from(dims, path)
+        self._word = 4 if self.version == "evt2" else 2
+
+    def chunks(self, chunk_events: int = DEFAULT_CHUNK_EVENTS, with_frames: bool = False) -> Iterator[RawChunk]:
+        self.notes.clear()
+        extra = (file_size(self.path) - self._header_length) % self._word
+        if extra:
+            self.notes.append(f"the file ends with a partial {self._word}-byte EVT word ({extra} byte(s), truncated "
+                              f"file?): ignored")
+
+        def columns():
+            dims = (self.width, self.height) if self.width else _NO_SIZE
+            with self._faery.evt.Decoder(self.path, dims, self.version) as decoder:
+                for packet in decoder:
+                    ev = packet.get("events")
+                    if ev is not None and len(ev):
+                        yield ev["t"], ev["x"], ev["y"], ev["on"]
+
+        row = 0
+        for t, x, y, p in rechunk(_guarded(columns(), self.path, "EVT decoder (faery)"), chunk_events):
+            yield RawChunk(t, x, y, p, row)
+            row += len(t)
+
+
+class DatSource(Source):
+    """A Prophesee DAT file of CD events (version from the header; DAT 2 assumed, and noted, if it has none)."""
+
+    format = "dat"
+
+    def __init__(self, path: Path, time_unit: str | None = None):
+        super().__init__(path, time_unit)
+        import faery
+
+        self._faery = faery
+        _, self._header_length = read_header(path)
+        with native_call(path, "DAT decoder (faery)", "file header"):
+            try:
+                with faery.dat.Decoder(path, _NO_SIZE, None) as decoder:
+                    self.version = decoder.version
+            except RuntimeError as exc:
+                if "version" not in str(exc):
+                    raise
+                self.version = "dat2"
+                self.notes.append("the header names no DAT version: decoded as DAT 2")
+            with faery.dat.Decoder(path, _NO_SIZE, self.version) as decoder:
+                dims, kind = decoder.dimensions, decoder.event_type
+        self._version_note = list(self.notes)
+        if kind != "cd":
+            raise RecordingError(path, f"DAT event type {kind!r} has no polarity: only CD event files are supported",
+                                 "file header")
+        self.width, self.height = _size_from(dims, path)
+
+    def chunks(self, chunk_events: int = DEFAULT_CHUNK_EVENTS, with_frames: bool = False) -> Iterator[RawChunk]:
+        self.notes[:] = self._version_note
+        extra = (file_size(self.path) - self._header_length - 2) % 8
+        if extra:
+            self.notes.append(f"the file ends with a partial 8-byte DAT event ({extra} byte(s), truncated file?): "
+                              f"ignored")
+
+        def columns():
+            dims = (self.width, self.height) if self.width else _NO_SIZE
+            with self._faery.dat.Decoder(self.path, dims, self.version) as decoder:
+                for ev in decoder:
+                    if len(ev):
+                        yield ev["t"], ev["x"], ev["y"], ev["payload"]
+
+        row = 0
+        for t, x, y, p in rechunk(_guarded(columns(), self.path, "DAT decoder (faery)"), chunk_events):
+            yield RawChunk(t, x, y, p, row)
+            row += len(t)
+
+
+def _guarded(columns: Iterator[tuple], path: Path, what: str) -> Iterator[tuple]:
+    """Re-raise a decoder failure as a :class:`RecordingError` naming how far decoding got."""
+    decoded = 0
+    it = iter(columns)
+    while True:
+        try:
+            cols = next(it)
+        except StopIteration:
+            return
+        except RecordingError:
+            raise
+        except (KeyboardInterrupt, SystemExit, GeneratorExit):
+            raise
+        except BaseException as exc:
+            message = str(exc).strip() or type(exc).__name__
+            raise RecordingError(path, f"{what} failed: {type(exc).__name__}: {message}",
+                                 f"after event index {decoded}") from exc
+        decoded += len(cols[0])
+        yield cols
+
+
+# ------------------------------------------------------------------------------------------------------ writing
+def _encoder(path: Path, fmt: str, width: int, height: int):
+    import faery
+
+    if fmt == "dat":
+        return faery.dat.Encoder(path, "dat2", "cd", True, (int(width), int(height)))
+    return faery.evt.Encoder(path, fmt, True, (int(width), int(height)), True)
+
+
+def _check_decodable(t: np.ndarray, state: dict, fmt: str) -> None:
+    """Refuse time gaps the format's short counters cannot carry across (the file would decode to wrong times).
+
+    DAT stores 32 bits of µs and EVT2 34 bits: a gap of half (DAT) or all (EVT2) of that range is ambiguous.
+    EVT3 stores 24 bits; faery's decoder recognises a wrap only when the 4096-µs tick goes from 4095 to 0, and
+    its encoder writes ticks only where events are, so a recording must have events in the ticks on both sides
+    of every 2^24-µs boundary.
+    """
+    if not len(t):
+        return
+    t = t.astype(np.int64)
+    prev = state.get("prev")
+    full = t if prev is None else np.concatenate([[prev], t])
+    state.setdefault("t0", int(t[0]))
+    state["prev"] = int(t[-1])
+    if len(full) < 2:
+        return
+    if fmt == "evt3":
+        tick = (full - state["t0"]) >> 12
+        step = np.diff(tick)
+        bad = ((tick[1:] >> 12) != (tick[:-1] >> 12)) & (step != 1)
+        why = ("no events in the 4.1 ms before or after a wrap of EVT3's 24-bit time counter (every 16.8 s): "
+               "faery would write times that decode wrongly; write EVT2, DAT, HDF5 or AEDAT4 instead")
+    else:
+        limit = 2**31 if fmt == "dat" else 2**34
+        bad = np.diff(full) >= limit
+        why = f"a gap of 2^{31 if fmt == 'dat' else 34} µs or more, beyond what {fmt.upper()}'s time counter can carry"
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"cannot write {fmt.upper()}: events at {int(full[i])} µs and {int(full[i + 1])} µs (file "
+                         f"time): {why}")
+
+
+def write_prophesee(path: Path, chunks: Iterator[np.ndarray], fmt: str, width: int, height: int) -> None:
+    """Write faery-dtype event chunks (absolute µs ≥ 0, sorted) as EVT2 / EVT3 / DAT 2 (t0 in the header).
+
+    Raises ``ValueError`` for time gaps the format cannot represent (see :func:`_check_decodable`).
+    """
+    dat_dtype = np.dtype([("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("payload", "u1")])
+    state: dict = {}
+    with _encoder(path, fmt, width, height) as encoder:
+        for chunk in chunks:
+            if not len(chunk):
+                continue
+            _check_decodable(chunk["t"], state, fmt)
+            if fmt == "dat":
+                encoder.write(chunk.astype(dat_dtype))
+            else:
+                encoder.write({"events": chunk})

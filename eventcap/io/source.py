@@ -1,0 +1,204 @@
+"""The small contract every format reader implements, and helpers they share (native-call guard, memory guard)."""
+
+from __future__ import annotations
+
+import bisect
+import contextlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from eventcap.camera import Camera
+from eventcap.io.checks import RawChunk
+from eventcap.io.recording import RecordingError
+
+DEFAULT_CHUNK_EVENTS = 1 << 20
+
+
+@dataclass
+class FrameData:
+    """Frames as a source stores them, before conversion to :class:`eventcap.io.Frames`.
+
+    ``images`` (N, H, W) or (N, H, W, C) of uint8/uint16/float; ``t_us`` (N,) int64 file time of each
+    exposure's centre; ``exposure_us`` (N,) int64 or ``None``; ``locate(i)`` names frame ``i`` in messages.
+    """
+
+    images: np.ndarray
+    t_us: np.ndarray
+    exposure_us: np.ndarray | None = None
+    locate: Callable[[int], str] = field(default=lambda i: f"frame {i}")
+
+
+class Source:
+    """One open recording of one format: declared sensor size, event chunks, and optional extras.
+
+    Subclasses set ``format``, ``width`` / ``height`` (``None`` when the file does not declare them) and
+    ``time_unit`` (``None``: floats are seconds, integers µs), optionally ``t_add_us`` (a file-level time
+    offset), and implement :meth:`chunks`. ``notes`` collects repairs found while decoding (a truncated tail,
+    an assumed version, ...).
+    """
+
+    format: str = ""
+
+    def __init__(self, path: Path, time_unit: str | None = None):
+        self.path = Path(path)
+        self.events_path = self.path  # the file event-level errors name (rpg: events.txt inside the folder)
+        self.width: int | None = None
+        self.height: int | None = None
+        self.time_unit = time_unit
+        self.t_add_us = 0
+        self.notes: list[str] = []
+
+    def chunks(self, chunk_events: int = DEFAULT_CHUNK_EVENTS, with_frames: bool = False) -> Iterator[RawChunk]:
+        """Event columns in file order, about ``chunk_events`` at a time (memory bounded by the chunk)."""
+        raise NotImplementedError
+
+    def frames(self) -> FrameData | None:
+        """The intensity frames, if the file has any (formats that interleave them with events, AEDAT4, collect
+        them during a :meth:`chunks` pass with ``with_frames=True`` and decode again otherwise)."""
+        return None
+
+    def calibration(self, width: int, height: int) -> Camera | None:
+        """The camera calibration, if the file has one, for a sensor of ``width`` × ``height``."""
+        return None
+
+    def ground_truth(self) -> dict[str, np.ndarray] | None:
+        """Ground truth as stored (loosely typed); a ``t_us`` entry is in file time, µs."""
+        return None
+
+
+class RowLocator:
+    """Maps an event index to "packet k, event index i" for formats decoded packet by packet."""
+
+    def __init__(self):
+        self._starts: list[int] = []
+        self._labels: list[str] = []
+
+    def add(self, first_row: int, label: str) -> None:
+        self._starts.append(first_row)
+        self._labels.append(label)
+
+    def __call__(self, row: int) -> str:
+        k = bisect.bisect_right(self._starts, row) - 1
+        return f"{self._labels[k]}, event index {row}" if k >= 0 else f"event index {row}"
+
+
+def rechunk(arrays: Iterator[tuple], chunk_events: int) -> Iterator[tuple]:
+    """Regroup a stream of column tuples into tuples of about ``chunk_events`` rows (the last may be shorter)."""
+    pending: list[tuple] = []
+    count = 0
+    for cols in arrays:
+        n = len(cols[0])
+        if n == 0:
+            continue
+        pending.append(cols)
+        count += n
+        while count >= chunk_events:
+            merged = tuple(np.concatenate(c) for c in zip(*pending)) if len(pending) > 1 else pending[0]
+            yield tuple(c[:chunk_events] for c in merged)
+            rest = tuple(c[chunk_events:] for c in merged)
+            count = len(rest[0])
+            pending = [rest] if count else []
+    if count:
+        yield tuple(np.concatenate(c) for c in zip(*pending)) if len(pending) > 1 else pending[0]
+
+
+@contextlib.contextmanager
+def native_call(path, what: str, where: str | None = None):
+    """Turn any failure of a decoding library into a :class:`RecordingError` naming the file.
+
+    Rust extensions raise ``PanicException`` (a ``BaseException``) on malformed data, so everything but
+    interpreter exits is caught here.
+    """
+    try:
+        yield
+    except RecordingError:
+        raise
+    except (KeyboardInterrupt, SystemExit, GeneratorExit):
+        raise
+    except BaseException as exc:
+        message = str(exc).strip() or type(exc).__name__
+        raise RecordingError(path, f"{what} failed: {type(exc).__name__}: {message}", where) from exc
+
+
+def available_memory_bytes() -> int | None:
+    """MemAvailable from /proc/meminfo, or ``None`` where it cannot be read."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def check_fits_in_memory(path, nbytes: int, what: str) -> None:
+    """Refuse to load ``nbytes`` when that would take more than half the available memory.
+
+    A corrupted header can declare terabytes; allocating them would get the process killed instead of
+    raising an error.
+    """
+    avail = available_memory_bytes()
+    if avail is not None and nbytes > avail // 2:
+        raise RecordingError(path, f"{what} would need {nbytes / 1e9:.1f} GB, more than half the available "
+                                   f"memory ({avail / 1e9:.1f} GB): a corrupted size, or a file to stream with "
+                                   f"iter_event_chunks")
+
+
+def file_size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError as exc:
+        raise RecordingError(path, f"cannot read the file: {exc}") from exc
+
+
+# ------------------------------------------------------------------------------------ column layouts of arrays
+#: Names accepted for each event column (compared case-insensitively) in HDF5 groups, compound and npz files.
+COLUMN_NAMES = {
+    "t": ("t", "ts", "t_us", "timestamp", "timestamps", "time", "times"),
+    "x": ("x", "xs"),
+    "y": ("y", "ys"),
+    "p": ("p", "ps", "pol", "polarity", "polarities", "on"),
+}
+
+
+def match_columns(names) -> dict[str, str] | None:
+    """Map roles t, x, y, p to the names in ``names`` that hold them, or ``None`` if one is missing."""
+    lower = {str(n).lower(): n for n in names}
+    found = {}
+    for role, aliases in COLUMN_NAMES.items():
+        hit = next((lower[a] for a in aliases if a in lower), None)
+        if hit is None:
+            return None
+        found[role] = hit
+    return found
+
+
+def columns_of_2d(path, sample: np.ndarray, declared=None) -> tuple[tuple[int, int, int, int], str | None]:
+    """Column indices (t, x, y, p) of an (N, 4) event array, and a note saying how they were guessed (if they were).
+
+    ``declared`` (a string like ``"t,x,y,p"`` or a sequence of names) wins. Otherwise the time column is the
+    one that is (nearly) non-decreasing: column 0 → (t, x, y, p) as in rpg / tonic exports, column 2 →
+    (x, y, t, p) as in MVSEC. Anything else is refused rather than guessed.
+    """
+    if declared is not None:
+        if isinstance(declared, bytes):
+            declared = declared.decode("utf-8", "replace")
+        names = [s.strip() for s in declared.replace(";", ",").replace(" ", ",").split(",") if s.strip()] \
+            if isinstance(declared, str) else [n.decode() if isinstance(n, bytes) else str(n) for n in declared]
+        roles = match_columns(names)
+        if roles is None or len(names) != 4:
+            raise RecordingError(path, f"column names {names!r} do not name t, x, y, p once each")
+        return tuple(names.index(roles[r]) for r in "txyp"), None
+    if len(sample) < 3:
+        return (0, 1, 2, 3), "2-D event array without column names, too short to check: read as (t, x, y, p)"
+    frac = [float(np.mean(np.diff(sample[:, c].astype(np.float64)) >= 0)) for c in (0, 2)]
+    if frac[0] >= 0.9 and frac[0] >= frac[1]:
+        return (0, 1, 2, 3), "2-D event array without column names: read as (t, x, y, p) (column 0 is time-ordered)"
+    if frac[1] >= 0.9:
+        return (2, 0, 1, 3), "2-D event array without column names: read as (x, y, t, p) (column 2 is time-ordered)"
+    raise RecordingError(path, "2-D event array without column names and no time-ordered column 0 or 2: "
+                               "cannot tell which column is time; store a structured array or name the columns")
