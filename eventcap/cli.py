@@ -1,8 +1,10 @@
 """The ``eventcap`` command: run pipelines (Hydra), list stages, inspect and clean the cache.
 
     eventcap run [hydra overrides]       run the configured pipeline; -m for sweeps; --cfg job / --help show config
+    eventcap simulate [key=value ...]    write a synthetic recording (motion=karate_kick duration_s=1 seed=0)
     eventcap stages [--kind K]           installed stages with one-line descriptions (imports no implementation)
     eventcap cache ls | explain KEY | gc inspect and clean the stage cache
+    eventcap preview RECORDING.zarr      PNG of frames, events and the ground-truth skeleton
 """
 
 from __future__ import annotations
@@ -97,12 +99,33 @@ def cmd_run(argv: list[str]) -> int:
     return 1 if _RUN_FAILURES else 0
 
 
+_TOP_LEVEL = {"name", "cache_dir", "batches", "log_level", "export", "pipeline", "source", "executor", "template",
+              "stages"}
+
+
+def cmd_simulate(argv: list[str]) -> int:
+    """``eventcap simulate motion=karate_kick duration_s=1 seed=0``: a synthetic recording, written to the run folder.
+
+    Bare keys are the synthetic source's parameters (``motion=...`` means ``source.motion=...``); anything else is a
+    normal Hydra override. The recording lands in ``runs/simulate/<timestamp>/source.recording.zarr``.
+    """
+    mapped = []
+    for arg in argv:
+        key = arg.split("=", 1)[0]
+        if "=" in arg and not arg.startswith(("-", "+", "~")) and "." not in key and "/" not in key \
+                and key not in _TOP_LEVEL:
+            arg = f"source.{arg}"
+        mapped.append(arg)
+    return cmd_run(["pipeline=simulate", "source=synthetic", "name=simulate", "export=[source.recording]", *mapped])
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # eventcap stages / cache
 # ---------------------------------------------------------------------------------------------------------------------
 def cmd_stages(args) -> int:
     from .registry import load_registry
 
+    logging.getLogger("eventcap.registry").setLevel(logging.ERROR)  # problems are printed below, once
     reg = load_registry()
     specs = [s for s in reg.specs() if args.kind is None or s.kind == args.kind]
     if not specs:
@@ -160,6 +183,27 @@ def cmd_cache(args) -> int:
     return 0
 
 
+def cmd_preview(args) -> int:
+    """A PNG of a recording (the project's zarr format): frame, true sharp image, events, ground-truth skeleton."""
+    import cv2
+    import zarr
+
+    from .artifacts import ArtifactError
+    from .artifacts.recording import Recording
+    from .viz import recording_overview
+
+    try:
+        rec = Recording.from_zarr(zarr.open_group(str(args.recording), mode="r"), where=str(args.recording))
+        img = recording_overview(rec, frame_index=args.frame, scale=args.scale)
+    except (ArtifactError, FileNotFoundError) as exc:
+        print(f"eventcap preview: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out or Path(args.recording).with_suffix(f".frame{args.frame}.png"))
+    cv2.imwrite(str(out), img)
+    print(f"wrote {out} ({img.shape[1]}x{img.shape[0]})")
+    return 0
+
+
 def _explain(cache, prefix: str) -> None:
     e = cache.find(prefix)
     m = e.manifest
@@ -196,13 +240,24 @@ def _human(n: int) -> str:
     return str(n)
 
 
+def _pin_threads() -> None:
+    """One BLAS/OpenMP thread per process unless the user says otherwise: the heavy work is parallel over batches
+    (processes), and oversubscribed BLAS threads made small per-frame products 5-10x slower here (NOTES.md)."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
 def main(argv: list[str] | None = None) -> int:
+    _pin_threads()  # before anything imports numpy
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "run":
         return cmd_run(argv[1:])
+    if argv and argv[0] == "simulate":
+        return cmd_simulate(argv[1:])
     parser = argparse.ArgumentParser(prog="eventcap", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("run", help="run the pipeline (hydra overrides follow; see `eventcap run --help`)")
+    sub.add_parser("simulate", help="write a synthetic recording (e.g. motion=karate_kick duration_s=1 seed=0)")
     p = sub.add_parser("stages", help="list installed stages")
     p.add_argument("--kind", help="only stages of this kind (e.g. track)")
     p.add_argument("-v", "--verbose", action="store_true", help="show where each stage comes from")
@@ -212,10 +267,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache-dir", default=default_cache_dir(), help="cache root (default: %(default)s)")
     p.add_argument("--older-than", type=float, default=None, help="gc: also remove entries older than this many days")
     p.add_argument("--all", action="store_true", help="gc: remove every entry")
+    p = sub.add_parser("preview", help="PNG of a recording: frame, sharp image, events, ground-truth skeleton")
+    p.add_argument("recording", help="a recording in the project's format (e.g. runs/simulate/*/source.recording.zarr)")
+    p.add_argument("--frame", type=int, default=1, help="intensity frame index")
+    p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
+    p.add_argument("--out", help="output PNG (default: next to the recording)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.command == "stages":
         return cmd_stages(args)
+    if args.command == "preview":
+        return cmd_preview(args)
     if args.command == "cache":
         if args.action == "explain" and not args.key:
             parser.error("cache explain needs a KEY")

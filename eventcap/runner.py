@@ -124,7 +124,8 @@ def execute_task(task: Task) -> TaskResult:
             else:
                 inputs[port] = _load(task.cache_root, ref.stage, ref.keys[0], ref.port, cls)
         ctx = StageContext(node=task.node, stage=task.stage, batch=task.batch,
-                           log=logging.getLogger(f"eventcap.stage.{task.node}"))
+                           log=logging.getLogger(f"eventcap.stage.{task.node}"),
+                           progress=_ProgressLog(task.node) if task.batch is None else None)
         outputs = spec.load_run()(inputs, config, ctx)
         _check_outputs(spec, task.node, outputs)
         info = {"node": task.node, "batch": task.batch.as_key() if task.batch else None,
@@ -142,6 +143,21 @@ def execute_task(task: Task) -> TaskResult:
             log.error("could not record failure of %s: %s", task.node, werr)
         return TaskResult(task.node, task.key, bidx, "failed", time.perf_counter() - t0,
                           f"{type(exc).__name__}: {exc}", status)
+
+
+class _ProgressLog:
+    """Progress of a long whole-recording stage: a log line every 10 s or 25 %, whichever comes first."""
+
+    def __init__(self, node: str):
+        self.node, self.t0, self.last_t, self.last_frac = node, time.perf_counter(), time.perf_counter(), 0.0
+
+    def __call__(self, done: int, total: int) -> None:
+        frac = done / total if total else 1.0
+        now = time.perf_counter()
+        if frac >= 1.0 or now - self.last_t >= 10.0 or frac - self.last_frac >= 0.25:
+            eta = (now - self.t0) * (1 - frac) / frac if frac > 0 else float("nan")
+            log.info("%s: %3.0f%% (%.1f s elapsed, ~%.0f s left)", self.node, 100 * frac, now - self.t0, eta)
+            self.last_t, self.last_frac = now, frac
 
 
 def _check_outputs(spec: StageSpec, node: str, outputs: Any) -> None:
@@ -450,7 +466,29 @@ class Runner:
             },
         }
         (run_dir / "run.json").write_text(json.dumps(summary, indent=1))
+        self._export(run_dir, node_keys, result)
         (run_dir / "metrics.json").write_text(json.dumps(result.metrics, indent=1, default=str))
+
+
+    def _export(self, run_dir: Path, node_keys, result: RunResult) -> None:
+        """Copy the outputs named in ``export`` (``node.port``) into the run folder as standalone zarr groups."""
+        import shutil
+
+        for item in self.cfg.get("export") or []:
+            node_name, _, port = str(item).partition(".")
+            node = next((n for n in self.nodes if n.name == node_name), None)
+            if node is None or port not in node.spec.outputs:
+                raise ValueError(f"export: {item!r} is not '<node>.<port>' of this pipeline")
+            if node.spec.per_batch:
+                raise ValueError(f"export: {item!r} is produced per batch; export a whole-recording output")
+            if node_name not in node_keys or result.nodes[node_name].failed or result.nodes[node_name].skipped:
+                log.warning("export: %s not available (the node did not succeed)", item)
+                continue
+            entry = self.cache.lookup(node.spec.name, node_keys[node_name])
+            dest = run_dir / f"{node_name}.{port}.zarr"
+            shutil.rmtree(dest, ignore_errors=True)
+            shutil.copytree(entry.path / "data" / port, dest)
+            log.info("exported %s to %s", item, dest)
 
 
 def _parse_selection(value) -> tuple[int | None, int | None] | None:

@@ -49,6 +49,11 @@ MOTIONS: dict[str, str] = {
     "ninja_strike": "low stance, overhead two-step chop and a fast turning back-fist, return to stance",
 }
 
+#: Motions that are not fast (references for tests and sensor checks).
+STATIC_MOTIONS: dict[str, str] = {
+    "stand": "standing still, arms relaxed at the sides (a static scene: only sensor noise fires)",
+}
+
 #: Channels that are not joint angles: root rotation/translation (no root_ty: that comes from the floor).
 _ROOT_CHANNELS = ("root_yaw", "root_pitch", "root_roll", "root_tx", "root_tz")
 _SOLE_LANDMARKS = ("l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel")
@@ -623,7 +628,12 @@ def _ninja_strike(rng) -> _Spec:
     return _Spec(_GUARD, keys)
 
 
+def _stand(rng) -> _Spec:
+    return _Spec(base=dict(_STAND), keys=[_Key(1.0, 0.0, {})])
+
+
 _BUILDERS: dict[str, Callable[[np.random.Generator], _Spec]] = {
+    "stand": _stand,
     "karate_kick": _karate_kick,
     "boxing_combo": _boxing_combo,
     "javelin_throw": _javelin_throw,
@@ -633,7 +643,7 @@ _BUILDERS: dict[str, Callable[[np.random.Generator], _Spec]] = {
     "high_knees": _high_knees,
     "ninja_strike": _ninja_strike,
 }
-assert set(_BUILDERS) == set(MOTIONS)
+assert set(_BUILDERS) == set(MOTIONS) | set(STATIC_MOTIONS)
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -642,7 +652,7 @@ assert set(_BUILDERS) == set(MOTIONS)
 
 def _check_name(name: str) -> None:
     if name not in _BUILDERS:
-        raise ValueError(f"unknown motion {name!r}; available: {', '.join(sorted(MOTIONS))}")
+        raise ValueError(f"unknown motion {name!r}; available: {', '.join(sorted(_BUILDERS))}")
 
 
 def _check_times(t_s) -> np.ndarray:

@@ -1,0 +1,78 @@
+"""Pictures of recordings for people: frames, accumulated events and the projected skeleton, side by side."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from eventcap.body.skeleton import PARENTS
+
+#: BGR colours
+_POS = np.array([60, 60, 230], np.uint8)  # red: positive events
+_NEG = np.array([230, 120, 40], np.uint8)  # blue: negative events
+
+
+def to_bgr(gray: np.ndarray) -> np.ndarray:
+    """(H,W) uint8 or float in [0,1] -> (H,W,3) uint8."""
+    g = gray if gray.dtype == np.uint8 else np.clip(gray * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return np.repeat(g[..., None], 3, axis=2)
+
+
+def event_image(events: np.ndarray, height: int, width: int, background: np.ndarray | None = None) -> np.ndarray:
+    """Accumulated events as colours (red = positive, blue = negative, by the sign of the per-pixel sum)."""
+    img = np.full((height, width, 3), 255, np.uint8) if background is None else background.copy()
+    if events.size:
+        acc = np.zeros((height, width), np.int32)
+        np.add.at(acc, (events["y"].astype(np.intp), events["x"].astype(np.intp)), events["p"].astype(np.int32))
+        img[acc > 0] = _POS
+        img[acc < 0] = _NEG
+    return img
+
+
+def draw_skeleton(img: np.ndarray, joints_px: np.ndarray, landmarks_px: np.ndarray | None = None,
+                  colour=(40, 200, 40), scale: int = 1) -> np.ndarray:
+    """Bones between projected joints (24,2) [and landmark dots], on a copy of a BGR image scaled by ``scale``."""
+    import cv2
+
+    out = img.copy()
+    j = np.round(joints_px * scale).astype(int)
+    for child, parent in enumerate(PARENTS):
+        if parent >= 0:
+            cv2.line(out, tuple(j[parent]), tuple(j[child]), colour, max(1, scale // 2), cv2.LINE_AA)
+    for p in j:
+        cv2.circle(out, tuple(p), max(1, scale), (0, 220, 255), -1, cv2.LINE_AA)
+    if landmarks_px is not None:
+        for p in np.round(landmarks_px * scale).astype(int):
+            cv2.circle(out, tuple(p), max(1, scale // 2), (255, 0, 255), -1, cv2.LINE_AA)
+    return out
+
+
+def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int = 10_000) -> np.ndarray:
+    """One picture of a Recording at an intensity frame: blurry frame | true sharp image (if known) |
+    events within ±window_us of the frame | frame with the ground-truth skeleton projected (if known)."""
+    import cv2
+
+    frames = rec.require_frames("preview")
+    k = int(np.clip(frame_index, 0, frames.images.shape[0] - 1))
+    t = int(frames.t_us[k])
+    h, w = rec.height, rec.width
+    panels = [("frame %d (t=%.3f s)" % (k, t / 1e6), to_bgr(frames.images[k]))]
+    gt = rec.ground_truth
+    if gt is not None and gt.sharp_images is not None:
+        panels.append(("true sharp image", to_bgr(gt.sharp_images[k])))
+    ev = rec.events.window(t - window_us, t + window_us)
+    panels.append((f"events +-{window_us / 1000:.0f} ms ({ev.size})", event_image(ev, h, w)))
+    if gt is not None:
+        jp = rec.camera.project(gt.frame_joints[k])
+        lm_i = int(np.argmin(np.abs(gt.t_us - t)))
+        lp = rec.camera.project(gt.landmarks[lm_i])
+        base = cv2.resize(to_bgr(frames.images[k]), (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)
+        panels.append(("ground-truth skeleton", draw_skeleton(base, jp, lp, scale=scale)))
+    tiles = []
+    for title, img in panels:
+        if img.shape[0] != h * scale:
+            img = cv2.resize(img, (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)
+        img = img.copy()
+        cv2.putText(img, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 2, cv2.LINE_AA)
+        cv2.putText(img, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(img)
+    return np.concatenate(tiles, axis=1)

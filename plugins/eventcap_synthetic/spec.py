@@ -1,0 +1,76 @@
+"""Specs of the template and synthetic-source stages. Declarations only: implementations load when a stage runs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eventcap.artifacts import BatchPlan
+from eventcap.artifacts.recording import Recording
+from eventcap.body.template import Template
+from eventcap.stage import Port, StageSpec, param
+
+
+@dataclass
+class ProceduralConfig:
+    seed: int = param(0, help="varies body proportions details and the clothing texture")
+    height_m: float = param(1.75, help="stature of the actor in metres")
+    target_faces: int = param(12000, help="approximate triangle count of the mesh")
+
+
+@dataclass
+class SmplConfig:
+    path: str = param("", help="SMPL model file (.npz or .pkl) with v_template, weights, J_regressor, ...", file=True)
+    betas: list[float] = param(default_factory=list, help="shape coefficients (empty = mean shape)")
+
+
+@dataclass
+class MeshConfig:
+    mesh_path: str = param("", help="scanned mesh (OBJ/PLY) in metres, y up, rest T-pose", file=True)
+    rig_path: str = param("", help="rig .npz: joints (24,3), weights (V,24), optional joint_names", file=True)
+
+
+@dataclass
+class SyntheticConfig:
+    motion: str = param("karate_kick", help="motion name, or comma-separated names played in sequence "
+                                            "(karate_kick, boxing_combo, javelin_throw, dance_spin, fast_wave, "
+                                            "jumping_jack)")
+    duration_s: float = param(1.0, help="capture length in seconds (split equally between listed motions)")
+    seed: int = param(0, help="varies the performance (timing, amplitudes, side) and the sensor noise")
+    speed: float = param(1.0, help="tempo multiplier of the motions")
+    amplitude: float = param(1.0, help="excursion multiplier of the motions")
+    fps: float = param(25.0, help="intensity frame rate (DAVIS APS: 7-25 fps)")
+    exposure_us: int = param(10_000, help="intensity frame exposure in microseconds")
+    contrast_threshold: float = param(0.2, help="mean contrast threshold C (log intensity)")
+    threshold_sigma: float = param(0.03, help="per-pixel spread of the threshold")
+    refractory_us: int = param(100, help="pixel refractory period in microseconds")
+    noise_rate_hz: float = param(0.2, help="background-activity noise events per pixel per second")
+    hot_pixel_fraction: float = param(0.0, help="fraction of hot pixels")
+    min_step_us: int = param(200, help="smallest render step of the adaptive sampling (caps renders per second)")
+    supersample: int = param(3, help="odd s: s×s samples per pixel (anti-aliasing)")
+    calibration: str = param("", help="rpg calib.txt (fx fy cx cy k1 k2 p1 p2 k3); empty = DAVIS240C default",
+                             file=True)
+    width: int = param(240, help="sensor width in pixels (with a calibration file)")
+    height: int = param(180, help="sensor height in pixels (with a calibration file)")
+    distortion: bool = param(True, help="use the lens distortion of the calibration")
+    camera_distance_m: float = param(3.0, help="distance of the camera from the actor (on +z)")
+    camera_height_m: float = param(1.0, help="height of the camera and of its look-at point")
+    background_seed: int = param(0, help="texture of the static background")
+    gt_rate_hz: float = param(1000.0, help="rate of the ground-truth poses, joints and tracks")
+    n_track_points: int = param(300, help="surface points whose ground-truth 2D tracks are recorded")
+
+
+PROCEDURAL = StageSpec(name="procedural", kind="template", version=1,
+              description="procedural textured, rigged actor (no external files)",
+              config=ProceduralConfig, inputs={}, outputs={"template": Port(Template)},
+              run="eventcap_synthetic._impl:run_procedural")
+SMPL = StageSpec(name="smpl", kind="template", version=1, description="actor template from a user's SMPL model file",
+              config=SmplConfig, inputs={}, outputs={"template": Port(Template)},
+              run="eventcap_synthetic._impl:run_smpl")
+MESH = StageSpec(name="mesh", kind="template", version=1, description="scanned mesh (OBJ/PLY) + rig file",
+              config=MeshConfig, inputs={}, outputs={"template": Port(Template)},
+              run="eventcap_synthetic._impl:run_mesh")
+SYNTHETIC = StageSpec(name="synthetic", kind="source", version=1,
+              description="simulated event camera filming the template's fast motions (exact ground truth)",
+              config=SyntheticConfig, inputs={"template": Port(Template)},
+              outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},
+              run="eventcap_synthetic._impl:run_synthetic")
