@@ -357,6 +357,12 @@ class Runner:
         entry = self.cache.lookup(stage, key)
         if entry is None:
             return None
+        spec = self.registry.get(stage)
+        want = {p: [port.type.type_name(), port.type.schema_version] for p, port in spec.outputs.items()}
+        have = {p: [o["type"], o["schema_version"]] for p, o in entry.manifest["outputs"].items()}
+        if want != have:
+            self.cache.quarantine(entry.path, f"written with other output schemas {have}, this code writes {want}")
+            return None
         try:
             self.cache.verify(entry)
         except CacheCorruptError as exc:

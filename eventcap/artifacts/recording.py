@@ -54,10 +54,11 @@ class EventStream(Artifact):
 
 @dataclass(frozen=True)
 class FrameStack(Artifact):
-    """Intensity frames (APS): 8-bit images with exposure-centre times and exposure durations."""
+    """Intensity frames (APS) as linear intensity in [0, 1] (8-bit sources / 255, 16-bit / 65535), with
+    exposure-centre times and exposure durations (0 = unknown: the file did not record it)."""
 
-    schema_version: ClassVar[int] = 1
-    images: np.ndarray = array("uint8", ("n", "height", "width"), units="DN")
+    schema_version: ClassVar[int] = 2  # v1 stored 8-bit images
+    images: np.ndarray = array("float32", ("n", "height", "width"), units="linear intensity [0,1]")
     t_us: np.ndarray = array("int64", ("n",), units="us", doc="exposure centre")
     exposure_us: np.ndarray = array("int64", ("n",), units="us")
     height: int = attr(units="px")
@@ -70,6 +71,10 @@ class FrameStack(Artifact):
             raise ArtifactError(f"FrameStack.t_us: frame times must increase; frame {i} is at {self.t_us[i]} us")
         if np.any(self.exposure_us < 0):
             raise ArtifactError("FrameStack.exposure_us: exposures must be >= 0")
+        if self.images.size and (self.images.min() < 0 or self.images.max() > 1):
+            raise ArtifactError(
+                f"FrameStack.images: expected linear intensity in [0, 1], got [{self.images.min()}, {self.images.max()}]"
+            )
 
 
 @dataclass(frozen=True)

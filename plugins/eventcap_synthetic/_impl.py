@@ -77,7 +77,7 @@ def run_synthetic(inputs, config, ctx):
     )
     rec = Recording(
         events=EventStream(events=cap.events, width=w, height=h), camera=cam,
-        frames=FrameStack(images=cap.frame_images, t_us=cap.frame_t_us, exposure_us=cap.frame_exposure_us,
+        frames=FrameStack(images=cap.frame_images.astype(np.float32) / np.float32(255.0), t_us=cap.frame_t_us, exposure_us=cap.frame_exposure_us,
                           height=h, width=w),
         template=template, ground_truth=gt, name=f"synthetic-{'+'.join(names)}-seed{config.seed}",
         source=f"synthetic: motion={config.motion} duration_s={config.duration_s} seed={config.seed} "

@@ -1,0 +1,33 @@
+"""Spec of the `recording` source stage. Declarations only."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eventcap.artifacts import BatchPlan
+from eventcap.artifacts.recording import Recording
+from eventcap.body.template import Template
+from eventcap.stage import Port, StageSpec, param
+
+
+@dataclass
+class RecordingConfig:
+    path: str = param("", help="the recording: the project's zarr format, AEDAT4, HDF5, EVT2/EVT3 .raw, DAT, "
+                               "npy/npz, or an rpg dataset folder", file=True)
+    format: str = param("", help="force a format (aedat4, hdf5, evt2, evt3, dat, npy, npz, rpg, eventcap); "
+                                 "empty = detect from content/extension")
+    t_start_s: float = param(0.0, help="start of the time window, seconds from the first event")
+    t_end_s: float = param(0.0, help="end of the time window (0 = to the end)")
+    roi: list[int] = param(default_factory=list, help="region of interest [x0, y0, x1, y1] (external formats)")
+    calibration: str = param("", help="rpg calib.txt overriding the file's calibration", file=True)
+    width: int = param(0, help="sensor width for formats that do not store it (0 = from the file)")
+    height: int = param(0, help="sensor height for formats that do not store it (0 = from the file)")
+
+
+RECORDING = StageSpec(
+    name="recording", kind="source", version=1,
+    description="a recording from a file (real cameras' formats or the project's own), cut into batches",
+    config=RecordingConfig, inputs={"template": Port(Template, optional=True)},
+    outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},
+    run="eventcap_recording._impl:run_recording",
+)
