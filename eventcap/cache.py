@@ -168,7 +168,8 @@ class Cache:
                 "stage": stage,
                 "doc": doc,
                 "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-                "outputs": {p: {"type": a.type_name(), "schema_version": a.schema_version} for p, a in outputs.items()},
+                "outputs": {p: {"type": a.type_name(), "schema_version": a.schema_version,
+                                "schema": a.schema_signature()} for p, a in outputs.items()},
                 "files": files,
                 **(dict(info) if info else {}),
             }

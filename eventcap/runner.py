@@ -358,8 +358,8 @@ class Runner:
         if entry is None:
             return None
         spec = self.registry.get(stage)
-        want = {p: [port.type.type_name(), port.type.schema_version] for p, port in spec.outputs.items()}
-        have = {p: [o["type"], o["schema_version"]] for p, o in entry.manifest["outputs"].items()}
+        want = {p: port.type.schema_signature() for p, port in spec.outputs.items()}
+        have = {p: o.get("schema") for p, o in entry.manifest["outputs"].items()}
         if want != have:
             self.cache.quarantine(entry.path, f"written with other output schemas {have}, this code writes {want}")
             return None

@@ -13,7 +13,7 @@ from eventcap.artifacts import Artifact, ArtifactError, BatchPlan, Metrics, arra
 from eventcap.events import EVENT_DTYPE, make_events
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Frames(Artifact):
     schema_version: ClassVar[int] = 2
     images: np.ndarray = array("uint8", ("n", "height", "width"), units="DN")
@@ -22,7 +22,7 @@ class Frames(Artifact):
     width: int = attr(units="px")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Capture(Artifact):
     events: np.ndarray = array(EVENT_DTYPE, ("n_events",))
     frames: Frames | None = None

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import TESTS, toy_env
 
-TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "+experiment=toy"]
+TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy"]
 
 
 def run_cli(args, cwd, env=None, check=True):

@@ -17,7 +17,7 @@ from conftest import TESTS, toy_env
 
 def test_two_sweeps_concurrently_on_one_cache(tmp_path):
     base = [sys.executable, "-m", "eventcap.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
-            "+experiment=toy", "stages.smooth.sleep_s=0.02", f"cache_dir={tmp_path / 'cache'}", "log_level=WARNING"]
+            "experiment=toy", "stages.smooth.sleep_s=0.02", f"cache_dir={tmp_path / 'cache'}", "log_level=WARNING"]
     a = subprocess.Popen(base + ["stages.scale.factor=1,2,3", "name=a"], cwd=tmp_path, env=toy_env(),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     b = subprocess.Popen(base + ["stages.scale.factor=3,2,1", "name=b"], cwd=tmp_path, env=toy_env(),

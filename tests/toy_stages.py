@@ -14,7 +14,7 @@ from eventcap.artifacts import Artifact, BatchPlan, Metrics, array, attr
 from eventcap.stage import Port, StageFailed, StageSpec, param
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Series(Artifact):
     """A sampled scalar signal."""
 

@@ -95,7 +95,7 @@ def _child_type(hint) -> type[Artifact] | None:
 _UnionType = type(int | None)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Artifact:
     """Base of every artifact type. Subclasses are frozen dataclasses declaring fields with array()/attr()."""
 
@@ -130,6 +130,12 @@ class Artifact:
     @classmethod
     def type_name(cls) -> str:
         return cls.__name__
+
+    @classmethod
+    def schema_signature(cls) -> str:
+        """Type and schema version, including those of sub-artifacts: ``Recording:1(camera=Camera:1,...)``."""
+        children = ",".join(f"{n}={t.schema_signature()}" for n, (t, _) in sorted(cls.child_fields().items()))
+        return f"{cls.type_name()}:{cls.schema_version}" + (f"({children})" if children else "")
 
     @classmethod
     def describe_schema(cls) -> str:

@@ -23,7 +23,7 @@ class Batch:
         return {"index": self.index, "t0_us": self.t0_us, "t1_us": self.t1_us, "frame0": self.frame0}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BatchPlan(Artifact):
     """How a recording is cut into batches; per-batch stages run and cache once per row."""
 
@@ -54,7 +54,7 @@ class BatchPlan(Artifact):
         return cls(t0_us=t[:-1].copy(), t1_us=t[1:].copy(), frame0=np.arange(max(len(t) - 1, 0), dtype=np.int64))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Metrics(Artifact):
     """Named scalar results of a stage (JSON-serialisable); the runner collects them into metrics.json."""
 

@@ -18,7 +18,7 @@ from eventcap.events import EVENT_DTYPE
 from .base import Artifact, ArtifactError, array, attr
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class EventStream(Artifact):
     """Events of one sensor, sorted by time, inside the sensor, polarity ±1 (DESIGN §2)."""
 
@@ -52,7 +52,7 @@ class EventStream(Artifact):
         return self.events[a:b]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FrameStack(Artifact):
     """Intensity frames (APS) as linear intensity in [0, 1] (8-bit sources / 255, 16-bit / 65535), with
     exposure-centre times and exposure durations (0 = unknown: the file did not record it)."""
@@ -77,7 +77,7 @@ class FrameStack(Artifact):
             )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class GroundTruth(Artifact):
     """Exact motion of a synthetic capture (or a reference capture of a real one)."""
 
@@ -98,7 +98,7 @@ class GroundTruth(Artifact):
     track_visible: np.ndarray = array("bool", ("t", "p"), optional=True)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Recording(Artifact):
     """One event-camera recording: events, frames, camera, optionally the actor template and ground truth."""
 

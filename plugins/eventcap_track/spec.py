@@ -1,0 +1,42 @@
+"""Specs of the Sec. 3.1 stages: sharpen (EDI), track (EKLT, KLT on latent images), slice (B-spline)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eventcap.artifacts import BatchPlan
+from eventcap.artifacts.recording import Recording
+from eventcap.artifacts.tracking import LatentFrames, SlicedTracks, Tracks
+from eventcap.stage import Port, StageSpec, param
+
+
+@dataclass
+class EdiConfig:
+    contrast: float = param(0.0, help="contrast threshold C; 0 = estimate one C for the recording (Pan et al.)")
+    c_min: float = param(0.05, help="lower end of the automatic search for C")
+    c_max: float = param(0.5, help="upper end of the automatic search for C")
+    eps: float = param(1e-3, help="offset of the log image, L = log(I + eps)")
+
+
+@dataclass
+class SliceConfig:
+    rate_hz: float = param(1000.0, help="tracking frame rate (samples per second)")
+    sigma_px: float = param(0.2, help="expected noise of the tracked positions (weights the data term)")
+    accel_px_s2: float = param(1e5, help="expected acceleration scale (weights the smoothness penalty)")
+    knot_spacing_us: int = param(2000, help="largest spacing of the spline knots")
+
+
+EDI = StageSpec(
+    name="edi", kind="sharpen", version=1,
+    description="EDI: latent sharp log images at frame times from blurry frames + events (Eq. 2)",
+    config=EdiConfig, inputs={"recording": Port(Recording)}, outputs={"latent": Port(LatentFrames)},
+    run="eventcap_track._stages:run_edi",
+)
+
+BSPLINE = StageSpec(
+    name="bspline", kind="slice", version=1,
+    description="smoothing B-spline per track, sampled at every tracking frame (1 ms)",
+    config=SliceConfig, inputs={"tracks": Port(Tracks), "batches": Port(BatchPlan)},
+    outputs={"sliced": Port(SlicedTracks)}, per_batch=True,
+    run="eventcap_track._stages:run_bspline",
+)
