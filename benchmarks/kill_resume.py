@@ -34,7 +34,7 @@ def env() -> dict[str, str]:
 
 def command(run_dir: str, executor: str) -> list[str]:
     return [sys.executable, "-m", "eventcap.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
-            "+experiment=toy", "stages.signal.n_batches=6", "stages.smooth.sleep_s=0.08", "stages.scale.sleep_s=0.08",
+            "experiment=toy", "stages.signal.n_batches=6", "stages.smooth.sleep_s=0.08", "stages.scale.sleep_s=0.08",
             f"executor={executor}", f"hydra.run.dir={run_dir}", "log_level=WARNING"]
 
 
