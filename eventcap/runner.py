@@ -290,6 +290,7 @@ class Runner:
                 else:
                     self._run_batches(node, base, node_keys, batch_keys, plans, rep, label, pool)
                 rep.elapsed_s = time.perf_counter() - t0
+        self.cache.clean_orphans()  # also those of writers killed just before this run started
         metrics = self._collect_metrics(reports, node_keys)
         result = RunResult(reports, metrics)
         n_comp = result.computed_keys()
