@@ -194,7 +194,12 @@ def cmd_preview(args) -> int:
 
     try:
         rec = Recording.from_zarr(zarr.open_group(str(args.recording), mode="r"), where=str(args.recording))
-        img = recording_overview(rec, frame_index=args.frame, scale=args.scale)
+        latent = None
+        if args.latent:
+            from .artifacts.tracking import LatentFrames
+
+            latent = LatentFrames.from_zarr(zarr.open_group(str(args.latent), mode="r"), where=str(args.latent))
+        img = recording_overview(rec, frame_index=args.frame, scale=args.scale, latent=latent)
     except (ArtifactError, FileNotFoundError) as exc:
         print(f"eventcap preview: {exc}", file=sys.stderr)
         return 2
@@ -272,6 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frame", type=int, default=1, help="intensity frame index")
     p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
     p.add_argument("--out", help="output PNG (default: next to the recording)")
+    p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.command == "stages":

@@ -46,9 +46,11 @@ def draw_skeleton(img: np.ndarray, joints_px: np.ndarray, landmarks_px: np.ndarr
     return out
 
 
-def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int = 10_000) -> np.ndarray:
-    """One picture of a Recording at an intensity frame: blurry frame | true sharp image (if known) |
-    events within ±window_us of the frame | frame with the ground-truth skeleton projected (if known)."""
+def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int = 10_000, latent=None,
+                       ) -> np.ndarray:
+    """One picture of a Recording at an intensity frame: blurry frame | EDI-sharpened frame (if ``latent``, a
+    LatentFrames, is given) | true sharp image (if known) | events within ±window_us of the frame | frame with the
+    ground-truth skeleton projected (if known)."""
     import cv2
 
     frames = rec.require_frames("preview")
@@ -56,6 +58,9 @@ def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int
     t = int(frames.t_us[k])
     h, w = rec.height, rec.width
     panels = [("frame %d (t=%.3f s)" % (k, t / 1e6), to_bgr(frames.images[k]))]
+    if latent is not None:
+        lin = np.clip(np.exp(latent.log_images[k].astype(np.float64)) - latent.eps, 0.0, 1.0)
+        panels.append((f"EDI sharpened (C={latent.contrast:.3f})", to_bgr(lin)))
     gt = rec.ground_truth
     if gt is not None and gt.sharp_images is not None:
         panels.append(("true sharp image", to_bgr(gt.sharp_images[k])))
