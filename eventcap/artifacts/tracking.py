@@ -32,13 +32,16 @@ class Tracks(Artifact):
     track_id: np.ndarray = array("int32", ("s",), doc="track of each sample, 0..n_tracks-1")
     t_us: np.ndarray = array("int64", ("s",), units="us")
     xy: np.ndarray = array("float32", ("s", 2), units="px")
-    stitched: np.ndarray = array("bool", ("h",), doc="forward and backward tracks were joined (within 4 px)")
-    n_tracks: int = attr(default=0)
+    cost: np.ndarray = array("float32", ("s",), doc="match cost of the sample (method-specific, smaller is better)")
+    kind: np.ndarray = array("int8", ("h",), doc="1 forward only, 2 backward only, 3 stitched (Sec. 3.1)")
+    survived: np.ndarray = array("bool", ("h",), doc="tracked to the batch end in its direction(s)")
+
+    @property
+    def n_tracks(self) -> int:
+        return int(self.kind.shape[0])
 
     def validate(self) -> None:
         super().validate()
-        if self.stitched.shape[0] != self.n_tracks:
-            raise ArtifactError(f"Tracks: stitched has {self.stitched.shape[0]} rows, n_tracks = {self.n_tracks}")
         if self.track_id.size and (self.track_id.min() < 0 or self.track_id.max() >= self.n_tracks):
             raise ArtifactError(f"Tracks.track_id: expected ids in [0, {self.n_tracks}), "
                                 f"got [{self.track_id.min()}, {self.track_id.max()}]")

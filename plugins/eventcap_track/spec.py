@@ -19,6 +19,30 @@ class EdiConfig:
 
 
 @dataclass
+class EkltStageConfig:
+    patch_px: int = param(25, help="side of the feature patch (odd)")
+    max_features: int = param(100, help="Shi-Tomasi corners detected per start image")
+    min_distance_px: float = param(10.0, help="minimum distance between corners")
+    quality_level: float = param(0.01, help="relative corner quality threshold")
+    warp: str = param("rotation", help="patch warp: translation | rotation | affine")
+    update_every: int = param(60, help="events in a patch between two updates")
+    max_cost: float = param(0.8, help="drop a track when 1 - cos(predicted, measured increments) exceeds this")
+    lag_gain: float = param(0.45, help="compensation of the DVS threshold lag (0 = off)")
+    stitch_px: float = param(4.0, help="forward/backward tracks are stitched at mid-batch within this distance")
+    direction: str = param("both", help="both (forward + backward, stitched) | forward | backward")
+
+
+@dataclass
+class KltStageConfig:
+    max_features: int = param(100, help="Shi-Tomasi corners detected on the start image")
+    min_distance_px: float = param(10.0, help="minimum distance between corners")
+    quality_level: float = param(0.01, help="relative corner quality threshold")
+    step_us: int = param(1000, help="spacing of the EDI latent images LK runs on")
+    window_px: int = param(21, help="Lucas-Kanade window")
+    max_level: int = param(3, help="pyramid levels")
+
+
+@dataclass
 class SliceConfig:
     rate_hz: float = param(1000.0, help="tracking frame rate (samples per second)")
     sigma_px: float = param(0.2, help="expected noise of the tracked positions (weights the data term)")
@@ -39,4 +63,22 @@ BSPLINE = StageSpec(
     config=SliceConfig, inputs={"tracks": Port(Tracks), "batches": Port(BatchPlan)},
     outputs={"sliced": Port(SlicedTracks)}, per_batch=True,
     run="eventcap_track._stages:run_bspline",
+)
+
+EKLT = StageSpec(
+    name="eklt", kind="track", version=1,
+    description="EKLT: asynchronous photometric feature tracking with events, forward + backward, stitched",
+    config=EkltStageConfig,
+    inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan)},
+    outputs={"tracks": Port(Tracks)}, per_batch=True,
+    run="eventcap_track._stages:run_eklt",
+)
+
+KLT_LATENT = StageSpec(
+    name="klt_latent", kind="track", version=1,
+    description="baseline: pyramidal Lucas-Kanade on EDI latent images every 1 ms (the naive approach)",
+    config=KltStageConfig,
+    inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan)},
+    outputs={"tracks": Port(Tracks)}, per_batch=True,
+    run="eventcap_track._stages:run_klt_latent",
 )
