@@ -5,6 +5,8 @@
     eventcap stages [--kind K]           installed stages with one-line descriptions (imports no implementation)
     eventcap cache ls | explain KEY | gc inspect and clean the stage cache
     eventcap preview RECORDING.zarr      PNG of frames, events and the ground-truth skeleton
+    eventcap convert IN OUT              convert a recording (AEDAT4, HDF5, EVT2/3, DAT, npy/npz, rpg) into the
+                                         project's format, streaming (--t-start/--t-end, --roi, --calibration)
 """
 
 from __future__ import annotations
@@ -209,6 +211,49 @@ def cmd_preview(args) -> int:
     return 0
 
 
+def cmd_convert(args) -> int:
+    """Convert a recording into the project's format, printing progress (stderr) and a summary (stdout)."""
+    from .io import RecordingError
+    from .io.convert import convert_recording, roi_from_corners, window_from_seconds
+
+    tty = sys.stderr.isatty()
+    shown = {"at": 0.0, "any": False}
+
+    def progress(written: int, read: int, seconds: float) -> None:
+        if seconds - shown["at"] < 1.0:
+            return
+        shown["at"], shown["any"] = seconds, True
+        line = f"eventcap convert: {read:,} events read, {written:,} written, {read / seconds / 1e6:.2f} M events/s"
+        # On a terminal the line is redrawn in place; in a log, one line per update.
+        print("\r" + line if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
+
+    try:
+        if (args.width is None) != (args.height is None):
+            raise ValueError(f"give both --width and --height or neither, got width={args.width}, "
+                             f"height={args.height}")
+        window = window_from_seconds(args.t_start, args.t_end)
+        roi = roi_from_corners(args.roi) if args.roi else None
+        stats = convert_recording(args.input, args.output, format=args.format, chunk_events=args.chunk_events,
+                                  calibration=args.calibration, width=args.width, height=args.height,
+                                  time_window_us=window, roi=roi, time_unit=args.time_unit,
+                                  overwrite=args.overwrite, progress=progress)
+    except (RecordingError, ValueError, OSError) as exc:
+        if shown["any"] and tty:
+            print(file=sys.stderr)
+        print(f"eventcap convert: {exc}", file=sys.stderr)
+        return 2
+    if shown["any"] and tty:
+        print(file=sys.stderr)
+    s = stats
+    span_s = (s["t_last_us"] - s["t_first_us"]) / 1e6
+    print(f"wrote {s['out']}: {s['events']:,} events ({span_s:.3f} s), {s['frames']} frames, "
+          f"{s['width']}x{s['height']} (width x height), from {s['format']}; {s['camera']}")
+    print(f"read {s['events_read']:,} events in {s['seconds']:.1f} s ({s['events_per_s'] / 1e6:.2f} M events/s), "
+          f"{_human(s['bytes'])} on disk; {len(s['repairs'])} repair(s)"
+          + "".join("\n  repaired: " + r for r in s["repairs"]))
+    return 0
+
+
 def _explain(cache, prefix: str) -> None:
     e = cache.find(prefix)
     m = e.manifest
@@ -278,12 +323,32 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
     p.add_argument("--out", help="output PNG (default: next to the recording)")
     p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
+    p = sub.add_parser("convert", help="convert a recording into the project's format (streaming, bounded memory)")
+    p.add_argument("input", metavar="IN", help="the recording: AEDAT4, HDF5, EVT2/EVT3 .raw, DAT, npy/npz or an "
+                                                "rpg folder")
+    p.add_argument("output", metavar="OUT", help="the folder to write (a zarr group, e.g. rec.zarr)")
+    p.add_argument("--format", help="force the input format (aedat4, hdf5, evt2, evt3, dat, npy, npz, rpg)")
+    p.add_argument("--calibration", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3]) of the full sensor, "
+                                         "overriding the file's")
+    p.add_argument("--width", type=int, help="sensor width for files that do not store it")
+    p.add_argument("--height", type=int, help="sensor height for files that do not store it")
+    p.add_argument("--t-start", type=float, default=0.0, metavar="S", help="start, seconds from the first event")
+    p.add_argument("--t-end", type=float, default=0.0, metavar="S", help="end, seconds from the first event "
+                                                                        "(0 = to the end)")
+    p.add_argument("--roi", type=int, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
+                   help="keep the region x0 <= x < x1, y0 <= y < y1 (moved to 0, 0)")
+    p.add_argument("--time-unit", help="unit of array/text time columns when the default is wrong (s, ms, us, ns)")
+    p.add_argument("--chunk-events", type=int, default=1 << 20, metavar="N",
+                   help="events decoded per chunk (default: %(default)s)")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.command == "stages":
         return cmd_stages(args)
     if args.command == "preview":
         return cmd_preview(args)
+    if args.command == "convert":
+        return cmd_convert(args)
     if args.command == "cache":
         if args.action == "explain" and not args.key:
             parser.error("cache explain needs a KEY")

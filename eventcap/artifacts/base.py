@@ -348,3 +348,68 @@ def _write_array(group, name: str, value: np.ndarray, units: str) -> None:
     if value.size:
         arr[...] = value
     arr.attrs["units"] = units
+
+
+class ArrayAppender:
+    """Writes one array of an artifact's zarr group in pieces along its first axis, with the layout
+    :meth:`Artifact.to_zarr` gives the whole array (same chunks, empty chunks written, ``units`` attribute).
+
+    For streams too large to hold in memory (a converted recording's event columns). The chunk length of the
+    whole-array layout is ``min(rows, full)``: rows are held back until ``full`` of them have arrived (or
+    :meth:`close` writes a shorter array exactly as ``to_zarr`` would); after that, only whole chunks are appended,
+    so each chunk file is written once and memory stays below about two chunks (4 MiB each) plus one piece.
+    """
+
+    def __init__(self, group, name: str, dtype, row_shape: tuple[int, ...] = (), units: str = ""):
+        self.group, self.name, self.units = group, name, units
+        self.dtype = np.dtype(dtype)
+        self.row_shape = tuple(int(s) for s in row_shape)
+        # The chunk length of an array longer than one chunk (any longer array gets the same one).
+        self.full = _chunks_for((1 << 62, *self.row_shape), self.dtype.itemsize)[0]
+        self.rows = 0
+        self._pending: list[np.ndarray] = []
+        self._pending_rows = 0
+        self._array = None
+
+    def append(self, values: np.ndarray) -> None:
+        """Add rows: an array of this dtype shaped ``(n, *row_shape)``."""
+        values = np.asarray(values)
+        if values.dtype != self.dtype or values.shape[1:] != self.row_shape:
+            raise ValueError(f"{self.name}: expected rows of dtype {self.dtype} and shape {self.row_shape}, got "
+                             f"{values.dtype} {values.shape}")
+        if not len(values):
+            return
+        self._pending.append(values)
+        self._pending_rows += len(values)
+        self.rows += len(values)
+        if self._pending_rows >= self.full:
+            self._flush(whole_chunks_only=True)
+
+    def close(self) -> int:
+        """Write what is held back; returns the array's length."""
+        if self._array is None:
+            _write_array(self.group, self.name, self._take(self._pending_rows), self.units)
+        else:
+            self._flush(whole_chunks_only=False)
+        return self.rows
+
+    def _take(self, n: int) -> np.ndarray:
+        if not self._pending:
+            data = np.empty((0, *self.row_shape), self.dtype)
+        else:
+            data = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
+        head, rest = data[:n], data[n:]
+        self._pending = [rest] if len(rest) else []
+        self._pending_rows = len(rest)
+        return np.ascontiguousarray(head)
+
+    def _flush(self, whole_chunks_only: bool) -> None:
+        n = self._pending_rows - self._pending_rows % self.full if whole_chunks_only else self._pending_rows
+        if self._array is None:
+            self._array = self.group.create_array(
+                self.name, shape=(0, *self.row_shape), dtype=self.dtype, chunks=(self.full, *self.row_shape),
+                config={"write_empty_chunks": True},
+            )
+            self._array.attrs["units"] = self.units
+        if n:
+            self._array.append(self._take(n))

@@ -25,7 +25,7 @@ class RecordingConfig:
 
 
 RECORDING = StageSpec(
-    name="recording", kind="source", version=1,
+    name="recording", kind="source", version=2,
     description="a recording from a file (real cameras' formats or the project's own), cut into batches",
     config=RecordingConfig, inputs={"template": Port(Template, optional=True)},
     outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},
