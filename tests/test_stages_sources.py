@@ -17,8 +17,6 @@ from eventcap.body.procedural import procedural_template
 from eventcap.testing import StageConformance
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "davis346_lab_aps.aedat4"
-if not REAL.exists():
-    REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "davis346_lab_aps.aedat4"
 
 
 @functools.lru_cache(maxsize=1)
@@ -102,3 +100,20 @@ def test_missing_path_is_a_clear_error(tmp_path):
                        cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert p.returncode == 1
     assert "source.path: file not found" in p.stdout + p.stderr
+
+
+def test_recording_without_frames_is_rejected_by_sharpen_with_a_clear_message(tmp_path):
+    from eventcap.events import make_events
+    from eventcap.io import write_events
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    ev = make_events(np.sort(rng.integers(0, 100_000, n)), rng.integers(0, 64, n), rng.integers(0, 48, n),
+                     rng.choice([-1, 1], n))
+    path = write_events(tmp_path / "events_only.npz", ev, width=64, height=48)
+    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "source=recording", f"source.path={path}",
+                        "template.target_faces=3000", "hydra.run.dir=runs/nf"], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=600)
+    out = p.stdout + p.stderr
+    assert p.returncode == 1
+    assert "stage 'edi' needs intensity frames (at least 2), but recording 'events_only' has 0" in out
