@@ -91,27 +91,10 @@ def siemens_star(omega_rad_s: float, n_sectors: int = 12, radius_px: float = 85.
 
 
 def textured(speed_px_s: float, seed: int = 0) -> Render:
-    """Smooth random texture with sharp-edged blocks, translating and rotating (simulated scene)."""
-    rng = np.random.default_rng(seed)
-    size = 600
-    tex = cv2.GaussianBlur(rng.random((size, size)).astype(np.float32), (0, 0), 2.0)
-    tex = (tex - tex.min()) / (tex.max() - tex.min())
-    for _ in range(40):  # sharp-edged blocks, like clothing seams and limb silhouettes
-        y, x = rng.integers(0, size - 40, 2)
-        h, w = rng.integers(8, 40, 2)
-        tex[y : y + h, x : x + w] = rng.uniform(0.0, 1.0)
-    tex = (0.05 + 0.9 * tex).astype(np.float32)
-    centre = (size / 2, size / 2)
+    """Smooth random texture with sharp-edged blocks, translating and rotating (the simulator benchmark's scene)."""
+    from bench_simulator import textured_scene
 
-    def render(t_us: int) -> np.ndarray:
-        t = t_us * 1e-6
-        m = cv2.getRotationMatrix2D(centre, np.degrees(speed_px_s / 120.0 * t), 1.0)
-        m[0, 2] += speed_px_s * t * 0.8 - (size - WIDTH) / 2
-        m[1, 2] += speed_px_s * t * 0.6 - (size - HEIGHT) / 2
-        out = cv2.warpAffine(tex, m, (WIDTH, HEIGHT), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        return np.clip(out, 0.0, 1.0)
-
-    return render
+    return textured_scene(speed_px_s, seed)
 
 
 def discs(speed_px_s: float, seed: int = 1, lo: float = 0.08, hi: float = 0.9) -> Render:

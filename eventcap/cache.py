@@ -235,7 +235,7 @@ class Cache:
             if d.parent.name == "trash":
                 dead = True
             elif len(parts) >= 4 and parts[-3] == _HOST:
-                dead = not _pid_alive(int(parts[-2])) if parts[-2].isdigit() else True
+                dead = not pid_alive(int(parts[-2])) if parts[-2].isdigit() else True
             else:
                 try:
                     dead = now - d.stat().st_mtime > max_age_s
@@ -308,7 +308,8 @@ def explain_difference(old: Mapping[str, Any], new: Mapping[str, Any], prefix: s
     return out
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process with this pid exists on this host."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

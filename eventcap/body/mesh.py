@@ -122,15 +122,4 @@ def load_mesh_template(
         landmark_joint=lj,
         landmark_offset=lo,
     )
-    if tpl.signed_volume() < 0:  # inward-wound scan: flip to the outward convention of Template
-        tpl = Template(
-            tpl.name,
-            tpl.rest_joints,
-            tpl.vertices,
-            tpl.faces[:, ::-1],
-            tpl.weights,
-            tpl.vertex_albedo,
-            tpl.landmark_joint,
-            tpl.landmark_offset,
-        )
-    return tpl
+    return tpl.outward()  # an inward-wound file is flipped to the outward convention

@@ -146,6 +146,13 @@ class Template(Artifact):
         """Joint with the largest skinning weight of each vertex, (V,) int64 (body-part labels)."""
         return np.argmax(self.weights, axis=1)
 
+    def outward(self) -> Template:
+        """This template with faces wound outwards: flipped if its signed volume is negative (inward-wound files)."""
+        if self.signed_volume() >= 0:
+            return self
+        return Template(self.name, self.rest_joints, self.vertices, self.faces[:, ::-1], self.weights,
+                        self.vertex_albedo, self.landmark_joint, self.landmark_offset)
+
     def signed_volume(self) -> float:
         """Signed volume in m³ enclosed by the faces (positive when outward-oriented and closed)."""
         tri = self.vertices[self.faces]

@@ -27,6 +27,7 @@ from eventcap.artifacts.base import ArrayAppender, ArtifactError
 from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.events import EVENT_DTYPE
+from eventcap.cache import pid_alive
 from eventcap.io.readers import Roi, _finish_frames, iter_event_chunks, open_source
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS
@@ -327,13 +328,6 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
     return True
 
 
@@ -346,7 +340,7 @@ def _remove_stale_partials(out: Path) -> None:
         for prefix in (f"{out.name}.partial-", f"{out.name}.old-"):
             if p.name.startswith(prefix) and p.name[len(prefix):].isdigit():
                 pid = int(p.name[len(prefix):])
-                if pid != os.getpid() and not _pid_alive(pid):
+                if pid != os.getpid() and not pid_alive(pid):
                     logger.info("removing %s, left by a conversion that did not finish (process %d is gone)", p, pid)
                     _remove(p)
 
