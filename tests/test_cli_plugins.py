@@ -77,9 +77,10 @@ def test_multirun_shares_cache_and_cache_commands(tmp_path):
 
 def test_third_party_plugin_installed_and_run(tmp_path):
     site = tmp_path / "site"
-    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--quiet",
-                    "--target", str(site), str(TESTS / "fixtures" / "eventcap_hello")], check=True,
-                   capture_output=True, timeout=300)
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--quiet",
+                          "--target", str(site), str(TESTS / "fixtures" / "eventcap_hello")],
+                         capture_output=True, text=True, timeout=300)
+    assert pip.returncode == 0, pip.stderr[-3000:]
     env = toy_env()
     env["PYTHONPATH"] = f"{site}:{env['PYTHONPATH']}"
     listing = run_cli(["stages", "-v"], tmp_path, env=env).stdout
