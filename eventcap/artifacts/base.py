@@ -63,8 +63,10 @@ def array(dtype, dims, *, units: str = "", doc: str = "", optional: bool = False
     return field(metadata={"array": spec})
 
 
-def attr(default: Any = dataclasses.MISSING, *, units: str = "", doc: str = ""):
+def attr(default: Any = dataclasses.MISSING, *, units: str = "", doc: str = "", default_factory: Any = None):
     """Declare a scalar/JSON attribute field (int, float, str, bool, list, dict)."""
+    if default_factory is not None:
+        return field(default_factory=default_factory, metadata={"attr": AttrSpec(units, doc)})
     return field(default=default, metadata={"attr": AttrSpec(units, doc)})
 
 

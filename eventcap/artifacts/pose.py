@@ -1,0 +1,44 @@
+"""Artifacts of Sec. 3.2-3.3: joint detections at intensity frames and the estimated skeletal motion."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from .base import Artifact, ArtifactError, array, attr
+
+
+@dataclass(frozen=True, eq=False)
+class Detections(Artifact):
+    """2D landmarks (the skeleton's BODY_25 order, incl. the 4 face landmarks) and root-relative 3D joints (SMPL
+    order, relative to the pelvis) at each intensity frame, with confidences in [0, 1] (0 = not detected)."""
+
+    schema_version: ClassVar[int] = 1
+    t_us: np.ndarray = array("int64", ("n",), units="us", doc="time of the intensity frame")
+    keypoints_2d: np.ndarray = array("float32", ("n", "l", 2), units="px")
+    confidence_2d: np.ndarray = array("float32", ("n", "l"))
+    joints_3d: np.ndarray = array("float64", ("n", 24, 3), units="m, relative to the pelvis")
+    confidence_3d: np.ndarray = array("float32", ("n", 24))
+    detector: str = attr(default="", doc="what produced them (simulated detectors say so)")
+
+    def validate(self) -> None:
+        super().validate()
+        for name in ("confidence_2d", "confidence_3d"):
+            c = getattr(self, name)
+            if c.size and (c.min() < 0 or c.max() > 1):
+                raise ArtifactError(f"Detections.{name}: expected values in [0, 1], got [{c.min()}, {c.max()}]")
+
+
+@dataclass(frozen=True, eq=False)
+class PoseSequence(Artifact):
+    """Skeleton parameters S = [theta (27), root rotation (3), root translation (3)] at every tracking frame of a
+    batch (or of a whole recording), with how the solve went."""
+
+    schema_version: ClassVar[int] = 1
+    t_us: np.ndarray = array("int64", ("f",), units="us")
+    poses: np.ndarray = array("float64", ("f", 33), units="rad, m")
+    status: str = attr(default="", doc="solver status of the last solve")
+    iterations: int = attr(default=0)
+    energies: dict = attr(default_factory=dict, doc="final value of each energy term")
