@@ -86,10 +86,14 @@ class Cache:
     """The cache rooted at ``root`` (a local directory; created on first use)."""
 
     def __init__(self, root: str | Path):
-        self.root = Path(root).expanduser().resolve()
+        self.root = _local_root(root)
         self._verified: set[Path] = set()
-        for sub in ("entries", "tmp", "failures", "trash"):
-            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        try:
+            for sub in ("entries", "tmp", "failures", "trash"):
+                (self.root / sub).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CacheError(f"cache_dir {root}: cannot create the cache there: {exc}") from None
+        _check_atomic_rename(self.root)
 
     # -- paths ----------------------------------------------------------------------------------------------------
     def entry_path(self, stage: str, key: str) -> Path:
@@ -306,6 +310,44 @@ def explain_difference(old: Mapping[str, Any], new: Mapping[str, Any], prefix: s
         else:
             out.append(f"{path}: {json.dumps(a)} -> {json.dumps(b)}")
     return out
+
+
+def _local_root(root: str | Path) -> Path:
+    """The cache directory as a local path; URLs of stores that cannot rename atomically are refused."""
+    text = str(root)
+    if "://" in text:
+        scheme, _, rest = text.partition("://")
+        if scheme != "file":
+            raise CacheError(
+                f"cache_dir {text}: the cache commits every entry by renaming a finished directory into place, and "
+                f"{scheme}:// stores cannot rename a directory atomically (a reader could see half an entry). Put the "
+                f"cache on a local disk or a shared POSIX filesystem (NFS, Lustre, BeeGFS, CephFS) mounted at the same "
+                f"path on every worker, and give that path."
+            )
+        text = rest
+    return Path(text).expanduser().resolve()
+
+
+_RENAME_CHECKED: set[Path] = set()
+
+
+def _check_atomic_rename(root: Path) -> None:
+    """Refuse a filesystem that cannot rename a directory (some FUSE mounts), once per process and root."""
+    if root in _RENAME_CHECKED:
+        return
+    probe = root / "tmp" / f"rename-probe.{_HOST}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
+    try:
+        (probe / "x").mkdir(parents=True)
+        os.rename(probe, probe.with_name(probe.name + ".done"))
+    except OSError as exc:
+        raise CacheError(
+            f"cache_dir {root}: this filesystem cannot rename a directory ({exc}); the cache needs atomic renames "
+            f"to commit entries. Use a local disk or a POSIX shared filesystem."
+        ) from None
+    finally:
+        shutil.rmtree(probe, ignore_errors=True)
+        shutil.rmtree(probe.with_name(probe.name + ".done"), ignore_errors=True)
+    _RENAME_CHECKED.add(root)
 
 
 def pid_alive(pid: int) -> bool:

@@ -8,6 +8,7 @@ again: every committed node and batch is a cache hit.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
@@ -188,9 +189,27 @@ def base_doc(spec: StageSpec, config: Any, where: str) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ExecutorConfig:
-    kind: str = "serial"  # serial | processes
-    workers: int = 2
-    threads_per_worker: int = 1
+    kind: str = "serial"  # serial | processes | dask
+    workers: int = 2  # processes / dask LocalCluster workers
+    threads_per_worker: int = 1  # BLAS/OpenMP threads per worker
+    address: str | None = None  # dask: scheduler address (tcp://host:8786); None starts a LocalCluster
+    retries: int = 2  # dask: resubmissions of a task whose worker raised an infrastructure error
+
+
+class _DaskPool:
+    """A dask.distributed client that looks like an executor to the runner (submit + as_completed)."""
+
+    def __init__(self, client, retries: int):
+        self.client, self.retries = client, retries
+
+    def map_unordered(self, fn, tasks: list[Task]) -> Iterator[TaskResult]:
+        from distributed import as_completed
+
+        futures = [self.client.submit(fn, t, key=f"{t.node}-b{t.batch.index if t.batch else 'all'}-{t.key[:12]}",
+                                      retries=self.retries, pure=False) for t in tasks]
+        for fut in as_completed(futures):
+            yield fut.result()
+            fut.release()  # results are small, but nothing stays held on the scheduler either
 
 
 def _init_worker(level: int) -> None:
@@ -202,23 +221,42 @@ def _executor(cfg: ExecutorConfig) -> Iterator[Any]:
     if cfg.kind == "serial":
         yield None
         return
-    if cfg.kind != "processes":
-        raise ValueError(f"executor.kind: expected 'serial' or 'processes', got {cfg.kind!r}")
+    if cfg.kind not in ("processes", "dask"):
+        raise ValueError(f"executor.kind: expected 'serial', 'processes' or 'dask', got {cfg.kind!r}")
     import multiprocessing as mp
 
     saved = {k: os.environ.get(k) for k in THREAD_ENV}
     os.environ.update({k: str(cfg.threads_per_worker) for k in THREAD_ENV})
     try:
-        # spawn, not fork: zarr and tqdm run background threads, and forking a threaded process can deadlock.
-        with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("spawn"),
-                                 initializer=_init_worker, initargs=(logging.getLogger().level,)) as pool:
-            yield pool
+        if cfg.kind == "processes":
+            # spawn, not fork: zarr and tqdm run background threads, and forking a threaded process can deadlock.
+            with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("spawn"),
+                                     initializer=_init_worker, initargs=(logging.getLogger().level,)) as pool:
+                yield pool
+        else:
+            yield from _dask(cfg)
     finally:
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def _dask(cfg: ExecutorConfig) -> Iterator[_DaskPool]:
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ValueError("executor=dask needs dask.distributed: pip install 'dask[distributed]'") from None
+    if cfg.address:
+        log.info("dask: connecting to the scheduler at %s", cfg.address)
+        with Client(cfg.address, timeout="30s") as client:
+            yield _DaskPool(client, cfg.retries)
+        return
+    log.info("dask: starting a LocalCluster with %d workers x %d thread", cfg.workers, 1)
+    with LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=logging.WARNING) as cluster, Client(cluster) as client:
+        yield _DaskPool(client, cfg.retries)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -260,7 +298,11 @@ class Runner:
         self.nodes = build_pipeline(cfg, self.registry)
         self.cache = Cache(cfg.get("cache_dir") or "runs/cache")
         ex = cfg.get("executor") or {}
-        self.executor = ExecutorConfig(**{k: v for k, v in ex.items() if k in ("kind", "workers", "threads_per_worker")})
+        known = {f.name for f in dataclasses.fields(ExecutorConfig)}
+        unknown = sorted(set(ex) - known)
+        if unknown:
+            raise ValueError(f"executor.{unknown[0]}: unknown key; known: {', '.join(sorted(known))}")
+        self.executor = ExecutorConfig(**dict(ex))
         self.selection = _parse_selection(cfg.get("batches"))
 
     def _base_doc(self, node: Node) -> dict[str, Any]:
@@ -441,6 +483,9 @@ class Runner:
         if pool is None:
             for t in tasks:
                 yield execute_task(t)
+            return
+        if isinstance(pool, _DaskPool):
+            yield from pool.map_unordered(execute_task, tasks)
             return
         pending = {pool.submit(execute_task, t) for t in tasks}
         while pending:

@@ -1,0 +1,97 @@
+"""Executors give identical results (serial, process pool, Dask); a Dask worker killed mid-run does not change them;
+sweeps run on Hydra's joblib and submitit launchers sharing one cache; stores that cannot rename are refused."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from eventcap.cache import Cache, CacheError
+from eventcap.runner import Runner
+
+from conftest import TESTS, toy_env
+
+
+def entries(cache_dir) -> dict[str, dict]:
+    return {e.key: {f: v[1] for f, v in e.manifest["files"].items()} for e in Cache(cache_dir).entries()}
+
+
+def run_with(toy_cfg, tmp_path, name, executor, **stage_changes):
+    cfg = toy_cfg(**stage_changes)
+    cfg["cache_dir"] = str(tmp_path / name)
+    cfg["executor"] = executor
+    return Runner(cfg).run(), cfg["cache_dir"]
+
+
+def test_serial_processes_dask_identical(toy_cfg, tmp_path):
+    changes = {"signal": {"n_batches": 6, "seed": 5}}
+    serial, c1 = run_with(toy_cfg, tmp_path, "serial", {"kind": "serial"}, **changes)
+    pool, c2 = run_with(toy_cfg, tmp_path, "pool", {"kind": "processes", "workers": 2}, **changes)
+    dask, c3 = run_with(toy_cfg, tmp_path, "dask", {"kind": "dask", "workers": 2}, **changes)
+    assert serial.ok and pool.ok and dask.ok
+    assert serial.metrics == pool.metrics == dask.metrics
+    assert entries(c1) == entries(c2) == entries(c3) and len(entries(c1)) == 1 + 6 + 6 + 1
+
+
+def test_dask_worker_killed_mid_run_still_identical(toy_cfg, tmp_path):
+    import psutil
+
+    changes = {"signal": {"n_batches": 8}, "smooth": {"sleep_s": 0.4}, "scale": {"sleep_s": 0.4}}
+    reference, c_ref = run_with(toy_cfg, tmp_path, "ref", {"kind": "serial"}, **changes)
+    killed = []
+
+    def kill_one_worker():
+        me = psutil.Process()
+        deadline = time.time() + 60
+        while time.time() < deadline and not killed:
+            time.sleep(0.2)
+            if not list((tmp_path / "dask" / "entries").glob("toy_smooth/*")):
+                continue  # wait until workers are busy with batches
+            workers = [p for p in me.children(recursive=True) if "spawn" in " ".join(p.cmdline())]
+            if workers:
+                os.kill(workers[0].pid, signal.SIGKILL)
+                killed.append(workers[0].pid)
+
+    t = threading.Thread(target=kill_one_worker)
+    t.start()
+    result, c_dask = run_with(toy_cfg, tmp_path, "dask", {"kind": "dask", "workers": 2}, **changes)
+    t.join()
+    assert killed, "no worker was killed"
+    assert result.ok and result.metrics == reference.metrics
+    assert entries(c_dask) == entries(c_ref)
+    assert list((tmp_path / "dask" / "tmp").iterdir()) == []
+
+
+def test_unknown_executor_key_is_named(toy_cfg):
+    cfg = toy_cfg()
+    cfg["executor"] = {"kind": "dask", "adress": "tcp://x:1"}
+    with pytest.raises(ValueError, match="executor.adress: unknown key"):
+        Runner(cfg)
+
+
+def test_object_store_cache_is_refused(tmp_path):
+    with pytest.raises(CacheError, match=r"s3:// stores cannot rename a directory atomically"):
+        Cache("s3://bucket/eventcap-cache")
+    assert Cache(f"file://{tmp_path / 'c'}").root == (tmp_path / "c").resolve()
+
+
+@pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
+def test_sweep_on_hydra_launchers_shares_the_cache(tmp_path, launcher):
+    cmd = [sys.executable, "-m", "eventcap.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
+           "experiment=toy", f"hydra/launcher={launcher}", "stages.scale.factor=1,2", f"cache_dir={tmp_path / 'cache'}"]
+    if launcher == "submitit_local":
+        cmd += ["hydra.launcher.timeout_min=5"]
+    p = subprocess.run(cmd, cwd=tmp_path, env=toy_env(), capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    sweep = next((tmp_path / "runs" / "toy").glob("multirun_*"))
+    sums = sorted(json.loads((sweep / str(i) / "metrics.json").read_text())["total.metrics"]["sum"] for i in (0, 1))
+    assert sums[1] == pytest.approx(2 * sums[0])
+    # 1 signal + 4 smooth shared by both jobs, 2 x (4 scale + 1 total)
+    assert len(Cache(tmp_path / "cache").entries()) == 1 + 4 + 2 * 5
