@@ -296,6 +296,7 @@ class Runner:
         self.cfg = cfg
         self.registry = registry or load_registry()
         self.nodes = build_pipeline(cfg, self.registry)
+        self.by_name = {n.name: n for n in self.nodes}
         self.cache = Cache(cfg.get("cache_dir") or "runs/cache")
         ex = cfg.get("executor") or {}
         known = {f.name for f in dataclasses.fields(ExecutorConfig)}
@@ -348,7 +349,7 @@ class Runner:
         """Input references for a task and the matching key material."""
         refs, keydoc = {}, {}
         for port, ref in node.inputs.items():
-            up = next(n for n in self.nodes if n.name == ref.node)
+            up = self.by_name[ref.node]
             if up.spec.per_batch and node.spec.per_batch:
                 k = batch_keys[ref.node][batch.index]
                 refs[port] = InputRefSpec(up.spec.name, ref.port, (k,))
@@ -414,7 +415,7 @@ class Runner:
         return entry
 
     def _plan_for(self, node: Node, node_keys) -> list[Batch]:
-        plan_node = next(n for n in self.nodes if n.name == node.plan_node)
+        plan_node = self.by_name[node.plan_node]
         plan = _load(str(self.cache.root), plan_node.spec.name, node_keys[plan_node.name], node.plan_port, BatchPlan)
         batches = plan.batches()
         if self.selection is not None:
@@ -426,7 +427,7 @@ class Runner:
         from tqdm import tqdm
 
         whole_bad = [r.node for r in node.inputs.values()
-                     if not next(n for n in self.nodes if n.name == r.node).spec.per_batch and r.node not in node_keys]
+                     if not self.by_name[r.node].spec.per_batch and r.node not in node_keys]
         if whole_bad or node.plan_node not in node_keys:
             rep.skipped = 1
             log.error("%s: skipped, upstream failed: %s", label, ", ".join(sorted(set(whole_bad or [node.plan_node]))))
@@ -443,7 +444,7 @@ class Runner:
         todo: list[Task] = []
         for b in batches:
             ups = [r.node for r in node.inputs.values() if r.node in batch_keys and b.index not in batch_keys[r.node]
-                   and next(n for n in self.nodes if n.name == r.node).spec.per_batch]
+                   and self.by_name[r.node].spec.per_batch]
             if ups:
                 rep.skipped += 1
                 continue
@@ -528,7 +529,7 @@ class Runner:
 
         for item in self.cfg.get("export") or []:
             node_name, _, port = str(item).partition(".")
-            node = next((n for n in self.nodes if n.name == node_name), None)
+            node = self.by_name.get(node_name)
             if node is None or port not in node.spec.outputs:
                 raise ValueError(f"export: {item!r} is not '<node>.<port>' of this pipeline")
             if node.spec.per_batch:
