@@ -1,0 +1,68 @@
+"""Specs of the detect stages (paper Sec. 3.2): `simulated` and `detections_file`. Declarations only."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eventcap.artifacts.pose import Detections
+from eventcap.artifacts.recording import Recording
+from eventcap.stage import Port, StageSpec, param
+
+
+@dataclass
+class SimulatedDetectorConfig:
+    seed: int = param(0, help="seed of the simulated detector's errors (with the run's ctx.rng)")
+    sigma_px: float = param(2.0, help="std of the Gaussian 2D error per image axis, pixels (before blur scaling)")
+    outlier_prob: float = param(0.02, help="probability that a 2D keypoint is an outlier (a wrong location)")
+    outlier_radius_px: float = param(30.0, help="outliers lie uniformly within this radius of the true point")
+    flip_prob: float = param(0.02, help="probability that a left/right keypoint pair is swapped (per frame and pair)")
+    blur_gain: float = param(0.1, help="2D error grows as 1 + blur_gain * (image motion during the exposure, px)")
+    sigma_m: float = param(0.025, help="std of the per-frame 3D joint error per axis, metres")
+    bias_m: float = param(0.04, help="std of a fixed random 3D offset per joint, drawn once per sequence, metres")
+    confidence: float = param(0.9, help="2D confidence of a sharp, correct keypoint (divided by the blur factor)")
+    outlier_confidence: float = param(0.3, help="factor on the confidence of outliers")
+    confidence_3d: float = param(0.9, help="3D confidence of a sharp joint inside the image (divided by the blur "
+                                           "factor)")
+    occlusion: bool = param(True, help="keypoints hidden by the body (z-buffer of the recording's template) get "
+                                       "confidence 0")
+    occlusion_margin_m: float = param(0.15, help="a keypoint is hidden when the surface in front of it is nearer "
+                                                 "than its depth minus this margin (joints lie inside the body)")
+
+
+@dataclass
+class DetectionsFileConfig:
+    path: str = param("", help="detections: a folder of OpenPose JSON files (one per frame), a .json, .npz or "
+                               ".csv file", file=True)
+    format: str = param("auto", help="openpose | npz | csv | auto (folder or .json = openpose, else by extension)")
+    layout: str = param("body25", help="keypoint layout of the file: body25 (OpenPose BODY_25, 25 points) | "
+                                       "coco18 (OpenPose COCO, 18 points)")
+    mapping: dict[str, str] = param(default_factory=dict,
+                                    help="overrides of the layout's keypoint -> landmark mapping: file keypoint "
+                                         "(index '4' or layout name 'RWrist') -> landmark name or '' (ignore it)")
+    match: str = param("order", help="OpenPose folders: order (n-th file in natural order = n-th frame) | number "
+                                     "(the last number in the file name is the frame number)")
+    first_frame: int = param(0, help="frame number (file names, 'frame' arrays/columns) of the recording's first "
+                                     "intensity frame")
+    time_tolerance_us: int = param(500, help="rows with t_us are matched to the frame within this distance")
+    path_3d: str = param("", help="optional npz/csv whose 3D joints replace those of `path` (e.g. VNect output "
+                                   "next to OpenPose JSON)", file=True)
+    frame_3d: str = param("world", help="axes of the root-relative 3D joints in the files: world | camera "
+                                        "(rotated into world axes with the recording's camera)")
+    unit_3d: str = param("m", help="unit of the 3D joints in the files: m | mm")
+
+
+SIMULATED = StageSpec(
+    name="simulated", kind="detect", version=1,
+    description="simulated CNN detector: ground-truth projections + noise, outliers, flips, blur, 3D bias",
+    config=SimulatedDetectorConfig, inputs={"recording": Port(Recording)},
+    outputs={"detections": Port(Detections)},
+    run="eventcap_detect._impl:run_simulated",
+)
+
+FILE = StageSpec(
+    name="detections_file", kind="detect", version=1,
+    description="2D/3D detections produced elsewhere (OpenPose JSON, npz, csv), aligned with the frames",
+    config=DetectionsFileConfig, inputs={"recording": Port(Recording)},
+    outputs={"detections": Port(Detections)},
+    run="eventcap_detect._impl:run_file",
+)
