@@ -188,6 +188,7 @@ def cmd_cache(args) -> int:
 def cmd_preview(args) -> int:
     """A PNG of a recording (the project's zarr format): frame, true sharp image, events, ground-truth skeleton."""
     import cv2
+    import numpy as np
     import zarr
 
     from .artifacts import ArtifactError
@@ -201,7 +202,19 @@ def cmd_preview(args) -> int:
             from .artifacts.tracking import LatentFrames
 
             latent = LatentFrames.from_zarr(zarr.open_group(str(args.latent), mode="r"), where=str(args.latent))
-        img = recording_overview(rec, frame_index=args.frame, scale=args.scale, latent=latent)
+        if args.tracks:
+            from .artifacts import BatchPlan
+            from .artifacts.tracking import SlicedTracks
+            from .viz import tracks_overview
+
+            if latent is None:
+                raise ArtifactError("--tracks needs --latent (the sharpened frames to draw on)")
+            sliced = SlicedTracks.from_zarr(zarr.open_group(str(args.tracks), mode="r"), where=str(args.tracks))
+            plan = BatchPlan.between_frames(rec.frames.t_us)
+            batch = plan.batch(int(np.searchsorted(plan.t0_us, sliced.t_us[0])))
+            img = tracks_overview(rec, latent, sliced, batch)
+        else:
+            img = recording_overview(rec, frame_index=args.frame, scale=args.scale, latent=latent)
     except (ArtifactError, FileNotFoundError) as exc:
         print(f"eventcap preview: {exc}", file=sys.stderr)
         return 2
@@ -323,6 +336,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
     p.add_argument("--out", help="output PNG (default: next to the recording)")
     p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
+    p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
     p = sub.add_parser("convert", help="convert a recording into the project's format (streaming, bounded memory)")
     p.add_argument("input", metavar="IN", help="the recording: AEDAT4, HDF5, EVT2/EVT3 .raw, DAT, npy/npz or an "
                                                 "rpg folder")

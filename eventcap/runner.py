@@ -519,12 +519,13 @@ class Runner:
             },
         }
         (run_dir / "run.json").write_text(json.dumps(summary, indent=1))
-        self._export(run_dir, node_keys, result)
+        self._export(run_dir, node_keys, batch_keys, result)
         (run_dir / "metrics.json").write_text(json.dumps(result.metrics, indent=1, default=str))
 
 
-    def _export(self, run_dir: Path, node_keys, result: RunResult) -> None:
-        """Copy the outputs named in ``export`` (``node.port``) into the run folder as standalone zarr groups."""
+    def _export(self, run_dir: Path, node_keys, batch_keys, result: RunResult) -> None:
+        """Copy the outputs named in ``export`` (``node.port``) into the run folder as standalone zarr groups:
+        ``<node>.<port>.zarr``, or for a per-batch node ``<node>.<port>/batch<NNNN>.zarr`` per committed batch."""
         import shutil
 
         for item in self.cfg.get("export") or []:
@@ -532,16 +533,21 @@ class Runner:
             node = self.by_name.get(node_name)
             if node is None or port not in node.spec.outputs:
                 raise ValueError(f"export: {item!r} is not '<node>.<port>' of this pipeline")
-            if node.spec.per_batch:
-                raise ValueError(f"export: {item!r} is produced per batch; export a whole-recording output")
-            if node_name not in node_keys or result.nodes[node_name].failed or result.nodes[node_name].skipped:
+            if node_name not in node_keys or (not node.spec.per_batch and (
+                    result.nodes[node_name].failed or result.nodes[node_name].skipped)):
                 log.warning("export: %s not available (the node did not succeed)", item)
                 continue
-            entry = self.cache.lookup(node.spec.name, node_keys[node_name])
-            dest = run_dir / f"{node_name}.{port}.zarr"
-            shutil.rmtree(dest, ignore_errors=True)
-            shutil.copytree(entry.path / "data" / port, dest)
-            log.info("exported %s to %s", item, dest)
+            if node.spec.per_batch:
+                items = [(run_dir / f"{node_name}.{port}" / f"batch{i:04d}.zarr", k)
+                         for i, k in sorted(batch_keys[node_name].items())]
+            else:
+                items = [(run_dir / f"{node_name}.{port}.zarr", node_keys[node_name])]
+            for dest, key in items:
+                entry = self.cache.lookup(node.spec.name, key)
+                shutil.rmtree(dest, ignore_errors=True)
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copytree(entry.path / "data" / port, dest)
+            log.info("exported %s to %s", item, items[0][0].parent if node.spec.per_batch else items[0][0])
 
 
 def _parse_selection(value) -> tuple[int | None, int | None] | None:

@@ -81,3 +81,32 @@ def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int
         cv2.putText(img, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
         tiles.append(img)
     return np.concatenate(tiles, axis=1)
+
+
+def tracks_overview(rec, latent, sliced, batch, scale: int = 3) -> np.ndarray:
+    """Sliced feature tracks of one batch drawn over (left) the EDI-sharpened frame at the batch start and (right)
+    the events accumulated over the batch; each track a colour, its 1 ms samples joined, its end dotted."""
+    import cv2
+
+    k = int(np.searchsorted(latent.t_us, batch.t0_us))
+    base = to_bgr(np.clip(np.exp(latent.log_images[k].astype(np.float64)) - latent.eps, 0.0, 1.0))
+    ev = rec.events.window(batch.t0_us, batch.t1_us)
+    panels = [base, event_image(ev, rec.height, rec.width)]
+    rng = np.random.default_rng(0)
+    colours = [tuple(int(c) for c in rng.integers(40, 230, 3)) for _ in range(sliced.xy.shape[1])]
+    out = []
+    for img in panels:
+        big = cv2.resize(img, (rec.width * scale, rec.height * scale), interpolation=cv2.INTER_NEAREST)
+        for h in range(sliced.xy.shape[1]):
+            ok = sliced.valid[:, h]
+            if ok.sum() < 2:
+                continue
+            pts = np.round(sliced.xy[ok, h] * scale).astype(np.int32)
+            cv2.polylines(big, [pts.reshape(-1, 1, 2)], False, colours[h], 1, cv2.LINE_AA)
+            cv2.circle(big, tuple(pts[-1]), 2, colours[h], -1, cv2.LINE_AA)
+        out.append(big)
+    title = f"batch {batch.index}: {int(sliced.valid.any(axis=0).sum())} tracks, {ev.size} events"
+    img = np.concatenate(out, axis=1)
+    cv2.putText(img, title, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(img, title, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
