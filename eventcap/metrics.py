@@ -66,3 +66,30 @@ def track_errors(rec, track_id: np.ndarray, t_us: np.ndarray, xy: np.ndarray, t_
             ty = np.interp(t_us[m], grid, truth[:, j, 1])
             err[m] = np.hypot(tx - xy[m, 0], ty - xy[m, 1])
     return err, on_actor
+
+
+def procrustes_align(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """pred (..., J, 3) rigidly aligned (rotation + translation, no scale) to truth per leading index (Kabsch)."""
+    pred = np.asarray(pred, dtype=np.float64)
+    truth = np.asarray(truth, dtype=np.float64)
+    if pred.shape != truth.shape or pred.shape[-1] != 3:
+        raise ValueError(f"procrustes_align: expected two (..., J, 3) arrays of one shape, got {pred.shape}, "
+                         f"{truth.shape}")
+    mp, mt = pred.mean(axis=-2, keepdims=True), truth.mean(axis=-2, keepdims=True)
+    A, B = pred - mp, truth - mt
+    U, _, Vt = np.linalg.svd(np.swapaxes(A, -1, -2) @ B)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.zeros(U.shape)
+    D[..., 0, 0] = D[..., 1, 1] = 1.0
+    D[..., 2, 2] = d
+    R = U @ D @ Vt  # applied on the right: A @ R ≈ B
+    return A @ R + mt
+
+
+def mean_joint_error(pred_joints: np.ndarray, true_joints: np.ndarray, align: bool = True) -> np.ndarray:
+    """Per-frame mean per-joint 3D error in metres (paper's AE), after Procrustes alignment per frame by default.
+
+    pred_joints, true_joints: (T, 24, 3) metres. Returns (T,).
+    """
+    pred = procrustes_align(pred_joints, true_joints) if align else np.asarray(pred_joints, dtype=np.float64)
+    return np.linalg.norm(pred - np.asarray(true_joints, dtype=np.float64), axis=-1).mean(axis=-1)

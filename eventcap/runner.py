@@ -131,6 +131,8 @@ def execute_task(task: Task) -> TaskResult:
         _check_outputs(spec, task.node, outputs)
         info = {"node": task.node, "batch": task.batch.as_key() if task.batch else None,
                 "elapsed_s": round(time.perf_counter() - t0, 6)}
+        if ctx.stats:
+            info["stats"] = json.loads(json.dumps(ctx.stats, default=float))
         cache.commit(task.stage, task.key, task.doc, outputs, info)
         return TaskResult(task.node, task.key, bidx, "computed", time.perf_counter() - t0)
     except Exception as exc:  # recorded, reported, never cached as success

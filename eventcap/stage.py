@@ -123,6 +123,9 @@ class StageContext:
     batch: Batch | None = None
     log: logging.Logger = field(default_factory=lambda: logging.getLogger("eventcap.stage"))
     progress: Callable[[int, int], None] | None = None
+    #: Diagnostics of this computation (timings, solver iterations...): JSON-serialisable, recorded in the cache
+    #: manifest of the result (``eventcap cache explain``), not part of the outputs or their key.
+    stats: dict[str, Any] = field(default_factory=dict)
 
     def rng(self, seed: int, *extra: int) -> np.random.Generator:
         """A generator seeded by (seed, batch index, extra...) so batches get independent, reproducible streams."""

@@ -96,10 +96,11 @@ class TestBspline(StageConformance):
         assert np.abs(s.xy[:, 0, 0] - truth).max() < 0.05
 
 
-def test_default_pipeline_runs_through_slicing(tmp_path):
+def test_default_pipeline_runs_through_solving(tmp_path):
     p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "experiment=quick", "source.duration_s=0.09",
                         "template.target_faces=3000", "hydra.run.dir=runs/x"], cwd=tmp_path, capture_output=True,
                        text=True, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
     run = json.loads((tmp_path / "runs" / "x" / "run.json").read_text())
-    assert [run["nodes"][n]["computed"] for n in ("template", "source", "sharpen", "track", "slice")] == [1, 1, 1, 2, 2]
+    assert [run["nodes"][n]["computed"] for n in ("template", "source", "sharpen", "track", "slice", "solve")] == [
+        1, 1, 1, 2, 2, 2]

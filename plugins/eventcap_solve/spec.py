@@ -1,0 +1,47 @@
+"""Spec of the Sec. 3.2 stage: hybrid pose batch optimisation. Declarations only: the solver loads when it runs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eventcap.artifacts import BatchPlan
+from eventcap.artifacts.pose import Detections, PoseSequence
+from eventcap.artifacts.recording import Recording
+from eventcap.artifacts.tracking import SlicedTracks
+from eventcap.stage import Port, StageSpec, param
+
+
+@dataclass
+class BatchSolveConfig:
+    mode: str = param("batch", help="batch (the method) | per_frame (w/o_batch) | linear (*_linear: fits at the two "
+                                    "intensity frames, interpolated) | all (*_all: detections at every frame)")
+    icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
+    lambda_cor: float = param(50.0, help="weight of E_cor, the event correspondences (paper's λ_adj)")
+    lambda_2d: float = param(200.0, help="weight of E_2D (image residuals in focal-normalised units)")
+    lambda_3d: float = param(1.0, help="weight of E_3D (metres)")
+    lambda_temp: float = param(80.0, help="weight of E_temp, holding joints of parts without correspondences")
+    lambda_damp: float = param(1e-3, help="weight of the proximal term towards each solve's start (not in the paper)")
+    phi_scope: str = param("batch", help="E_temp indicator: batch (paper: per batch) | pair (per frame pair)")
+    max_tracks: int = param(0, help="use at most this many tracks per batch, the longest (0 = all)")
+    edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette/self-occlusion edge of the "
+                                            "current estimate give no correspondence (0 = keep all)")
+    still_m: float = param(0.03, help="E_temp holds only joints that moved less than this between the end fits, "
+                                      "metres (0 = every joint without correspondences, the paper's literal phi)")
+    max_iter: int = param(100, affects_result=False,
+                          help="IPOPT iteration limit per solve; reaching it fails the batch. Not part of the cache "
+                               "key: a solve that converges within any cap gives the same poses, and failures are "
+                               "never cached, so raising the cap recomputes only the batches that failed")
+    tol: float = param(1e-6, help="IPOPT convergence tolerance")
+    mumps_pivot_order: int = param(0, help="MUMPS ordering (0 AMD ... 7 auto), pinned for reproducibility")
+
+
+BATCH = StageSpec(
+    name="batch", kind="solve", version=1,
+    description="hybrid batch optimisation of all 1 kHz poses of a batch: event correspondences, 2D/3D detections, "
+                "temporal term, joint limits (Sec. 3.2, CasADi + IPOPT)",
+    config=BatchSolveConfig,
+    inputs={"recording": Port(Recording), "sliced": Port(SlicedTracks), "detections": Port(Detections),
+            "batches": Port(BatchPlan)},
+    outputs={"poses": Port(PoseSequence)}, per_batch=True,
+    run="eventcap_solve._impl:run_batch",
+)

@@ -1,0 +1,297 @@
+"""The batch pose optimisation (paper Sec. 3.2, Eq. 3-8): derivatives, accuracy against ground truth, failures."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+from test_detect import detect, posed_recording
+
+from eventcap.artifacts import Batch, BatchPlan
+from eventcap.artifacts.tracking import SlicedTracks
+from eventcap.body.kinematics import joint_positions
+from eventcap.body.skeleton import NUM_JOINTS, pose_bounds
+from eventcap.metrics import mean_joint_error
+from eventcap.sim.capture import _pick_track_points, _track_points
+from eventcap.stage import StageContext, StageFailed
+from eventcap.testing import StageConformance
+from eventcap_solve.batch import (
+    BatchProblem,
+    EnergyWeights,
+    IpoptSettings,
+    interpolate_poses,
+    project_derivatives,
+    select_detections,
+    solve_batch,
+)
+from eventcap_solve.correspondences import find_correspondences, temporal_indicator
+
+T0, N = 5_000, 40  # first batch of posed_recording: frames at 5 ms and 45 ms, tracking frames every 1 ms
+EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
+
+
+@functools.lru_cache(maxsize=2)
+def scene(motion: str = "high_knees", speed: float = 2.0, n_points: int = 200):
+    """A fast motion's first batch with exact detections and ground-truth surface tracks (no event simulation)."""
+    rec = posed_recording(motion, n_frames=3, speed=speed, with_template=True)
+    det = detect("simulated", rec, **EXACT)
+    t_us = T0 + 1_000 * np.arange(N + 1, dtype=np.int64)
+    gt = rec.ground_truth
+    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
+    tri, bary = _pick_track_points(rec.template, rec.camera, lambda t: S[np.searchsorted(t_us, np.rint(t * 1e6))],
+                                   t_us[[0, N // 2, N]], n_points, seed=0)
+    xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
+    return rec, det, t_us, S, xy, valid
+
+
+@functools.lru_cache(maxsize=1)
+def problem() -> BatchProblem:
+    rec = scene()[0]
+    return BatchProblem(rec.template, rec.camera, N + 1)
+
+
+def joint_error_mm(rec, poses, truth) -> np.ndarray:
+    rest = rec.template.rest_joints
+    return 1000 * mean_joint_error(joint_positions(poses, rest), joint_positions(truth, rest))
+
+
+# ------------------------------------------------------------------------------------------------ derivatives
+def test_projection_derivatives_match_finite_differences():
+    rec = scene()[0]
+    rng = np.random.default_rng(0)
+    pts = np.array([0.0, 1.0, 0.0]) + rng.uniform(-0.8, 0.8, (20, 3))
+    uv, J, H = project_derivatives(rec.camera, pts, 2)
+    np.testing.assert_allclose(uv, rec.camera.project(pts), atol=1e-9)
+    h = 1e-6
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        up, Jp = project_derivatives(rec.camera, pts + e, 1)
+        um, Jm = project_derivatives(rec.camera, pts - e, 1)
+        np.testing.assert_allclose(J[:, :, k], (up - um) / (2 * h), rtol=1e-6, atol=1e-4)
+        np.testing.assert_allclose(H[:, :, :, k], (Jp - Jm) / (2 * h), rtol=1e-5, atol=1e-1)
+    assert np.abs(J).max() > 50  # px per metre at 3 m: the check is not vacuous
+
+
+def _objective_inputs(seed: int = 0):
+    """x, p of the batch NLP at a perturbed pose with real correspondences, and the weights' slice of p."""
+    rec, det, t_us, S, xy, valid = scene()
+    prob = problem()
+    rng = np.random.default_rng(seed)
+    lo, hi = pose_bounds()
+    poses = np.clip(S + rng.normal(0, 0.03, S.shape), lo + 1e-3, hi - 1e-3)
+    corr = find_correspondences(rec.template, rec.camera, poses, xy, valid)
+    assert corr.n > 500
+    phi = (rng.random((N, NUM_JOINTS)) < 0.5).astype(float)
+    ends = select_detections(det, t_us[[0, N]])
+    tp = rng.normal(0, 0.05, (2, 3))
+    x = np.concatenate([poses.ravel(), tp.ravel()])
+    return prob, corr, x, ends, phi, poses
+
+
+@pytest.mark.parametrize("term", ["cor", "d2", "d3", "temp", "damp", "cor_frozen"])
+def test_every_energy_term_gradient_and_hessian_match_finite_differences(term):
+    prob, corr, x, ends, phi, poses = _objective_inputs()
+    names = ("cor", "d2", "d3", "temp", "damp")
+    w = EnergyWeights(**{n: (1.0 if term.startswith(n) else 0.0) for n in names})
+    prob.numeric.set_correspondences(corr, relative=term != "cor_frozen")
+    # E_damp's reference: somewhere else than x, so its gradient is not zero.
+    p = prob.batch_params(poses + 0.01, ends, phi, w)
+    f = lambda v: float(prob.objective(v, p))
+    g = np.asarray(prob.gradient(x, p)[1]).ravel()
+    Hu = np.asarray(ca_dense(prob.hessian(x, p)))
+    H = np.triu(Hu) + np.triu(Hu, 1).T
+    assert f(x) > 0 and np.abs(g).max() > 0
+    rng = np.random.default_rng(1)
+    # Coordinates of frames 0, 1, N//2, N (pose parameters) and t' (E_3D's auxiliary translations).
+    coords = np.concatenate([rng.choice(33, 6, replace=False) + 33 * f_ for f_ in (0, 1, N // 2, N)],
+                            ) if term != "d3" else np.concatenate([rng.choice(33, 8, replace=False),
+                                                                   33 * (N + 1) + np.arange(6)])
+    h = 1e-6
+    for k in coords:
+        e = np.zeros_like(x)
+        e[k] = h
+        fd = (f(x + e) - f(x - e)) / (2 * h)
+        assert fd == pytest.approx(g[k], rel=1e-4, abs=1e-7 * max(1.0, np.abs(g).max())), (term, k)
+        gp = np.asarray(prob.gradient(x + e, p)[1]).ravel()
+        gm = np.asarray(prob.gradient(x - e, p)[1]).ravel()
+        np.testing.assert_allclose(H[:, k], (gp - gm) / (2 * h), rtol=1e-4,
+                                   atol=1e-6 * max(1.0, np.abs(H).max()), err_msg=f"{term} Hessian column {k}")
+
+
+def ca_dense(m):
+    import casadi as ca
+
+    return ca.DM(m).full()
+
+
+def test_correspondences_reproject_exactly_where_found():
+    """A correspondence's point, posed with the pose it was found at, lies under its pixel (module doc)."""
+    rec, det, t_us, S, xy, valid = scene()
+    corr = find_correspondences(rec.template, rec.camera, S, xy, valid, edge_margin_px=0.0)
+    prob = problem()
+    prob.numeric.set_correspondences(corr, relative=True)
+    e_cor, _ = prob.numeric.terms(S, np.zeros((N, NUM_JOINTS)))
+    # Ground-truth tracks and ground-truth poses: E_cor vanishes (up to float32 pixel storage).
+    assert e_cor / corr.n < (0.01 / np.sqrt(rec.camera.fx * rec.camera.fy)) ** 2
+    assert set(np.unique(corr.frame - corr.source)) == {-1, 1}
+
+
+def test_temporal_indicator_holds_parts_without_correspondences():
+    rec, det, t_us, S, xy, valid = scene()
+    corr = find_correspondences(rec.template, rec.camera, S, xy, valid)
+    phi = temporal_indicator(corr, N + 1)
+    assert phi.shape == (N, NUM_JOINTS)
+    assert not phi[:, 0].any()  # the root is observed by every correspondence
+    none = temporal_indicator(corr.__class__.empty(), N + 1)
+    assert none.all()  # nothing observed: every joint held
+
+
+# ------------------------------------------------------------------------------------------------ accuracy
+def test_batch_beats_linear_on_fast_motion_with_exact_data():
+    rec, det, t_us, S, xy, valid = scene()
+    prob = problem()
+    ends = select_detections(det, t_us[[0, N]])
+    # Exact tracks: no need to keep away from silhouette edges (on a 240x180 image that drops most limb points).
+    err = {m: joint_error_mm(rec, solve_batch(prob, t_us, xy, valid, ends, mode=m, edge_margin_px=0).poses, S)
+           for m in ("linear", "per_frame", "batch")}
+    # Exact detections: linear interpolation's error is the motion's non-linearity between the frames.
+    assert err["linear"].mean() > 3.0
+    assert err["linear"][[0, N]].max() < 1.0
+    assert err["batch"].mean() < 0.5 * err["linear"].mean(), {k: v.mean() for k, v in err.items()}
+    # w/o_batch: each frame is pulled towards its neighbours' points as found on the interpolation, so it stays
+    # near the interpolation (measured: within 2% of linear here); the joint solve is what integrates the tracks.
+    assert err["batch"].mean() < 0.6 * err["per_frame"].mean() < 0.6 * 1.1 * err["linear"].mean()
+
+
+def test_linear_mode_is_the_interpolated_end_fits():
+    rec, det, t_us, S, xy, valid = scene()
+    res = solve_batch(problem(), t_us, xy, valid, select_detections(det, t_us[[0, N]]), mode="linear")
+    np.testing.assert_allclose(res.poses, interpolate_poses(res.poses[0], res.poses[-1], t_us), atol=1e-12)
+    assert res.energies["n_correspondences"] == 0 and res.status == "Solve_Succeeded"
+
+
+def test_all_mode_fits_every_frame():
+    rec, det, t_us, S, xy, valid = scene()
+    full = detect("simulated", rec, **EXACT)  # detections exist at the intensity frames only
+    with pytest.raises(ValueError, match="needs detections at all 41"):
+        solve_batch(problem(), t_us, xy, valid, select_detections(full, t_us[[0, N]]), mode="all")
+
+
+def test_solves_are_bit_identical():
+    rec, det, t_us, S, xy, valid = scene()
+    ends = select_detections(det, t_us[[0, N]])
+    a = solve_batch(problem(), t_us, xy, valid, ends, icp_rounds=1)
+    b = solve_batch(problem(), t_us, xy, valid, ends, icp_rounds=1)
+    assert np.array_equal(a.poses, b.poses) and a.iterations == b.iterations
+
+
+def test_joint_bounds_hold():
+    rec, det, t_us, S, xy, valid = scene()
+    lo, hi = pose_bounds()
+    res = solve_batch(problem(), t_us, xy, valid, select_detections(det, t_us[[0, N]]))
+    assert np.all(res.poses >= lo - 1e-9) and np.all(res.poses <= hi + 1e-9)
+
+
+# ------------------------------------------------------------------------------------------------ failures
+def test_nan_in_valid_track_fails_before_the_solver():
+    rec, det, t_us, S, xy, valid = scene()
+    bad = xy.copy()
+    h = int(np.flatnonzero(valid[7])[0])
+    bad[7, h] = np.nan
+    with pytest.raises(StageFailed, match=f"track {h} has a non-finite position at tracking frame 7") as exc:
+        solve_batch(problem(), t_us, bad, valid, select_detections(det, t_us[[0, N]]))
+    assert exc.value.status == "invalid_input"
+
+
+def test_nan_detection_with_confidence_fails():
+    rec, det, t_us, S, xy, valid = scene()
+    ends = select_detections(det, t_us[[0, N]])
+    kp = ends.keypoints_2d.copy()
+    kp[1, 4] = np.nan
+    bad = ends.__class__(kp, ends.confidence_2d, ends.joints_3d, ends.confidence_3d)
+    with pytest.raises(StageFailed, match="keypoints_2d is not finite at detection frame 1, entry 4") as exc:
+        solve_batch(problem(), t_us, xy, valid, bad)
+    assert exc.value.status == "invalid_input"
+
+
+def test_impossible_bound_is_refused_with_the_parameter_named():
+    rec = scene()[0]
+    lo, hi = pose_bounds()
+    lo = lo.copy()
+    lo[3] = hi[3] + 0.1
+    with pytest.raises(ValueError, match="lower bound above upper bound for pose parameter 3"):
+        BatchProblem(rec.template, rec.camera, N + 1, lower=lo, upper=hi)
+
+
+def test_iteration_cap_gives_a_failure_with_ipopts_status():
+    rec, det, t_us, S, xy, valid = scene()
+    capped = BatchProblem(rec.template, rec.camera, N + 1, IpoptSettings(max_iter=2))
+    with pytest.raises(StageFailed, match="status Maximum_Iterations_Exceeded") as exc:
+        solve_batch(capped, t_us, xy, valid, select_detections(det, t_us[[0, N]]))
+    assert exc.value.status == "Maximum_Iterations_Exceeded"
+
+
+# ------------------------------------------------------------------------------------------------ the stage
+def stage_inputs():
+    rec, det, t_us, S, xy, valid = scene()
+    sliced = SlicedTracks(t_us=t_us, xy=np.where(valid[..., None], xy, np.nan).astype(np.float32), valid=valid,
+                          track_id=np.arange(xy.shape[1], dtype=np.int32))
+    plan = BatchPlan(t0_us=np.array([T0]), t1_us=np.array([T0 + 1000 * N]), frame0=np.array([0]))
+    return {"recording": rec, "sliced": sliced, "detections": det, "batches": plan}
+
+
+class TestBatchStageConformance(StageConformance):
+    stage_name = "batch"
+    config_overrides = {"icp_rounds": 1, "max_tracks": 60}
+    sensitive = ("lambda_cor", 10.0)
+    insensitive = ("max_iter", 50)
+
+    def make_inputs(self):
+        return stage_inputs()
+
+
+def test_stage_records_solver_statistics():
+    from eventcap.config import build_config
+    from eventcap.registry import load_registry
+
+    spec = load_registry().get("batch")
+    ctx = StageContext(node="solve", stage="batch", batch=Batch(0, T0, T0 + 1000 * N, 0))
+    out = spec.load_run()(stage_inputs(), build_config(spec, {"icp_rounds": 1}, "stages.solve"), ctx)["poses"]
+    assert out.poses.shape == (N + 1, 33) and out.status == "Solve_Succeeded"
+    assert out.iterations == ctx.stats["iterations"] > 0
+    assert ctx.stats["n_correspondences"] > 0 and ctx.stats["solve_s"] > 0
+    assert {"cor", "2d", "3d", "temp", "total"} <= set(out.energies)
+
+
+# ------------------------------------------------------------------------------------------------ in the pipeline
+def test_failed_batches_are_recorded_and_only_they_are_recomputed(tmp_path):
+    """An iteration cap of 2 fails the solve with IPOPT's status; raising it recomputes only the failed batch."""
+    import json
+    import subprocess
+    import sys
+
+    def run(name, *overrides):
+        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "experiment=quick", "source.duration_s=0.09",
+                            "template.target_faces=3000", "source.n_track_points=60", f"hydra.run.dir=runs/{name}",
+                            *overrides], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        return p, json.loads((tmp_path / "runs" / name / "run.json").read_text())["nodes"]["solve"]
+
+    p, a = run("a", "batches=0:1")
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert (a["computed"], a["cached"]) == (1, 0)
+    p, b = run("b", "batches=0:2", "stages.solve.max_iter=2")
+    assert p.returncode == 1
+    assert b["cached"] == 1 and b["computed"] == 0  # batch 0: the cap is not part of the key
+    assert [(f["batch"], f["status"]) for f in b["failed"]] == [(1, "Maximum_Iterations_Exceeded")]
+    log = p.stdout + p.stderr
+    assert "solve batch 1" in log and "Maximum_Iterations_Exceeded" in log
+    p, c = run("c", "batches=0:2")
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert (c["cached"], c["computed"], c["failed"]) == (1, 1, [])
+    # Solver statistics are kept in the cache manifest of each batch.
+    from eventcap.cache import Cache
+
+    stats = Cache(str(tmp_path / "runs" / "cache")).lookup("batch", c["keys"][1]).manifest["stats"]
+    assert stats["iterations"] > 2 and stats["solve_s"] > 0 and stats["n_correspondences"] > 0
