@@ -174,9 +174,13 @@ def test_linear_mode_is_the_interpolated_end_fits():
 
 def test_all_mode_fits_every_frame():
     rec, det, t_us, S, xy, valid = scene()
-    full = detect("simulated", rec, **EXACT)  # detections exist at the intensity frames only
     with pytest.raises(ValueError, match="needs detections at all 41"):
-        solve_batch(problem(), t_us, xy, valid, select_detections(full, t_us[[0, N]]), mode="all")
+        solve_batch(problem(), t_us, xy, valid, select_detections(det, t_us[[0, N]]), mode="all")
+    every = detect("simulated", rec, at="tracking", **EXACT)  # as if detected on latent images every 1 ms
+    assert np.array_equal(every.t_us, np.arange(rec.frames.t_us[0], rec.frames.t_us[-1] + 1, 1000))
+    res = solve_batch(problem(), t_us, xy, valid, select_detections(every, t_us), mode="all")
+    assert joint_error_mm(rec, res.poses, S).max() < 1.0  # exact detections at every frame: exact poses
+    assert len(res.solves) == N + 1
 
 
 def test_solves_are_bit_identical():
@@ -295,3 +299,40 @@ def test_failed_batches_are_recorded_and_only_they_are_recomputed(tmp_path):
 
     stats = Cache(str(tmp_path / "runs" / "cache")).lookup("batch", c["keys"][1]).manifest["stats"]
     assert stats["iterations"] > 2 and stats["solve_s"] > 0 and stats["n_correspondences"] > 0
+
+
+def test_neighbouring_batches_agree_on_their_shared_frame():
+    """boundary=fixed: S_N of a batch is the fit of its second intensity frame, which is exactly S_0 of the next
+    batch (same detections, same deterministic fit); free: the solve moves it."""
+    rec, det, t_us, S, xy, valid = scene()
+    prob = problem()
+    ends = select_detections(det, t_us[[0, N]])
+    res = solve_batch(prob, t_us, xy, valid, ends)
+    next_start, _, _ = prob.fit_frame(select_detections(det, t_us[[N]]), 0)  # batch k+1's S_0
+    np.testing.assert_array_equal(joint_positions(res.poses[-1], rec.template), joint_positions(next_start, rec.template))
+    free = solve_batch(prob, t_us, xy, valid, ends, boundary="free")
+    assert np.abs(free.poses[-1] - res.poses[-1]).max() > 1e-6
+    with pytest.raises(ValueError, match="boundary: expected one of"):
+        solve_batch(prob, t_us, xy, valid, ends, boundary="loose")
+
+
+def test_stage_joint_limit_overrides_are_applied_and_checked():
+    from eventcap.config import build_config
+    from eventcap.registry import load_registry
+    from eventcap_solve.batch import _PARAM_NAMES
+
+    spec = load_registry().get("batch")
+    run = spec.load_run()
+
+    def solve(limits):
+        cfg = build_config(spec, {"icp_rounds": 1, "max_tracks": 60, "limits": limits}, "stages.solve")
+        return run(stage_inputs(), cfg, StageContext(node="solve", stage="batch", batch=Batch(0, T0, T0 + 1000 * N, 0)))
+
+    k = _PARAM_NAMES.index("l_knee_flex")
+    out = solve({"l_knee_flex": [0.0, 0.05]})["poses"]
+    assert out.poses[:, k].max() <= 0.05 + 1e-9
+    with pytest.raises(StageFailed, match=r"lower bound above upper bound for pose parameter 9 \(l_knee_flex\): 1.0 > -1.0") as exc:
+        solve({"l_knee_flex": [1.0, -1.0]})
+    assert exc.value.status == "invalid_bounds"
+    with pytest.raises(StageFailed, match="no pose parameter named 'l_knee_flx'.*did you mean 'l_knee_flex'"):
+        solve({"l_knee_flx": [0.0, 1.0]})

@@ -34,7 +34,12 @@ def run_simulated(inputs, config, ctx):
         confidence=config.confidence, outlier_confidence=config.outlier_confidence,
         confidence_3d=config.confidence_3d,
     )
-    truth = frame_truth(rec, occlusion=config.occlusion, occlusion_margin_m=config.occlusion_margin_m)
+    if config.at not in ("frames", "tracking"):
+        raise ValueError(f"stages.detect.at: expected 'frames' or 'tracking', got {config.at!r}")
+    if config.at == "tracking" and config.tracking_step_us <= 0:
+        raise ValueError(f"stages.detect.tracking_step_us: expected a positive step in us, got {config.tracking_step_us}")
+    truth = frame_truth(rec, occlusion=config.occlusion, occlusion_margin_m=config.occlusion_margin_m,
+                        step_us=config.tracking_step_us if config.at == "tracking" else 0)
     sim = simulate_detector(truth, model, ctx.rng(config.seed), rec.height, rec.width)
     ctx.log.info("simulated detector: %d frames, %.1f%% of keypoints visible, %d outliers, %d flipped pairs, "
                  "median blur streak %.1f px%s", truth.t_us.size, 100 * truth.visible.mean(), sim.outlier.sum(),

@@ -186,13 +186,16 @@ def hidden_by_body(camera, template, poses: np.ndarray, points: np.ndarray, marg
 
 
 def frame_truth(recording, occlusion: bool = True, occlusion_margin_m: float = 0.15,
-                stage: str = "simulated") -> FrameTruth:
+                stage: str = "simulated", step_us: int = 0) -> FrameTruth:
     """Ground truth of a Recording at its intensity frames, as :class:`FrameTruth`.
 
     Landmarks (and the blur streaks) come from ``ground_truth.landmarks`` interpolated at ``frames.t_us``
     (exact when frames lie on the ground-truth grid, as in synthetic captures); joints from
     ``ground_truth.frame_joints`` (interpolated ``joints`` if their count differs from the frames'). The
     occlusion test needs the recording's template; without it only image bounds decide visibility.
+
+    step_us > 0: instead of the intensity frames, every ``step_us`` from the first to the last frame (the tracking
+    frames of the *_all baseline, detections on EDI latent images), modelled as sharp images (no exposure blur).
     """
     name = recording.name or recording.source or "(unnamed)"
     gt = recording.ground_truth
@@ -205,6 +208,9 @@ def frame_truth(recording, occlusion: bool = True, occlusion_margin_m: float = 0
     if frames is None or frames.t_us.size == 0:
         raise ValueError(f"stage {stage!r}: recording {name!r} has no intensity frames to detect joints in")
     t_us, exposure = frames.t_us, frames.exposure_us
+    if step_us > 0:
+        t_us = np.arange(int(t_us[0]), int(t_us[-1]) + 1, int(step_us), dtype=np.int64)
+        exposure = np.zeros(t_us.size, dtype=np.int64)
     cam = recording.camera
     where = f"recording {name!r}: ground-truth landmarks"
     landmarks = interpolate_at(gt.t_us, gt.landmarks, t_us, where)

@@ -23,6 +23,10 @@ class SimulatedDetectorConfig:
     outlier_confidence: float = param(0.3, help="factor on the confidence of outliers")
     confidence_3d: float = param(0.9, help="3D confidence of a sharp joint inside the image (divided by the blur "
                                            "factor)")
+    at: str = param("frames", help="frames: at the intensity frames (the method) | tracking: at every tracking "
+                                   "frame, as if detected on sharp latent images (for the *_all baseline, "
+                                   "stages/solve=all)")
+    tracking_step_us: int = param(1000, help="with at=tracking: the tracking frame step, us")
     occlusion: bool = param(True, help="keypoints hidden by the body (z-buffer of the recording's template) get "
                                        "confidence 0")
     occlusion_margin_m: float = param(0.15, help="a keypoint is hidden when the surface in front of it is nearer "

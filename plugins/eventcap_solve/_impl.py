@@ -21,14 +21,39 @@ def _template_digest(template) -> str:
     return h.hexdigest()
 
 
-def problem_for(template, camera, frames: int, settings):
-    """The BatchProblem for this template, camera and batch length, built on first use in this process."""
+def bounds_with(limits) -> tuple[np.ndarray, np.ndarray]:
+    """Default joint limits (skeleton.pose_bounds) with the config's overrides {name: [min, max]} applied."""
+    from eventcap.body.skeleton import pose_bounds
+    from eventcap.registry import unknown_name_message
+
+    from .batch import _PARAM_NAMES
+
+    lo, hi = pose_bounds()
+    for name, pair in (limits or {}).items():
+        if name not in _PARAM_NAMES:
+            raise StageFailed("stages.solve.limits: " + unknown_name_message("pose parameter", name, list(_PARAM_NAMES)),
+                              status="invalid_bounds")
+        if len(pair) != 2:
+            raise StageFailed(f"stages.solve.limits.{name}: expected [min, max], got {list(pair)}",
+                              status="invalid_bounds")
+        k = _PARAM_NAMES.index(name)
+        lo[k], hi[k] = float(pair[0]), float(pair[1])
+    return lo, hi
+
+
+def problem_for(template, camera, frames: int, settings, limits=None):
+    """The BatchProblem for this template, camera, batch length and joint limits, built once per process."""
     from .batch import BatchProblem
 
-    key = (_template_digest(template), repr(sorted(camera.to_dict().items())), int(frames), settings)
+    lo, hi = bounds_with(limits)
+    key = (_template_digest(template), repr(sorted(camera.to_dict().items())), int(frames), settings,
+           lo.tobytes(), hi.tobytes())
     prob = _PROBLEMS.get(key)
     if prob is None:
-        prob = BatchProblem(template, camera, frames, settings)
+        try:
+            prob = BatchProblem(template, camera, frames, settings, lower=lo, upper=hi)
+        except ValueError as exc:  # e.g. min above max: the whole problem is infeasible
+            raise StageFailed(f"stages.solve.limits: {exc}", status="invalid_bounds") from exc
         _PROBLEMS[key] = prob
     return prob
 
@@ -48,19 +73,22 @@ def run_batch(inputs, config, ctx):
     try:
         det = select_detections(detections, times)
     except ValueError as exc:
-        raise StageFailed(f"batch {b.index if b else '?'}: {exc}", status="missing_detections") from exc
+        hint = (" — mode 'all' fits detections at every tracking frame: with the simulated detector set "
+                "stages.detect.at=tracking") if config.mode == "all" else ""
+        raise StageFailed(f"batch {b.index if b else '?'}: {exc}{hint}", status="missing_detections") from exc
     settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
     weights = EnergyWeights(cor=config.lambda_cor, d2=config.lambda_2d, d3=config.lambda_3d, temp=config.lambda_temp,
                             damp=config.lambda_damp)
     n_built = len(_PROBLEMS)
-    problem = problem_for(rec.template, rec.camera, t_us.size, settings)
+    problem = problem_for(rec.template, rec.camera, t_us.size, settings, config.limits)
     if len(_PROBLEMS) > n_built:
         ctx.log.info("built the batch NLP for %d tracking frames in %.2f s (once per process)", t_us.size,
                      problem.build_seconds)
         ctx.stats["build_s"] = problem.build_seconds
     res = solve_batch(problem, t_us, sliced.xy, sliced.valid, det, mode=config.mode, icp_rounds=config.icp_rounds,
                       weights=weights, phi_scope=config.phi_scope, max_tracks=config.max_tracks,
-                      edge_margin_px=config.edge_margin_px, still_m=config.still_m)
+                      edge_margin_px=config.edge_margin_px, still_m=config.still_m,
+                      boundary=config.boundary)
     ctx.log.info("batch %s: %s, %d correspondences, %d IPOPT iterations, %.2f s solving (%s)",
                  b.index if b else "?", config.mode, res.energies["n_correspondences"], res.iterations,
                  sum(res.seconds.values()), res.status)

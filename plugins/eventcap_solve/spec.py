@@ -25,8 +25,13 @@ class BatchSolveConfig:
     max_tracks: int = param(0, help="use at most this many tracks per batch, the longest (0 = all)")
     edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette/self-occlusion edge of the "
                                             "current estimate give no correspondence (0 = keep all)")
+    boundary: str = param("fixed", help="fixed: S_0 and S_N stay at their detection fits, shared with the "
+                                        "neighbouring batches (continuous joined motion) | free: solved too")
     still_m: float = param(0.03, help="E_temp holds only joints that moved less than this between the end fits, "
                                       "metres (0 = every joint without correspondences, the paper's literal phi)")
+    limits: dict[str, list[float]] = param(
+        default_factory=dict, help="joint-limit overrides {parameter name: [min, max]} in radians (metres for "
+                                   "root_t*), e.g. a subject's reduced range: {l_knee_flex: [0.0, 2.0]}")
     max_iter: int = param(100, affects_result=False,
                           help="IPOPT iteration limit per solve; reaching it fails the batch. Not part of the cache "
                                "key: a solve that converges within any cap gives the same poses, and failures are "
