@@ -51,6 +51,45 @@ class TestEdi(StageConformance):
         assert latent.log_images.shape == (3, 180, 240) and np.isfinite(latent.log_images).all()
 
 
+class TestOracle(StageConformance):
+    stage_name = "oracle"
+    sensitive = ("noise_px", 0.5)
+
+    def make_inputs(self):
+        rec, plan = tiny_recording()
+        return {"recording": rec, "batches": plan}
+
+    def test_tracks_are_the_ground_truth_points(self):
+        rec, plan = tiny_recording()
+        tr = self.run_once()["tracks"]
+        gt = rec.ground_truth
+        b = plan.batch(0)
+        assert tr.n_tracks >= 5 and np.all(tr.kind == 3)
+        assert tr.t_us.min() >= b.t0_us and tr.t_us.max() <= b.t1_us
+        for h in range(tr.n_tracks):
+            m = tr.track_id == h
+            rows = np.searchsorted(gt.t_us, tr.t_us[m])
+            # some ground-truth point has exactly these positions at these times, visible throughout
+            match = [k for k in range(gt.track_px.shape[1])
+                     if gt.track_visible[rows, k].all() and np.allclose(gt.track_px[rows, k], tr.xy[m], atol=1e-4)]
+            assert match, f"track {h} is not a ground-truth point"
+            assert np.all(np.diff(tr.t_us[m]) == 1000)
+
+    def test_needs_ground_truth_tracks(self):
+        import dataclasses
+
+        import pytest
+
+        rec, plan = tiny_recording()
+        bare = dataclasses.replace(rec, ground_truth=None)
+        spec = load_registry().get("oracle")
+        from eventcap.config import build_config
+
+        with pytest.raises(ValueError, match="needs ground-truth surface tracks"):
+            spec.load_run()({"recording": bare, "batches": plan}, build_config(spec, {}, "stages.track"),
+                            StageContext(node="track", stage="oracle", batch=plan.batch(0)))
+
+
 class TestEklt(StageConformance):
     stage_name = "eklt"
     sensitive = ("stitch_px", 2.0)

@@ -94,3 +94,53 @@ def run_klt_latent(inputs, config, ctx):
                         config=klt.KltConfig(window_px=config.window_px, max_level=config.max_level),
                         features=features)
     return {"tracks": to_tracks(ft)}
+
+
+def run_oracle(inputs, config, ctx):
+    """Tracks of the synthetic capture's ground-truth surface points (GroundTruth.track_px) over the batch: each
+    point's longest run of visible 1 kHz samples inside [t0, t1] (>= 2 samples), plus optional Gaussian noise."""
+    rec, b = inputs["recording"], ctx.batch
+    gt = rec.ground_truth
+    name = rec.name or rec.source or "(unnamed)"
+    if gt is None or gt.track_px is None or gt.track_visible is None:
+        raise ValueError(f"stage 'oracle' needs ground-truth surface tracks (a synthetic recording), but recording "
+                         f"{name!r} has none: use a real tracker (stages/track=eklt)")
+    if config.max_tracks < 1 or config.noise_px < 0:
+        raise ValueError(f"stages.track: max_tracks must be >= 1 and noise_px >= 0, got {config.max_tracks}, "
+                         f"{config.noise_px}")
+    sel = (gt.t_us >= b.t0_us) & (gt.t_us <= b.t1_us)
+    t = np.asarray(gt.t_us[sel], np.int64)
+    px = np.asarray(gt.track_px[sel][:, : config.max_tracks], np.float64)
+    vis = np.asarray(gt.track_visible[sel][:, : config.max_tracks], bool)
+    ids, times, xy, survived = [], [], [], []
+    for h in range(vis.shape[1]):
+        run = _longest_run(vis[:, h])
+        if run is None:
+            continue
+        a, e = run
+        ids.append(np.full(e - a, len(survived), np.int32))
+        times.append(t[a:e])
+        xy.append(px[a:e, h])
+        survived.append(e == t.size)
+    if not ids:
+        return {"tracks": Tracks(track_id=np.zeros(0, np.int32), t_us=np.zeros(0, np.int64),
+                                 xy=np.zeros((0, 2), np.float32), cost=np.zeros(0, np.float32),
+                                 kind=np.zeros(0, np.int8), survived=np.zeros(0, bool))}
+    xy = np.concatenate(xy)
+    if config.noise_px > 0:
+        xy = xy + ctx.rng(config.seed).normal(0.0, config.noise_px, xy.shape)
+    ctx.log.info("oracle tracks (simulated, exact ground truth%s): %d tracks, %d samples",
+                 f" + {config.noise_px} px noise" if config.noise_px else "", len(survived), xy.shape[0])
+    return {"tracks": Tracks(track_id=np.concatenate(ids), t_us=np.concatenate(times), xy=xy.astype(np.float32),
+                             cost=np.zeros(xy.shape[0], np.float32), kind=np.full(len(survived), 3, np.int8),
+                             survived=np.asarray(survived, bool))}
+
+
+def _longest_run(mask: np.ndarray) -> tuple[int, int] | None:
+    """[start, end) of the longest run of True (at least 2 long), or None."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    if starts.size == 0:
+        return None
+    k = int(np.argmax(ends - starts))
+    return (int(starts[k]), int(ends[k])) if ends[k] - starts[k] >= 2 else None

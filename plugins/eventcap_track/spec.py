@@ -43,6 +43,13 @@ class KltStageConfig:
 
 
 @dataclass
+class OracleTrackConfig:
+    max_tracks: int = param(300, help="at most this many of the recording's ground-truth surface points")
+    noise_px: float = param(0.0, help="std of Gaussian noise added to every sample, px (0 = exact)")
+    seed: int = param(0, help="seed of the noise")
+
+
+@dataclass
 class SliceConfig:
     rate_hz: float = param(1000.0, help="tracking frame rate (samples per second)")
     sigma_px: float = param(0.2, help="expected noise of the tracked positions (weights the data term)")
@@ -81,4 +88,14 @@ KLT_LATENT = StageSpec(
     inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan)},
     outputs={"tracks": Port(Tracks)}, per_batch=True,
     run="eventcap_track._stages:run_klt_latent",
+)
+
+ORACLE = StageSpec(
+    name="oracle", kind="track", version=1,
+    description="SIMULATED: ground-truth surface-point tracks of a synthetic recording (an oracle, to measure the "
+                "solver apart from the tracker; not a method)",
+    config=OracleTrackConfig,
+    inputs={"recording": Port(Recording), "latent": Port(LatentFrames, optional=True), "batches": Port(BatchPlan)},
+    outputs={"tracks": Port(Tracks)}, per_batch=True,
+    run="eventcap_track._stages:run_oracle",
 )
