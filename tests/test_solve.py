@@ -90,9 +90,20 @@ def _objective_inputs(seed: int = 0):
     return prob, corr, x, ends, phi, poses
 
 
-@pytest.mark.parametrize("term", ["cor", "d2", "d3", "temp", "damp", "cor_frozen"])
+@functools.lru_cache(maxsize=1)
+def robust_problem() -> BatchProblem:
+    rec = scene()[0]
+    return BatchProblem(rec.template, rec.camera, N + 1, robust_px=2.0)
+
+
+@pytest.mark.parametrize("term", ["cor", "d2", "d2_robust", "d3", "temp", "damp", "cor_frozen"])
 def test_every_energy_term_gradient_and_hessian_match_finite_differences(term):
     prob, corr, x, ends, phi, poses = _objective_inputs()
+    if term == "d2_robust":
+        prob = robust_problem()
+        # detections off by up to 10 px: errors on both sides of the Cauchy scale
+        kp = ends.keypoints_2d + np.random.default_rng(3).uniform(-10, 10, ends.keypoints_2d.shape)
+        ends = ends.__class__(kp, ends.confidence_2d, ends.joints_3d, ends.confidence_3d)
     names = ("cor", "d2", "d3", "temp", "damp")
     w = EnergyWeights(**{n: (1.0 if term.startswith(n) else 0.0) for n in names})
     prob.numeric.set_correspondences(corr, relative=term != "cor_frozen")

@@ -41,17 +41,17 @@ def bounds_with(limits) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def problem_for(template, camera, frames: int, settings, limits=None):
+def problem_for(template, camera, frames: int, settings, limits=None, robust_px: float = 0.0):
     """The BatchProblem for this template, camera, batch length and joint limits, built once per process."""
     from .batch import BatchProblem
 
     lo, hi = bounds_with(limits)
     key = (_template_digest(template), repr(sorted(camera.to_dict().items())), int(frames), settings,
-           lo.tobytes(), hi.tobytes())
+           lo.tobytes(), hi.tobytes(), float(robust_px))
     prob = _PROBLEMS.get(key)
     if prob is None:
         try:
-            prob = BatchProblem(template, camera, frames, settings, lower=lo, upper=hi)
+            prob = BatchProblem(template, camera, frames, settings, lower=lo, upper=hi, robust_px=robust_px)
         except ValueError as exc:  # e.g. min above max: the whole problem is infeasible
             raise StageFailed(f"stages.solve.limits: {exc}", status="invalid_bounds") from exc
         _PROBLEMS[key] = prob
@@ -80,7 +80,7 @@ def run_batch(inputs, config, ctx):
     weights = EnergyWeights(cor=config.lambda_cor, d2=config.lambda_2d, d3=config.lambda_3d, temp=config.lambda_temp,
                             damp=config.lambda_damp)
     n_built = len(_PROBLEMS)
-    problem = problem_for(rec.template, rec.camera, t_us.size, settings, config.limits)
+    problem = problem_for(rec.template, rec.camera, t_us.size, settings, config.limits, config.robust_2d_px)
     if len(_PROBLEMS) > n_built:
         ctx.log.info("built the batch NLP for %d tracking frames in %.2f s (once per process)", t_us.size,
                      problem.build_seconds)

@@ -19,6 +19,11 @@ Energies (sums, as in the paper):
   ``per_frame`` baseline, where it is exactly what is wanted.
 - E_2D (Eq. 6): Σ_f Σ_l c_{f,l} ‖π(L_l(S_f)) - P2D_{f,l}‖² over the BODY_25 landmarks (joints and the four face
   landmarks the paper adds, plus nose and feet), at frames 0 and N, weighted by the detector's confidence c.
+  With ``robust_px`` > 0 (the stage's ``robust_2d_px``, default 2 px) each landmark's squared error e² is replaced
+  by the Cauchy loss σ² log(1 + e²/σ²), σ = robust_px: quadratic for errors below σ, logarithmic for outliers and
+  left/right flips, which a CNN makes (not in the paper). Measured on the default simulated detector (2 px noise,
+  2% outliers, 2% flips), speed-2 motions, per-frame fits: mean error 70.5 / 69.4 / 50.5 mm (plain least squares,
+  jumping_jack / dance_spin / karate_kick; single flipped frames reach 300 mm) → 40.8 / 36.8 / 36.7 mm.
 - E_3D (Eq. 7): Σ_f Σ_l c_{f,l} ‖J_l(S_f) - (P3D_{f,l} + t'_f)‖² over the 24 joints at frames 0 and N; P3D is
   root-relative, t'_f an auxiliary translation per detection frame (the paper writes one t'; the root moves
   within a batch, so each detection frame gets its own).
@@ -719,7 +724,7 @@ class BatchProblem:
     """
 
     def __init__(self, template: Template, camera: Camera, frames: int, settings: IpoptSettings = IpoptSettings(),
-                 lower: np.ndarray | None = None, upper: np.ndarray | None = None):
+                 lower: np.ndarray | None = None, upper: np.ndarray | None = None, robust_px: float = 0.0):
         if not isinstance(template, Template):
             raise ValueError(f"BatchProblem: expected a Template, got {type(template).__name__}")
         if not isinstance(camera, Camera):
@@ -727,8 +732,11 @@ class BatchProblem:
         if int(frames) != frames or frames < 2:
             raise ValueError(f"BatchProblem: frames (N+1 tracking frames per batch) must be an integer >= 2, "
                              f"got {frames!r}")
+        if not (math.isfinite(robust_px) and robust_px >= 0):
+            raise ValueError(f"BatchProblem: robust_px must be >= 0 (0 = plain least squares), got {robust_px!r}")
         t0 = time.perf_counter()
         self.template, self.camera, self.F, self.settings = template, camera, int(frames), settings
+        self.robust_px = float(robust_px)
         lo, hi = pose_bounds()
         self.lower = lo if lower is None else np.asarray(lower, dtype=np.float64)
         self.upper = hi if upper is None else np.asarray(upper, dtype=np.float64)
@@ -753,7 +761,11 @@ class BatchProblem:
         L = landmark_positions(S, self.template)  # (25, 3)
         uv = self.camera.project_sym(L.T)  # (2, 25)
         r2 = (uv - kp.T) * self.scale
-        e2 = ca.sum2(c2.T * ca.sum1(r2 * r2))
+        sq = ca.sum1(r2 * r2)  # (1, 25) squared landmark errors, focal-normalised
+        if self.robust_px > 0:  # Cauchy: ≈ ‖r‖² for small errors, grows only logarithmically for outliers
+            s2 = (self.robust_px * self.scale) ** 2
+            sq = s2 * ca.log1p(sq / s2)
+        e2 = ca.sum2(c2.T * sq)
         J = joint_positions(S, self.template.rest_joints)  # (24, 3)
         r3 = J - (j3 + ca.repmat(tp.T, NUM_JOINTS, 1))
         e3 = ca.sum1(c3 * ca.sum2(r3 * r3))

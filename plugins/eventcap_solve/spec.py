@@ -18,6 +18,8 @@ class BatchSolveConfig:
     icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
     lambda_cor: float = param(50.0, help="weight of E_cor, the event correspondences (paper's λ_adj)")
     lambda_2d: float = param(200.0, help="weight of E_2D (image residuals in focal-normalised units)")
+    robust_2d_px: float = param(2.0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares, the "
+                                          "paper): limits the pull of detector outliers and left/right flips")
     lambda_3d: float = param(1.0, help="weight of E_3D (metres)")
     lambda_temp: float = param(80.0, help="weight of E_temp, holding joints of parts without correspondences")
     lambda_damp: float = param(1e-3, help="weight of the proximal term towards each solve's start (not in the paper)")
