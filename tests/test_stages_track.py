@@ -104,6 +104,28 @@ class TestEklt(StageConformance):
         assert tr.t_us.min() >= 5_000 and tr.t_us.max() <= 45_000
         assert (tr.xy[:, 0] >= 0).all() and (tr.xy[:, 0] < 240).all() and (tr.kind == 3).sum() >= 10
 
+    def test_features_start_around_the_actor_given_detections(self):
+        from test_detect import detect
+
+        from eventcap.config import build_config
+
+        rec, plan = tiny_recording()
+        det = detect("simulated", rec)
+        spec = load_registry().get("eklt")
+        inputs = dict(self.make_inputs(), detections=det)
+        ctx = StageContext(node="track", stage="eklt", batch=plan.batch(0))
+        box = {}
+        for roi in ("actor", "image"):
+            tr = spec.load_run()(inputs, build_config(spec, {"roi": roi, "direction": "forward"}, "stages.track"),
+                                 ctx)["tracks"]
+            first = np.flatnonzero(np.r_[True, np.diff(tr.track_id) != 0])
+            box[roi] = tr.xy[first]
+        kp = det.keypoints_2d[0][det.confidence_2d[0] > 0.1]
+        lo, hi = kp.min(axis=0) - 12.0, kp.max(axis=0) + 12.0
+        assert box["actor"].shape[0] >= 5
+        assert np.all((box["actor"] >= lo - 1) & (box["actor"] <= hi + 1))  # started inside the actor's box
+        assert np.any((box["image"] < lo - 1) | (box["image"] > hi + 1))  # without it, background corners too
+
 
 class TestKltLatent(StageConformance):
     stage_name = "klt_latent"

@@ -44,6 +44,31 @@ def _frame_index(latent: LatentFrames, t_us: int) -> int:
     return i
 
 
+def actor_mask(inputs, config, t_us: int, height: int, width: int, log) -> np.ndarray | None:
+    """Feature-detection region at t_us: the bounding box of the confident 2D keypoints of the detection at that
+    frame grown by ``roi_margin_px`` (None = the whole image: roi=image, no detections wired, or none usable)."""
+    if config.roi not in ("actor", "image"):
+        raise ValueError(f"stages.track.roi: expected actor | image, got {config.roi!r}")
+    det = inputs.get("detections")
+    if config.roi == "image" or det is None:
+        return None
+    k = int(np.searchsorted(det.t_us, t_us))
+    if k >= det.t_us.size or det.t_us[k] != t_us:
+        log.warning("no detection at t = %d us: features detected on the whole image", t_us)
+        return None
+    ok = det.confidence_2d[k] > 0.1
+    if ok.sum() < 3:
+        log.warning("fewer than 3 confident keypoints at t = %d us: features detected on the whole image", t_us)
+        return None
+    kp = det.keypoints_2d[k][ok]
+    m = float(config.roi_margin_px)
+    x0, y0 = np.floor(kp.min(axis=0) - m).astype(int)
+    x1, y1 = np.ceil(kp.max(axis=0) + m).astype(int)
+    mask = np.zeros((height, width), bool)
+    mask[max(y0, 0):max(min(y1 + 1, height), 0), max(x0, 0):max(min(x1 + 1, width), 0)] = True
+    return mask if mask.any() else None
+
+
 def to_tracks(ft) -> Tracks:
     """eklt.FeatureTracks -> the Tracks artifact."""
     xy = np.stack([ft.x, ft.y], axis=1).astype(np.float32) if ft.t_us.size else np.zeros((0, 2), np.float32)
@@ -63,11 +88,16 @@ def run_eklt(inputs, config, ctx):
                           min_distance_px=config.min_distance_px, quality_level=config.quality_level,
                           warp=config.warp, update_every=config.update_every, max_cost=config.max_cost,
                           lag_gain=config.lag_gain, contrast_threshold=latent.contrast)
+    h, w = L0.shape
+    m0 = actor_mask(inputs, config, b.t0_us, h, w, ctx.log)
+    m1 = actor_mask(inputs, config, b.t1_us, h, w, ctx.log)
     if config.direction == "both":
-        ft = eklt.track_bidirectional(L0, L1, events, b.t0_us, b.t1_us, stitch_px=config.stitch_px, config=cfg)
+        ft = eklt.track_bidirectional(L0, L1, events, b.t0_us, b.t1_us, stitch_px=config.stitch_px, config=cfg,
+                                      mask_0=m0, mask_1=m1)
     elif config.direction in ("forward", "backward"):
         d = +1 if config.direction == "forward" else -1
-        ft = eklt.track(L0 if d > 0 else L1, events, b.t0_us, b.t1_us, direction=d, config=cfg)
+        ft = eklt.track(L0 if d > 0 else L1, events, b.t0_us, b.t1_us, direction=d, config=cfg,
+                        mask=m0 if d > 0 else m1)
     else:
         raise ValueError(f"stages.track.direction: expected both | forward | backward, got {config.direction!r}")
     return {"tracks": to_tracks(ft)}
@@ -85,7 +115,7 @@ def run_klt_latent(inputs, config, ctx):
     latents = edi.latent_log_sequence(L0, b.t0_us, times, events, latent.contrast)
     det = eklt.EkltConfig(max_features=config.max_features, min_distance_px=config.min_distance_px,
                           quality_level=config.quality_level)
-    features = eklt.detect_features(L0, None, det)
+    features = eklt.detect_features(L0, actor_mask(inputs, config, b.t0_us, *L0.shape, ctx.log), det)
 
     def at(t_us: int) -> np.ndarray:
         return latents[int(np.searchsorted(times, t_us))]

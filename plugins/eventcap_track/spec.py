@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from eventcap.artifacts import BatchPlan
+from eventcap.artifacts.pose import Detections
 from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import LatentFrames, SlicedTracks, Tracks
 from eventcap.stage import Port, StageSpec, param
@@ -30,6 +31,10 @@ class EkltStageConfig:
     lag_gain: float = param(0.45, help="compensation of the DVS threshold lag (0 = off)")
     stitch_px: float = param(4.0, help="forward/backward tracks are stitched at mid-batch within this distance")
     direction: str = param("both", help="both (forward + backward, stitched) | forward | backward")
+    roi: str = param("actor", help="where features are detected: actor (around the 2D detections of the batch's "
+                                   "frames, if the node gets detections) | image (everywhere)")
+    roi_margin_px: float = param(12.0, help="the actor region: bounding box of the confident 2D keypoints grown by "
+                                            "this margin")
 
 
 @dataclass
@@ -40,6 +45,10 @@ class KltStageConfig:
     step_us: int = param(1000, help="spacing of the EDI latent images LK runs on")
     window_px: int = param(21, help="Lucas-Kanade window")
     max_level: int = param(3, help="pyramid levels")
+    roi: str = param("actor", help="where features are detected: actor (around the 2D detections of the batch's "
+                                   "frames, if the node gets detections) | image (everywhere)")
+    roi_margin_px: float = param(12.0, help="the actor region: bounding box of the confident 2D keypoints grown by "
+                                            "this margin")
 
 
 @dataclass
@@ -73,19 +82,21 @@ BSPLINE = StageSpec(
 )
 
 EKLT = StageSpec(
-    name="eklt", kind="track", version=1,
+    name="eklt", kind="track", version=2,
     description="EKLT: asynchronous photometric feature tracking with events, forward + backward, stitched",
     config=EkltStageConfig,
-    inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan)},
+    inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan),
+            "detections": Port(Detections, optional=True, doc="2D keypoints that place the actor region")},
     outputs={"tracks": Port(Tracks)}, per_batch=True,
     run="eventcap_track._stages:run_eklt",
 )
 
 KLT_LATENT = StageSpec(
-    name="klt_latent", kind="track", version=1,
+    name="klt_latent", kind="track", version=2,
     description="baseline: pyramidal Lucas-Kanade on EDI latent images every 1 ms (the naive approach)",
     config=KltStageConfig,
-    inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan)},
+    inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan),
+            "detections": Port(Detections, optional=True, doc="2D keypoints that place the actor region")},
     outputs={"tracks": Port(Tracks)}, per_batch=True,
     run="eventcap_track._stages:run_klt_latent",
 )
