@@ -102,7 +102,7 @@ def main() -> None:
         for motion in args.motions.split(","):
             b = next(x["ae_mm"] for x in rows if x["motion"] == motion and x["mode"] == "batch")
             lin = next(x["ae_mm"] for x in rows if x["motion"] == motion and x["mode"] == "linear")
-            print(f"  {motion:<14} batch vs linear: {100 * (1 - b / lin):+.0f}% lower error")
+            print(f"  {motion:<14} batch error {100 * (b / lin - 1):+.0f}% relative to linear")
     out.mkdir(parents=True, exist_ok=True)
     (out / f"results-s{args.seed}.json").write_text(json.dumps(rows, indent=1))
 
