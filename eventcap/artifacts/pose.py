@@ -42,3 +42,22 @@ class PoseSequence(Artifact):
     status: str = attr(default="", doc="solver status of the last solve")
     iterations: int = attr(default=0)
     energies: dict = attr(default_factory=dict, doc="final value of each energy term")
+
+
+@dataclass(frozen=True, eq=False)
+class JointErrors(Artifact):
+    """3D error of each joint of an estimated motion against the ground truth, at the evaluated tracking frames
+    (paper Sec. 4): ``sampled`` marks the every-n-th frames the AE is taken over, ``raw`` those at intensity-frame
+    times. A frame's AE is the mean over its joints."""
+
+    schema_version: ClassVar[int] = 1
+    t_us: np.ndarray = array("int64", ("f",), units="us")
+    error_m: np.ndarray = array("float64", ("f", 24), units="m", doc="per-joint distance, SMPL joint order")
+    sampled: np.ndarray = array("bool", ("f",), doc="one of the every-n-th tracking frames")
+    raw: np.ndarray = array("bool", ("f",), doc="at the time of an intensity frame")
+    align: str = attr(default="procrustes", doc="alignment before measuring: procrustes (per frame) | none")
+
+    def validate(self) -> None:
+        super().validate()
+        if self.error_m.size and self.error_m.min() < 0:
+            raise ArtifactError("JointErrors.error_m: distances must be >= 0")

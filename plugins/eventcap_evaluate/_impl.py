@@ -1,0 +1,244 @@
+"""The evaluate stage (paper Sec. 4): join the per-batch pose sequences into one motion and measure it.
+
+Joining. The solve stage gives one PoseSequence per batch; neighbouring batches share their boundary tracking frame
+(the intensity frame between them). Frames are ordered by time and every time appears once: with ``join=later`` a
+shared frame keeps the later batch's pose (the batch that starts there), with ``join=mean`` the average of the
+batches' poses (root rotation angles averaged modulo 2π, so a spin unwrapped differently in two batches does not
+average to a wrong turn). Batches missing from the sequence (a run on a selection of batches) leave gaps; gaps are
+not evaluated.
+
+Measures (Table 1), in millimetres:
+
+- the error of a frame is the mean over the 24 joints of the 3D distance between the estimated and the true joint,
+  after rigid Procrustes alignment (rotation + translation, no scale) of the estimate to the truth in that frame
+  (``align=procrustes``) or without it (``align=none``);
+- ``AE_mm`` / ``STD_mm``: mean and (population) standard deviation of the frame errors over every ``every``-th
+  tracking frame of the joined motion (indices 0, every, 2·every, ...);
+- ``AE_raw_mm``: mean over the tracking frames at the times of intensity frames (the nearest tracking frame within
+  half a tracking step of each intensity frame), all of them, whether on the every-n-th grid or not;
+  ``AE_nonRaw_mm``: mean over the every-n-th frames that are not at intensity frames;
+- ``per_joint_mm``: each joint's mean distance over the every-n-th frames.
+
+The truth at a tracking frame is the ground truth's joints at that time (exact on its 1 kHz grid, linearly
+interpolated between its samples otherwise); frames outside the ground truth's time span are not evaluated.
+
+Data rate: bytes of the events (``EVENT_DTYPE.itemsize`` = 13 per event) and of the intensity frames (8 bit per
+pixel) the method read within the evaluated motion's time span, per second of that span, in MB/s (10^6 bytes),
+against a high-speed camera giving 8-bit frames of the same resolution at the tracking frame rate (1000 fps).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from eventcap.artifacts import Metrics
+from eventcap.artifacts.pose import JointErrors, PoseSequence
+from eventcap.artifacts.recording import GroundTruth, Recording
+from eventcap.body.kinematics import joint_positions
+from eventcap.body.skeleton import JOINT_NAMES, ROOT_ROTATION_SLICE
+from eventcap.events import EVENT_DTYPE
+from eventcap.metrics import procrustes_align
+from eventcap.stage import StageContext, StageFailed
+
+ALIGN_MODES = ("procrustes", "none")
+JOIN_RULES = ("later", "mean")
+_MB = 1e6
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    """Angles into [-π, π)."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def join_batches(parts: Sequence[PoseSequence], rule: str = "later") -> tuple[np.ndarray, np.ndarray, int]:
+    """One motion from per-batch pose sequences: times (T,) int64 µs (increasing, unique), poses (T, 33) and the
+    number of tracking frames that more than one batch held (resolved by ``rule``: later | mean)."""
+    if rule not in JOIN_RULES:
+        raise ValueError(f"join: expected one of {', '.join(JOIN_RULES)}, got {rule!r}")
+    ts, Ss = [], []
+    for i in range(len(parts)):
+        p = parts[i]
+        t = np.asarray(p.t_us, dtype=np.int64)
+        if t.size == 0:
+            continue
+        if t.size > 1 and np.any(np.diff(t) <= 0):
+            k = int(np.argmax(np.diff(t) <= 0)) + 1
+            raise StageFailed(f"poses of batch {i}: tracking frame times must increase; frame {k} is at {t[k]} us "
+                              f"after {t[k - 1]} us", status="bad_poses")
+        ts.append(t)
+        Ss.append(np.asarray(p.poses, dtype=np.float64))
+    if not ts:
+        raise StageFailed(f"no poses to evaluate: {len(parts)} batch(es), none with a tracking frame",
+                          status="no_poses")
+    perm = np.argsort([t[0] for t in ts], kind="stable")  # batch order = time order; later batches last
+    t = np.concatenate([ts[k] for k in perm])
+    S = np.concatenate([Ss[k] for k in perm])
+    times, first, inverse, counts = np.unique(t, return_index=True, return_inverse=True, return_counts=True)
+    shared = int(np.count_nonzero(counts > 1))
+    if rule == "later":
+        last = np.zeros(times.size, dtype=np.int64)
+        np.maximum.at(last, inverse, np.arange(t.size))
+        return times, S[last], shared
+    ref = S[first][inverse]
+    adj = S.copy()
+    rr = ROOT_ROTATION_SLICE
+    adj[:, rr] = ref[:, rr] + _wrap(S[:, rr] - ref[:, rr])
+    out = np.zeros((times.size, S.shape[1]))
+    np.add.at(out, inverse, adj)
+    return times, out / counts[:, None], shared
+
+
+def truth_joints(gt: GroundTruth, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """True joints (n, 24, 3) at the times inside the ground truth's span, and that mask (T,)."""
+    gt_t = np.asarray(gt.t_us, dtype=np.int64)
+    inside = (t_us >= gt_t[0]) & (t_us <= gt_t[-1])
+    ti = t_us[inside]
+    k = np.searchsorted(gt_t, ti)  # gt_t[k] >= ti
+    exact = gt_t[k] == ti
+    J = np.empty((ti.size, gt.joints.shape[1], 3))
+    J[exact] = gt.joints[k[exact]]
+    if not exact.all():
+        kb = k[~exact]
+        w = ((ti[~exact] - gt_t[kb - 1]) / (gt_t[kb] - gt_t[kb - 1]))[:, None, None]
+        J[~exact] = (1.0 - w) * gt.joints[kb - 1] + w * gt.joints[kb]
+    return J, inside
+
+
+def raw_frames(t_us: np.ndarray, frame_t_us: np.ndarray, step_us: float) -> np.ndarray:
+    """Mask (T,) of the tracking frames nearest to an intensity frame time, within half a tracking step."""
+    raw = np.zeros(t_us.size, dtype=bool)
+    ft = np.asarray(frame_t_us, dtype=np.int64)
+    ft = ft[(ft >= t_us[0] - step_us / 2) & (ft <= t_us[-1] + step_us / 2)]
+    k = np.searchsorted(t_us, ft)  # t_us[k - 1] < ft <= t_us[k]
+    lo, hi = np.clip(k - 1, 0, t_us.size - 1), np.clip(k, 0, t_us.size - 1)
+    nearest = np.where(np.abs(t_us[lo] - ft) <= np.abs(t_us[hi] - ft), lo, hi)
+    ok = np.abs(t_us[nearest] - ft) <= step_us / 2
+    raw[nearest[ok]] = True
+    return raw
+
+
+def data_rate(rec: Recording, t0_us: int, t1_us: int, step_us: float | None) -> dict[str, Any]:
+    """MB/s of events + 8-bit intensity frames within [t0, t1] against 8-bit frames at the tracking rate."""
+    H, W = rec.height, rec.width
+    n_events = int(rec.events.window(t0_us, t1_us + 1).shape[0])
+    n_frames = 0 if rec.frames is None else int(np.count_nonzero((rec.frames.t_us >= t0_us)
+                                                                 & (rec.frames.t_us <= t1_us)))
+    duration_s = (t1_us - t0_us) * 1e-6
+    out: dict[str, Any] = {"duration_s": duration_s, "n_events": n_events, "n_intensity_frames": n_frames,
+                           "bytes_per_event": EVENT_DTYPE.itemsize, "bytes_per_frame": H * W,
+                           "events_MBps": None, "frames_MBps": None, "total_MBps": None,
+                           "highspeed_fps": None, "highspeed_MBps": None, "reduction": None}
+    if duration_s <= 0 or step_us is None:
+        return out
+    ev = n_events * EVENT_DTYPE.itemsize / _MB / duration_s
+    fr = n_frames * H * W / _MB / duration_s
+    fps = 1e6 / step_us
+    hs = fps * H * W / _MB
+    out.update(events_MBps=ev, frames_MBps=fr, total_MBps=ev + fr, highspeed_fps=fps, highspeed_MBps=hs,
+               reduction=hs / (ev + fr) if ev + fr > 0 else None)
+    return out
+
+
+def _mean_mm(x: np.ndarray) -> float | None:
+    return float(1000.0 * x.mean()) if x.size else None
+
+
+def _who(rec: Recording) -> str:
+    return f"recording {rec.name or rec.source or '(unnamed)'!r}"
+
+
+def require_truth(rec: Recording) -> tuple[GroundTruth, Any]:
+    """The recording's ground truth and template, or StageFailed saying which is missing."""
+    if rec.ground_truth is None:
+        raise StageFailed(f"{_who(rec)} has no ground truth: evaluate needs a capture with ground-truth joints (a "
+                          f"synthetic capture, source=synthetic, or a recording that ships them)",
+                          status="no_ground_truth")
+    if rec.template is None:
+        raise StageFailed(f"{_who(rec)} has no actor template: evaluate needs it to turn the estimated poses into "
+                          f"joints", status="no_template")
+    return rec.ground_truth, rec.template
+
+
+def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: int = 10,
+                    align: str = "procrustes") -> tuple[dict[str, Any], JointErrors]:
+    """Table 1 measures of a joined motion against the recording's ground truth (see the module docstring)."""
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+        raise ValueError(f"stages.evaluate.every: expected an int >= 1, got {every!r}")
+    if align not in ALIGN_MODES:
+        raise ValueError(f"stages.evaluate.align: expected one of {', '.join(ALIGN_MODES)}, got {align!r}")
+    gt, tpl = require_truth(rec)
+    who = _who(rec)
+    if gt.t_us.size == 0:
+        raise StageFailed(f"{who}: its ground truth is empty", status="no_ground_truth")
+    t_us = np.asarray(t_us, dtype=np.int64)
+    step = float(np.median(np.diff(t_us))) if t_us.size > 1 else None
+    truth, inside = truth_joints(gt, t_us)
+    if not inside.any():
+        raise StageFailed(f"{who}: no estimated tracking frame ({t_us[0]}..{t_us[-1]} us) lies within its ground "
+                          f"truth ({gt.t_us[0]}..{gt.t_us[-1]} us)", status="no_overlap")
+    sampled = np.arange(t_us.size) % every == 0
+    frame_t = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)
+    raw = raw_frames(t_us, frame_t, step if step is not None else 1.0)
+    keep = inside & (sampled | raw)  # the frames measured at all
+    k_in = keep[inside]
+    pred = joint_positions(poses[keep], tpl)
+    true = truth[k_in]
+    if align == "procrustes":
+        pred = procrustes_align(pred, true)
+    err = np.linalg.norm(pred - true, axis=-1)  # (n, 24) metres
+    errors = JointErrors(t_us=t_us[keep], error_m=err, sampled=sampled[keep], raw=raw[keep], align=align)
+    frame_err = err.mean(axis=1)
+    s, r = errors.sampled, errors.raw
+    values: dict[str, Any] = {
+        "AE_mm": _mean_mm(frame_err[s]),
+        "STD_mm": float(1000.0 * frame_err[s].std()) if s.any() else None,
+        "AE_raw_mm": _mean_mm(frame_err[r]),
+        "AE_nonRaw_mm": _mean_mm(frame_err[s & ~r]),
+        "per_joint_mm": {name: _mean_mm(err[s, j]) for j, name in enumerate(JOINT_NAMES)},
+        "n_frames": int(s.sum()),
+        "n_raw": int(r.sum()),
+        "n_nonRaw": int((s & ~r).sum()),
+        "n_tracking_frames": int(t_us.size),
+        "n_outside_ground_truth": int((~inside).sum()),
+        "every": int(every),
+        "align": align,
+        "data_rate": data_rate(rec, int(t_us[0]), int(t_us[-1]), step),
+    }
+    return values, errors
+
+
+def run(inputs: dict[str, Any], config, ctx: StageContext) -> dict[str, Any]:
+    rec: Recording = inputs["recording"]
+    if config.join not in JOIN_RULES:
+        raise ValueError(f"stages.evaluate.join: expected one of {', '.join(JOIN_RULES)}, got {config.join!r}")
+    seq = inputs["poses"]
+    if rec.ground_truth is None:
+        # A real recording: nothing to measure against. Report what can be (the data rate) and say so, rather than
+        # failing every run on real data.
+        first, last = seq[0], seq[len(seq) - 1]
+        t = np.concatenate([first.t_us, last.t_us])
+        step = float(np.median(np.diff(first.t_us))) if first.t_us.size > 1 else None
+        reason = f"{_who(rec)} has no ground truth: no joint errors (data rate only)"
+        ctx.log.warning("evaluate: %s", reason)
+        values = {"evaluated": False, "reason": reason, "n_batches": len(seq),
+                  "data_rate": data_rate(rec, int(t.min()), int(t.max()), step)}
+        empty = JointErrors(t_us=np.zeros(0, np.int64), error_m=np.zeros((0, 24)), sampled=np.zeros(0, bool),
+                            raw=np.zeros(0, bool), align=config.align)
+        return {"metrics": Metrics(values=values), "errors": empty}
+    require_truth(rec)  # before loading any batch
+    parts = [seq[i] for i in range(len(seq))]  # each batch loaded once (a runner BatchSequence reads the cache)
+    t_us, poses, shared = join_batches(parts, config.join)
+    ctx.report(1, 2)
+    values, errors = evaluate_motion(rec, t_us, poses, config.every, config.align)
+    statuses: dict[str, int] = {}
+    for p in parts:
+        if p.status:
+            statuses[p.status] = statuses.get(p.status, 0) + 1
+    values.update({"join": config.join, "n_batches": len(parts), "n_shared_frames": shared,
+                   "solver_status": statuses})
+    ctx.stats.update({"n_batches": len(parts), "n_frames": values["n_frames"]})
+    ctx.report(2, 2)
+    return {"metrics": Metrics(values=values), "errors": errors}

@@ -1,0 +1,31 @@
+"""Spec of the evaluate stage (paper Sec. 4, Table 1). Declarations only: the implementation loads when it runs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eventcap.artifacts import Metrics
+from eventcap.artifacts.pose import JointErrors, PoseSequence
+from eventcap.artifacts.recording import Recording
+from eventcap.stage import Port, StageSpec, param
+
+
+@dataclass
+class EvaluateConfig:
+    every: int = param(10, help="AE and STD over every n-th tracking frame of the joined motion (paper: 10)")
+    align: str = param("procrustes", help="procrustes: rigid (rotation + translation) alignment to the truth per "
+                                          "frame, as the paper | none: raw world-space distances")
+    join: str = param("later", help="a tracking frame two batches share (their boundary): later (the later "
+                                    "batch's pose) | mean (the average of the batches' poses)")
+
+
+EVALUATE = StageSpec(
+    name="evaluate", kind="evaluate", version=1,
+    description="mean per-joint 3D error (AE, Procrustes-aligned) and its STD on every 10th frame, AE.raw / "
+                "AE.nonRaw, per-joint errors, data rate (MB/s) against 1000 fps frames",
+    config=EvaluateConfig,
+    inputs={"recording": Port(Recording, "the recording, with ground truth and the actor template"),
+            "poses": Port(PoseSequence, "the estimated poses of every batch", all_batches=True)},
+    outputs={"metrics": Port(Metrics), "errors": Port(JointErrors)},
+    run="eventcap_evaluate._impl:run",
+)
