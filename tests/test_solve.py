@@ -347,3 +347,16 @@ def test_stage_joint_limit_overrides_are_applied_and_checked():
     assert exc.value.status == "invalid_bounds"
     with pytest.raises(StageFailed, match="no pose parameter named 'l_knee_flx'.*did you mean 'l_knee_flex'"):
         solve({"l_knee_flx": [0.0, 1.0]})
+
+
+def test_edge_distance_marks_silhouette_and_self_occlusion_edges():
+    from eventcap_solve.correspondences import edge_distance
+
+    depth = np.full((40, 60), np.inf, np.float32)
+    tri = np.full((40, 60), -1, np.int32)
+    depth[5:35, 5:55], tri[5:35, 5:55] = 3.0, 1  # a body...
+    depth[10:30, 30:40], tri[10:30, 30:40] = 2.5, 2  # ...with a nearer part in front of it
+    d = edge_distance(depth, tri)
+    assert d[0, 0] == 0 and d[5, 20] <= 1.0 and d[20, 15] >= 9.0  # outside / on the silhouette / deep inside
+    assert d[20, 28] <= 1.0  # the farther surface next to the occluding part is an edge
+    assert d[20, 35] >= 4.0  # the nearer part keeps its pixels (its own silhouette is 5 px away)
