@@ -63,7 +63,8 @@ def main() -> None:
     out = Path(args.out)
     rows, builds = [], []
     cache = Cache(args.cache)
-    print(f"{'motion':<14} {'mode':<10} {'AE mm':>7} {'AE std':>7} {'batches':>7} {'s/batch':>8} {'iters':>6}")
+    print(f"{'motion':<14} {'mode':<10} {'AE mm':>7} {'AE std':>7} {'batches':>7} {'s/batch':>8} {'iters':>6} "
+          f"{'fit it':>6} {'ICP it':>6} {'ICP s':>6}")
     for motion in args.motions.split(","):
         for mode in modes:
             rd = out / f"{motion}-s{args.seed}-{mode}"
@@ -77,6 +78,10 @@ def main() -> None:
             keys = json.loads((rd / "run.json").read_text())["nodes"]["solve"]["keys"]
             stats = [cache.lookup("batch", k).manifest.get("stats", {}) for k in keys]
             secs = [s["solve_s"] for s in stats if "solve_s" in s]
+            # solves of a batch: the two end fits first, then one per ICP round (modes batch / per_frame)
+            fit_its = [it for s in stats for _, it, _ in s.get("solves", [])[:2]]
+            icp_its = [it for s in stats for _, it, _ in s.get("solves", [])[2:]]
+            icp_s = [sec for s in stats for _, _, sec in s.get("solves", [])[2:]]
             builds += [s["build_s"] for s in stats if "build_s" in s]
             errs, iters = [], []
             for f in sorted((rd / "solve.poses").glob("batch*.zarr")):
@@ -88,10 +93,14 @@ def main() -> None:
             e = np.concatenate(errs) * 1000 if errs else np.array([np.nan])
             row = {"motion": motion, "mode": mode, "seed": args.seed, "ae_mm": float(e.mean()),
                    "ae_std_mm": float(e.std()), "batches": len(errs), "solve_s_median": float(np.median(secs)),
-                   "iterations_median": float(np.median(iters)) if iters else float("nan"), "wall_s": wall}
+                   "iterations_median": float(np.median(iters)) if iters else float("nan"), "wall_s": wall,
+                   "fit_iterations_median": float(np.median(fit_its)) if fit_its else None,
+                   "icp_solve_iterations_median": float(np.median(icp_its)) if icp_its else None,
+                   "icp_solve_s_median": float(np.median(icp_s)) if icp_s else None}
             rows.append(row)
             print(f"{motion:<14} {mode:<10} {row['ae_mm']:7.1f} {row['ae_std_mm']:7.1f} {row['batches']:7d} "
-                  f"{row['solve_s_median']:8.2f} {row['iterations_median']:6.0f}", flush=True)
+                  f"{row['solve_s_median']:8.2f} {row['iterations_median']:6.0f} {row['fit_iterations_median'] or 0:6.0f} "
+                  f"{row['icp_solve_iterations_median'] or 0:6.0f} {row['icp_solve_s_median'] or 0:6.2f}", flush=True)
     print("\nmean over motions:")
     for mode in modes:
         r = [x for x in rows if x["mode"] == mode]
