@@ -330,7 +330,7 @@ def test_neighbouring_batches_agree_on_their_shared_frame():
 def test_stage_joint_limit_overrides_are_applied_and_checked():
     from eventcap.config import build_config
     from eventcap.registry import load_registry
-    from eventcap_solve.batch import _PARAM_NAMES
+    from eventcap_solve.batch import PARAM_NAMES
 
     spec = load_registry().get("batch")
     run = spec.load_run()
@@ -339,7 +339,7 @@ def test_stage_joint_limit_overrides_are_applied_and_checked():
         cfg = build_config(spec, {"icp_rounds": 1, "max_tracks": 60, "limits": limits}, "stages.solve")
         return run(stage_inputs(), cfg, StageContext(node="solve", stage="batch", batch=Batch(0, T0, T0 + 1000 * N, 0)))
 
-    k = _PARAM_NAMES.index("l_knee_flex")
+    k = PARAM_NAMES.index("l_knee_flex")
     out = solve({"l_knee_flex": [0.0, 0.05]})["poses"]
     assert out.poses[:, k].max() <= 0.05 + 1e-9
     with pytest.raises(StageFailed, match=r"lower bound above upper bound for pose parameter 9 \(l_knee_flex\): 1.0 > -1.0") as exc:

@@ -153,6 +153,17 @@ class Template(Artifact):
         return Template(self.name, self.rest_joints, self.vertices, self.faces[:, ::-1], self.weights,
                         self.vertex_albedo, self.landmark_joint, self.landmark_offset)
 
+    def geometry_digest(self) -> str:
+        """sha1 of the geometry that posing depends on (rest joints, mesh, skinning weights, landmarks): a key for
+        per-process caches of things built from a template (e.g. a solver's NLP)."""
+        import hashlib
+
+        h = hashlib.sha1()
+        for name in ("rest_joints", "vertices", "faces", "weights", "landmark_joint", "landmark_offset"):
+            a = np.ascontiguousarray(getattr(self, name))
+            h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+        return h.hexdigest()
+
     def signed_volume(self) -> float:
         """Signed volume in m³ enclosed by the faces (positive when outward-oriented and closed)."""
         tri = self.vertices[self.faces]

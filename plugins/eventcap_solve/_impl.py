@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
-
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
@@ -13,30 +11,23 @@ from eventcap.stage import StageFailed
 _PROBLEMS: dict = {}
 
 
-def _template_digest(template) -> str:
-    h = hashlib.sha1()
-    for name in ("rest_joints", "vertices", "faces", "weights", "landmark_joint", "landmark_offset"):
-        a = np.ascontiguousarray(getattr(template, name))
-        h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
-    return h.hexdigest()
-
-
-def bounds_with(limits) -> tuple[np.ndarray, np.ndarray]:
-    """Default joint limits (skeleton.pose_bounds) with the config's overrides {name: [min, max]} applied."""
+def bounds_with(limits, where: str = "stages.solve.limits") -> tuple[np.ndarray, np.ndarray]:
+    """Default joint limits (skeleton.pose_bounds) with the config's overrides {name: [min, max]} applied;
+    StageFailed(status="invalid_bounds") naming ``where`` for an unknown name or a malformed pair."""
     from eventcap.body.skeleton import pose_bounds
     from eventcap.registry import unknown_name_message
 
-    from .batch import _PARAM_NAMES
+    from .batch import PARAM_NAMES
 
     lo, hi = pose_bounds()
     for name, pair in (limits or {}).items():
-        if name not in _PARAM_NAMES:
-            raise StageFailed("stages.solve.limits: " + unknown_name_message("pose parameter", name, list(_PARAM_NAMES)),
+        if name not in PARAM_NAMES:
+            raise StageFailed(f"{where}: " + unknown_name_message("pose parameter", name, list(PARAM_NAMES)),
                               status="invalid_bounds")
         if len(pair) != 2:
-            raise StageFailed(f"stages.solve.limits.{name}: expected [min, max], got {list(pair)}",
+            raise StageFailed(f"{where}.{name}: expected [min, max], got {list(pair)}",
                               status="invalid_bounds")
-        k = _PARAM_NAMES.index(name)
+        k = PARAM_NAMES.index(name)
         lo[k], hi[k] = float(pair[0]), float(pair[1])
     return lo, hi
 
@@ -46,7 +37,7 @@ def problem_for(template, camera, frames: int, settings, limits=None, robust_px:
     from .batch import BatchProblem
 
     lo, hi = bounds_with(limits)
-    key = (_template_digest(template), repr(sorted(camera.to_dict().items())), int(frames), settings,
+    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), int(frames), settings,
            lo.tobytes(), hi.tobytes(), float(robust_px))
     prob = _PROBLEMS.get(key)
     if prob is None:

@@ -127,7 +127,7 @@ STILL_M = 0.03
 #: IPOPT return statuses accepted as success.
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 _NP = NUM_POSE_PARAMS
-_PARAM_NAMES = DOF_NAMES + ROOT_ROTATION_NAMES + ROOT_TRANSLATION_NAMES
+PARAM_NAMES = DOF_NAMES + ROOT_ROTATION_NAMES + ROOT_TRANSLATION_NAMES
 #: Torso joints whose 3D detections fix the initial root rotation (rigid enough in any pose).
 _TORSO = tuple(JOINT_INDEX[n] for n in ("pelvis", "l_hip", "r_hip", "spine1", "spine2", "spine3", "neck",
                                          "l_collar", "r_collar", "l_shoulder", "r_shoulder"))
@@ -350,7 +350,7 @@ def project_derivatives(camera: Camera, points: np.ndarray, order: int = 2):
 
 
 # --------------------------------------------------------------------------------------------- FK kernels
-class _Buffered:
+class Buffered:
     """A CasADi function evaluated on numpy arrays through its zero-copy buffer (no DM conversion per call)."""
 
     def __init__(self, fn: ca.Function):
@@ -372,7 +372,7 @@ class _Buffered:
         return [r.copy() for r in self.res]
 
 
-class _SkinningKernels:
+class SkinningKernels:
     """Per frame, the 24 skinning transforms as a (96, 3) matrix G with posed point = WX · G (WX the premultiplied
     weights of a point, see :func:`premultiplied_weights`), their Jacobian and contracted second derivatives.
 
@@ -389,9 +389,9 @@ class _SkinningKernels:
         lam = ca.SX.sym("lam", 3, 4 * NUM_JOINTS)
         hess = ca.densify(ca.hessian(ca.dot(ca.vec(lam), g), S)[0])
         self.F = n_frames
-        self._g = _Buffered(ca.Function("skin_G", [S], [g]).map(n_frames))
-        self._dg = _Buffered(ca.Function("skin_dG", [S], [g, dg]).map(n_frames))
-        self._h = _Buffered(ca.Function("skin_d2G", [S, lam], [hess]).map(n_frames))
+        self._g = Buffered(ca.Function("skin_G", [S], [g]).map(n_frames))
+        self._dg = Buffered(ca.Function("skin_dG", [S], [g, dg]).map(n_frames))
+        self._h = Buffered(ca.Function("skin_d2G", [S, lam], [hess]).map(n_frames))
 
     def transforms(self, S: np.ndarray) -> np.ndarray:
         return self._g(S)[0].reshape(self.F, 4 * NUM_JOINTS, 3)
@@ -422,7 +422,7 @@ class _NumericEnergy:
     second derivatives. Both couple only neighbouring frames: the Hessian is block-tridiagonal.
     """
 
-    def __init__(self, camera: Camera, kernels: _SkinningKernels, rest_joints: np.ndarray):
+    def __init__(self, camera: Camera, kernels: SkinningKernels, rest_joints: np.ndarray):
         self.camera = camera
         self.kernels = kernels
         self.F = kernels.F
@@ -598,7 +598,7 @@ class _NumericEnergy:
         return diag, upper
 
 
-class _NumpyCallback(ca.Callback):
+class NumpyCallback(ca.Callback):
     """A CasADi function of one dense vector evaluated by numpy (IPOPT calls it through CasADi).
 
     Inputs and outputs are exchanged through CasADi's buffers (no DM conversion: ~3 ms per Hessian saved).
@@ -747,9 +747,9 @@ class BatchProblem:
         if bad.size:
             k = int(bad[0])
             raise ValueError(f"BatchProblem: lower bound above upper bound for pose parameter {k} "
-                             f"({_PARAM_NAMES[k]}): {self.lower[k]} > {self.upper[k]}")
+                             f"({PARAM_NAMES[k]}): {self.lower[k]} > {self.upper[k]}")
         self.scale = 1.0 / math.sqrt(camera.fx * camera.fy)
-        self.kernels = _SkinningKernels(template.rest_joints, self.F)
+        self.kernels = SkinningKernels(template.rest_joints, self.F)
         self.numeric = _NumericEnergy(camera, self.kernels, template.rest_joints)
         self._build_fit()
         self._build_batch()
@@ -840,9 +840,9 @@ class BatchProblem:
             return [value, g.ravel()]
 
         self._callbacks = [
-            _NumpyCallback("E_num", n_in, [ca.Sparsity.dense(1, 1)], lambda v: [ne.value(*split(v))]),
-            _NumpyCallback("E_num_grad", n_in, [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(nS, 1)], grad),
-            _NumpyCallback("E_num_hess", n_in, [sp_h], hess),
+            NumpyCallback("E_num", n_in, [ca.Sparsity.dense(1, 1)], lambda v: [ne.value(*split(v))]),
+            NumpyCallback("E_num_grad", n_in, [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(nS, 1)], grad),
+            NumpyCallback("E_num_hess", n_in, [sp_h], hess),
         ]
         cb_f, cb_g, cb_h = self._callbacks
         X, P = ca.MX.sym("x", self.nx), ca.MX.sym("p", self.np_)
@@ -1096,7 +1096,8 @@ def _result(problem, poses, t_prime, ends, corr, phi, weights, solves, seconds, 
 
 
 __all__ = [
-    "MODES", "BatchProblem", "BatchResult", "EnergyWeights", "FrameDetections", "IpoptSettings",
+    "MODES", "PARAM_NAMES", "BatchProblem", "BatchResult", "Buffered", "EnergyWeights", "FrameDetections",
+    "IpoptSettings", "NumpyCallback", "SkinningKernels", "premultiplied_weights",
     "SolveStats", "check_batch_inputs", "initial_guess", "interpolate_poses", "project_derivatives",
     "select_detections", "solve_batch",
 ]

@@ -161,7 +161,7 @@ def find_correspondences(template: Template, camera: Camera, poses: np.ndarray, 
         bc = np.clip(b, 0.0, None)
         bc /= bc.sum(axis=1, keepdims=True)
         w = np.einsum("pk,pkj->pj", bc, template.weights[corner])
-        rest, w = _rest_point(posed, w, transforms[n])
+        rest, w = rest_point(posed, w, transforms[n])
         for j in (i - 1, i + 1):
             ok = valid[j, hs]
             if not ok.any():
@@ -184,7 +184,7 @@ def find_correspondences(template: Template, camera: Camera, poses: np.ndarray, 
     )
 
 
-def _rest_point(posed: np.ndarray, w: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def rest_point(posed: np.ndarray, w: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rest points x with Σ_j w_j (R_j x + b_j) = posed, and the weights to use; (P, 3), (P, 24).
 
     transforms (24, 4, 4) of the frame. Where the blended rotation is nearly singular the point is attached rigidly
