@@ -5,6 +5,9 @@
     eventcap stages [--kind K]           installed stages with one-line descriptions (imports no implementation)
     eventcap cache ls | explain KEY | gc inspect and clean the stage cache
     eventcap preview RECORDING.zarr      PNG of frames, events and the ground-truth skeleton
+    eventcap benchmark [overrides]       Table 1 / Fig. 7 on synthetic captures: methods x motions x seeds, one cache
+                                         (benchmark=quick for a short one; conf/benchmark/*.yaml)
+    eventcap report RUNS_DIR             one table (+ CSV, plot) of the jobs of a sweep (eventcap run -m ...)
     eventcap convert IN OUT              convert a recording (AEDAT4, HDF5, EVT2/3, DAT, npy/npz, rpg) into the
                                          project's format, streaming (--t-start/--t-end, --roi, --calibration)
 """
@@ -50,36 +53,51 @@ def _run_job(cfg) -> bool:
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf
 
-    from .cache import CacheError
-    from .config import ConfigError
-    from .pipeline import PipelineError
-    from .registry import UnknownStageError
-    from .runner import Runner
-
     logging.getLogger().setLevel(str(cfg.get("log_level", "INFO")).upper())
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     data = OmegaConf.to_container(cfg, resolve=True)
     overrides = list(HydraConfig.get().overrides.task)
     log.info("run folder: %s%s", run_dir, f" (overrides: {' '.join(overrides)})" if overrides else "")
+    before = len(_RUN_FAILURES)
+    run_job(data, run_dir, OmegaConf.to_yaml(cfg, resolve=True), _RUN_FAILURES)
+    return len(_RUN_FAILURES) == before
+
+
+def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
+    """Run one composed config into ``run_dir``: the pipeline, then the run outputs (motion files, video).
+
+    Returns ``(runner, result)``, or None when the config was refused before anything ran. Problems are appended to
+    ``failures`` (one line each); the caller decides the exit code. Shared by ``eventcap run`` and ``benchmark``.
+    """
+    from .cache import CacheError
+    from .config import ConfigError
+    from .outputs import check_outputs_config, write_run_outputs
+    from .pipeline import PipelineError
+    from .registry import UnknownStageError
+    from .runner import Runner
+
     try:
         runner = Runner(data)
+        outputs_cfg = check_outputs_config(runner)
         result = runner.run(run_dir)
     except (PipelineError, ConfigError, UnknownStageError, CacheError, ValueError) as exc:
         log.error("%s", exc)
-        _RUN_FAILURES.append(f"{run_dir}: {exc}")
-        return False
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        failures.append(f"{run_dir}: {exc}")
+        return None
+    (run_dir / "config.yaml").write_text(config_yaml)
     if result.metrics:
         log.info("metrics: %s", json.dumps(result.metrics, default=str)[:2000])
+    written = write_run_outputs(runner, result, run_dir, outputs_cfg)
+    if written["problems"]:
+        failures.append(f"{run_dir}: outputs: {'; '.join(written['problems'])}")
     if not result.ok:
         failed = [f"{n} batch {f['batch']}" if f["batch"] is not None else n
                   for n, r in result.nodes.items() for f in r.failed]
         skipped = [n for n, r in result.nodes.items() if r.skipped]
         msg = f"failed: {', '.join(failed) or '-'}; skipped (upstream failed): {', '.join(skipped) or '-'}"
         log.error("run incomplete: %s. Fix the cause and run the same command again: committed results are reused.", msg)
-        _RUN_FAILURES.append(f"{run_dir}: {msg}")
-        return False
-    return True
+        failures.append(f"{run_dir}: {msg}")
+    return runner, result
 
 
 def cmd_run(argv: list[str]) -> int:
@@ -101,8 +119,8 @@ def cmd_run(argv: list[str]) -> int:
     return 1 if _RUN_FAILURES else 0
 
 
-_TOP_LEVEL = {"name", "cache_dir", "batches", "log_level", "export", "pipeline", "source", "executor", "template",
-              "stages"}
+_TOP_LEVEL = {"name", "cache_dir", "batches", "log_level", "export", "outputs", "pipeline", "source", "executor",
+              "template", "stages"}
 
 
 def cmd_simulate(argv: list[str]) -> int:
@@ -118,7 +136,8 @@ def cmd_simulate(argv: list[str]) -> int:
                 and key not in _TOP_LEVEL:
             arg = f"source.{arg}"
         mapped.append(arg)
-    return cmd_run(["pipeline=simulate", "source=synthetic", "name=simulate", "export=[source.recording]", *mapped])
+    return cmd_run(["pipeline=simulate", "source=synthetic", "name=simulate", "export=[source.recording]",
+                    "outputs.poses=null", *mapped])
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -267,6 +286,34 @@ def cmd_convert(args) -> int:
     return 0
 
 
+_BENCHMARK_HELP = """Run every method of conf/benchmark/<preset>.yaml on every synthetic sequence (motion x seed) through the
+pipeline, all runs sharing one cache (a second call recomputes nothing), and print Table 1 (AE.all / AE.raw /
+AE.nonRaw mean ± STD, data rate), AE per motion and time per batch per stage; writes table.csv, runs.csv,
+benchmark.json and fig7_per_frame_error.png into <out>.
+
+  eventcap benchmark                         the full suite (6 motions x 2 seeds, conf/benchmark/default.yaml)
+  eventcap benchmark benchmark=quick         2 motions x 1 seed x 0.2 s
+  eventcap benchmark motions=[karate_kick] seeds=[0,1,2] duration_s=1
+  eventcap benchmark stages.track.stitch_px=2  an override of every run (not a benchmark key)
+"""
+
+
+def cmd_benchmark(argv: list[str]) -> int:
+    from .benchmark import main as benchmark_main
+
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    try:
+        return benchmark_main(argv, config_dir())
+    except ValueError as exc:
+        print(f"eventcap benchmark: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # hydra's composition errors name the bad override
+        if type(exc).__module__.startswith(("hydra", "omegaconf")):
+            print(f"eventcap benchmark: {exc}", file=sys.stderr)
+            return 2
+        raise
+
+
 def _explain(cache, prefix: str) -> None:
     e = cache.find(prefix)
     m = e.manifest
@@ -317,10 +364,24 @@ def main(argv: list[str] | None = None) -> int:
         return cmd_run(argv[1:])
     if argv and argv[0] == "simulate":
         return cmd_simulate(argv[1:])
+    if argv and argv[0] == "benchmark" and not ({"-h", "--help"} & set(argv[1:])):
+        return cmd_benchmark(argv[1:])
     parser = argparse.ArgumentParser(prog="eventcap", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("run", help="run the pipeline (hydra overrides follow; see `eventcap run --help`)")
     sub.add_parser("simulate", help="write a synthetic recording (e.g. motion=karate_kick duration_s=1 seed=0)")
+    sub.add_parser("benchmark", usage="eventcap benchmark [benchmark=PRESET] [KEY=VALUE ...] [RUN_OVERRIDE ...]",
+                   help="Table 1 / Fig. 7 on synthetic captures (overrides follow: benchmark=quick, "
+                                     "motions=[a,b], seeds=[0], duration_s=1, or any run override)",
+                   description=_BENCHMARK_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("report", help="one table (+ report.csv, report.png) of the jobs of a sweep folder")
+    p.add_argument("runs_dir", metavar="RUNS_DIR", help="a sweep folder (runs/<name>/multirun_<ts>/) or any folder "
+                                                        "holding run folders")
+    p.add_argument("--out", help="where report.csv / report.png go (default: RUNS_DIR)")
+    p.add_argument("--metrics", help="node.port of the metrics to show (default: evaluate.metrics)")
+    p.add_argument("--column", action="append", default=[], metavar="KEY",
+                   help="one more column: a dotted key into the metrics (e.g. per_joint_mm.l_wrist); repeatable")
+    p.add_argument("--no-plot", action="store_true", help="no report.png")
     p = sub.add_parser("stages", help="list installed stages")
     p.add_argument("--kind", help="only stages of this kind (e.g. track)")
     p.add_argument("-v", "--verbose", action="store_true", help="show where each stage comes from")
@@ -359,6 +420,15 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.command == "stages":
         return cmd_stages(args)
+    if args.command == "report":
+        from .report import ReportError, report
+
+        try:
+            report(Path(args.runs_dir), args.out, args.metrics, args.column, plot=not args.no_plot)
+        except ReportError as exc:
+            print(f"eventcap report: {exc}", file=sys.stderr)
+            return 2
+        return 0
     if args.command == "preview":
         return cmd_preview(args)
     if args.command == "convert":

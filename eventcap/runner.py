@@ -282,6 +282,10 @@ class NodeReport:
 class RunResult:
     nodes: dict[str, NodeReport]
     metrics: dict[str, Any]
+    #: cache key of each whole node that got one (also when it then failed: see ``nodes``)
+    node_keys: dict[str, str] = field(default_factory=dict)
+    #: per-batch nodes: batch index -> cache key, for the committed batches only
+    batch_keys: dict[str, dict[int, str]] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -289,6 +293,18 @@ class RunResult:
 
     def computed_keys(self) -> int:
         return sum(r.computed for r in self.nodes.values())
+
+    def committed(self, node: str) -> dict[int | None, str]:
+        """The committed cache entries of a node: ``{None: key}`` for a whole node that succeeded, ``{batch index:
+        key}`` for the committed batches of a per-batch node, ``{}`` when nothing of it was committed."""
+        rep = self.nodes.get(node)
+        if rep is None:
+            raise KeyError(f"node {node!r} is not in this run (nodes: {', '.join(self.nodes)})")
+        if rep.per_batch:
+            return dict(sorted(self.batch_keys.get(node, {}).items()))
+        if rep.failed or rep.skipped or node not in self.node_keys:
+            return {}
+        return {None: self.node_keys[node]}
 
 
 class Runner:
@@ -337,7 +353,7 @@ class Runner:
                 rep.elapsed_s = time.perf_counter() - t0
         self.cache.clean_orphans()  # also those of writers killed just before this run started
         metrics = self._collect_metrics(reports, node_keys)
-        result = RunResult(reports, metrics)
+        result = RunResult(reports, metrics, dict(node_keys), {n: dict(k) for n, k in batch_keys.items()})
         n_comp = result.computed_keys()
         n_hit = sum(r.cached for r in reports.values())
         n_fail = sum(len(r.failed) for r in reports.values())
@@ -346,6 +362,18 @@ class Runner:
         if run_dir is not None:
             self._write_summary(Path(run_dir), result, node_keys, batch_keys)
         return result
+
+    def load_output(self, result: RunResult, output: str) -> dict[int | None, Artifact]:
+        """The committed artifacts of output ``node.port`` of a finished run, read from the cache: ``{None:
+        artifact}`` for a whole node, ``{batch index: artifact}`` (committed batches, in order) for a per-batch node;
+        ``{}`` when the node committed nothing (it failed or was skipped)."""
+        node_name, _, port = str(output).partition(".")
+        node = self.by_name.get(node_name)
+        if node is None or port not in node.spec.outputs:
+            raise ValueError(f"{output!r} is not '<node>.<port>' of this pipeline (nodes: {', '.join(self.by_name)})")
+        cls = node.spec.outputs[port].type
+        return {i: _load(str(self.cache.root), node.spec.name, key, port, cls)
+                for i, key in result.committed(node_name).items()}
 
     def _input_specs(self, node: Node, node_keys, batch_keys, plans, batch: Batch | None) -> tuple[dict, dict]:
         """Input references for a task and the matching key material."""

@@ -151,3 +151,17 @@ def test_file_digest_not_mtime(tmp_path, toy):
     assert file_digest(f) == d1
     f.write_bytes(b"abd")
     assert file_digest(f) != d1
+
+
+def test_load_output_reads_committed_results_from_the_cache(toy_cfg, tmp_path):
+    runner = Runner(toy_cfg(smooth={"fail_batches": [2]}))
+    r = runner.run()
+    whole = runner.load_output(r, "signal.series")
+    assert list(whole) == [None] and whole[None].label == "signal"
+    chunks = runner.load_output(r, "smooth.chunk")  # the committed batches only, in order
+    assert list(chunks) == [0, 1, 3] and list(r.committed("scale")) == [0, 1, 3]
+    assert runner.load_output(r, "total.metrics") == {}  # skipped: upstream failed
+    with pytest.raises(ValueError, match=r"'smooth.chunks' is not '<node>.<port>' of this pipeline"):
+        runner.load_output(r, "smooth.chunks")
+    with pytest.raises(KeyError, match="node 'nope' is not in this run"):
+        r.committed("nope")

@@ -1,11 +1,10 @@
 """The evaluate stage (paper Sec. 4): join the per-batch pose sequences into one motion and measure it.
 
-Joining. The solve stage gives one PoseSequence per batch; neighbouring batches share their boundary tracking frame
-(the intensity frame between them). Frames are ordered by time and every time appears once: with ``join=later`` a
-shared frame keeps the later batch's pose (the batch that starts there), with ``join=mean`` the average of the
-batches' poses (root rotation angles averaged modulo 2π, so a spin unwrapped differently in two batches does not
-average to a wrong turn). Batches missing from the sequence (a run on a selection of batches) leave gaps; gaps are
-not evaluated.
+Joining (:func:`eventcap.motion.join_batches`). The solve stage gives one PoseSequence per batch; neighbouring
+batches share their boundary tracking frame (the intensity frame between them). Frames are ordered by time and every
+time appears once: with ``join=later`` a shared frame keeps the later batch's pose (the batch that starts there),
+with ``join=mean`` the average of the batches' poses (root rotation angles averaged modulo 2π). Batches missing from
+the sequence (a run on a selection of batches) leave gaps; gaps are not evaluated.
 
 Measures (Table 1), in millimetres:
 
@@ -29,66 +28,22 @@ against a high-speed camera giving 8-bit frames of the same resolution at the tr
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from eventcap.artifacts import Metrics
-from eventcap.artifacts.pose import JointErrors, PoseSequence
+from eventcap.artifacts.pose import JointErrors
 from eventcap.artifacts.recording import GroundTruth, Recording
 from eventcap.body.kinematics import joint_positions
-from eventcap.body.skeleton import JOINT_NAMES, ROOT_ROTATION_SLICE
+from eventcap.body.skeleton import JOINT_NAMES
 from eventcap.events import EVENT_DTYPE
 from eventcap.metrics import procrustes_align
+from eventcap.motion import JOIN_RULES, join_batches  # noqa: F401 (join_batches: part of this module's API)
 from eventcap.stage import StageContext, StageFailed
 
 ALIGN_MODES = ("procrustes", "none")
-JOIN_RULES = ("later", "mean")
 _MB = 1e6
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    """Angles into [-π, π)."""
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-def join_batches(parts: Sequence[PoseSequence], rule: str = "later") -> tuple[np.ndarray, np.ndarray, int]:
-    """One motion from per-batch pose sequences: times (T,) int64 µs (increasing, unique), poses (T, 33) and the
-    number of tracking frames that more than one batch held (resolved by ``rule``: later | mean)."""
-    if rule not in JOIN_RULES:
-        raise ValueError(f"join: expected one of {', '.join(JOIN_RULES)}, got {rule!r}")
-    ts, Ss = [], []
-    for i in range(len(parts)):
-        p = parts[i]
-        t = np.asarray(p.t_us, dtype=np.int64)
-        if t.size == 0:
-            continue
-        if t.size > 1 and np.any(np.diff(t) <= 0):
-            k = int(np.argmax(np.diff(t) <= 0)) + 1
-            raise StageFailed(f"poses of batch {i}: tracking frame times must increase; frame {k} is at {t[k]} us "
-                              f"after {t[k - 1]} us", status="bad_poses")
-        ts.append(t)
-        Ss.append(np.asarray(p.poses, dtype=np.float64))
-    if not ts:
-        raise StageFailed(f"no poses to evaluate: {len(parts)} batch(es), none with a tracking frame",
-                          status="no_poses")
-    perm = np.argsort([t[0] for t in ts], kind="stable")  # batch order = time order; later batches last
-    t = np.concatenate([ts[k] for k in perm])
-    S = np.concatenate([Ss[k] for k in perm])
-    times, first, inverse, counts = np.unique(t, return_index=True, return_inverse=True, return_counts=True)
-    shared = int(np.count_nonzero(counts > 1))
-    if rule == "later":
-        last = np.zeros(times.size, dtype=np.int64)
-        np.maximum.at(last, inverse, np.arange(t.size))
-        return times, S[last], shared
-    ref = S[first][inverse]
-    adj = S.copy()
-    rr = ROOT_ROTATION_SLICE
-    adj[:, rr] = ref[:, rr] + _wrap(S[:, rr] - ref[:, rr])
-    out = np.zeros((times.size, S.shape[1]))
-    np.add.at(out, inverse, adj)
-    return times, out / counts[:, None], shared
 
 
 def truth_joints(gt: GroundTruth, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

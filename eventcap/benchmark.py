@@ -1,0 +1,482 @@
+"""``eventcap benchmark``: the paper's Table 1 and Fig. 7 on synthetic captures with exact ground truth.
+
+Every method of ``conf/benchmark/<preset>.yaml`` (the full pipeline, baselines, ablations: rows defined by config)
+runs on every sequence (motion x seed) through the normal runner and run outputs, into
+``<out>/runs/<motion>-s<seed>/<method>/``, all sharing one stage cache: a second call recomputes nothing, and an
+interrupted benchmark resumes where it stopped.
+
+Measures. A method's AE and STD are the mean and (population) standard deviation of the per-frame errors (mean
+per-joint error after per-frame Procrustes alignment, mm) of the evaluate stage's every-n-th tracking frames, pooled
+over all its runs (all sequences have the same length, so AE is the mean of the runs' AE); AE.raw over the frames at
+intensity frames, AE.nonRaw over the every-n-th frames that are not; per motion, pooled over the seeds. The data rate
+is the mean over the runs of the evaluate stage's data rate named by the method's ``data``. Time per batch of each
+stage comes from the cache manifests (``elapsed_s`` of the committed entries, whether computed now or earlier; a
+whole-recording stage's time is divided by the run's number of batches).
+
+Writes ``table.csv`` (one row per method), ``runs.csv`` (one row per run), ``benchmark.json`` (config, runs with
+their per-frame errors, table) and ``fig7_per_frame_error.png``, and prints the tables.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import re
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("eventcap.benchmark")
+
+DATA_FIELDS = ("total_MBps", "events_MBps", "frames_MBps", "highspeed_MBps")
+_METHOD_KEYS = {"name", "description", "overrides", "data", "requires"}
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    overrides: tuple[str, ...] = ()
+    data: str = "total_MBps"
+    requires: tuple[str, ...] = ()
+    description: str = ""
+
+    @property
+    def slug(self) -> str:
+        """The method's name as a folder name (``w/o_batch`` -> ``wo_batch``)."""
+        return re.sub(r"[^A-Za-z0-9_.-]+", "", self.name.replace("/", "")) or "method"
+
+
+def parse_methods(items: Sequence[Mapping[str, Any]]) -> list[Method]:
+    """The ``methods`` list of a benchmark config, checked (unknown keys, duplicates, data fields)."""
+    out: list[Method] = []
+    for i, m in enumerate(items or []):
+        if not isinstance(m, Mapping) or "name" not in m:
+            raise ValueError(f"methods[{i}]: expected a mapping with a 'name', got {m!r}")
+        unknown = sorted(set(m) - _METHOD_KEYS)
+        if unknown:
+            raise ValueError(f"methods[{i}] ({m['name']}): unknown key {unknown[0]!r}; known: "
+                             f"{', '.join(sorted(_METHOD_KEYS))}")
+        data = m.get("data", "total_MBps")
+        if data not in DATA_FIELDS:
+            raise ValueError(f"methods[{i}] ({m['name']}).data: expected one of {', '.join(DATA_FIELDS)}, got {data!r}")
+        meth = Method(name=str(m["name"]), overrides=tuple(str(o) for o in m.get("overrides") or ()), data=data,
+                      requires=tuple(str(r) for r in m.get("requires") or ()),
+                      description=str(m.get("description") or ""))
+        if any(meth.slug == o.slug for o in out):
+            raise ValueError(f"methods[{i}]: name {meth.name!r} repeats an earlier method")
+        out.append(meth)
+    if not out:
+        raise ValueError("methods: the benchmark needs at least one method")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Configs
+# ---------------------------------------------------------------------------------------------------------------------
+def split_overrides(argv: Sequence[str], bench_keys: set[str]) -> tuple[str, list[str], list[str]]:
+    """``eventcap benchmark`` arguments -> (preset, benchmark overrides, overrides of every run).
+
+    ``benchmark=NAME`` picks the preset; ``key=value`` whose top-level key is a benchmark key changes the benchmark;
+    anything else is a hydra override of every run."""
+    preset, bench, runs = "default", [], []
+    for arg in argv:
+        key = arg.split("=", 1)[0].lstrip("+~")
+        if key == "benchmark" and "=" in arg:
+            preset = arg.split("=", 1)[1]
+        elif key.split(".")[0] in bench_keys:
+            bench.append(arg)
+        else:
+            runs.append(arg)
+    return preset, bench, runs
+
+
+def compose_benchmark(config_dir: Path, preset: str, overrides: Sequence[str]) -> dict[str, Any]:
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    if not (config_dir / "benchmark" / f"{preset}.yaml").is_file():
+        have = sorted(p.stem for p in (config_dir / "benchmark").glob("*.yaml"))
+        raise ValueError(f"benchmark={preset}: no conf/benchmark/{preset}.yaml (presets: {', '.join(have)})")
+    with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+        cfg = compose(config_name=f"benchmark/{preset}", overrides=list(overrides))
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def compose_run(config_dir: Path, overrides: Sequence[str]) -> tuple[dict[str, Any], str]:
+    """The run config (plain data) and its YAML, as ``eventcap run <overrides>`` would compose it."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=list(overrides))
+    return OmegaConf.to_container(cfg, resolve=True), OmegaConf.to_yaml(cfg, resolve=True)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Running
+# ---------------------------------------------------------------------------------------------------------------------
+@dataclass
+class Benchmark:
+    cfg: dict[str, Any]
+    config_dir: Path
+    run_overrides: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        c = self.cfg
+        self.methods = parse_methods(c.get("methods"))
+        self.motions = [str(m) for m in c["motions"]]
+        self.seeds = [int(s) for s in c["seeds"]]
+        if not self.motions or not self.seeds:
+            raise ValueError("motions and seeds: the benchmark needs at least one of each")
+        self.out = Path(c["out"])
+
+    def sequence_overrides(self, motion: str, seed: int) -> list[str]:
+        values = {"motion": motion, "seed": seed, "duration_s": self.cfg["duration_s"]}
+        return [str(o).format(**values) for o in self.cfg.get("sequence_overrides") or ()]
+
+    def base_overrides(self) -> list[str]:
+        return [f"cache_dir={self.cfg['cache_dir']}", *map(str, self.cfg.get("overrides") or ()), *self.run_overrides]
+
+    def active_methods(self) -> tuple[list[Method], dict[str, str]]:
+        """Methods whose required nodes the pipeline has (composed with the common overrides), and why others not."""
+        data, _ = compose_run(self.config_dir, self.base_overrides())
+        nodes = set((data.get("pipeline") or {}).get("nodes") or {})
+        active, left_out = [], {}
+        for m in self.methods:
+            missing = [r for r in m.requires if r not in nodes]
+            if missing:
+                left_out[m.name] = f"the pipeline has no node {', '.join(repr(r) for r in missing)}"
+            else:
+                active.append(m)
+        return active, left_out
+
+    def run(self, echo=print) -> dict[str, Any]:
+        from .cli import run_job
+
+        methods, left_out = self.active_methods()
+        for name, why in left_out.items():
+            echo(f"method {name}: left out ({why})")
+        jobs = [(mo, s, m) for mo in self.motions for s in self.seeds for m in methods]
+        echo(f"benchmark {self.cfg['name']}: {len(self.motions)} motion(s) x {len(self.seeds)} seed(s) x "
+             f"{len(methods)} method(s) = {len(jobs)} runs of {self.cfg['duration_s']} s; cache {self.cfg['cache_dir']};"
+             f" results in {self.out}")
+        records = []
+        t_all = time.perf_counter()
+        for k, (motion, seed, method) in enumerate(jobs, 1):
+            run_dir = self.out / "runs" / f"{motion}-s{seed}" / method.slug
+            ov = [*self.sequence_overrides(motion, seed), *self.base_overrides(), *method.overrides]
+            t0 = time.perf_counter()
+            rec: dict[str, Any] = {"motion": motion, "seed": seed, "method": method.name, "run_dir": str(run_dir),
+                                   "overrides": ov, "ok": False, "error": None}
+            failures: list[str] = []
+            try:
+                data, yaml_text = compose_run(self.config_dir, ov)
+                run_dir.mkdir(parents=True, exist_ok=True)
+                got = run_job(data, run_dir, yaml_text, failures)
+            except Exception as exc:  # noqa: BLE001 - a bad method config fails its runs, not the benchmark
+                got, failures = None, [f"{type(exc).__name__}: {exc}"]
+            if got is None:
+                rec["error"] = "; ".join(failures) or "refused"
+            else:
+                rec.update(collect_run(*got, self.cfg["metrics"], self.cfg["errors"], method.data))
+                rec["error"] = "; ".join(failures) or None
+            rec["wall_s"] = time.perf_counter() - t0
+            records.append(rec)
+            echo(progress_line(k, len(jobs), rec))
+        echo(f"{len(jobs)} runs in {time.perf_counter() - t_all:.1f} s "
+             f"({sum(r.get('computed', 0) for r in records)} cache entries computed, "
+             f"{sum(r.get('cached', 0) for r in records)} reused)")
+        return {"config": self.cfg, "run_overrides": self.run_overrides, "methods_left_out": left_out,
+                "methods": [m.name for m in methods], "motions": self.motions, "seeds": self.seeds,
+                "runs": records, "table": aggregate(records, [m.name for m in methods], self.motions)}
+
+
+def progress_line(k: int, n: int, rec: Mapping[str, Any]) -> str:
+    head = f"[{k}/{n}] {rec['motion']} seed {rec['seed']} {rec['method']}:"
+    if rec.get("computed") is None:
+        return f"{head} FAILED ({rec.get('error')}) in {rec['wall_s']:.1f} s"
+    ae = rec.get("AE_mm")
+    state = "ok" if rec["ok"] else f"incomplete ({rec.get('error')})"
+    return (f"{head} {rec['computed']} computed, {rec['cached']} cached, "
+            f"AE {_num(ae)} mm, {rec['wall_s']:.1f} s, {state}")
+
+
+def collect_run(runner, result, metrics_out: str, errors_out: str, data_field: str) -> dict[str, Any]:
+    """One run's record: status, cache counts, Table-1 metrics, per-frame errors, time per batch per stage."""
+    from .artifacts.pose import JointErrors
+
+    rec: dict[str, Any] = {"ok": result.ok, "computed": result.computed_keys(),
+                           "cached": sum(r.cached for r in result.nodes.values()),
+                           "failed": [f"{n} batch {f['batch']}" if f["batch"] is not None else n
+                                      for n, r in result.nodes.items() for f in r.failed]}
+    m = result.metrics.get(metrics_out) or {}
+    dr = m.get("data_rate") or {}
+    rec.update({"AE_mm": m.get("AE_mm"), "STD_mm": m.get("STD_mm"), "AE_raw_mm": m.get("AE_raw_mm"),
+                "AE_nonRaw_mm": m.get("AE_nonRaw_mm"), "data_MBps": dr.get(data_field), "data_field": data_field})
+    rec["frames"] = None
+    node = errors_out.partition(".")[0]
+    if node in runner.by_name:
+        got = runner.load_output(result, errors_out)
+        if got and isinstance(got[None], JointErrors) and got[None].t_us.size:
+            e = got[None]
+            rec["frames"] = {"t_us": e.t_us.tolist(), "err_mm": (1000.0 * e.error_m.mean(axis=1)).round(6).tolist(),
+                             "sampled": e.sampled.tolist(), "raw": e.raw.tolist()}
+    rec.update(stage_times(runner, result))
+    return rec
+
+
+def stage_times(runner, result) -> dict[str, Any]:
+    """Seconds per batch of every node (from the cache manifests) and the medians of numeric per-batch stats."""
+    per_batch = [r for r in result.nodes.values() if r.per_batch]
+    n_batches = max((len(r.keys) for r in per_batch), default=1) or 1
+    times: dict[str, float] = {}
+    stats: dict[str, dict[str, float]] = {}
+    for name, rep in result.nodes.items():
+        node = runner.by_name[name]
+        elapsed, node_stats = [], {}
+        for key in rep.keys:
+            entry = runner.cache.lookup(node.spec.name, key)
+            if entry is None:
+                continue
+            elapsed.append(float(entry.manifest.get("elapsed_s", float("nan"))))
+            for k, v in (entry.manifest.get("stats") or {}).items():
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    node_stats.setdefault(k, []).append(float(v))
+        if not elapsed:
+            continue
+        times[name] = float(np.mean(elapsed)) if rep.per_batch else float(np.sum(elapsed)) / n_batches
+        if node_stats:
+            stats[name] = {k: float(np.median(v)) for k, v in node_stats.items()}
+    return {"n_batches": n_batches, "s_per_batch": times, "stats": stats}
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Aggregation (pure: records in, table out)
+# ---------------------------------------------------------------------------------------------------------------------
+def _pool(records: Sequence[Mapping[str, Any]], which: str) -> np.ndarray:
+    out = []
+    for r in records:
+        f = r.get("frames")
+        if not f:
+            continue
+        e = np.asarray(f["err_mm"], dtype=np.float64)
+        s, raw = np.asarray(f["sampled"], bool), np.asarray(f["raw"], bool)
+        mask = {"all": s, "raw": raw, "nonRaw": s & ~raw}[which]
+        out.append(e[mask])
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def _mean_std(x: np.ndarray) -> tuple[float | None, float | None]:
+    return (float(x.mean()), float(x.std())) if x.size else (None, None)
+
+
+def aggregate(records: Sequence[Mapping[str, Any]], methods: Sequence[str], motions: Sequence[str]) -> list[dict]:
+    """One row per method: pooled AE ± STD (all / raw / nonRaw), per motion, data rate, time per batch per stage."""
+    rows = []
+    for name in methods:
+        mine = [r for r in records if r["method"] == name]
+        good = [r for r in mine if r.get("frames")]
+        row: dict[str, Any] = {"method": name, "runs": len(mine), "evaluated": len(good),
+                               "incomplete": sum(1 for r in mine if not r.get("ok"))}
+        for which, key in (("all", "AE"), ("raw", "AE_raw"), ("nonRaw", "AE_nonRaw")):
+            row[f"{key}_mm"], row[f"{key}_STD_mm"] = _mean_std(_pool(good, which))
+        rates = [r["data_MBps"] for r in mine if r.get("data_MBps") is not None]
+        row["data_MBps"] = float(np.mean(rates)) if rates else None
+        row["per_motion"] = {}
+        for motion in motions:
+            ae, sd = _mean_std(_pool([r for r in good if r["motion"] == motion], "all"))
+            row["per_motion"][motion] = {"AE_mm": ae, "STD_mm": sd}
+        nodes: dict[str, list[float]] = {}
+        stats: dict[str, list[float]] = {}
+        for r in mine:
+            for n, s in (r.get("s_per_batch") or {}).items():
+                nodes.setdefault(n, []).append(s)
+            for n, st in (r.get("stats") or {}).items():
+                for k in ("solve_s", "iterations"):
+                    if k in st:
+                        stats.setdefault(f"{n}.{k}", []).append(st[k])
+        row["s_per_batch"] = {n: float(np.mean(v)) for n, v in nodes.items()}
+        row["stats"] = {k: float(np.median(v)) for k, v in stats.items()}
+        rows.append(row)
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Presentation
+# ---------------------------------------------------------------------------------------------------------------------
+def _num(x, digits: int = 1) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
+
+
+def _pm(mean, std) -> str:
+    return "n/a" if mean is None else f"{mean:.1f} ± {std:.1f}"
+
+
+def _grid(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
+    fmt = lambda cells: "  ".join(str(c).ljust(w) if i == 0 else str(c).rjust(w)  # noqa: E731
+                                  for i, (c, w) in enumerate(zip(cells, widths)))
+    return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *(fmt(r) for r in rows)])
+
+
+def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], note: str = "") -> str:
+    """The printed report: Table 1, AE per motion, time per batch per stage."""
+    parts = []
+    head = ["method", "AE.all (mm)", "AE.raw (mm)", "AE.nonRaw (mm)", "Size.sec (MB/s)", "runs"]
+    rows = [[r["method"], _pm(r["AE_mm"], r["AE_STD_mm"]), _pm(r["AE_raw_mm"], r["AE_raw_STD_mm"]),
+             _pm(r["AE_nonRaw_mm"], r["AE_nonRaw_STD_mm"]), _num(r["data_MBps"], 2),
+             f"{r['evaluated']}/{r['runs']}"] for r in table]
+    parts.append("Table 1" + (f" ({note})" if note else "") + "\n" + _grid(head, rows))
+    head = ["method", *motions]
+    rows = [[r["method"], *(_pm(r["per_motion"][m]["AE_mm"], r["per_motion"][m]["STD_mm"]) for m in motions)]
+            for r in table]
+    parts.append("AE per motion (mm, mean ± STD over the frames of all seeds)\n" + _grid(head, rows))
+    nodes = list(dict.fromkeys(n for r in table for n in r["s_per_batch"]))
+    stats = list(dict.fromkeys(k for r in table for k in r["stats"]))
+    head = ["method", *nodes, "sum", *stats]
+    rows = [[r["method"], *(_num(r["s_per_batch"].get(n), 3) for n in nodes),
+             _num(sum(r["s_per_batch"].values()), 2), *(_num(r["stats"].get(k), 2) for k in stats)] for r in table]
+    parts.append("Time per batch (s; mean over runs, from the cache manifests; whole-recording stages divided by the "
+                 "batches; last columns: medians of the stage's own statistics)\n" + _grid(head, rows))
+    return "\n\n".join(parts)
+
+
+def table_csv_rows(table: Sequence[Mapping[str, Any]], motions: Sequence[str]) -> list[dict[str, Any]]:
+    out = []
+    for r in table:
+        row = {k: r[k] for k in ("method", "runs", "evaluated", "incomplete", "AE_mm", "AE_STD_mm", "AE_raw_mm",
+                                 "AE_raw_STD_mm", "AE_nonRaw_mm", "AE_nonRaw_STD_mm", "data_MBps")}
+        for m in motions:
+            row[f"AE_{m}_mm"] = r["per_motion"][m]["AE_mm"]
+            row[f"STD_{m}_mm"] = r["per_motion"][m]["STD_mm"]
+        row.update({f"s_per_batch.{n}": v for n, v in r["s_per_batch"].items()})
+        row.update(r["stats"])
+        out.append(row)
+    return out
+
+
+def run_csv_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    out = []
+    for r in records:
+        row = {k: r.get(k) for k in ("motion", "seed", "method", "ok", "computed", "cached", "wall_s", "AE_mm",
+                                     "STD_mm", "AE_raw_mm", "AE_nonRaw_mm", "data_MBps", "data_field", "n_batches")}
+        row.update({f"s_per_batch.{n}": v for n, v in (r.get("s_per_batch") or {}).items()})
+        row["error"] = r.get("error") or ""
+        row["run_dir"] = r.get("run_dir")
+        out.append(row)
+    return out
+
+
+def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
+    cols = list(dict.fromkeys(k for r in rows for k in r))
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in cols})
+    tmp.replace(path)
+    return path
+
+
+def plot_per_frame_errors(path: Path, records: Sequence[Mapping[str, Any]], methods: Sequence[str],
+                          motions: Sequence[str]) -> Path | None:
+    """Fig. 7: the per-frame AE (every-n-th frames) over time of each method, one panel per motion (first seed)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log.warning("no plot: matplotlib is not installed (pip install matplotlib)")
+        return None
+    cols = 2 if len(motions) > 1 else 1
+    rows = math.ceil(len(motions) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6.5 * cols, 2.8 * rows), squeeze=False)
+    for ax, motion in zip(axes.flat, motions):
+        seeds = sorted({r["seed"] for r in records if r["motion"] == motion})
+        for name in methods:
+            r = next((r for r in records if r["motion"] == motion and r["method"] == name and r.get("frames")
+                      and r["seed"] == (seeds[0] if seeds else None)), None)
+            if r is None:
+                continue
+            f = r["frames"]
+            s = np.asarray(f["sampled"], bool)
+            t = np.asarray(f["t_us"], np.float64)[s] / 1000.0
+            e = np.asarray(f["err_mm"], np.float64)[s]
+            ax.plot(t, e, label=f"{name} ({e.mean():.1f})", lw=1.2)
+            if name == methods[0] or not ax.lines[:-1]:  # intensity frame times, once per panel
+                for tr in np.asarray(f["t_us"], np.float64)[np.asarray(f["raw"], bool)] / 1000.0:
+                    ax.axvline(tr, color="0.6", lw=0.6, ls=":", zorder=0)
+        ax.set_title(f"{motion}, seed {seeds[0] if seeds else '-'}", fontsize=9)
+        ax.set_xlabel("time (ms)", fontsize=8)
+        ax.set_ylabel("AE (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(motions):]:
+        ax.axis("off")
+    fig.suptitle("Per-frame mean joint error after Procrustes alignment (every 10th tracking frame; legend: mean; "
+                 "dotted: intensity frames)",
+                 fontsize=9)
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".partial.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def write_results(out: Path, results: Mapping[str, Any], plot: bool = True) -> dict[str, Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"table": write_csv(out / "table.csv", table_csv_rows(results["table"], results["motions"])),
+             "runs": write_csv(out / "runs.csv", run_csv_rows(results["runs"]))}
+    tmp = out / ".benchmark.json.partial"
+    tmp.write_text(json.dumps(results, indent=1, default=str))
+    tmp.replace(out / "benchmark.json")
+    files["json"] = out / "benchmark.json"
+    if plot:
+        p = plot_per_frame_errors(out / "fig7_per_frame_error.png", results["runs"], results["methods"],
+                                  results["motions"])
+        if p is not None:
+            files["plot"] = p
+    return files
+
+
+def main(argv: Sequence[str], config_dir: Path) -> int:
+    """``eventcap benchmark [benchmark=PRESET] [benchmark key=value ...] [run overrides ...]``."""
+    probe = compose_benchmark(config_dir, "default", [])
+    preset, bench_ov, run_ov = split_overrides(argv, set(probe))
+    cfg = compose_benchmark(config_dir, preset, bench_ov)
+    logging.getLogger().setLevel(str(cfg.get("log_level", "WARNING")).upper())
+    logging.getLogger("eventcap.benchmark").setLevel(logging.INFO)
+    bench = Benchmark(cfg, config_dir, run_ov)
+    try:
+        bench.active_methods()  # composes the common run overrides once: a bad one stops here, not in every run
+    except Exception as exc:
+        if type(exc).__module__.startswith(("hydra", "omegaconf")):
+            raise ValueError(f"{exc}\n(arguments that are not benchmark keys are overrides of every run; the "
+                             f"benchmark keys: {', '.join(sorted(probe))}, benchmark=PRESET)") from exc
+        raise
+    results = bench.run(echo=lambda s: print(s, flush=True))
+    files = write_results(bench.out, results, plot=bool(cfg.get("plot", True)))
+    seq = (f"{len(bench.motions)} motion(s) x {len(bench.seeds)} seed(s) x {cfg['duration_s']} s; AE after "
+           f"Procrustes, every 10th tracking frame")
+    print()
+    print(format_tables(results["table"], bench.motions, seq))
+    print()
+    print("wrote " + ", ".join(str(p) for p in files.values()))
+    bad = [r for r in results["runs"] if not r.get("ok")]
+    if bad:
+        print(f"{len(bad)} run(s) incomplete or failed: "
+              + "; ".join(f"{r['motion']} s{r['seed']} {r['method']}: {r.get('error')}" for r in bad[:5]),
+              file=sys.stderr)
+        return 1
+    return 0

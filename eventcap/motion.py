@@ -1,0 +1,98 @@
+"""One skeletal motion from per-batch pose sequences, as the evaluation and the run outputs both need it.
+
+Joining. A per-batch pose stage (solve, refine) gives one PoseSequence per batch; neighbouring batches share their
+boundary tracking frame (the intensity frame between them). Frames are ordered by time and every time appears once:
+with ``later`` a shared frame keeps the later batch's pose (the batch that starts there), with ``mean`` the average
+of the batches' poses (root rotation angles averaged modulo 2π, so a spin unwrapped differently in two batches does
+not average to a wrong turn). Batches missing from the sequence (failed batches, or a run on a selection of batches)
+leave gaps; :func:`uniform_motion` fills them for formats that need a constant frame rate (BVH).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from eventcap.artifacts.pose import PoseSequence
+from eventcap.body.skeleton import ROOT_ROTATION_SLICE
+from eventcap.stage import StageFailed
+
+JOIN_RULES = ("later", "mean")
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles into [-π, π)."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def join_batches(parts: Sequence[PoseSequence], rule: str = "later") -> tuple[np.ndarray, np.ndarray, int]:
+    """One motion from per-batch pose sequences: times (T,) int64 µs (increasing, unique), poses (T, 33) and the
+    number of tracking frames that more than one batch held (resolved by ``rule``: later | mean).
+
+    Raises StageFailed (status ``bad_poses``) when a batch's times do not increase, (``no_poses``) when no batch has
+    a frame, and ValueError for an unknown rule.
+    """
+    if rule not in JOIN_RULES:
+        raise ValueError(f"join: expected one of {', '.join(JOIN_RULES)}, got {rule!r}")
+    ts, Ss = [], []
+    for i in range(len(parts)):
+        p = parts[i]
+        t = np.asarray(p.t_us, dtype=np.int64)
+        if t.size == 0:
+            continue
+        if t.size > 1 and np.any(np.diff(t) <= 0):
+            k = int(np.argmax(np.diff(t) <= 0)) + 1
+            raise StageFailed(f"poses of batch {i}: tracking frame times must increase; frame {k} is at {t[k]} us "
+                              f"after {t[k - 1]} us", status="bad_poses")
+        ts.append(t)
+        Ss.append(np.asarray(p.poses, dtype=np.float64))
+    if not ts:
+        raise StageFailed(f"no poses to join: {len(parts)} batch(es), none with a tracking frame",
+                          status="no_poses")
+    perm = np.argsort([t[0] for t in ts], kind="stable")  # batch order = time order; later batches last
+    t = np.concatenate([ts[k] for k in perm])
+    S = np.concatenate([Ss[k] for k in perm])
+    times, first, inverse, counts = np.unique(t, return_index=True, return_inverse=True, return_counts=True)
+    shared = int(np.count_nonzero(counts > 1))
+    if rule == "later":
+        last = np.zeros(times.size, dtype=np.int64)
+        np.maximum.at(last, inverse, np.arange(t.size))
+        return times, S[last], shared
+    ref = S[first][inverse]
+    adj = S.copy()
+    rr = ROOT_ROTATION_SLICE
+    adj[:, rr] = ref[:, rr] + wrap_angle(S[:, rr] - ref[:, rr])
+    out = np.zeros((times.size, S.shape[1]))
+    np.add.at(out, inverse, adj)
+    return times, out / counts[:, None], shared
+
+
+def frame_step_us(t_us: np.ndarray) -> int | None:
+    """The motion's tracking frame step (median of the time differences, µs), None for a single frame."""
+    t = np.asarray(t_us, dtype=np.int64)
+    return int(np.median(np.diff(t))) if t.size > 1 else None
+
+
+def uniform_motion(t_us: np.ndarray, poses: np.ndarray, step_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The motion on the uniform grid ``t_us[0] + k·step_us`` up to its last frame: times (G,), poses (G, 33) and
+    a mask (G,) of the grid frames that were *not* estimated (gaps, and grid times between estimated frames that lie
+    off the grid), whose poses are interpolated linearly in time between the neighbouring estimated frames (root
+    rotation angles along the shorter way round)."""
+    t = np.asarray(t_us, dtype=np.int64)
+    S = np.asarray(poses, dtype=np.float64)
+    if step_us <= 0:
+        raise ValueError(f"step_us: expected a positive step, got {step_us}")
+    grid = t[0] + step_us * np.arange((t[-1] - t[0]) // step_us + 1, dtype=np.int64)
+    k = np.searchsorted(t, grid)
+    exact = (k < t.size) & (t[np.minimum(k, t.size - 1)] == grid)
+    if exact.all():
+        return grid, S[k].copy(), np.zeros(grid.size, dtype=bool)
+    # Unwrap the root angles along the motion first, so interpolation takes the short way between neighbours.
+    U = S.copy()
+    rr = ROOT_ROTATION_SLICE
+    U[:, rr] = np.unwrap(S[:, rr], axis=0)
+    out = np.stack([np.interp(grid.astype(np.float64), t.astype(np.float64), U[:, c]) for c in range(S.shape[1])],
+                   axis=1)
+    out[exact] = S[k[exact]]
+    return grid, out, ~exact

@@ -1,0 +1,437 @@
+"""Files a run leaves for people and other tools: the motion as BVH and npz, and an overlay video.
+
+Written by the core after a run (stages never write files), from the committed outputs in the cache, into the run
+folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
+
+- ``motion.bvh``: the joined motion of the ``poses`` node (``node.port``, per-batch PoseSequences, e.g.
+  ``solve.poses``) at its tracking frame rate (1000 fps), on the template's rest skeleton
+  (:func:`eventcap.bvh.write_bvh`). BVH needs a constant frame rate: frames the run did not estimate (batches that
+  failed or were not selected) are interpolated linearly and the log says how many.
+- ``motion.npz``: the estimated frames only: ``t_us``, ``poses`` (T, 33), ``joints`` (T, 24, 3) metres
+  (:func:`eventcap.bvh.write_motion_npz`).
+- ``overlay.mp4``: every ``video_every_ms`` of the motion (at most ``video_max_frames`` frames: the step widens
+  to cover the whole motion), the sharpened latent image (else the nearest intensity frame) with the events of the
+  last ``video_events_ms`` (red positive, blue negative), the template's silhouette outline (yellow) and skeleton
+  (green) of the estimate projected into the camera, the ground-truth skeleton (grey) when the recording has one,
+  and beside it an orthographic side view of the 3D skeleton. ``overlay_frames/`` keeps ``video_png_frames`` of its
+  frames as PNG. The file appears atomically (written as ``overlay.partial.mp4``, then renamed).
+
+A run whose poses node committed nothing (it failed or was skipped) gets none of these, with a log line saying so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .artifacts.pose import PoseSequence
+from .motion import JOIN_RULES, frame_step_us, join_batches, uniform_motion
+
+log = logging.getLogger("eventcap.outputs")
+
+#: BGR colours of the overlay
+ESTIMATE = (60, 200, 60)
+TRUTH = (170, 170, 170)
+OUTLINE = (0, 230, 255)
+POSITIVE = np.array([50, 50, 235], np.uint8)
+NEGATIVE = np.array([235, 120, 30], np.uint8)
+
+
+@dataclass(frozen=True)
+class OutputsConfig:
+    """The ``outputs:`` section of the run config (see the module docstring)."""
+
+    poses: str | None = "solve.poses"  # node.port of the PoseSequences that make the motion; null: no outputs
+    join: str = "later"  # a frame two batches share: later | mean (as the evaluate stage)
+    bvh: bool = True
+    npz: bool = True
+    video: bool = True
+    video_every_ms: float = 2.0  # motion time between video frames
+    video_max_frames: int = 500  # at most this many frames (the step widens to cover the whole motion)
+    video_fps: float = 25.0  # playback rate
+    video_scale: int = 2  # image pixels per sensor pixel
+    video_events_ms: float = 5.0  # events of the last ... ms are drawn
+    video_png_frames: int = 4  # frames of the video also saved as PNG in overlay_frames/
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any] | None) -> OutputsConfig:
+        """Checked config from the ``outputs`` mapping: unknown keys and wrong types name ``outputs.<key>``."""
+        values = dict(values or {})
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        for key in values:
+            if key not in fields:
+                raise ValueError(f"outputs.{key}: unknown key; known: {', '.join(fields)}")
+        cfg = cls(**values)
+        if cfg.poses is not None and (not isinstance(cfg.poses, str) or cfg.poses.count(".") != 1):
+            raise ValueError(f"outputs.poses: expected '<node>.<port>' (e.g. solve.poses) or null, got {cfg.poses!r}")
+        if cfg.join not in JOIN_RULES:
+            raise ValueError(f"outputs.join: expected one of {', '.join(JOIN_RULES)}, got {cfg.join!r}")
+        for name in ("bvh", "npz", "video"):
+            if not isinstance(getattr(cfg, name), bool):
+                raise ValueError(f"outputs.{name}: expected true or false, got {getattr(cfg, name)!r}")
+        for name in ("video_every_ms", "video_fps", "video_events_ms"):
+            v = getattr(cfg, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+                raise ValueError(f"outputs.{name}: expected a positive number, got {v!r}")
+        for name, low in (("video_max_frames", 1), ("video_scale", 1), ("video_png_frames", 0)):
+            v = getattr(cfg, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ValueError(f"outputs.{name}: expected an integer >= {low}, got {v!r}")
+        return cfg
+
+
+def check_outputs_config(runner) -> OutputsConfig:
+    """The run's outputs config, checked against its pipeline (before anything runs)."""
+    cfg = OutputsConfig.from_mapping(runner.cfg.get("outputs"))
+    if cfg.poses is None:
+        return cfg
+    node_name, _, port = cfg.poses.partition(".")
+    node = runner.by_name.get(node_name)
+    if node is None:  # e.g. pipeline=simulate: nothing to write, say so
+        log.warning("outputs: no motion files: outputs.poses=%s, but this pipeline has no node %r (nodes: %s); "
+                    "set outputs.poses=null to silence this", cfg.poses, node_name, ", ".join(runner.by_name))
+        return dataclasses.replace(cfg, poses=None)
+    if port not in node.spec.outputs:
+        raise ValueError(f"outputs.poses: {cfg.poses!r}: node {node_name!r} (stage {node.spec.name!r}) has no output "
+                         f"{port!r} (outputs: {', '.join(node.spec.outputs)})")
+    if not issubclass(node.spec.outputs[port].type, PoseSequence):
+        raise ValueError(f"outputs.poses: {cfg.poses!r} is a {node.spec.outputs[port].type.__name__}, expected "
+                         f"PoseSequence")
+    return cfg
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# After a run
+# ---------------------------------------------------------------------------------------------------------------------
+def _first_output(runner, result, cls, prefer: list[str] = ()) -> Any:
+    """The committed output of type ``cls`` of a whole node: the nodes in ``prefer`` first, then pipeline order."""
+    nodes = [runner.by_name[n] for n in prefer if n in runner.by_name] + list(runner.nodes)
+    for node in nodes:
+        if node.spec.per_batch:
+            continue
+        for port, p in node.spec.outputs.items():
+            if issubclass(p.type, cls):
+                got = runner.load_output(result, f"{node.name}.{port}")
+                if got:
+                    return got[None]
+    return None
+
+
+def write_run_outputs(runner, result, run_dir: str | Path, cfg: OutputsConfig | None = None) -> dict[str, Any]:
+    """Write the configured outputs of a finished run into ``run_dir``; returns what was written (paths as
+    strings), what was ``skipped`` and why, and ``problems`` (errors while writing). Missing inputs are logged and
+    skipped, not errors. The summary is also added to the run folder's ``run.json`` under ``outputs``."""
+    cfg = cfg or check_outputs_config(runner)
+    run_dir = Path(run_dir)
+    summary: dict[str, Any] = {"written": {}, "skipped": {}, "problems": []}
+    try:
+        _write(runner, result, run_dir, cfg, summary)
+    except Exception as exc:  # noqa: BLE001 - e.g. an unreadable cache entry: reported, the run's results stay
+        summary["problems"].append(f"{type(exc).__name__}: {exc}")
+        log.error("outputs: %s: %s", type(exc).__name__, exc)
+    _note_in_run_json(run_dir, summary)
+    return summary
+
+
+def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str, Any]) -> dict[str, Any]:
+    from .artifacts.recording import Recording
+    from .artifacts.tracking import LatentFrames
+    from .body.template import Template
+
+    wanted = [k for k in ("bvh", "npz", "video") if getattr(cfg, k)]
+    if cfg.poses is None or not wanted:
+        return summary
+
+    def skip(why: str) -> dict[str, Any]:
+        log.warning("outputs: skipped (%s): %s", ", ".join(wanted), why)
+        summary["skipped"] = {k: why for k in wanted}
+        return summary
+
+    node_name = cfg.poses.partition(".")[0]
+    rep = result.nodes[node_name]
+    parts = runner.load_output(result, cfg.poses)
+    if not parts:
+        failed = ", ".join(str(f["batch"]) for f in rep.failed if f.get("batch") is not None)
+        why = (f"node {node_name!r} committed no poses"
+               + (f" (failed batches: {failed})" if failed else " (it failed)" if rep.failed else "")
+               + (" (skipped: upstream failed)" if rep.skipped and not rep.failed else ""))
+        return skip(why)
+    if rep.per_batch and (rep.failed or rep.skipped):
+        log.warning("outputs: node %r committed %d batch(es); %d failed, %d skipped: the motion lacks their frames",
+                    node_name, len(parts), len(rep.failed), rep.skipped)
+    try:
+        t_us, poses, _ = join_batches([parts[k] for k in parts], cfg.join)
+    except Exception as exc:  # noqa: BLE001 - reported, the run's own results stay
+        summary["problems"].append(f"joining {cfg.poses}: {exc}")
+        log.error("outputs: cannot join the poses of %s: %s", cfg.poses, exc)
+        return summary
+    prefer = [r.node for r in runner.by_name[node_name].inputs.values()]
+    rec = _first_output(runner, result, Recording, prefer)
+    template = rec.template if rec is not None and rec.template is not None else _first_output(runner, result,
+                                                                                               Template)
+    if template is None:
+        return skip("no actor template in this run (the motion needs its rest skeleton)")
+    from .body.kinematics import joint_positions
+
+    joints = joint_positions(poses, template)
+    step = frame_step_us(t_us) or 1000
+    jobs = []
+    if cfg.bvh:
+        jobs.append(("bvh", lambda: _write_bvh(run_dir / "motion.bvh", t_us, poses, template, step)))
+    if cfg.npz:
+        from .bvh import write_motion_npz
+
+        jobs.append(("npz", lambda: write_motion_npz(run_dir / "motion.npz", t_us, poses, joints,
+                                                     extra={"source_output": np.array(cfg.poses)})))
+    if cfg.video:
+        if rec is None:
+            summary["skipped"]["video"] = "no recording in this run (the video needs its camera)"
+            log.warning("outputs: video skipped: %s", summary["skipped"]["video"])
+        else:
+            latent = _first_output(runner, result, LatentFrames)
+            jobs.append(("video", lambda: write_overlay_video(run_dir, rec, template, t_us, poses, joints, cfg,
+                                                              latent=latent)))
+    for name, job in jobs:
+        try:
+            path = job()
+            summary["written"][name] = str(path)
+            log.info("outputs: wrote %s", path)
+        except Exception as exc:  # noqa: BLE001 - one failed file does not stop the others
+            summary["problems"].append(f"{name}: {type(exc).__name__}: {exc}")
+            log.error("outputs: %s failed: %s: %s", name, type(exc).__name__, exc)
+    return summary
+
+
+def _write_bvh(path: Path, t_us, poses, template, step_us: int) -> Path:
+    from .bvh import write_bvh
+
+    grid, S, filled = uniform_motion(t_us, poses, step_us)
+    if filled.any():
+        log.warning("outputs: motion.bvh: %d of %d frames (at %g fps) were not estimated (gaps between batches); "
+                    "they are interpolated linearly; motion.npz holds the estimated frames only",
+                    int(filled.sum()), grid.size, 1e6 / step_us)
+    return write_bvh(path, S, template.rest_joints, frame_time_s=step_us * 1e-6)
+
+
+def _note_in_run_json(run_dir: Path, summary: dict[str, Any]) -> None:
+    p = run_dir / "run.json"
+    if not p.is_file():
+        return
+    data = json.loads(p.read_text())
+    data["outputs"] = summary
+    tmp = p.with_name(".run.json.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, p)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The overlay video
+# ---------------------------------------------------------------------------------------------------------------------
+def video_frame_indices(t_us: np.ndarray, every_ms: float, max_frames: int) -> np.ndarray:
+    """Indices of the motion frames shown: one every ``every_ms`` of motion time (the nearest estimated frame at or
+    after each step), at most ``max_frames`` (the step widens evenly to cover the whole motion)."""
+    t = np.asarray(t_us, dtype=np.int64)
+    every_us = max(1, int(round(every_ms * 1000)))
+    span = int(t[-1] - t[0])
+    n = span // every_us + 1
+    if n > max_frames:
+        every_us = int(math.ceil(span / max(1, max_frames - 1))) if max_frames > 1 else span + 1
+        log.info("outputs: video: %d frames at one per %g ms exceed video_max_frames=%d; one frame per %.1f ms",
+                 n, every_ms, max_frames, every_us / 1000)
+    targets = t[0] + every_us * np.arange(span // every_us + 1, dtype=np.int64)
+    idx = np.unique(np.clip(np.searchsorted(t, targets), 0, t.size - 1))
+    return idx[:max_frames]
+
+
+class OverlayRenderer:
+    """Draws one overlay frame: image + events + silhouette outline + skeletons | side view of the 3D skeleton."""
+
+    def __init__(self, rec, template, joints_all: np.ndarray, scale: int = 2, events_ms: float = 5.0, latent=None):
+        self.rec, self.template, self.scale = rec, template, int(scale)
+        self.events_us = int(round(events_ms * 1000))
+        self.latent = latent
+        self.h, self.w = rec.height, rec.width
+        self.H, self.W = self.h * self.scale, self.w * self.scale
+        self.side = self.H  # square side panel
+        cam = rec.camera
+        s = self.scale  # the camera of the enlarged image: pixel centres stay pixel centres
+        self.cam_big = dataclasses.replace(cam, width=self.W, height=self.H, fx=cam.fx * s, fy=cam.fy * s,
+                                           cx=(cam.cx + 0.5) * s - 0.5, cy=(cam.cy + 0.5) * s - 0.5)
+        # Side view: camera coordinates (x right, y down, z forward), seen from the camera's right: depth z to the
+        # right, y down. One fixed framing for the whole motion (the centre and extent of every joint).
+        pc = cam.to_camera(joints_all.reshape(-1, 3))
+        lo, hi = pc.min(axis=0), pc.max(axis=0)
+        self.side_centre = 0.5 * (lo + hi)
+        extent = max(float(hi[1] - lo[1]), float(hi[2] - lo[2]), 1.0) * 1.25
+        self.side_px_per_m = self.side / extent
+        self.gt = rec.ground_truth
+
+    # -- pieces --------------------------------------------------------------------------------------------------
+    def background(self, t_us: int) -> tuple[np.ndarray, str]:
+        import cv2
+
+        if self.latent is not None and self.latent.t_us.size:
+            k = int(np.argmin(np.abs(self.latent.t_us - t_us)))
+            img = np.clip(np.exp(self.latent.log_images[k].astype(np.float64)) - self.latent.eps, 0.0, 1.0)
+            what = f"latent image {k}"
+        elif self.rec.frames is not None and self.rec.frames.t_us.size:
+            k = int(np.argmin(np.abs(self.rec.frames.t_us - t_us)))
+            img = np.clip(self.rec.frames.images[k].astype(np.float64), 0.0, 1.0)
+            what = f"intensity frame {k}"
+        else:
+            img = np.full((self.h, self.w), 0.5)
+            what = "no image"
+        g = (img * 0.7 * 255.0 + 0.5).astype(np.uint8)  # dimmed: the drawing stays readable
+        big = cv2.resize(g, (self.W, self.H), interpolation=cv2.INTER_NEAREST)
+        return np.repeat(big[..., None], 3, axis=2), what
+
+    def draw_events(self, img: np.ndarray, t_us: int) -> int:
+        ev = self.rec.events.window(t_us - self.events_us, t_us + 1)
+        if ev.size == 0:
+            return 0
+        acc = np.zeros((self.h, self.w), np.int32)
+        np.add.at(acc, (ev["y"].astype(np.intp), ev["x"].astype(np.intp)), ev["p"].astype(np.int32))
+        s = self.scale
+        big = np.repeat(np.repeat(np.sign(acc), s, axis=0), s, axis=1)
+        img[big > 0] = POSITIVE
+        img[big < 0] = NEGATIVE
+        return int(ev.size)
+
+    def draw_outline(self, img: np.ndarray, S: np.ndarray) -> None:
+        """The template's silhouette at pose S (rasterized in the enlarged image), outer and inner contours."""
+        import cv2
+
+        from .body.kinematics import skin
+        from .render import rasterize
+
+        _, tri_id, _ = rasterize(self.cam_big, skin(S, self.template), self.template.faces)
+        mask = (tri_id >= 0).astype(np.uint8)
+        contours, _ = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(img, contours, -1, OUTLINE, 1, cv2.LINE_AA)
+
+    def draw_skeleton(self, img: np.ndarray, joints: np.ndarray, colour, width: int) -> None:
+        import cv2
+
+        from .body.skeleton import PARENTS
+
+        px = self.cam_big.project(joints)
+        if not np.all(np.isfinite(px)):
+            return
+        p = np.round(px).astype(int)
+        for child, parent in enumerate(PARENTS):
+            if parent >= 0:
+                cv2.line(img, tuple(p[parent]), tuple(p[child]), colour, width, cv2.LINE_AA)
+        for q in p:
+            cv2.circle(img, tuple(q), width + 1, colour, -1, cv2.LINE_AA)
+
+    def side_view(self, joints: np.ndarray, truth: np.ndarray | None) -> np.ndarray:
+        import cv2
+
+        from .body.skeleton import PARENTS
+
+        n = self.side
+        panel = np.full((n, n, 3), 32, np.uint8)
+        c, k = self.side_centre, self.side_px_per_m
+        # floor grid: a line every 0.5 m of depth
+        for z in np.arange(np.floor((c[2] - n / k / 2) * 2) / 2, c[2] + n / k / 2, 0.5):
+            u = int(round((z - c[2]) * k + n / 2))
+            cv2.line(panel, (u, 0), (u, n - 1), (55, 55, 55), 1)
+        for J, colour, width in ((truth, TRUTH, 1), (joints, ESTIMATE, 2)):
+            if J is None:
+                continue
+            pc = self.rec.camera.to_camera(J)
+            uv = np.stack([(pc[:, 2] - c[2]) * k + n / 2, (pc[:, 1] - c[1]) * k + n / 2], axis=1)
+            p = np.round(uv).astype(int)
+            for child, parent in enumerate(PARENTS):
+                if parent >= 0:
+                    cv2.line(panel, tuple(p[parent]), tuple(p[child]), colour, width, cv2.LINE_AA)
+        _label(panel, "side view (camera at left)", (6, 16))
+        _label(panel, "0.5 m grid", (6, n - 8))
+        return panel
+
+    def truth_at(self, t_us: int) -> np.ndarray | None:
+        gt = self.gt
+        if gt is None or gt.t_us.size == 0 or not (gt.t_us[0] <= t_us <= gt.t_us[-1]):
+            return None
+        k = int(np.searchsorted(gt.t_us, t_us))
+        if gt.t_us[k] == t_us or k == 0:
+            return gt.joints[k]
+        w = (t_us - gt.t_us[k - 1]) / (gt.t_us[k] - gt.t_us[k - 1])
+        return (1 - w) * gt.joints[k - 1] + w * gt.joints[k]
+
+    def frame(self, t_us: int, S: np.ndarray, joints: np.ndarray, caption: str = "") -> np.ndarray:
+        img, what = self.background(t_us)
+        n_ev = self.draw_events(img, t_us)
+        self.draw_outline(img, S)
+        truth = self.truth_at(t_us)
+        if truth is not None:
+            self.draw_skeleton(img, truth, TRUTH, 1)
+        self.draw_skeleton(img, joints, ESTIMATE, 2)
+        _label(img, f"t = {t_us / 1000:.1f} ms  {caption}", (6, 16))
+        _label(img, f"{what}, {n_ev} events in the last {self.events_us / 1000:g} ms", (6, 34))
+        _label(img, "estimate" + (" / ground truth (grey)" if truth is not None else ""), (6, self.H - 8))
+        return np.concatenate([img, self.side_view(joints, truth)], axis=1)
+
+
+def _label(img: np.ndarray, text: str, org: tuple[int, int]) -> None:
+    """White text on a darkened box (readable on any background)."""
+    import cv2
+
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.42, 1)
+    x, y = org
+    box = img[max(0, y - h - 3):min(img.shape[0], y + base + 1), max(0, x - 3):min(img.shape[1], x + w + 3)]
+    box //= 3
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, poses: np.ndarray, joints: np.ndarray,
+                        cfg: OutputsConfig, latent=None, name: str = "overlay.mp4") -> Path:
+    """Write ``<run_dir>/overlay.mp4`` (and PNGs of a few of its frames in ``overlay_frames/``); returns its path."""
+    import cv2
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    idx = video_frame_indices(t_us, cfg.video_every_ms, cfg.video_max_frames)
+    r = OverlayRenderer(rec, template, joints[idx], cfg.video_scale, cfg.video_events_ms, latent)
+    size = (r.W + r.side, r.H)  # width, height
+    out = run_dir / name
+    tmp = run_dir / (Path(name).stem + ".partial.mp4")  # the container comes from the extension
+    tmp.unlink(missing_ok=True)
+    png_dir = run_dir / "overlay_frames"
+    shutil.rmtree(png_dir, ignore_errors=True)
+    pngs = set(np.unique(np.linspace(0, idx.size - 1, cfg.video_png_frames).round().astype(int)).tolist()) \
+        if cfg.video_png_frames else set()
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(cfg.video_fps), size)
+    if not writer.isOpened():
+        raise RuntimeError(f"OpenCV cannot write an 'mp4v' video to {tmp} (no encoder in this OpenCV build?)")
+    t0 = time.perf_counter()
+    every_log = max(1, min(100, idx.size // 5))
+    log.info("outputs: rendering %d video frames (%dx%d, %g fps) to %s", idx.size, size[0], size[1],
+             cfg.video_fps, out)
+    try:
+        for n, i in enumerate(idx):
+            img = r.frame(int(t_us[i]), poses[i], joints[i], f"frame {n + 1}/{idx.size}")
+            writer.write(img)
+            if n in pngs:
+                png_dir.mkdir(exist_ok=True)
+                cv2.imwrite(str(png_dir / f"frame{n:04d}_t{t_us[i] / 1000:09.3f}ms.png"), img)
+            if (n + 1) % every_log == 0 or n + 1 == idx.size:
+                log.info("outputs: video %d/%d frames (%.1f s)", n + 1, idx.size, time.perf_counter() - t0)
+        writer.release()
+        os.replace(tmp, out)
+    except BaseException:
+        writer.release()
+        tmp.unlink(missing_ok=True)
+        raise
+    return out

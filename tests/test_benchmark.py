@@ -1,0 +1,184 @@
+"""``eventcap benchmark`` (eventcap/benchmark.py): aggregation into Table 1 by hand on a fake results set, the method
+list from config, a tiny end-to-end benchmark run twice (the second from the cache), and the quick preset (slow)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eventcap.benchmark import (
+    Benchmark,
+    aggregate,
+    compose_benchmark,
+    format_tables,
+    parse_methods,
+    split_overrides,
+    write_results,
+)
+from eventcap.runner import reset_process_caches
+
+TESTS = Path(__file__).resolve().parent
+CONF = TESTS.parent / "conf"
+
+
+def fake_run(method, motion, seed, err, raw_every=4, data=2.0, solve_s=1.0):
+    """A run record with per-frame errors ``err`` (mm) on every-n-th frames; every ``raw_every``-th is also raw."""
+    err = np.asarray(err, dtype=float)
+    n = err.size
+    raw = np.arange(n) % raw_every == 0
+    return {"motion": motion, "seed": seed, "method": method, "ok": True, "computed": 0, "cached": 10,
+            "AE_mm": float(err.mean()), "data_MBps": data,
+            "frames": {"t_us": (10_000 * np.arange(n)).tolist(), "err_mm": err.tolist(),
+                       "sampled": [True] * n, "raw": raw.tolist()},
+            "s_per_batch": {"track": 0.5, "solve": solve_s}, "stats": {"solve": {"solve_s": solve_s, "iterations": 20}}}
+
+
+def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
+    runs = [fake_run("A", "kick", 0, [10, 20, 30, 40]), fake_run("A", "kick", 1, [20, 20, 20, 20], data=4.0),
+            fake_run("A", "wave", 0, [50, 50, 50, 50], solve_s=3.0),
+            fake_run("B", "kick", 0, [100, 100, 100, 100], data=1.0),
+            {"motion": "wave", "seed": 0, "method": "B", "ok": False, "error": "solve batch 0", "frames": None}]
+    table = aggregate(runs, ["A", "B"], ["kick", "wave"])
+    a, b = table
+    pooled = np.array([10, 20, 30, 40, 20, 20, 20, 20, 50, 50, 50, 50], float)
+    assert a["AE_mm"] == pytest.approx(pooled.mean()) and a["AE_STD_mm"] == pytest.approx(pooled.std())
+    assert a["AE_raw_mm"] == pytest.approx(np.mean([10, 20, 50]))  # frame 0 of each run is raw
+    non_raw = np.array([20, 30, 40, 20, 20, 20, 50, 50, 50], float)
+    assert a["AE_nonRaw_mm"] == pytest.approx(non_raw.mean()) and a["AE_nonRaw_STD_mm"] == pytest.approx(non_raw.std())
+    assert a["per_motion"]["kick"]["AE_mm"] == pytest.approx(22.5) and a["per_motion"]["wave"]["STD_mm"] == 0
+    assert a["data_MBps"] == pytest.approx((2 + 4 + 2) / 3)
+    assert a["s_per_batch"] == {"track": 0.5, "solve": pytest.approx(5 / 3)} and a["stats"]["solve.solve_s"] == 1.0
+    assert (b["runs"], b["evaluated"], b["incomplete"]) == (2, 1, 1)
+    assert b["per_motion"]["wave"]["AE_mm"] is None and b["AE_mm"] == 100
+    text = format_tables(table, ["kick", "wave"], "fake")
+    lines = text.splitlines()
+    assert lines[0] == "Table 1 (fake)"
+    assert lines[1].split() == ["method", "AE.all", "(mm)", "AE.raw", "(mm)", "AE.nonRaw", "(mm)", "Size.sec",
+                                "(MB/s)", "runs"]
+    assert lines[3].split() == ["A", "31.7", "±", "14.6", "26.7", "±", "17.0", "33.3", "±", "13.3", "2.67", "3/3"]
+    assert lines[4].split() == ["B", "100.0", "±", "0.0", "100.0", "±", "0.0", "100.0", "±", "0.0", "1.00", "1/2"]
+    per_motion = text.split("AE per motion")[1].splitlines()
+    assert per_motion[1].split() == ["method", "kick", "wave"]
+    assert per_motion[3].split() == ["A", "22.5", "±", "8.3", "50.0", "±", "0.0"]  # sqrt(550 / 8)
+    assert per_motion[4].split() == ["B", "100.0", "±", "0.0", "n/a"]  # B has no evaluated wave run
+    results = {"config": {}, "methods": ["A", "B"], "motions": ["kick", "wave"], "runs": runs, "table": table}
+    files = write_results(tmp_path, results)
+    rows = list(csv.DictReader(open(files["table"])))
+    assert [r["method"] for r in rows] == ["A", "B"]
+    assert float(rows[0]["AE_mm"]) == pytest.approx(380 / 12) and rows[1]["AE_wave_mm"] == ""
+    assert float(rows[0]["s_per_batch.solve"]) == pytest.approx(5 / 3)
+    assert len(list(csv.DictReader(open(files["runs"])))) == 5
+    assert json.loads(files["json"].read_text())["table"][0]["method"] == "A"
+    assert files["plot"].stat().st_size > 1000
+
+
+def test_method_list_comes_from_config_and_rows_needing_a_missing_node_are_left_out():
+    cfg = compose_benchmark(CONF, "default", [])
+    assert len(cfg["motions"]) >= 6 and len(cfg["seeds"]) >= 2
+    names = [m.name for m in parse_methods(cfg["methods"])]
+    assert names == ["EventCap", "linear", "all", "w/o_batch", "w/o_refine"]
+    # a pipeline without a refine node: the w/o_refine row is left out (detected from the composed pipeline)
+    plain = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses"]
+    active, left_out = Benchmark(cfg, CONF, plain).active_methods()
+    assert "w/o_refine" not in [m.name for m in active]
+    assert left_out == {"w/o_refine": "the pipeline has no node 'refine'"}
+    # with one, the row runs
+    bench = Benchmark(cfg, CONF, [*plain, "+pipeline.nodes.refine.inputs={poses: solve.poses}"])
+    assert [m.name for m in bench.active_methods()[0]] == names
+    quick = compose_benchmark(CONF, "quick", [])
+    assert (len(quick["motions"]), quick["seeds"], quick["duration_s"], quick["name"]) == (2, [0], 0.2, "quick")
+
+
+def test_bad_benchmark_configs_are_refused():
+    with pytest.raises(ValueError, match=r"methods\[0\] \(x\): unknown key 'overide'"):
+        parse_methods([{"name": "x", "overide": []}])
+    with pytest.raises(ValueError, match=r"methods\[0\] \(x\)\.data: expected one of total_MBps"):
+        parse_methods([{"name": "x", "data": "MBps"}])
+    with pytest.raises(ValueError, match=r"methods\[1\]: name 'wo_batch' repeats"):
+        parse_methods([{"name": "w/o_batch"}, {"name": "wo_batch"}])  # the same folder name
+    with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, quick"):
+        compose_benchmark(CONF, "nope", [])
+    from eventcap.benchmark import main
+
+    with pytest.raises(ValueError, match=r"(?s)Could not override 'motion'.*not benchmark keys are overrides of every "
+                                         r"run; the benchmark keys: cache_dir, duration_s"):
+        main(["benchmark=quick", "motion=[a]"], CONF)  # a typo of motions: refused before anything runs
+
+
+def test_split_overrides():
+    preset, bench, runs = split_overrides(["benchmark=quick", "motions=[a]", "seeds=[0,1]", "stages.track.stitch_px=2",
+                                           "stages/solve=batch", "cache_dir=/c", "+outputs.x=1"],
+                                          {"motions", "seeds", "cache_dir", "name"})
+    assert preset == "quick" and bench == ["motions=[a]", "seeds=[0,1]", "cache_dir=/c"]
+    assert runs == ["stages.track.stitch_px=2", "stages/solve=batch", "+outputs.x=1"]
+
+
+@pytest.fixture
+def known_poses(monkeypatch):
+    monkeypatch.setenv("EVENTCAP_STAGES", "output_stages:SPECS")
+    monkeypatch.syspath_prepend(str(TESTS))
+    reset_process_caches()
+    yield
+    reset_process_caches()
+
+
+def test_tiny_benchmark_end_to_end_twice_second_time_from_the_cache(tmp_path, known_poses, capsys):
+    """Two methods on one 0.09 s synthetic sequence whose 'solve' returns known poses: the right one (the motion
+    performed) and a wrong one; a second call recomputes nothing and writes the same table."""
+    cfg = compose_benchmark(CONF, "quick", [f"out={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}",
+                                            "motions=[jumping_jack]", "duration_s=0.09", "plot=false"])
+    cfg["methods"] = [{"name": "right", "overrides": ["stages.solve.motion=jumping_jack"]},
+                      {"name": "wrong/motion", "overrides": ["stages.solve.motion=karate_kick"], "data": "frames_MBps"}]
+    run_ov = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses", "stages/solve=known_poses",
+              "template.target_faces=2000", "source.n_track_points=20"]
+    tables = []
+    for call in range(2):
+        bench = Benchmark(cfg, CONF, run_ov)
+        results = bench.run(echo=print)
+        write_results(bench.out, results, plot=False)
+        tables.append((tmp_path / "out" / "table.csv").read_text())
+        runs = list(csv.DictReader(open(tmp_path / "out" / "runs.csv")))
+        assert [(r["method"], r["ok"]) for r in runs] == [("right", "True"), ("wrong/motion", "True")]
+        if call == 1:
+            assert [int(r["computed"]) for r in runs] == [0, 0] and all(int(r["cached"]) == 5 for r in runs)
+    out = capsys.readouterr().out
+    assert "[1/2] jumping_jack seed 0 right: 0 computed, 5 cached" in out
+    assert tables[0] == tables[1]
+    right, wrong = list(csv.DictReader(open(tmp_path / "out" / "table.csv")))
+    assert 0 < float(right["AE_mm"]) < float(wrong["AE_mm"])
+    assert float(wrong["data_MBps"]) < float(right["data_MBps"])  # frames only vs events + frames
+    assert (tmp_path / "out" / "runs" / "jumping_jack-s0" / "wrongmotion" / "motion.bvh").is_file()
+    assert float(right["s_per_batch.solve"]) > 0 and float(right["s_per_batch.source"]) > 0
+
+
+@pytest.mark.slow
+def test_quick_preset_twice(tmp_path):
+    """`eventcap benchmark benchmark=quick` (about a minute), then again: everything from the cache."""
+    cmd = [sys.executable, "-m", "eventcap.cli", "benchmark", "benchmark=quick", f"out={tmp_path / 'out'}",
+           f"cache_dir={tmp_path / 'cache'}"]
+    first = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=1200)
+    assert first.returncode == 0, first.stderr[-3000:]
+    second = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert second.returncode == 0, second.stderr[-3000:]
+    methods = [m.name for m in Benchmark(compose_benchmark(CONF, "quick", []), CONF).active_methods()[0]]
+    n = 2 * len(methods)
+    assert f"{n} runs in" in second.stdout and "(0 cache entries computed" in second.stdout
+    if "w/o_refine" not in methods:  # the default pipeline has no refine node
+        assert "method w/o_refine: left out (the pipeline has no node 'refine')" in second.stdout
+    table = list(csv.DictReader(open(tmp_path / "out" / "table.csv")))
+    assert [r["method"] for r in table] == methods and methods[:4] == ["EventCap", "linear", "all", "w/o_batch"]
+    for r in table:
+        assert r["evaluated"] == "2" and 0 < float(r["AE_mm"]) < 300 and float(r["s_per_batch.solve"]) > 0
+        assert r["AE_jumping_jack_mm"] and r["AE_karate_kick_mm"]
+    rate = {r["method"]: float(r["data_MBps"]) for r in table}
+    assert rate["linear"] < rate["EventCap"] < rate["all"]
+    assert "Table 1 (2 motion(s) x 1 seed(s) x 0.2 s" in second.stdout
+    runs = list(csv.DictReader(open(tmp_path / "out" / "runs.csv")))
+    assert len(runs) == n and all(r["computed"] == "0" for r in runs)
+    assert (tmp_path / "out" / "fig7_per_frame_error.png").stat().st_size > 10_000

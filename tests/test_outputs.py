@@ -1,0 +1,201 @@
+"""Run outputs (eventcap/outputs.py): motion.bvh, motion.npz and overlay.mp4 written by the core after a run from the
+committed per-batch poses, the ``outputs:`` config, and runs that cannot have them."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eventcap.body.kinematics import joint_positions
+from eventcap.body.motions import motion_poses
+from eventcap.bvh import read_motion_npz
+from eventcap.outputs import OutputsConfig, check_outputs_config, video_frame_indices, write_run_outputs
+from eventcap.runner import Runner, reset_process_caches
+
+TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
+
+POSES_PIPELINE = {"nodes": {
+    "template": {"config": "template"},
+    "source": {"config": "source", "inputs": {"template": "template.template"}},
+    "solve": {"inputs": {"recording": "source.recording", "batches": "source.batches"}},
+}}
+
+
+@pytest.fixture(autouse=True)
+def known_poses_stage(monkeypatch):
+    monkeypatch.setenv("EVENTCAP_STAGES", "output_stages:SPECS")
+    monkeypatch.syspath_prepend(str(TESTS))
+    reset_process_caches()
+    yield
+    reset_process_caches()
+
+
+@functools.lru_cache(maxsize=1)
+def _base_config() -> dict:
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["experiment=quick", "source.duration_s=0.09",
+                                                       "template.target_faces=2000", "source.n_track_points=20"])
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def config(cache: Path, **outputs) -> dict:
+    """A small synthetic capture (0.09 s: 2 batches) whose 'solve' node returns the poses of a known motion."""
+    data = json.loads(json.dumps(_base_config()))
+    data.update(pipeline=json.loads(json.dumps(POSES_PIPELINE)), cache_dir=str(cache),
+                stages={"solve": {"stage": "known_poses"}})
+    data["outputs"].update({"poses": "solve.poses", **outputs})
+    return data
+
+
+def run(cfg: dict, run_dir: Path):
+    runner = Runner(cfg)
+    checked = check_outputs_config(runner)
+    result = runner.run(run_dir)
+    return runner, result, write_run_outputs(runner, result, run_dir, checked)
+
+
+def test_bvh_npz_and_video_of_a_tiny_run(tmp_path):
+    from test_bvh import positions_via_bvh_package, stacked
+
+    import cv2
+
+    run_dir = tmp_path / "run"
+    runner, result, summary = run(config(tmp_path / "cache", video_every_ms=4, video_png_frames=3), run_dir)
+    assert result.ok and summary["problems"] == [] and set(summary["written"]) == {"bvh", "npz", "video"}
+    tpl = runner.load_output(result, "template.template")[None]
+    parts = runner.load_output(result, "solve.poses")
+    assert sorted(parts) == [0, 1]
+    # npz: the joined motion (the shared boundary frame once), joints = FK of the poses on the template
+    m = read_motion_npz(run_dir / "motion.npz")
+    t0, t1 = parts[0].t_us[0], parts[1].t_us[-1]
+    assert np.array_equal(m["t_us"], np.arange(t0, t1 + 1, 1000))
+    assert np.allclose(m["poses"], motion_poses("jumping_jack", m["t_us"] * 1e-6), atol=1e-12)
+    assert np.abs(m["joints"] - joint_positions(m["poses"], tpl)).max() < 1e-9
+    # bvh: read back by an independent parser, 1000 fps, the same joints within 1e-6 m
+    text = (run_dir / "motion.bvh").read_text()
+    assert f"Frames: {m['t_us'].size}\nFrame Time: 0.001\n" in text
+    got = stacked(positions_via_bvh_package(run_dir / "motion.bvh"))
+    assert np.abs(got - joint_positions(m["poses"], tpl.rest_joints)).max() < 1e-6
+    # video: readable, the expected frame count and size, PNGs of some frames
+    n = video_frame_indices(m["t_us"], 4, 500).size
+    assert n == m["t_us"].size // 4 + 1
+    cap = cv2.VideoCapture(str(run_dir / "overlay.mp4"))
+    assert cap.isOpened()
+    frames = 0
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        frames += 1
+        assert img.shape == (180 * 2, 240 * 2 + 180 * 2, 3)
+    cap.release()
+    assert frames == n
+    assert len(list((run_dir / "overlay_frames").glob("*.png"))) == 3
+    assert not list(run_dir.glob("*.partial*"))
+    assert json.loads((run_dir / "run.json").read_text())["outputs"]["written"]["bvh"].endswith("motion.bvh")
+
+
+def test_outputs_are_skipped_with_a_log_line_when_the_poses_node_failed(tmp_path, caplog):
+    cfg = config(tmp_path / "cache")
+    cfg["stages"]["solve"]["fail_batches"] = [-1]
+    with caplog.at_level(logging.WARNING, logger="eventcap.outputs"):
+        _, result, summary = run(cfg, tmp_path / "run")
+    assert not result.ok and summary["written"] == {} and summary["problems"] == []
+    assert result.committed("solve") == {}
+    assert "node 'solve' committed no poses (failed batches: 0, 1)" in caplog.text
+    assert "outputs: skipped (bvh, npz, video)" in caplog.text
+    assert not any((tmp_path / "run").glob("motion.*")) and not (tmp_path / "run" / "overlay.mp4").exists()
+
+
+def test_a_failed_batch_leaves_a_gap_that_the_bvh_interpolates(tmp_path, caplog):
+    from test_bvh import positions_via_bvh_package, stacked
+
+    cfg = config(tmp_path / "cache", video=False)
+    cfg["source"]["duration_s"] = 0.13  # 4 intensity frames: 3 batches
+    cfg["stages"]["solve"]["fail_batches"] = [1]
+    with caplog.at_level(logging.WARNING, logger="eventcap.outputs"):
+        runner, result, summary = run(cfg, tmp_path / "run")
+    assert set(summary["written"]) == {"bvh", "npz"}
+    parts = runner.load_output(result, "solve.poses")
+    assert sorted(parts) == [0, 2]
+    m = read_motion_npz(tmp_path / "run" / "motion.npz")  # the estimated frames only
+    assert np.array_equal(m["t_us"], np.concatenate([parts[0].t_us, parts[2].t_us]))
+    assert "committed 2 batch(es); 1 failed" in caplog.text
+    assert "39 of 121 frames (at 1000 fps) were not estimated" in caplog.text
+    # the BVH: every millisecond; the estimated frames exact, the gap between its two ends
+    got = stacked(positions_via_bvh_package(tmp_path / "run" / "motion.bvh"))
+    grid = np.arange(m["t_us"][0], m["t_us"][-1] + 1, 1000)
+    assert got.shape[0] == grid.size == 121
+    known = np.isin(grid, m["t_us"])
+    assert np.abs(got[known] - m["joints"]).max() < 1e-6
+    pelvis = got[~known, 0]
+    lo, hi = m["joints"][parts[0].t_us.size - 1, 0], m["joints"][parts[0].t_us.size, 0]
+    assert np.all((pelvis >= np.minimum(lo, hi) - 1e-6) & (pelvis <= np.maximum(lo, hi) + 1e-6))
+
+
+def test_recording_without_ground_truth_still_gets_every_output(tmp_path):
+    """A real recording (the project's zarr format, no ground truth) through source=recording."""
+    import zarr
+
+    runner, result, _ = run(config(tmp_path / "cache", bvh=False, npz=False, video=False), tmp_path / "sim")
+    rec = runner.load_output(result, "source.recording")[None]
+    real = dataclasses.replace(rec, ground_truth=None, name="real")
+    path = tmp_path / "real.zarr"
+    real.to_zarr(zarr.open_group(str(path), mode="w"))
+    cfg = config(tmp_path / "cache", video_every_ms=10)
+    cfg["source"] = {"stage": "recording", "path": str(path)}
+    runner, result, summary = run(cfg, tmp_path / "run")
+    assert result.ok and summary["problems"] == [] and set(summary["written"]) == {"bvh", "npz", "video"}
+    assert runner.load_output(result, "source.recording")[None].ground_truth is None
+
+
+def test_outputs_config_is_checked():
+    with pytest.raises(ValueError, match=r"outputs\.vidoe: unknown key; known: poses, join, bvh"):
+        OutputsConfig.from_mapping({"vidoe": True})
+    with pytest.raises(ValueError, match=r"outputs\.video_every_ms: expected a positive number, got 0"):
+        OutputsConfig.from_mapping({"video_every_ms": 0})
+    with pytest.raises(ValueError, match=r"outputs\.bvh: expected true or false, got 'yes'"):
+        OutputsConfig.from_mapping({"bvh": "yes"})
+    with pytest.raises(ValueError, match=r"outputs\.poses: expected '<node>\.<port>'"):
+        OutputsConfig.from_mapping({"poses": "solve"})
+    assert OutputsConfig.from_mapping(None) == OutputsConfig()
+
+
+def test_outputs_config_is_checked_against_the_pipeline(tmp_path, caplog):
+    with pytest.raises(ValueError, match=r"outputs\.poses: 'solve\.pose': node 'solve' \(stage 'known_poses'\) has "
+                                         r"no output 'pose' \(outputs: poses\)"):
+        check_outputs_config(Runner(config(tmp_path, poses="solve.pose")))
+    with pytest.raises(ValueError, match=r"'source\.recording' is a Recording, expected PoseSequence"):
+        check_outputs_config(Runner(config(tmp_path, poses="source.recording")))
+    with caplog.at_level(logging.WARNING, logger="eventcap.outputs"):
+        assert check_outputs_config(Runner(config(tmp_path, poses="refine.poses"))).poses is None
+    assert "this pipeline has no node 'refine'" in caplog.text
+
+
+def test_unknown_outputs_key_is_refused_by_eventcap_run(tmp_path):
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "+outputs.colour=red", "hydra.run.dir=x"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 1
+    assert "outputs.colour: unknown key; known: poses, join, bvh" in p.stdout + p.stderr
+
+
+def test_video_frame_indices():
+    t = np.arange(0, 1_001_000, 1000, dtype=np.int64)  # 1 s at 1 kHz
+    assert np.array_equal(video_frame_indices(t, 2, 1000), np.arange(0, 1001, 2))
+    idx = video_frame_indices(t, 2, 500)  # 501 frames wanted: the step widens to cover the whole second
+    assert idx.size <= 500 and idx[0] == 0 and idx[-1] >= 990
+    gap = np.concatenate([t[:100], t[500:]])  # a gap: frames after it are still found
+    assert np.all(np.diff(gap[video_frame_indices(gap, 10, 500)]) >= 10_000)
