@@ -14,7 +14,6 @@ varies) into RUNS_DIR (or ``--out``) and prints the table.
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -22,6 +21,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from .benchmark import write_csv
 
 log = logging.getLogger("eventcap.report")
 
@@ -184,18 +185,6 @@ def format_table(rows: Sequence[Mapping[str, Any]], keys: Sequence[str], columns
                          enumerate(zip(cells, widths)))
 
     return "\n".join([line(head), "  ".join("-" * w for w in widths), *(line(r) for r in body)])
-
-
-def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
-    cols = list(dict.fromkeys(k for r in rows for k in r))
-    tmp = path.with_name(path.name + ".partial")
-    with open(tmp, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=cols)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: "" if r.get(k) is None else r.get(k) for k in cols})
-    tmp.replace(path)
-    return path
 
 
 def plot_rows(path: Path, rows: Sequence[Mapping[str, Any]], keys: Sequence[str], y: str = "AE (mm)",

@@ -20,7 +20,17 @@ class EdiConfig:
 
 
 @dataclass
-class EkltStageConfig:
+class FeatureRegionConfig:
+    """Where a tracker detects its features (shared by the track stages)."""
+
+    roi: str = param("actor", help="where features are detected: actor (around the 2D detections of the batch's "
+                                   "frames, if the node gets detections) | image (everywhere)")
+    roi_margin_px: float = param(12.0, help="the actor region: bounding box of the confident 2D keypoints grown by "
+                                            "this margin")
+
+
+@dataclass
+class EkltStageConfig(FeatureRegionConfig):
     patch_px: int = param(25, help="side of the feature patch (odd)")
     max_features: int = param(100, help="Shi-Tomasi corners detected per start image")
     min_distance_px: float = param(10.0, help="minimum distance between corners")
@@ -31,24 +41,16 @@ class EkltStageConfig:
     lag_gain: float = param(0.45, help="compensation of the DVS threshold lag (0 = off)")
     stitch_px: float = param(4.0, help="forward/backward tracks are stitched at mid-batch within this distance")
     direction: str = param("both", help="both (forward + backward, stitched) | forward | backward")
-    roi: str = param("actor", help="where features are detected: actor (around the 2D detections of the batch's "
-                                   "frames, if the node gets detections) | image (everywhere)")
-    roi_margin_px: float = param(12.0, help="the actor region: bounding box of the confident 2D keypoints grown by "
-                                            "this margin")
 
 
 @dataclass
-class KltStageConfig:
+class KltStageConfig(FeatureRegionConfig):
     max_features: int = param(100, help="Shi-Tomasi corners detected on the start image")
     min_distance_px: float = param(10.0, help="minimum distance between corners")
     quality_level: float = param(0.01, help="relative corner quality threshold")
     step_us: int = param(1000, help="spacing of the EDI latent images LK runs on")
     window_px: int = param(21, help="Lucas-Kanade window")
     max_level: int = param(3, help="pyramid levels")
-    roi: str = param("actor", help="where features are detected: actor (around the 2D detections of the batch's "
-                                   "frames, if the node gets detections) | image (everywhere)")
-    roi_margin_px: float = param(12.0, help="the actor region: bounding box of the confident 2D keypoints grown by "
-                                            "this margin")
 
 
 @dataclass
