@@ -7,7 +7,12 @@ import os
 import sys
 from pathlib import Path
 
-import pytest
+# One BLAS/OpenMP thread, as the CLI pins them: the solvers' many small products run much slower when threads
+# oversubscribe the 2-core CI machine. Set before numpy is first imported (pytest itself does not import it).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import pytest  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
