@@ -141,3 +141,15 @@ def test_config_unknown_key_and_wrong_type(toy_cfg):
     with pytest.raises(ConfigError, match=r"stages.smooth.window: .*toy_smooth"):
         build_config(spec, {"window": "wide"}, "stages.smooth")
     assert build_config(spec, {"window": "7"}, "stages.smooth").window == 7
+
+
+@pytest.mark.parametrize("pipeline", ["default", "no_refine"])
+@pytest.mark.parametrize("track", ["eklt", "klt_latent", "oracle"])
+def test_every_tracker_drops_into_the_shipped_pipelines(pipeline, track):
+    """`stages/track=<any tracker>` composes and builds with the pipelines we ship (they wire optional inputs)."""
+    from eventcap.benchmark import compose_run
+
+    cfg, _ = compose_run(ROOT / "conf", [f"pipeline={pipeline}", f"stages/track={track}"])
+    node = {n.name: n for n in build_pipeline(cfg, load_registry())}["track"]
+    assert node.spec.name == track
+    assert "detections" in node.inputs

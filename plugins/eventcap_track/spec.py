@@ -108,7 +108,10 @@ ORACLE = StageSpec(
     description="SIMULATED: ground-truth surface-point tracks of a synthetic recording (an oracle, to measure the "
                 "solver apart from the tracker; not a method)",
     config=OracleTrackConfig,
-    inputs={"recording": Port(Recording), "latent": Port(LatentFrames, optional=True), "batches": Port(BatchPlan)},
+    # latent and detections are accepted and unused, so the stage drops into the pipelines that wire a tracker's
+    # inputs (default, no_refine) with just stages/track=oracle.
+    inputs={"recording": Port(Recording), "latent": Port(LatentFrames, optional=True), "batches": Port(BatchPlan),
+            "detections": Port(Detections, optional=True, doc="unused (accepted so the default pipeline wires it)")},
     outputs={"tracks": Port(Tracks)}, per_batch=True,
     run="eventcap_track._stages:run_oracle",
 )
