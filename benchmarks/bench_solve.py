@@ -76,7 +76,12 @@ def main() -> None:
             wall = time.perf_counter() - t0
             rec = Recording.from_zarr(zarr.open_group(str(rd / "source.recording.zarr"), mode="r"))
             keys = json.loads((rd / "run.json").read_text())["nodes"]["solve"]["keys"]
-            stats = [cache.lookup("batch", k).manifest.get("stats", {}) for k in keys]
+            entries = [cache.lookup("batch", k) for k in keys]  # None: the batch failed (recorded, not cached)
+            failed = sum(e is None for e in entries)
+            if failed:
+                print(f"  {motion} {mode}: {failed} of {len(keys)} batches failed; AE is over the others",
+                      file=sys.stderr)
+            stats = [e.manifest.get("stats", {}) for e in entries if e is not None]
             secs = [s["solve_s"] for s in stats if "solve_s" in s]
             # solves of a batch: the two end fits first, then one per ICP round (modes batch / per_frame)
             fit_its = [it for s in stats for _, it, _ in s.get("solves", [])[:2]]
@@ -91,8 +96,8 @@ def main() -> None:
                 errs.append(mean_joint_error(pred, true))
                 iters.append(ps.iterations)
             e = np.concatenate(errs) * 1000 if errs else np.array([np.nan])
-            row = {"motion": motion, "mode": mode, "seed": args.seed, "ae_mm": float(e.mean()),
-                   "ae_std_mm": float(e.std()), "batches": len(errs), "solve_s_median": float(np.median(secs)),
+            row = {"motion": motion, "mode": mode, "seed": args.seed, "ae_mm": float(e.mean()), "failed": failed,
+                   "ae_std_mm": float(e.std()), "batches": len(errs), "solve_s_median": float(np.median(secs)) if secs else float("nan"),
                    "iterations_median": float(np.median(iters)) if iters else float("nan"), "wall_s": wall,
                    "fit_iterations_median": float(np.median(fit_its)) if fit_its else None,
                    "icp_solve_iterations_median": float(np.median(icp_its)) if icp_its else None,
