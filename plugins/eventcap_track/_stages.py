@@ -87,7 +87,8 @@ def run_eklt(inputs, config, ctx):
     cfg = eklt.EkltConfig(patch_px=config.patch_px, max_features=config.max_features,
                           min_distance_px=config.min_distance_px, quality_level=config.quality_level,
                           warp=config.warp, update_every=config.update_every, max_cost=config.max_cost,
-                          lag_gain=config.lag_gain, contrast_threshold=latent.contrast)
+                          lag_gain=config.lag_gain, relocate_radius_px=config.relocate_radius_px,
+                          contrast_threshold=latent.contrast)
     h, w = L0.shape
     m0 = actor_mask(inputs, config, b.t0_us, h, w, ctx.log)
     m1 = actor_mask(inputs, config, b.t1_us, h, w, ctx.log)

@@ -40,6 +40,8 @@ class EkltStageConfig(FeatureRegionConfig):
     max_cost: float = param(0.8, help="drop a track when 1 - cos(predicted, measured increments) exceeds this")
     lag_gain: float = param(0.45, help="compensation of the DVS threshold lag (0 = off)")
     stitch_px: float = param(4.0, help="forward/backward tracks are stitched at mid-batch within this distance")
+    relocate_radius_px: int = param(6, help="half-side of the patch that finds forward points on the end image "
+                                    "(backward starts); keep it inside a limb")
     direction: str = param("both", help="both (forward + backward, stitched) | forward | backward")
 
 
@@ -84,7 +86,7 @@ BSPLINE = StageSpec(
 )
 
 EKLT = StageSpec(
-    name="eklt", kind="track", version=2,
+    name="eklt", kind="track", version=3,
     description="EKLT: asynchronous photometric feature tracking with events, forward + backward, stitched",
     config=EkltStageConfig,
     inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan),
