@@ -37,6 +37,7 @@ import numpy as np
 
 from .artifacts.pose import PoseSequence
 from .motion import JOIN_RULES, frame_step_us, join_batches, uniform_motion
+from .viz import label as _label
 
 log = logging.getLogger("eventcap.outputs")
 
@@ -382,17 +383,6 @@ class OverlayRenderer:
         _label(img, f"{what}, {n_ev} events in the last {self.events_us / 1000:g} ms", (6, 34))
         _label(img, "estimate" + (" / ground truth (grey)" if truth is not None else ""), (6, self.H - 8))
         return np.concatenate([img, self.side_view(joints, truth)], axis=1)
-
-
-def _label(img: np.ndarray, text: str, org: tuple[int, int]) -> None:
-    """White text on a darkened box (readable on any background)."""
-    import cv2
-
-    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.42, 1)
-    x, y = org
-    box = img[max(0, y - h - 3):min(img.shape[0], y + base + 1), max(0, x - 3):min(img.shape[1], x + w + 3)]
-    box //= 3
-    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, poses: np.ndarray, joints: np.ndarray,

@@ -77,8 +77,7 @@ def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int
         if img.shape[0] != h * scale:
             img = cv2.resize(img, (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)
         img = img.copy()
-        cv2.putText(img, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 2, cv2.LINE_AA)
-        cv2.putText(img, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        label(img, title, (4, 14), 0.4)
         tiles.append(img)
     return np.concatenate(tiles, axis=1)
 
@@ -107,6 +106,18 @@ def tracks_overview(rec, latent, sliced, batch, scale: int = 3) -> np.ndarray:
         out.append(big)
     title = f"batch {batch.index}: {int(sliced.valid.any(axis=0).sum())} tracks, {ev.size} events"
     img = np.concatenate(out, axis=1)
-    cv2.putText(img, title, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(img, title, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    label(img, title, (6, 18), 0.5)
     return img
+
+
+def label(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.42) -> None:
+    """White text on a darkened box, readable on any background. (A thicker black copy of the text as an outline
+    does not work with OpenCV's Hershey fonts: the glyph advance grows with the thickness, so the two copies drift
+    apart along the line.)"""
+    import cv2
+
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    x, y = org
+    box = img[max(0, y - h - 3):min(img.shape[0], y + base + 1), max(0, x - 3):min(img.shape[1], x + w + 3)]
+    box //= 3
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)

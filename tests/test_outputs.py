@@ -199,3 +199,19 @@ def test_video_frame_indices():
     assert idx.size <= 500 and idx[0] == 0 and idx[-1] >= 990
     gap = np.concatenate([t[:100], t[500:]])  # a gap: frames after it are still found
     assert np.all(np.diff(gap[video_frame_indices(gap, 10, 500)]) >= 10_000)
+
+
+def test_label_stays_inside_its_box_and_is_readable():
+    import cv2
+
+    from eventcap.viz import label
+
+    img = np.full((40, 300, 3), 200, np.uint8)
+    text = "batch 2: 30 tracks, 9643 events"
+    label(img, text, (6, 18), 0.5)
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+    changed = np.argwhere(np.any(img != 200, axis=-1))
+    # Every changed pixel is in the darkened box around the text (no outline copy drifting along the line).
+    assert changed[:, 1].max() <= 6 + w + 3 and changed[:, 0].min() >= 18 - h - 3
+    box = img[18 - h - 3:18 + base + 1, 3:6 + w + 3]
+    assert (box <= 66).mean() > 0.5 and box.max() >= 200  # dark box, white glyphs
