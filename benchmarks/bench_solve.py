@@ -3,8 +3,8 @@
     python benchmarks/bench_solve.py [--motions a,b] [--duration 0.5] [--seed 0] [--cache runs/bench-cache]
 
 For every motion, the default pipeline up to the solve (synthetic capture -> EDI -> EKLT -> slicing -> simulated
-detector -> solve; `pipeline=no_refine`, as only the solve's poses are measured) runs once per solve mode through the normal runner, so the upstream stages are computed once and cached
-(rerunning the script recomputes nothing). The error is the paper's AE: mean per-joint position error after rigid
+detector -> solve; `pipeline=no_refine`, as only the solve's poses are measured) runs once per solve mode through
+the normal runner, so the upstream stages are computed once and cached (rerunning the script recomputes nothing). The error is the paper's AE: mean per-joint position error after rigid
 Procrustes alignment per frame, in mm, over every tracking frame (1 kHz) of every batch. Also printed: solve
 wall time per batch (median, from the stage's own timing: correspondence search + IPOPT, build excluded), IPOPT
 iterations per batch, and the NLP build time once per process.
