@@ -86,10 +86,7 @@ def score(rec, ft):
     """(errors of samples on actor tracks, n actor tracks, survival)."""
     if ft.t_us.size == 0:
         return np.zeros(0), 0, float("nan")
-    off = ft.offsets
-    ref = np.where(np.isin(ft.kind, (1, 3)), off[:-1], off[1:] - 1)  # detection sample of each track
-    xy = np.stack([ft.x, ft.y], axis=1)
-    err, on = track_errors(rec, ft.track_id, ft.t_us, xy, ft.t_us[ref], xy[ref])
+    err, on, _, _ = per_track_errors(rec, ft)
     on_s = on[ft.track_id]
     surv = float(np.mean(np.asarray(ft.survived)[on])) if on.any() else float("nan")
     return err[on_s], int(on.sum()), surv

@@ -386,6 +386,17 @@ def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
     return path
 
 
+def save_figure(fig, path: Path) -> Path:
+    """Write a matplotlib figure to ``path`` atomically (a partial file renamed into place) and close it."""
+    import matplotlib.pyplot as plt
+
+    tmp = path.with_name(path.stem + ".partial.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
 def plot_per_frame_errors(path: Path, records: Sequence[Mapping[str, Any]], methods: Sequence[str],
                           motions: Sequence[str]) -> Path | None:
     """Fig. 7: the per-frame AE (every-n-th frames) over time of each method, one panel per motion (first seed)."""
@@ -427,11 +438,7 @@ def plot_per_frame_errors(path: Path, records: Sequence[Mapping[str, Any]], meth
                  "dotted: intensity frames)",
                  fontsize=9)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".partial.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_figure(fig, path)
 
 
 def write_results(out: Path, results: Mapping[str, Any], plot: bool = True) -> dict[str, Path]:

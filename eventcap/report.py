@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .benchmark import write_csv
+from .benchmark import save_figure, write_csv
 
 log = logging.getLogger("eventcap.report")
 
@@ -228,11 +228,7 @@ def plot_rows(path: Path, rows: Sequence[Mapping[str, Any]], keys: Sequence[str]
     if title:
         ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".partial.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_figure(fig, path)
 
 
 def report(root: Path, out: Path | None = None, metrics: str | None = None,

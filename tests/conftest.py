@@ -41,17 +41,42 @@ def toy_env() -> dict[str, str]:
     return env
 
 
-@pytest.fixture
-def toy(monkeypatch):
-    """Register the toy stages in this process."""
+def _stages_in_process(monkeypatch, specs: str):
+    """Register the test stages ``specs`` (EVENTCAP_STAGES syntax, modules in tests/) for one test."""
     from eventcap.runner import reset_process_caches
 
-    monkeypatch.setenv("EVENTCAP_STAGES", "toy_stages:SPECS")
-    monkeypatch.setenv("PYTHONPATH", toy_env()["PYTHONPATH"])
+    monkeypatch.setenv("EVENTCAP_STAGES", specs)
     monkeypatch.syspath_prepend(str(TESTS))
     reset_process_caches()
     yield
     reset_process_caches()
+
+
+@pytest.fixture
+def toy(monkeypatch):
+    """Register the toy stages in this process."""
+    monkeypatch.setenv("PYTHONPATH", toy_env()["PYTHONPATH"])
+    yield from _stages_in_process(monkeypatch, "toy_stages:SPECS")
+
+
+@pytest.fixture
+def known_poses(monkeypatch):
+    """Register tests/output_stages.py (a 'solve' returning known poses) in this process."""
+    yield from _stages_in_process(monkeypatch, "output_stages:SPECS")
+
+
+def assert_derivatives_match_fd(f, gradient, x, g, H, coords, rel_g: float, label, h: float = 1e-6) -> None:
+    """Central finite differences at ``x`` along the coordinates ``coords``: of the objective ``f`` against the
+    gradient ``g``, and of ``gradient`` (x -> gradient vector) against the Hessian columns ``H[:, k]``."""
+    import numpy as np
+
+    for k in coords:
+        e = np.zeros_like(x)
+        e[k] = h
+        fd = (f(x + e) - f(x - e)) / (2 * h)
+        assert fd == pytest.approx(g[k], rel=rel_g, abs=1e-7 * max(1.0, np.abs(g).max())), (label, k)
+        np.testing.assert_allclose(H[:, k], (gradient(x + e) - gradient(x - e)) / (2 * h), rtol=1e-4,
+                                   atol=1e-6 * max(1.0, np.abs(H).max()), err_msg=f"{label} Hessian column {k}")
 
 
 @pytest.fixture

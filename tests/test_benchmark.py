@@ -21,7 +21,6 @@ from eventcap.benchmark import (
     split_overrides,
     write_results,
 )
-from eventcap.runner import reset_process_caches
 
 TESTS = Path(__file__).resolve().parent
 CONF = TESTS.parent / "conf"
@@ -117,15 +116,6 @@ def test_split_overrides():
                                           {"motions", "seeds", "cache_dir", "name"})
     assert preset == "quick" and bench == ["motions=[a]", "seeds=[0,1]", "cache_dir=/c"]
     assert runs == ["stages.track.stitch_px=2", "stages/solve=batch", "+outputs.x=1"]
-
-
-@pytest.fixture
-def known_poses(monkeypatch):
-    monkeypatch.setenv("EVENTCAP_STAGES", "output_stages:SPECS")
-    monkeypatch.syspath_prepend(str(TESTS))
-    reset_process_caches()
-    yield
-    reset_process_caches()
 
 
 def test_tiny_benchmark_end_to_end_twice_second_time_from_the_cache(tmp_path, known_poses, capsys):

@@ -16,7 +16,7 @@ from eventcap.body.kinematics import joint_positions
 from eventcap.body.motions import motion_poses
 from eventcap.bvh import read_motion_npz
 from eventcap.outputs import OutputsConfig, check_outputs_config, video_frame_indices, write_run_outputs
-from eventcap.runner import Runner, reset_process_caches
+from eventcap.runner import Runner
 
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
@@ -28,13 +28,7 @@ POSES_PIPELINE = {"nodes": {
 }}
 
 
-@pytest.fixture(autouse=True)
-def known_poses_stage(monkeypatch):
-    monkeypatch.setenv("EVENTCAP_STAGES", "output_stages:SPECS")
-    monkeypatch.syspath_prepend(str(TESTS))
-    reset_process_caches()
-    yield
-    reset_process_caches()
+pytestmark = pytest.mark.usefixtures("known_poses")  # conftest: tests/output_stages.py registered
 
 
 @functools.lru_cache(maxsize=1)

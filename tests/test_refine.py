@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_derivatives_match_fd
 from test_detect import posed_recording
 
 from eventcap.artifacts import BatchPlan
@@ -181,16 +182,7 @@ def test_refine_energy_gradient_and_hessian_match_finite_differences(loss):
     assert np.allclose(H[:33, 33:], 0)  # frames do not interact
     rng = np.random.default_rng(3)
     coords = np.concatenate([rng.choice(33, 5, replace=False) + 33 * f_ for f_ in (0, N // 2, N)])
-    h = 1e-6
-    for k in coords:
-        e = np.zeros_like(x)
-        e[k] = h
-        fd = (f(x + e) - f(x - e)) / (2 * h)
-        assert fd == pytest.approx(g[k], rel=1e-5, abs=1e-7 * max(1.0, np.abs(g).max())), (loss, k)
-        gp = np.asarray(prob.gradient(x + e)[1]).ravel()
-        gm = np.asarray(prob.gradient(x - e)[1]).ravel()
-        np.testing.assert_allclose(H[:, k], (gp - gm) / (2 * h), rtol=1e-4, atol=1e-6 * max(1.0, np.abs(H).max()),
-                                   err_msg=f"{loss} Hessian column {k}")
+    assert_derivatives_match_fd(f, lambda v: np.asarray(prob.gradient(v)[1]).ravel(), x, g, H, coords, 1e-5, loss)
     if loss == "huber":
         assert np.abs(prob.energy.residuals(prob.energy._points(prob.kernels.transforms(x.reshape(-1, 33))))[0]).max() \
             > delta  # some residuals lie in the linear part

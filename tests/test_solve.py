@@ -6,6 +6,7 @@ import functools
 
 import numpy as np
 import pytest
+from conftest import assert_derivatives_match_fd
 from test_detect import detect, posed_recording
 
 from eventcap.artifacts import Batch, BatchPlan
@@ -119,16 +120,7 @@ def test_every_energy_term_gradient_and_hessian_match_finite_differences(term):
     coords = np.concatenate([rng.choice(33, 6, replace=False) + 33 * f_ for f_ in (0, 1, N // 2, N)],
                             ) if term != "d3" else np.concatenate([rng.choice(33, 8, replace=False),
                                                                    33 * (N + 1) + np.arange(6)])
-    h = 1e-6
-    for k in coords:
-        e = np.zeros_like(x)
-        e[k] = h
-        fd = (f(x + e) - f(x - e)) / (2 * h)
-        assert fd == pytest.approx(g[k], rel=1e-4, abs=1e-7 * max(1.0, np.abs(g).max())), (term, k)
-        gp = np.asarray(prob.gradient(x + e, p)[1]).ravel()
-        gm = np.asarray(prob.gradient(x - e, p)[1]).ravel()
-        np.testing.assert_allclose(H[:, k], (gp - gm) / (2 * h), rtol=1e-4,
-                                   atol=1e-6 * max(1.0, np.abs(H).max()), err_msg=f"{term} Hessian column {k}")
+    assert_derivatives_match_fd(f, lambda v: np.asarray(prob.gradient(v, p)[1]).ravel(), x, g, H, coords, 1e-4, term)
 
 
 def ca_dense(m):

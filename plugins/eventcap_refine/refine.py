@@ -53,7 +53,7 @@ import casadi as ca
 import numpy as np
 
 from eventcap.body.kinematics import joint_positions
-from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS, pose_bounds
+from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.stage import StageFailed
@@ -295,7 +295,7 @@ class RefineProblem:
 
     def __init__(self, template: Template, camera: Camera, frames: int, settings=None,
                  lower: np.ndarray | None = None, upper: np.ndarray | None = None, kernels=None):
-        from eventcap_solve.batch import NumpyCallback, SkinningKernels
+        from eventcap_solve.batch import NumpyCallback, SkinningKernels, checked_bounds
 
         if not isinstance(template, Template):
             raise ValueError(f"RefineProblem: expected a Template, got {type(template).__name__}")
@@ -307,17 +307,7 @@ class RefineProblem:
         t0 = time.perf_counter()
         self.template, self.camera, self.F = template, camera, int(frames)
         self.settings = settings if settings is not None else default_settings()
-        lo, hi = pose_bounds()
-        self.lower = lo if lower is None else np.asarray(lower, dtype=np.float64)
-        self.upper = hi if upper is None else np.asarray(upper, dtype=np.float64)
-        if self.lower.shape != (_NP,) or self.upper.shape != (_NP,):
-            raise ValueError(f"RefineProblem: bounds must have shape (33,), got {self.lower.shape}, "
-                             f"{self.upper.shape}")
-        bad = np.flatnonzero(~(self.lower <= self.upper))
-        if bad.size:
-            k = int(bad[0])
-            raise ValueError(f"RefineProblem: lower bound above upper bound for pose parameter {k}: "
-                             f"{self.lower[k]} > {self.upper[k]}")
+        self.lower, self.upper = checked_bounds(lower, upper, "RefineProblem")
         self.kernels = kernels if kernels is not None else SkinningKernels(template.rest_joints, self.F)
         if self.kernels.F != self.F:
             raise ValueError(f"RefineProblem: kernels for {self.kernels.F} frames, problem for {self.F}")

@@ -715,6 +715,22 @@ def initial_guess(template: Template, camera: Camera, det: FrameDetections, d: i
 
 
 # --------------------------------------------------------------------------------------------- the problem
+def checked_bounds(lower, upper, who: str) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds (33,) of the pose parameters: the given ones, or :func:`skeleton.pose_bounds` for None; checked for
+    shape and order (errors name ``who`` and the first offending parameter)."""
+    lo, hi = pose_bounds()
+    lower = lo if lower is None else np.asarray(lower, dtype=np.float64)
+    upper = hi if upper is None else np.asarray(upper, dtype=np.float64)
+    if lower.shape != (_NP,) or upper.shape != (_NP,):
+        raise ValueError(f"{who}: lower/upper bounds must have shape (33,), got {lower.shape}, {upper.shape}")
+    bad = np.flatnonzero(~(lower <= upper))
+    if bad.size:
+        k = int(bad[0])
+        raise ValueError(f"{who}: lower bound above upper bound for pose parameter {k} ({PARAM_NAMES[k]}): "
+                         f"{lower[k]} > {upper[k]}")
+    return lower, upper
+
+
 class BatchProblem:
     """The batch NLP of Eq. 3-8 and the one-frame detection fit of the initialisation, built once.
 
@@ -737,17 +753,7 @@ class BatchProblem:
         t0 = time.perf_counter()
         self.template, self.camera, self.F, self.settings = template, camera, int(frames), settings
         self.robust_px = float(robust_px)
-        lo, hi = pose_bounds()
-        self.lower = lo if lower is None else np.asarray(lower, dtype=np.float64)
-        self.upper = hi if upper is None else np.asarray(upper, dtype=np.float64)
-        if self.lower.shape != (_NP,) or self.upper.shape != (_NP,):
-            raise ValueError(f"BatchProblem: lower/upper bounds must have shape (33,), got "
-                             f"{self.lower.shape}, {self.upper.shape}")
-        bad = np.flatnonzero(~(self.lower <= self.upper))
-        if bad.size:
-            k = int(bad[0])
-            raise ValueError(f"BatchProblem: lower bound above upper bound for pose parameter {k} "
-                             f"({PARAM_NAMES[k]}): {self.lower[k]} > {self.upper[k]}")
+        self.lower, self.upper = checked_bounds(lower, upper, "BatchProblem")
         self.scale = 1.0 / math.sqrt(camera.fx * camera.fy)
         self.kernels = SkinningKernels(template.rest_joints, self.F)
         self.numeric = _NumericEnergy(camera, self.kernels, template.rest_joints)
@@ -1098,6 +1104,6 @@ def _result(problem, poses, t_prime, ends, corr, phi, weights, solves, seconds, 
 __all__ = [
     "MODES", "PARAM_NAMES", "BatchProblem", "BatchResult", "Buffered", "EnergyWeights", "FrameDetections",
     "IpoptSettings", "NumpyCallback", "SkinningKernels", "premultiplied_weights",
-    "SolveStats", "check_batch_inputs", "initial_guess", "interpolate_poses", "project_derivatives",
-    "select_detections", "solve_batch",
+    "SolveStats", "check_batch_inputs", "checked_bounds", "initial_guess", "interpolate_poses",
+    "project_derivatives", "select_detections", "solve_batch",
 ]
