@@ -971,7 +971,7 @@ def interpolate_poses(S0: np.ndarray, SN: np.ndarray, t_us: np.ndarray) -> np.nd
     return (1.0 - a) * S0[None, :] + a * SN[None, :]
 
 
-def _unwrap_root(S: np.ndarray, ref: np.ndarray) -> np.ndarray:
+def unwrap_root(S: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """S with its root Euler angles moved by multiples of 2π to the nearest equivalent of ref's."""
     out = S.copy()
     d = out[27:30] - ref[27:30]
@@ -1051,7 +1051,7 @@ def solve_batch(problem: BatchProblem, t_us: np.ndarray, xy: np.ndarray, valid: 
         start = None
         for f in range(F):
             S, T, st = problem.fit_frame(det, f, weights, start)
-            poses[f], tps[f] = _unwrap_root(S, poses[f - 1]) if f else S, T
+            poses[f], tps[f] = unwrap_root(S, poses[f - 1]) if f else S, T
             start = (poses[f], T)
             solves.append(st)
         seconds["fit"] = time.perf_counter() - t0
@@ -1061,7 +1061,7 @@ def solve_batch(problem: BatchProblem, t_us: np.ndarray, xy: np.ndarray, valid: 
 
     S0, T0, st0 = problem.fit_frame(ends, 0, weights)
     SN, TN, stN = problem.fit_frame(ends, 1, weights)
-    SN = _unwrap_root(SN, S0)
+    SN = unwrap_root(SN, S0)
     solves += [st0, stN]
     poses = interpolate_poses(S0, SN, t_us)
     t_prime = np.stack([T0, TN])
@@ -1105,5 +1105,5 @@ __all__ = [
     "MODES", "PARAM_NAMES", "BatchProblem", "BatchResult", "Buffered", "EnergyWeights", "FrameDetections",
     "IpoptSettings", "NumpyCallback", "SkinningKernels", "premultiplied_weights",
     "SolveStats", "check_batch_inputs", "checked_bounds", "initial_guess", "interpolate_poses",
-    "project_derivatives", "select_detections", "solve_batch",
+    "project_derivatives", "select_detections", "solve_batch", "unwrap_root",
 ]

@@ -1,0 +1,206 @@
+"""Can events average the detector's noise across intensity frames? Two upper bounds on any method's gain over linear.
+
+    python benchmarks/bench_fusion.py [--motions a,b] [--duration 2] [--tracks oracle,eklt] [--extra "..."]
+
+The batch solve of Sec. 3.2 keeps (or re-fits) the two detection frames of each batch, so it can only remove the
+*interpolation* error between them, which at 25 fps is a few mm (bench_interpolation.py) against ~34 mm of
+detector error at the frames. A method could gain more only by linking *many* detection frames through the events
+and averaging their noise. This script measures how far that could go, in two steps:
+
+1. ``ideal``: exact relative motion between all intensity frames (perfect events). The fit error at frame k is
+   replaced by the mean fit error over a window of W frames around k (in pose-parameter space, where the fits
+   of neighbouring frames would be tied together by exact odometry); poses between frames are interpolated as in
+   ``linear``. W = 1 is the ``linear`` baseline; W = all averages every frame of the sequence, leaving only the
+   detector's per-sequence 3D bias and the fits' common error. Needs only the detections: seconds.
+2. one row per ``--tracks`` tracker: *event odometry* from a real solve. For every batch, Eq. 3-8 is solved with
+   the detection at frame N switched off (confidence 0), so S_N follows from S_0's fit and the event
+   correspondences alone; S_N - S_0 is the batch's odometry. Then a pose graph over the intensity-frame poses X_k,
+   per pose parameter, minimises sum_k |X_k - fit_k|^2 + rho * sum_k |X_{k+1} - X_k - odometry_k|^2, and each
+   batch's solved trajectory is shifted onto it (the end mismatch spread linearly). rho = 0 keeps the fits; rho is
+   swept because the best weight is not known in advance (so the best column is an optimistic bound). This is an
+   extension beyond the paper, measured here, not a stage.
+
+AE as everywhere: mean per-joint error after per-frame Procrustes alignment, mm, over every 1 kHz frame. The
+pipeline up to the detections runs through the normal runner and cache (`stages/solve=linear`,
+`pipeline=no_refine`), so reruns recompute nothing upstream. About 40 s per motion for EKLT and 2-3 min for oracle
+tracks (100 tracks per batch) at 2 s of capture on the 2-core machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "plugins"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import numpy as np  # noqa: E402
+import zarr  # noqa: E402
+from bench_solve import run  # noqa: E402
+from eventcap.artifacts.pose import Detections  # noqa: E402
+from eventcap.artifacts.recording import Recording  # noqa: E402
+from eventcap.artifacts.tracking import SlicedTracks  # noqa: E402
+from eventcap.body.kinematics import joint_positions  # noqa: E402
+from eventcap.metrics import mean_joint_error, pose_at  # noqa: E402
+from eventcap_solve._impl import problem_for  # noqa: E402
+from eventcap_solve.batch import (EnergyWeights, FrameDetections, IpoptSettings, find_correspondences,  # noqa: E402
+                                  interpolate_poses, select_detections, temporal_indicator, unwrap_root)
+
+MOTIONS = "karate_kick,boxing_combo,javelin_throw,dance_spin,fast_wave,jumping_jack"
+WINDOWS = (1, 2, 3, 5, 9, 0)  # 0 = every frame of the sequence
+RHOS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+
+
+def load(motion: str, track: str, args) -> tuple[Recording, Detections, list[SlicedTracks]]:
+    """The recording, detections and sliced tracks of one capture, through the runner and cache."""
+    rd = Path(args.out) / f"{motion}-s{args.seed}-{track}"
+    run([f"source.motion={motion}", f"source.duration_s={args.duration}", f"source.seed={args.seed}",
+         f"stages/track={track}", "stages/solve=linear", "pipeline=no_refine", f"cache_dir={args.cache}",
+         "export=[source.recording,slice.sliced,detect.detections]", "log_level=WARNING", *args.extra.split()], rd)
+    rec = Recording.from_zarr(zarr.open_group(str(rd / "source.recording.zarr"), mode="r"))
+    det = Detections.from_zarr(zarr.open_group(str(rd / "detect.detections.zarr"), mode="r"))
+    sliced = [SlicedTracks.from_zarr(zarr.open_group(str(f), mode="r"))
+              for f in sorted((rd / "slice.sliced").glob("batch*.zarr"))]
+    return rec, det, sliced
+
+
+def frame_fits(problem, det: Detections, sliced: list[SlicedTracks], weights: EnergyWeights,
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame fits (E_2D + E_3D) at the K+1 intensity frames: poses (K+1, 33), root angles unwrapped along the
+    sequence (exactly the poses ``linear`` interpolates), and their t' (K+1, 3)."""
+    times = [int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])]
+    ends = select_detections(det, np.asarray(times, dtype=np.int64))
+    fits, t_prime = [], []
+    for d in range(len(times)):
+        S, T, _ = problem.fit_frame(ends, d, weights)
+        fits.append(unwrap_root(S, fits[-1]) if fits else S)
+        t_prime.append(T)
+    return np.stack(fits), np.stack(t_prime)
+
+
+def odometry(problem, det: Detections, s: SlicedTracks, fits: np.ndarray, t_prime: np.ndarray,
+             weights: EnergyWeights, icp_rounds: int = 2, still_m: float = 0.03) -> np.ndarray:
+    """(N+1, 33) one batch solved with the detection at frame N switched off, relative to its S_0: the motion the
+    event correspondences (and S_0's detection) imply. fits (2, 33) and t_prime (2, 3) at frames 0 and N:
+    the start, as the stage initialises (the fits interpolated)."""
+    t_us = np.asarray(s.t_us, dtype=np.int64)
+    ends = select_detections(det, t_us[[0, -1]])
+    c2, c3 = ends.confidence_2d.copy(), ends.confidence_3d.copy()
+    c2[1] = c3[1] = 0.0
+    odo_det = FrameDetections(ends.keypoints_2d, c2, ends.joints_3d, c3)
+    poses = interpolate_poses(fits[0], fits[1], t_us)
+    J = joint_positions(fits, problem.template.rest_joints)
+    moved = np.linalg.norm(J[1] - J[0], axis=1) > still_m
+    xy, valid = np.asarray(s.xy, dtype=np.float64), np.asarray(s.valid)
+    for _ in range(icp_rounds):
+        corr = find_correspondences(problem.template, problem.camera, poses, xy, valid)
+        phi = temporal_indicator(corr, t_us.size, "batch")
+        phi[:, moved] = 0.0
+        poses, t_prime, _ = problem.solve(poses, t_prime, odo_det, corr, phi, weights, relative=True)
+    return poses - poses[0]
+
+
+def pose_graph(fits: np.ndarray, steps: np.ndarray, rho: float) -> np.ndarray:
+    """argmin_X sum_k |X_k - fits_k|^2 + rho sum_k |X_{k+1} - X_k - steps_k|^2, per parameter: (K+1, 33)."""
+    n = fits.shape[0]
+    D = np.zeros((n - 1, n))
+    D[np.arange(n - 1), np.arange(n - 1)] = -1.0
+    D[np.arange(n - 1), np.arange(1, n)] = 1.0
+    return np.linalg.solve(np.eye(n) + rho * D.T @ D, fits + rho * D.T @ steps)
+
+
+def ae_mm(rec: Recording, sliced: list[SlicedTracks], anchors: np.ndarray, shapes: np.ndarray | None) -> float:
+    """AE over every tracking frame of poses anchored at the intensity frames: between anchors k and k+1 either the
+    linear interpolation (shapes None) or batch k's relative trajectory shapes[k] with its end mismatch spread
+    linearly."""
+    rest = rec.template.rest_joints
+    errs = []
+    for k, s in enumerate(sliced):
+        t = np.asarray(s.t_us, dtype=np.int64)
+        a = ((t - t[0]) / (t[-1] - t[0]))[:, None]
+        if shapes is None:
+            P = (1.0 - a) * anchors[k] + a * anchors[k + 1]
+        else:
+            P = anchors[k] + shapes[k] + a * (anchors[k + 1] - anchors[k] - shapes[k][-1])
+        true = joint_positions(pose_at(rec.ground_truth, t), rest)
+        errs.append(mean_joint_error(joint_positions(P, rest), true))
+    return float(np.concatenate(errs).mean() * 1000.0)
+
+
+def ideal_row(rec: Recording, sliced: list[SlicedTracks], fits: np.ndarray) -> list[float]:
+    """AE for each window of WINDOWS: fit errors averaged over the window, relative motion exact."""
+    times = np.asarray([int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])])
+    truth = pose_at(rec.ground_truth, times)
+    err = fits - truth
+    n = len(times)
+    row = []
+    for w in WINDOWS:
+        if w == 0:
+            fused = truth + err.mean(axis=0)
+        else:  # frames k - (w-1)//2 .. k + w//2 (W = 2: k and k+1), clipped at the ends of the sequence
+            lo = np.clip(np.arange(n) - (w - 1) // 2, 0, n)
+            hi = np.clip(np.arange(n) + w // 2 + 1, 0, n)
+            fused = truth + np.stack([err[a:b].mean(axis=0) for a, b in zip(lo, hi)])
+        row.append(ae_mm(rec, sliced, fused, None))
+    return row
+
+
+def print_table(title: str, head: list[str], rows: dict[str, list[float]]) -> None:
+    print(f"\n{title}")
+    print(f"{'motion':<14} " + " ".join(f"{h:>9}" for h in head))
+    for motion, r in rows.items():
+        print(f"{motion:<14} " + " ".join(f"{x:9.1f}" for x in r))
+    mean = np.mean(np.array(list(rows.values())), axis=0)
+    print(f"{'mean':<14} " + " ".join(f"{x:9.1f}" for x in mean))
+    print(f"{'vs linear':<14} " + " ".join(f"{100 * (x / mean[0] - 1):+8.0f}%" for x in mean))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--motions", default=MOTIONS)
+    ap.add_argument("--duration", type=float, default=2.0, help="seconds of capture per motion")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--tracks", default="oracle,eklt", help="trackers for the odometry rows ('' = ideal only)")
+    ap.add_argument("--cache", default=str(ROOT / "runs" / "bench-cache"))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "bench_fusion"))
+    ap.add_argument("--extra", default="", help="more hydra overrides, space separated (e.g. source.speed=2)")
+    args = ap.parse_args()
+    weights = EnergyWeights()
+    trackers = [t for t in args.tracks.split(",") if t]
+    ideal, odo = {}, {t: {} for t in trackers}
+    for motion in args.motions.split(","):
+        for i, track in enumerate(trackers or ["eklt"]):
+            rec, det, sliced = load(motion, track, args)
+            problem = problem_for(rec.template, rec.camera, sliced[0].t_us.size, IpoptSettings(), None, 2.0)
+            fits, t_prime = frame_fits(problem, det, sliced, weights)
+            if i == 0:
+                ideal[motion] = ideal_row(rec, sliced, fits)
+                print(f"{motion}: ideal " + " ".join(f"{x:.1f}" for x in ideal[motion]), flush=True)
+            if not trackers:
+                continue
+            t0 = time.perf_counter()
+            shapes = np.stack([odometry(problem, det, s, fits[k:k + 2], t_prime[k:k + 2], weights)
+                               for k, s in enumerate(sliced)])
+            graph = [ae_mm(rec, sliced, pose_graph(fits, shapes[:, -1], rho), shapes) for rho in RHOS]
+            odo[track][motion] = [ae_mm(rec, sliced, fits, None)] + graph
+            print(f"{motion}: {track} odometry of {len(sliced)} batches in {time.perf_counter() - t0:.0f} s; AE "
+                  + " ".join(f"{x:.1f}" for x in odo[track][motion]), flush=True)
+    print_table("1. ideal: exact relative motion, fit errors averaged over W intensity frames (AE mm; W=1 is linear)",
+                ["W=1", "W=2", "W=3", "W=5", "W=9", "W=all"], ideal)
+    for track in trackers:
+        print_table(f"2. {track} tracks: solved event odometry + pose graph (AE mm; rho = weight of the odometry)",
+                    ["linear"] + [f"rho={r:g}" for r in RHOS], odo[track])
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    (Path(args.out) / f"results-s{args.seed}.json").write_text(json.dumps(
+        {"windows": list(WINDOWS), "rhos": list(RHOS), "ideal": ideal, "odometry": odo, "args": vars(args)}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
