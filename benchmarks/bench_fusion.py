@@ -12,9 +12,13 @@ and averaging their noise. This script measures how far that could go, in two st
    of neighbouring frames would be tied together by exact odometry); poses between frames are interpolated as in
    ``linear``. W = 1 is the ``linear`` baseline; W = all averages every frame of the sequence, leaving only the
    detector's per-sequence 3D bias and the fits' common error. Needs only the detections: seconds.
-2. one row per ``--tracks`` tracker: *event odometry* from a real solve. For every batch, Eq. 3-8 is solved with
-   the detection at frame N switched off (confidence 0), so S_N follows from S_0's fit and the event
-   correspondences alone; S_N - S_0 is the batch's odometry. Then a pose graph over the intensity-frame poses X_k,
+2. one table per ``--tracks`` tracker: *event odometry* from a real solve. For every batch, Eq. 3-8 is solved
+   with the detection at frame N switched off (confidence 0), started with every frame at S_0's fit and with
+   E_temp holding every part without correspondences (``--start still``), so S_N follows from S_0's fit and the
+   event correspondences alone; S_N - S_0 is the batch's odometry. (``--start fits`` starts as the stage does,
+   between the two fits: parts the events miss then carry frame N's fit into the odometry, which measured worse.)
+   Its error on its own is printed too: the true pose at frame k moved by the step, against the truth at k+1.
+   Then a pose graph over the intensity-frame poses X_k,
    per pose parameter, minimises sum_k |X_k - fit_k|^2 + rho * sum_k |X_{k+1} - X_k - odometry_k|^2, and each
    batch's solved trajectory is shifted onto it (the end mismatch spread linearly). rho = 0 keeps the fits; rho is
    swept because the best weight is not known in advance (so the best column is an optimistic bound). This is an
@@ -86,23 +90,33 @@ def frame_fits(problem, det: Detections, sliced: list[SlicedTracks], weights: En
 
 
 def odometry(problem, det: Detections, s: SlicedTracks, fits: np.ndarray, t_prime: np.ndarray,
-             weights: EnergyWeights, icp_rounds: int = 2, still_m: float = 0.03) -> np.ndarray:
+             weights: EnergyWeights, start: str = "still", icp_rounds: int = 2, still_m: float = 0.03) -> np.ndarray:
     """(N+1, 33) one batch solved with the detection at frame N switched off, relative to its S_0: the motion the
-    event correspondences (and S_0's detection) imply. fits (2, 33) and t_prime (2, 3) at frames 0 and N:
-    the start, as the stage initialises (the fits interpolated)."""
+    event correspondences (and S_0's detection) imply. fits (2, 33) and t_prime (2, 3): the fits at frames 0 and N.
+
+    start="still": every frame starts at S_0's fit and E_temp holds every joint without correspondences (the
+    paper's literal φ), so nothing of frame N's detection enters: event-only odometry, zero where no event
+    correspondence reaches. start="fits": initialised as the stage does (the fits interpolated, E_temp only for
+    joints that moved less than still_m): parts without correspondences then keep frame N's fit.
+    """
     t_us = np.asarray(s.t_us, dtype=np.int64)
     ends = select_detections(det, t_us[[0, -1]])
     c2, c3 = ends.confidence_2d.copy(), ends.confidence_3d.copy()
     c2[1] = c3[1] = 0.0
     odo_det = FrameDetections(ends.keypoints_2d, c2, ends.joints_3d, c3)
-    poses = interpolate_poses(fits[0], fits[1], t_us)
-    J = joint_positions(fits, problem.template.rest_joints)
-    moved = np.linalg.norm(J[1] - J[0], axis=1) > still_m
+    if start == "still":
+        poses, moved = np.repeat(fits[:1], t_us.size, axis=0), None
+        t_prime = np.repeat(t_prime[:1], 2, axis=0)
+    else:
+        poses = interpolate_poses(fits[0], fits[1], t_us)
+        J = joint_positions(fits, problem.template.rest_joints)
+        moved = np.linalg.norm(J[1] - J[0], axis=1) > still_m
     xy, valid = np.asarray(s.xy, dtype=np.float64), np.asarray(s.valid)
     for _ in range(icp_rounds):
         corr = find_correspondences(problem.template, problem.camera, poses, xy, valid)
         phi = temporal_indicator(corr, t_us.size, "batch")
-        phi[:, moved] = 0.0
+        if moved is not None:
+            phi[:, moved] = 0.0
         poses, t_prime, _ = problem.solve(poses, t_prime, odo_det, corr, phi, weights, relative=True)
     return poses - poses[0]
 
@@ -132,6 +146,18 @@ def ae_mm(rec: Recording, sliced: list[SlicedTracks], anchors: np.ndarray, shape
         true = joint_positions(pose_at(rec.ground_truth, t), rest)
         errs.append(mean_joint_error(joint_positions(P, rest), true))
     return float(np.concatenate(errs).mean() * 1000.0)
+
+
+def odometry_error_mm(rec: Recording, sliced: list[SlicedTracks], steps: np.ndarray) -> tuple[float, float]:
+    """How good the odometry is on its own: AE (mm) of the true pose at frame k moved by batch k's step, against the
+    true pose at frame k+1; and, for scale, of not moving at all (the motion over a batch)."""
+    rest = rec.template.rest_joints
+    times = np.asarray([int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])])
+    truth = pose_at(rec.ground_truth, times)
+    after = joint_positions(truth[1:], rest)
+    moved = mean_joint_error(joint_positions(truth[:-1] + steps, rest), after).mean()
+    still = mean_joint_error(joint_positions(truth[:-1], rest), after).mean()
+    return float(moved * 1000.0), float(still * 1000.0)
 
 
 def ideal_row(rec: Recording, sliced: list[SlicedTracks], fits: np.ndarray) -> list[float]:
@@ -168,13 +194,15 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=2.0, help="seconds of capture per motion")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tracks", default="oracle,eklt", help="trackers for the odometry rows ('' = ideal only)")
+    ap.add_argument("--start", default="still", choices=("still", "fits"),
+                    help="odometry solve start: still (event-only) | fits (as the stage initialises)")
     ap.add_argument("--cache", default=str(ROOT / "runs" / "bench-cache"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_fusion"))
     ap.add_argument("--extra", default="", help="more hydra overrides, space separated (e.g. source.speed=2)")
     args = ap.parse_args()
     weights = EnergyWeights()
     trackers = [t for t in args.tracks.split(",") if t]
-    ideal, odo = {}, {t: {} for t in trackers}
+    ideal, odo, odo_err = {}, {t: {} for t in trackers}, {t: {} for t in trackers}
     for motion in args.motions.split(","):
         for i, track in enumerate(trackers or ["eklt"]):
             rec, det, sliced = load(motion, track, args)
@@ -186,20 +214,26 @@ def main() -> None:
             if not trackers:
                 continue
             t0 = time.perf_counter()
-            shapes = np.stack([odometry(problem, det, s, fits[k:k + 2], t_prime[k:k + 2], weights)
+            shapes = np.stack([odometry(problem, det, s, fits[k:k + 2], t_prime[k:k + 2], weights, args.start)
                                for k, s in enumerate(sliced)])
-            graph = [ae_mm(rec, sliced, pose_graph(fits, shapes[:, -1], rho), shapes) for rho in RHOS]
-            odo[track][motion] = [ae_mm(rec, sliced, fits, None)] + graph
-            print(f"{motion}: {track} odometry of {len(sliced)} batches in {time.perf_counter() - t0:.0f} s; AE "
+            odo[track][motion] = [ae_mm(rec, sliced, fits, None)] + [
+                ae_mm(rec, sliced, pose_graph(fits, shapes[:, -1], rho), shapes) for rho in RHOS]
+            err, still = odometry_error_mm(rec, sliced, shapes[:, -1])
+            odo_err[track][motion] = [err, still]
+            print(f"{motion}: {track} odometry of {len(sliced)} batches in {time.perf_counter() - t0:.0f} s "
+                  f"(error per batch {err:.1f} mm; the motion itself {still:.1f} mm); AE "
                   + " ".join(f"{x:.1f}" for x in odo[track][motion]), flush=True)
     print_table("1. ideal: exact relative motion, fit errors averaged over W intensity frames (AE mm; W=1 is linear)",
                 ["W=1", "W=2", "W=3", "W=5", "W=9", "W=all"], ideal)
     for track in trackers:
         print_table(f"2. {track} tracks: solved event odometry + pose graph (AE mm; rho = weight of the odometry)",
                     ["linear"] + [f"rho={r:g}" for r in RHOS], odo[track])
+        e = np.mean(np.array(list(odo_err[track].values())), axis=0)
+        print(f"   odometry error per batch {e[0]:.1f} mm, against {e[1]:.1f} mm for not moving at all")
     Path(args.out).mkdir(parents=True, exist_ok=True)
     (Path(args.out) / f"results-s{args.seed}.json").write_text(json.dumps(
-        {"windows": list(WINDOWS), "rhos": list(RHOS), "ideal": ideal, "odometry": odo, "args": vars(args)}, indent=1))
+        {"windows": list(WINDOWS), "rhos": list(RHOS), "ideal": ideal, "odometry": odo,
+         "odometry_error_mm": odo_err, "args": vars(args)}, indent=1))
 
 
 if __name__ == "__main__":
