@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_fusion import pose_graph  # noqa: E402
+from bench_fusion import innovation_rho, pose_graph  # noqa: E402
 
 
 def _objective(X, fits, steps, rho):
@@ -41,3 +41,13 @@ def test_pose_graph_is_the_minimum_of_its_objective():
         assert abs(grad) < 1e-6
     for _ in range(20):  # and no random nearby point is lower
         assert _objective(X + rng.normal(scale=1e-2, size=X.shape), fits, steps, rho) > best
+
+
+def test_innovation_rho_recovers_the_variance_ratio_without_ground_truth():
+    rng = np.random.default_rng(3)
+    truth = np.cumsum(rng.normal(scale=0.2, size=(4001, 33)), axis=0)
+    for sigma_e, sigma_o in [(0.1, 0.05), (0.05, 0.1)]:
+        fits = truth + rng.normal(scale=sigma_e, size=truth.shape)
+        steps = np.diff(truth, axis=0) + rng.normal(scale=sigma_o, size=(4000, 33))
+        expected = sigma_e ** 2 / sigma_o ** 2  # 4 and 0.25
+        assert abs(innovation_rho(fits, steps) / expected - 1) < 0.1
