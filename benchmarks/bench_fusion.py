@@ -13,16 +13,17 @@ and averaging their noise. This script measures how far that could go, in two st
    ``linear``. W = 1 is the ``linear`` baseline; W = all averages every frame of the sequence, leaving only the
    detector's per-sequence 3D bias and the fits' common error. Needs only the detections: seconds.
 2. one table per ``--tracks`` tracker: *event odometry* from a real solve. For every batch, Eq. 3-8 is solved
-   with the detection at frame N switched off (confidence 0), started with every frame at S_0's fit and with
-   E_temp holding every part without correspondences (``--start still``), so S_N follows from S_0's fit and the
-   event correspondences alone; S_N - S_0 is the batch's odometry. (``--start fits`` starts as the stage does,
-   between the two fits: parts the events miss then carry frame N's fit into the odometry, which measured worse.)
+   with the detection at frame N switched off (the solve's mode ``odometry``: every frame starts at S_0's fit and
+   E_temp holds every part without correspondences), so S_N follows from S_0's fit and the event correspondences
+   alone; S_N - S_0 is the batch's odometry. (Starting between the two fits as the batch mode does let frame N's
+   fit leak into the odometry of parts the events miss, which measured worse.)
    Its error on its own is printed too: the true pose at frame k moved by the step, against the truth at k+1.
    Then a pose graph over the intensity-frame poses X_k, per pose parameter, minimises
    sum_k |X_k - fit_k|^2 + rho * sum_k |X_{k+1} - X_k - odometry_k|^2, and each batch's solved trajectory is
    shifted onto it (the end mismatch spread linearly). rho = 0 keeps the fits. rho is swept, and the best column,
    chosen against the ground truth, is an optimistic bound; the "estimated" column uses a weight estimated from
-   the data alone (:func:`innovation_rho`). This is an extension beyond the paper, measured here, not a stage.
+   the data alone (:func:`eventcap_solve.fusion.innovation_rho`). The ``fuse`` pipeline (``pipeline=fused``) does
+   the same inside the normal runner.
 
 AE as everywhere: mean per-joint error after per-frame Procrustes alignment, mm, over every 1 kHz frame. The
 pipeline up to the detections runs through the normal runner and cache (`stages/solve=linear`,
@@ -52,11 +53,10 @@ from eventcap.artifacts.pose import Detections  # noqa: E402
 from eventcap.artifacts.recording import Recording  # noqa: E402
 from eventcap.artifacts.tracking import SlicedTracks  # noqa: E402
 from eventcap.body.kinematics import joint_positions  # noqa: E402
-from eventcap.body.skeleton import THETA_SLICE  # noqa: E402
 from eventcap.metrics import mean_joint_error, pose_at  # noqa: E402
 from eventcap_solve._impl import problem_for  # noqa: E402
-from eventcap_solve.batch import (EnergyWeights, FrameDetections, IpoptSettings, find_correspondences,  # noqa: E402
-                                  interpolate_poses, select_detections, temporal_indicator, unwrap_root)
+from eventcap_solve.batch import EnergyWeights, IpoptSettings, select_detections, solve_batch, unwrap_root  # noqa: E402
+from eventcap_solve.fusion import innovation_rho, pose_graph  # noqa: E402
 
 MOTIONS = "karate_kick,boxing_combo,javelin_throw,dance_spin,fast_wave,jumping_jack"
 WINDOWS = (1, 2, 3, 5, 9, 0)  # 0 = every frame of the sequence
@@ -76,74 +76,24 @@ def load(motion: str, track: str, args) -> tuple[Recording, Detections, list[Sli
     return rec, det, sliced
 
 
-def frame_fits(problem, det: Detections, sliced: list[SlicedTracks], weights: EnergyWeights,
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame fits (E_2D + E_3D) at the K+1 intensity frames: poses (K+1, 33), root angles unwrapped along the
-    sequence (exactly the poses ``linear`` interpolates), and their t' (K+1, 3)."""
+def frame_fits(problem, det: Detections, sliced: list[SlicedTracks], weights: EnergyWeights) -> np.ndarray:
+    """(K+1, 33) per-frame fits (E_2D + E_3D) at the K+1 intensity frames, root angles unwrapped along the
+    sequence: exactly the poses ``linear`` interpolates."""
     times = [int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])]
     ends = select_detections(det, np.asarray(times, dtype=np.int64))
-    fits, t_prime = [], []
+    fits = []
     for d in range(len(times)):
-        S, T, _ = problem.fit_frame(ends, d, weights)
+        S, _, _ = problem.fit_frame(ends, d, weights)
         fits.append(unwrap_root(S, fits[-1]) if fits else S)
-        t_prime.append(T)
-    return np.stack(fits), np.stack(t_prime)
+    return np.stack(fits)
 
 
-def odometry(problem, det: Detections, s: SlicedTracks, fits: np.ndarray, t_prime: np.ndarray,
-             weights: EnergyWeights, start: str = "still", icp_rounds: int = 2, still_m: float = 0.03) -> np.ndarray:
-    """(N+1, 33) one batch solved with the detection at frame N switched off, relative to its S_0: the motion the
-    event correspondences (and S_0's detection) imply. fits (2, 33) and t_prime (2, 3): the fits at frames 0 and N.
-
-    start="still": every frame starts at S_0's fit and E_temp holds every joint without correspondences (the
-    paper's literal φ), so nothing of frame N's detection enters: event-only odometry, zero where no event
-    correspondence reaches. start="fits": initialised as the stage does (the fits interpolated, E_temp only for
-    joints that moved less than still_m): parts without correspondences then keep frame N's fit.
-    """
+def odometry(problem, det: Detections, s: SlicedTracks) -> np.ndarray:
+    """(N+1, 33) one batch's event-only trajectory relative to its S_0 (the solve's mode ``odometry``)."""
     t_us = np.asarray(s.t_us, dtype=np.int64)
-    ends = select_detections(det, t_us[[0, -1]])
-    c2, c3 = ends.confidence_2d.copy(), ends.confidence_3d.copy()
-    c2[1] = c3[1] = 0.0
-    odo_det = FrameDetections(ends.keypoints_2d, c2, ends.joints_3d, c3)
-    if start == "still":
-        poses, moved = np.repeat(fits[:1], t_us.size, axis=0), None
-        t_prime = np.repeat(t_prime[:1], 2, axis=0)
-    else:
-        poses = interpolate_poses(fits[0], fits[1], t_us)
-        J = joint_positions(fits, problem.template.rest_joints)
-        moved = np.linalg.norm(J[1] - J[0], axis=1) > still_m
-    xy, valid = np.asarray(s.xy, dtype=np.float64), np.asarray(s.valid)
-    for _ in range(icp_rounds):
-        corr = find_correspondences(problem.template, problem.camera, poses, xy, valid)
-        phi = temporal_indicator(corr, t_us.size, "batch")
-        if moved is not None:
-            phi[:, moved] = 0.0
-        poses, t_prime, _ = problem.solve(poses, t_prime, odo_det, corr, phi, weights, relative=True)
-    return poses - poses[0]
-
-
-def pose_graph(fits: np.ndarray, steps: np.ndarray, rho: float) -> np.ndarray:
-    """argmin_X sum_k |X_k - fits_k|^2 + rho sum_k |X_{k+1} - X_k - steps_k|^2, per parameter: (K+1, 33)."""
-    n = fits.shape[0]
-    D = np.zeros((n - 1, n))
-    D[np.arange(n - 1), np.arange(n - 1)] = -1.0
-    D[np.arange(n - 1), np.arange(1, n)] = 1.0
-    return np.linalg.solve(np.eye(n) + rho * D.T @ D, fits + rho * D.T @ steps)
-
-
-def innovation_rho(fits: np.ndarray, steps: np.ndarray) -> float:
-    """The pose graph's weight estimated from the data alone, without ground truth.
-
-    The innovation r_k = fits_{k+1} - fits_k - steps_k = e_{k+1} - e_k - o_k mixes the fits' errors e and the
-    odometry's errors o. If both are independent over k, Var(r) = 2 var(e) + var(o) and Cov(r_k, r_{k+1}) =
-    -var(e); rho = var(e) / var(o), pooled over the joint angles (the root's parameters have other units).
-    Estimated per parameter instead, it measured worse: with ~50 batches the small variances are too noisy."""
-    r = (np.diff(fits, axis=0) - steps)[:, THETA_SLICE]
-    r = r - r.mean(axis=0)
-    var_r = np.mean(r * r, axis=0)
-    var_e = np.maximum(-np.mean(r[:-1] * r[1:], axis=0), 0.0)
-    var_o = np.maximum(var_r - 2.0 * var_e, 0.0)
-    return float(var_e.sum() / max(var_o.sum(), 1e-12))
+    res = solve_batch(problem, t_us, np.asarray(s.xy, dtype=np.float64), np.asarray(s.valid),
+                      select_detections(det, t_us[[0, -1]]), mode="odometry")
+    return res.poses - res.poses[0]
 
 
 def ae_mm(rec: Recording, sliced: list[SlicedTracks], anchors: np.ndarray, shapes: np.ndarray | None) -> float:
@@ -210,8 +160,6 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=2.0, help="seconds of capture per motion")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tracks", default="oracle,eklt", help="trackers for the odometry rows ('' = ideal only)")
-    ap.add_argument("--start", default="still", choices=("still", "fits"),
-                    help="odometry solve start: still (event-only) | fits (as the stage initialises)")
     ap.add_argument("--cache", default=str(ROOT / "runs" / "bench-cache"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_fusion"))
     ap.add_argument("--extra", default="", help="more hydra overrides, space separated (e.g. source.speed=2)")
@@ -223,15 +171,14 @@ def main() -> None:
         for i, track in enumerate(trackers or ["eklt"]):
             rec, det, sliced = load(motion, track, args)
             problem = problem_for(rec.template, rec.camera, sliced[0].t_us.size, IpoptSettings(), None, 2.0)
-            fits, t_prime = frame_fits(problem, det, sliced, weights)
+            fits = frame_fits(problem, det, sliced, weights)
             if i == 0:
                 ideal[motion] = ideal_row(rec, sliced, fits)
                 print(f"{motion}: ideal " + " ".join(f"{x:.1f}" for x in ideal[motion]), flush=True)
             if not trackers:
                 continue
             t0 = time.perf_counter()
-            shapes = np.stack([odometry(problem, det, s, fits[k:k + 2], t_prime[k:k + 2], weights, args.start)
-                               for k, s in enumerate(sliced)])
+            shapes = np.stack([odometry(problem, det, s) for s in sliced])
             rho_est[track][motion] = innovation_rho(fits, shapes[:, -1])
             odo[track][motion] = [ae_mm(rec, sliced, fits, None)] + [
                 ae_mm(rec, sliced, pose_graph(fits, shapes[:, -1], rho), shapes)

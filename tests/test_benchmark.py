@@ -81,7 +81,7 @@ def test_method_list_comes_from_config_and_rows_needing_a_missing_node_are_left_
     cfg = compose_benchmark(CONF, "default", [])
     assert len(cfg["motions"]) >= 6 and len(cfg["seeds"]) >= 2
     names = [m.name for m in parse_methods(cfg["methods"])]
-    assert names == ["EventCap", "linear", "all", "w/o_batch", "w/o_refine"]
+    assert names == ["EventCap", "linear", "all", "w/o_batch", "w/o_refine", "fused"]
     # a pipeline without a refine node: the w/o_refine row is left out (detected from the composed pipeline)
     plain = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses"]
     active, left_out = Benchmark(cfg, CONF, plain).active_methods()

@@ -84,6 +84,10 @@ Modes (baselines of the paper's evaluation, from the same code):
   frames, so the joint solve is the independent per-frame solves, initialised by the linear interpolation.
 - ``all``: fit every tracking frame to its own detections (E_2D + E_3D), each warm-started from the previous frame
   (the paper's *_all); needs detections at all N+1 frames.
+- ``odometry`` (not in the paper; for the ``fuse`` stage, see fusion.py): the motion the events alone give from
+  S_0's fit. The detection at frame N is switched off, every frame starts at S_0's fit, and E_temp holds every
+  part without correspondences (the paper's literal φ), so nothing of frame N's detection enters. The result is
+  shifted so that S_0 is exactly the fit.
 
 Reproducibility: IPOPT options are pinned (:class:`IpoptSettings`: iteration limit, tolerances, barrier strategy,
 MUMPS pivot order, no option file); the same inputs give bit-identical poses. Every solve's status is checked and
@@ -119,7 +123,7 @@ from eventcap.stage import StageFailed
 
 from .correspondences import EDGE_MARGIN_PX, PHI_SCOPES, Correspondences, find_correspondences, temporal_indicator
 
-MODES = ("batch", "per_frame", "linear", "all")
+MODES = ("batch", "per_frame", "linear", "all", "odometry")
 #: How a batch treats its first and last frame (shared with the neighbouring batches): see solve_batch.
 BOUNDARIES = ("fixed", "free")
 #: Default of solve_batch's still_m: joints whose end fits moved more than this are not held still by E_temp.
@@ -1059,6 +1063,8 @@ def solve_batch(problem: BatchProblem, t_us: np.ndarray, xy: np.ndarray, valid: 
         return _result(problem, poses, t_prime, ends, Correspondences.empty(), np.zeros((F - 1, NUM_JOINTS)),
                        weights, solves, seconds)
 
+    if mode == "odometry":
+        return _odometry(problem, t_us, xy, valid, ends, icp_rounds, weights, edge_margin_px)
     S0, T0, st0 = problem.fit_frame(ends, 0, weights)
     SN, TN, stN = problem.fit_frame(ends, 1, weights)
     SN = unwrap_root(SN, S0)
@@ -1091,6 +1097,33 @@ def solve_batch(problem: BatchProblem, t_us: np.ndarray, xy: np.ndarray, valid: 
         seconds["solve"] += time.perf_counter() - t2
         solves.append(st)
     return _result(problem, poses, t_prime, ends, corr, phi, w, solves, seconds, relative=mode == "batch")
+
+
+def _odometry(problem: BatchProblem, t_us, xy, valid, ends: FrameDetections, icp_rounds: int,
+              weights: EnergyWeights, edge_margin_px: float) -> BatchResult:
+    """Mode ``odometry`` (see the module doc): S_0's fit, then the event-only solve with frame N's detection off."""
+    t0 = time.perf_counter()
+    seconds: dict[str, float] = {}
+    S0, T0, st0 = problem.fit_frame(ends, 0, weights)
+    solves = [st0]
+    c2, c3 = ends.confidence_2d.copy(), ends.confidence_3d.copy()
+    c2[1] = c3[1] = 0.0
+    start_only = FrameDetections(ends.keypoints_2d, c2, ends.joints_3d, c3)
+    F = problem.F
+    poses, t_prime = np.repeat(S0[None, :], F, axis=0), np.stack([T0, T0])
+    seconds["init"] = time.perf_counter() - t0
+    seconds["correspondences"] = seconds["solve"] = 0.0
+    for _ in range(int(icp_rounds)):
+        t1 = time.perf_counter()
+        corr = find_correspondences(problem.template, problem.camera, poses, xy, valid, edge_margin_px)
+        phi = temporal_indicator(corr, F, "batch")
+        t2 = time.perf_counter()
+        poses, t_prime, st = problem.solve(poses, t_prime, start_only, corr, phi, weights, relative=True)
+        seconds["correspondences"] += t2 - t1
+        seconds["solve"] += time.perf_counter() - t2
+        solves.append(st)
+    poses = S0[None, :] + (poses - poses[0])
+    return _result(problem, poses, t_prime, start_only, corr, phi, weights, solves, seconds)
 
 
 def _result(problem, poses, t_prime, ends, corr, phi, weights, solves, seconds, relative=True) -> BatchResult:

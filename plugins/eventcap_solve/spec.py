@@ -14,7 +14,8 @@ from eventcap.stage import Port, StageSpec, param
 @dataclass
 class BatchSolveConfig:
     mode: str = param("batch", help="batch (the method) | per_frame (w/o_batch) | linear (*_linear: fits at the two "
-                                    "intensity frames, interpolated) | all (*_all: detections at every frame)")
+                                    "intensity frames, interpolated) | all (*_all: detections at every frame) | "
+                                    "odometry (events only from S_0's fit, for the fuse stage; not in the paper)")
     icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
     lambda_cor: float = param(50.0, help="weight of E_cor, the event correspondences (paper's λ_adj)")
     lambda_2d: float = param(200.0, help="weight of E_2D (image residuals in focal-normalised units)")
@@ -51,4 +52,38 @@ BATCH = StageSpec(
             "batches": Port(BatchPlan)},
     outputs={"poses": Port(PoseSequence)}, per_batch=True,
     run="eventcap_solve._impl:run_batch",
+)
+
+
+@dataclass
+class FuseConfig:
+    rho: float = param(0.0, help="weight of the event odometry against the detection fits in the pose graph "
+                                 "(0 = estimated from the data: innovation variance and lag-1 covariance)")
+
+
+FUSE = StageSpec(
+    name="fuse", kind="fuse", version=1,
+    description="pose graph over the intensity frames: every batch's detection fit and event-only odometry "
+                "(solve mode odometry) fused across batches (not in the paper; see eventcap_solve.fusion)",
+    config=FuseConfig,
+    inputs={"odometry": Port(PoseSequence, "every batch's solve in mode odometry", all_batches=True)},
+    outputs={"anchors": Port(PoseSequence, doc="the fused poses at the intensity frames")},
+    run="eventcap_solve.fusion:run_fuse",
+)
+
+
+@dataclass
+class PlaceConfig:
+    pass
+
+
+PLACE = StageSpec(
+    name="place", kind="fuse", version=1,
+    description="a batch's event trajectory placed onto the fused poses at its two intensity frames (the end "
+                "mismatch spread linearly), so the joined motion is continuous",
+    config=PlaceConfig,
+    inputs={"odometry": Port(PoseSequence, "this batch's solve in mode odometry"),
+            "anchors": Port(PoseSequence, "the fuse stage's poses at the intensity frames")},
+    outputs={"poses": Port(PoseSequence)}, per_batch=True,
+    run="eventcap_solve.fusion:run_place",
 )
