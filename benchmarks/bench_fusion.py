@@ -55,8 +55,9 @@ from eventcap.artifacts.tracking import SlicedTracks  # noqa: E402
 from eventcap.body.kinematics import joint_positions  # noqa: E402
 from eventcap.metrics import mean_joint_error, pose_at  # noqa: E402
 from eventcap_solve._impl import problem_for  # noqa: E402
-from eventcap_solve.batch import EnergyWeights, IpoptSettings, select_detections, solve_batch, unwrap_root  # noqa: E402
-from eventcap_solve.fusion import innovation_rho, pose_graph  # noqa: E402
+from eventcap_solve.batch import (EnergyWeights, IpoptSettings, interpolate_poses, select_detections,  # noqa: E402
+                                  solve_batch, unwrap_root)
+from eventcap_solve.fusion import innovation_rho, place, pose_graph  # noqa: E402
 
 MOTIONS = "karate_kick,boxing_combo,javelin_throw,dance_spin,fast_wave,jumping_jack"
 WINDOWS = (1, 2, 3, 5, 9, 0)  # 0 = every frame of the sequence
@@ -76,11 +77,16 @@ def load(motion: str, track: str, args) -> tuple[Recording, Detections, list[Sli
     return rec, det, sliced
 
 
+def frame_times(sliced: list[SlicedTracks]) -> np.ndarray:
+    """(K+1,) µs: the intensity-frame times the K batches run between."""
+    return np.asarray([int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])], dtype=np.int64)
+
+
 def frame_fits(problem, det: Detections, sliced: list[SlicedTracks], weights: EnergyWeights) -> np.ndarray:
     """(K+1, 33) per-frame fits (E_2D + E_3D) at the K+1 intensity frames, root angles unwrapped along the
     sequence: exactly the poses ``linear`` interpolates."""
-    times = [int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])]
-    ends = select_detections(det, np.asarray(times, dtype=np.int64))
+    times = frame_times(sliced)
+    ends = select_detections(det, times)
     fits = []
     for d in range(len(times)):
         S, _, _ = problem.fit_frame(ends, d, weights)
@@ -104,11 +110,10 @@ def ae_mm(rec: Recording, sliced: list[SlicedTracks], anchors: np.ndarray, shape
     errs = []
     for k, s in enumerate(sliced):
         t = np.asarray(s.t_us, dtype=np.int64)
-        a = ((t - t[0]) / (t[-1] - t[0]))[:, None]
         if shapes is None:
-            P = (1.0 - a) * anchors[k] + a * anchors[k + 1]
+            P = interpolate_poses(anchors[k], anchors[k + 1], t)
         else:
-            P = anchors[k] + shapes[k] + a * (anchors[k + 1] - anchors[k] - shapes[k][-1])
+            P = place(anchors[k], anchors[k + 1], shapes[k], t)
         true = joint_positions(pose_at(rec.ground_truth, t), rest)
         errs.append(mean_joint_error(joint_positions(P, rest), true))
     return float(np.concatenate(errs).mean() * 1000.0)
@@ -118,8 +123,7 @@ def odometry_error_mm(rec: Recording, sliced: list[SlicedTracks], steps: np.ndar
     """How good the odometry is on its own: AE (mm) of the true pose at frame k moved by batch k's step, against the
     true pose at frame k+1; and, for scale, of not moving at all (the motion over a batch)."""
     rest = rec.template.rest_joints
-    times = np.asarray([int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])])
-    truth = pose_at(rec.ground_truth, times)
+    truth = pose_at(rec.ground_truth, frame_times(sliced))
     after = joint_positions(truth[1:], rest)
     moved = mean_joint_error(joint_positions(truth[:-1] + steps, rest), after).mean()
     still = mean_joint_error(joint_positions(truth[:-1], rest), after).mean()
@@ -128,10 +132,9 @@ def odometry_error_mm(rec: Recording, sliced: list[SlicedTracks], steps: np.ndar
 
 def ideal_row(rec: Recording, sliced: list[SlicedTracks], fits: np.ndarray) -> list[float]:
     """AE for each window of WINDOWS: fit errors averaged over the window, relative motion exact."""
-    times = np.asarray([int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])])
-    truth = pose_at(rec.ground_truth, times)
+    truth = pose_at(rec.ground_truth, frame_times(sliced))
     err = fits - truth
-    n = len(times)
+    n = len(truth)
     row = []
     for w in WINDOWS:
         if w == 0:

@@ -1063,67 +1063,50 @@ def solve_batch(problem: BatchProblem, t_us: np.ndarray, xy: np.ndarray, valid: 
         return _result(problem, poses, t_prime, ends, Correspondences.empty(), np.zeros((F - 1, NUM_JOINTS)),
                        weights, solves, seconds)
 
-    if mode == "odometry":
-        return _odometry(problem, t_us, xy, valid, ends, icp_rounds, weights, edge_margin_px)
-    S0, T0, st0 = problem.fit_frame(ends, 0, weights)
-    SN, TN, stN = problem.fit_frame(ends, 1, weights)
-    SN = unwrap_root(SN, S0)
-    solves += [st0, stN]
-    poses = interpolate_poses(S0, SN, t_us)
-    t_prime = np.stack([T0, TN])
+    if mode == "odometry":  # frame N's detection off: S_N follows from S_0's fit and the events alone
+        S0, T0, st0 = problem.fit_frame(ends, 0, weights)
+        solves.append(st0)
+        c2, c3 = ends.confidence_2d.copy(), ends.confidence_3d.copy()
+        c2[1] = c3[1] = 0.0
+        ends = FrameDetections(ends.keypoints_2d, c2, ends.joints_3d, c3)
+        poses, t_prime = np.repeat(S0[None, :], F, axis=0), np.stack([T0, T0])
+    else:
+        S0, T0, st0 = problem.fit_frame(ends, 0, weights)
+        SN, TN, stN = problem.fit_frame(ends, 1, weights)
+        SN = unwrap_root(SN, S0)
+        solves += [st0, stN]
+        poses = interpolate_poses(S0, SN, t_us)
+        t_prime = np.stack([T0, TN])
     seconds["init"] = time.perf_counter() - t0
     corr, phi = Correspondences.empty(), np.zeros((F - 1, NUM_JOINTS))
     if mode == "linear":
         return _result(problem, poses, t_prime, ends, corr, phi, weights, solves, seconds)
 
-    w = weights if mode == "batch" else replace(weights, temp=0.0)
+    coupled = mode != "per_frame"  # batch and odometry: E_cor relative, E_temp on
+    w = weights if coupled else replace(weights, temp=0.0)
     # E_temp holds still the parts without correspondences, "non-moving" in the paper's words; a joint whose end
     # fits moved more than still_m over the batch is not still, and holding it contradicts the detections.
+    # (odometry has no second fit: the paper's literal φ.)
     moved = None
-    if still_m > 0:
+    if still_m > 0 and mode != "odometry":
         Jends = joint_positions(np.stack([S0, SN]), problem.template.rest_joints)
         moved = np.linalg.norm(Jends[1] - Jends[0], axis=1) > still_m
     seconds["correspondences"] = seconds["solve"] = 0.0
     for _ in range(int(icp_rounds)):
         t1 = time.perf_counter()
         corr = find_correspondences(problem.template, problem.camera, poses, xy, valid, edge_margin_px)
-        phi = temporal_indicator(corr, F, phi_scope) if mode == "batch" else np.zeros((F - 1, NUM_JOINTS))
+        phi = temporal_indicator(corr, F, phi_scope) if coupled else np.zeros((F - 1, NUM_JOINTS))
         if moved is not None:
             phi[:, moved] = 0.0
         t2 = time.perf_counter()
-        poses, t_prime, st = problem.solve(poses, t_prime, ends, corr, phi, w, relative=mode == "batch",
-                                           fix_ends=boundary == "fixed")
+        poses, t_prime, st = problem.solve(poses, t_prime, ends, corr, phi, w, relative=coupled,
+                                           fix_ends=boundary == "fixed" and mode != "odometry")
         seconds["correspondences"] += t2 - t1
         seconds["solve"] += time.perf_counter() - t2
         solves.append(st)
-    return _result(problem, poses, t_prime, ends, corr, phi, w, solves, seconds, relative=mode == "batch")
-
-
-def _odometry(problem: BatchProblem, t_us, xy, valid, ends: FrameDetections, icp_rounds: int,
-              weights: EnergyWeights, edge_margin_px: float) -> BatchResult:
-    """Mode ``odometry`` (see the module doc): S_0's fit, then the event-only solve with frame N's detection off."""
-    t0 = time.perf_counter()
-    seconds: dict[str, float] = {}
-    S0, T0, st0 = problem.fit_frame(ends, 0, weights)
-    solves = [st0]
-    c2, c3 = ends.confidence_2d.copy(), ends.confidence_3d.copy()
-    c2[1] = c3[1] = 0.0
-    start_only = FrameDetections(ends.keypoints_2d, c2, ends.joints_3d, c3)
-    F = problem.F
-    poses, t_prime = np.repeat(S0[None, :], F, axis=0), np.stack([T0, T0])
-    seconds["init"] = time.perf_counter() - t0
-    seconds["correspondences"] = seconds["solve"] = 0.0
-    for _ in range(int(icp_rounds)):
-        t1 = time.perf_counter()
-        corr = find_correspondences(problem.template, problem.camera, poses, xy, valid, edge_margin_px)
-        phi = temporal_indicator(corr, F, "batch")
-        t2 = time.perf_counter()
-        poses, t_prime, st = problem.solve(poses, t_prime, start_only, corr, phi, weights, relative=True)
-        seconds["correspondences"] += t2 - t1
-        seconds["solve"] += time.perf_counter() - t2
-        solves.append(st)
-    poses = S0[None, :] + (poses - poses[0])
-    return _result(problem, poses, t_prime, start_only, corr, phi, weights, solves, seconds)
+    if mode == "odometry":
+        poses = S0[None, :] + (poses - poses[0])  # anchored exactly at S_0's fit
+    return _result(problem, poses, t_prime, ends, corr, phi, w, solves, seconds, relative=coupled)
 
 
 def _result(problem, poses, t_prime, ends, corr, phi, weights, solves, seconds, relative=True) -> BatchResult:
