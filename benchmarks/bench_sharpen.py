@@ -28,7 +28,7 @@ from eventcap.render import textured_background  # noqa: E402
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic  # noqa: E402
 from eventcap.sim.events import SensorConfig  # noqa: E402
 from eventcap.sim.frames import FrameConfig  # noqa: E402
-from eventcap_track import edi  # noqa: E402
+from eventcap import edi  # noqa: E402
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:

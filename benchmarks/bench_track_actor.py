@@ -35,7 +35,8 @@ from eventcap.body.kinematics import skin  # noqa: E402
 from eventcap.metrics import pose_at, track_errors  # noqa: E402
 from eventcap.render import rasterize, textured_background  # noqa: E402
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic  # noqa: E402
-from eventcap_track import edi, eklt, klt  # noqa: E402
+from eventcap import edi  # noqa: E402
+from eventcap_track import eklt, klt  # noqa: E402
 
 
 def contour_distance(rec, t_us: int, jump_m: float = 0.1) -> np.ndarray:

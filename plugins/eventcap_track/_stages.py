@@ -8,7 +8,7 @@ from eventcap.artifacts.tracking import LatentFrames, SlicedTracks, Tracks
 
 
 def run_edi(inputs, config, ctx):
-    from . import edi
+    from eventcap import edi
 
     rec = inputs["recording"]
     frames = rec.require_frames("edi")
@@ -105,7 +105,9 @@ def run_eklt(inputs, config, ctx):
 
 
 def run_klt_latent(inputs, config, ctx):
-    from . import edi, eklt, klt
+    from eventcap import edi
+
+    from . import eklt, klt
 
     rec, latent, b = inputs["recording"], inputs["latent"], ctx.batch
     L0 = latent.log_images[_frame_index(latent, b.t0_us)]
