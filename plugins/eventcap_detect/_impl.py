@@ -81,3 +81,76 @@ def run_file(inputs, config, ctx):
     if config.path_3d:
         detector += f"; 3D: {Path(config.path_3d).name}"
     return {"detections": _detections(t_us, kp, conf, joints, conf3, detector)}
+
+
+def _blazepose_images(rec, latent, config):
+    """(times, images) the detector looks at, images as a lazy sequence of linear-intensity (H, W) arrays."""
+    from eventcap import edi
+
+    if config.at == "frames":
+        frames = rec.require_frames("blazepose")
+        return frames.t_us.copy(), frames.images
+    if latent is None:
+        raise ValueError(f"stages.detect.at={config.at}: the blazepose node needs the EDI latent images as its "
+                         f"'latent' input (wire latent: sharpen.latent; conf/stages/detect/blazepose.yaml does)")
+    if config.at == "latent":
+        return latent.t_us.copy(), [edi.to_linear(L, latent.eps) for L in latent.log_images]
+    if config.tracking_step_us <= 0:
+        raise ValueError(f"stages.detect.tracking_step_us: expected a positive step in us, got "
+                         f"{config.tracking_step_us}")
+    tf = latent.t_us
+    times = np.arange(int(tf[0]), int(tf[-1]) + 1, int(config.tracking_step_us), dtype=np.int64)
+    nearest = np.clip(np.searchsorted(tf, times), 1, tf.size - 1)
+    nearest -= (times - tf[nearest - 1]) < (tf[nearest] - times)  # the nearer of the two frames
+
+    def images():
+        events = rec.events.events
+        for k in np.unique(nearest):
+            logs = edi.latent_log_sequence(latent.log_images[k], int(tf[k]), times[nearest == k], events,
+                                           latent.contrast)
+            yield from (edi.to_linear(L, latent.eps) for L in logs)
+
+    return times, images()
+
+
+def run_blazepose(inputs, config, ctx):
+    from eventcap.body.skeleton import JOINT_NAMES, LANDMARK_NAMES
+
+    from . import blazepose as bp
+
+    rec, latent = inputs["recording"], inputs.get("latent")
+    if config.at not in ("frames", "latent", "tracking"):
+        raise ValueError(f"stages.detect.at: expected frames | latent | tracking, got {config.at!r}")
+    times, images = _blazepose_images(rec, latent, config)
+    net = bp.BlazePose(config.model, config.detector_threshold, config.presence_threshold)
+    seq = bp.detect_sequence(net, images, times, track=config.track, find=config.find, events=rec.events.events,
+                             events_window_us=config.events_window_us, gamma=config.gamma,
+                             log=ctx.log.warning)
+    n = times.size
+    w2 = bp.mapping_matrix(bp.LANDMARK_FROM_BLAZEPOSE, LANDMARK_NAMES)
+    w3 = bp.mapping_matrix(bp.JOINT_FROM_BLAZEPOSE, JOINT_NAMES)
+    kp = np.zeros((n, len(LANDMARK_NAMES), 2))
+    conf = np.zeros((n, len(LANDMARK_NAMES)))
+    joints = np.zeros((n, len(JOINT_NAMES), 3))
+    conf3 = np.zeros((n, len(JOINT_NAMES)))
+    for i, pose in enumerate(seq.poses):
+        if pose is None:
+            continue
+        kp[i], conf[i] = bp.mapped(w2, pose.xy, pose.visibility * pose.presence * pose.flag)
+        j, conf3[i] = bp.mapped(w3, pose.world, pose.presence * pose.flag)
+        joints[i] = (j - j[0]) @ rec.camera.R  # camera -> world axes (rows: v_world = R^T v_cam), root-relative
+    outside = (kp[..., 0] < 0) | (kp[..., 1] < 0) | (kp[..., 0] > rec.width - 1) | (kp[..., 1] > rec.height - 1)
+    conf[outside] = 0.0
+    kp[conf == 0] = 0.0
+    found = sum(p is not None for p in seq.poses)
+    how = {k: seq.found_by.count(k) for k in ("tracked", "detector", "events")}
+    ms = 1000 * seq.seconds / max(n, 1)
+    ctx.stats.update({"images": n, "found": found, "found_by": how, "tracking_losses": len(seq.losses),
+                      "ms_per_image": ms})
+    level = ctx.log.warning if found < n else ctx.log.info
+    level("blazepose (%s, at %s): person found in %d of %d images (tracked %d, detector %d, events %d), "
+          "%d tracking losses, %.1f ms per image", config.model, config.at, found, n, how["tracked"],
+          how["detector"], how["events"], len(seq.losses), ms)
+    detector = (f"blazepose: BlazePose GHUM 3D {config.model} (MediaPipe Pose, TFLite) on {config.at} images, "
+                f"track={config.track}, find={config.find}")
+    return {"detections": _detections(times, kp, conf, joints, conf3, detector)}

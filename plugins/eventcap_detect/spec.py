@@ -1,4 +1,4 @@
-"""Specs of the detect stages (paper Sec. 3.2): `simulated` and `detections_file`. Declarations only."""
+"""Specs of the detect stages (paper Sec. 3.2): `blazepose`, `simulated` and `detections_file`. Declarations only."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from eventcap.artifacts.pose import Detections
 from eventcap.artifacts.recording import Recording
+from eventcap.artifacts.tracking import LatentFrames
 from eventcap.stage import Port, StageSpec, param
 
 
@@ -54,6 +55,35 @@ class DetectionsFileConfig:
                                         "(rotated into world axes with the recording's camera)")
     unit_3d: str = param("m", help="unit of the 3D joints in the files: m | mm")
 
+
+@dataclass
+class BlazePoseConfig:
+    model: str = param("full", help="landmark network: full (15 ms per image here) | lite (faster, less exact)")
+    at: str = param("latent", help="images it looks at: frames (the raw, blurred intensity frames: the paper's "
+                                   "*_linear) | latent (EDI latent images at the frame times: the method) | "
+                                   "tracking (EDI latent images every tracking_step_us: the paper's *_all)")
+    tracking_step_us: int = param(1000, help="with at=tracking: the step between images, us")
+    track: bool = param(True, help="take each image's crop from the previous pose (the model's own auxiliary "
+                                   "points); false: find the person anew in every image")
+    find: str = param("detector", help="how a lost person is found: detector (BlazePose's person detector, then "
+                                       "the events if it sees nobody) | events (the box of the moving pixels)")
+    events_window_us: int = param(20000, help="events within this window around an image make its event box, us")
+    detector_threshold: float = param(0.5, help="minimum score of a person-detector box")
+    presence_threshold: float = param(0.5, help="minimum pose flag of the landmark model: below it, the person "
+                                                "is lost")
+    gamma: float = param(1.0, help="the networks get linear intensity ** (1 / gamma) (1: linear, as measured "
+                                   "best on our captures)")
+
+
+BLAZEPOSE = StageSpec(
+    name="blazepose", kind="detect", version=1,
+    description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints",
+    config=BlazePoseConfig,
+    inputs={"recording": Port(Recording),
+            "latent": Port(LatentFrames, optional=True, doc="EDI latent images (at=latent | tracking)")},
+    outputs={"detections": Port(Detections)},
+    run="eventcap_detect._impl:run_blazepose",
+)
 
 SIMULATED = StageSpec(
     name="simulated", kind="detect", version=1,
