@@ -301,3 +301,34 @@ def test_log_says_how_many_images_and_how_fast(caplog):
         detect(photo_recording())
     assert any("person found in 3 of 3 images" in r.getMessage() and "ms per image" in r.getMessage()
                for r in caplog.records)
+
+
+def test_stage_at_latent_and_tracking_uses_the_edi_images():
+    """at=latent looks at the latent images (here the photo itself, as EDI gives for a still scene without
+    events); at=tracking at latent images every tracking_step_us from the nearest frame and the events: with no
+    events they are that frame."""
+    from eventcap.artifacts.tracking import LatentFrames
+
+    rec = photo_recording()
+    eps = 1e-3
+    logs = np.log(rec.frames.images ** (1 / 2.2) + eps).astype(np.float32)  # gamma applied here, not in the stage
+    latent = LatentFrames(log_images=logs, t_us=rec.frames.t_us.copy(), contrast=0.2, eps=eps,
+                          height=rec.height, width=rec.width)
+    spec = load_registry().get("blazepose")
+
+    def run(**cfg):
+        c = build_config(spec, {"gamma": 1.0, **cfg}, "stages.detect")
+        return spec.load_run()({"recording": rec, "latent": latent}, c,
+                               StageContext(node="detect", stage="blazepose"))["detections"]
+
+    lat = run(at="latent")
+    assert np.array_equal(lat.t_us, rec.frames.t_us) and "latent" in lat.detector
+    trk = run(at="tracking", tracking_step_us=20_000)
+    assert np.array_equal(trk.t_us, np.arange(0, 80_001, 20_000))
+    # every image holds the same still photo; the crops, each framed by the previous pose, wander (hips below
+    # the picture make the framing points unsteady: up to ~25 px over 5 images), the nose stays on the nose
+    nose = LANDMARK_INDEX["nose"]
+    assert np.all(np.hypot(*(trk.keypoints_2d[:, nose] - HAND_CHECKED["nose"]).T) < 30)
+    assert np.all(trk.confidence_2d[:, nose] > 0.5)
+    with pytest.raises(ValueError, match="tracking_step_us: expected a positive step"):
+        run(at="tracking", tracking_step_us=0)
