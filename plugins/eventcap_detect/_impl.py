@@ -143,14 +143,14 @@ def run_blazepose(inputs, config, ctx):
     conf[outside] = 0.0
     kp[conf == 0] = 0.0
     found = sum(p is not None for p in seq.poses)
-    how = {k: seq.found_by.count(k) for k in ("tracked", "detector", "events")}
+    how = {k: seq.found_by.count(k) for k in ("tracked", "detector", "events", "image")}
     ms = 1000 * seq.seconds / max(n, 1)
     ctx.stats.update({"images": n, "found": found, "found_by": how, "tracking_losses": len(seq.losses),
                       "ms_per_image": ms})
     level = ctx.log.warning if found < n else ctx.log.info
-    level("blazepose (%s, at %s): person found in %d of %d images (tracked %d, detector %d, events %d), "
-          "%d tracking losses, %.1f ms per image", config.model, config.at, found, n, how["tracked"],
-          how["detector"], how["events"], len(seq.losses), ms)
+    level("blazepose (%s, at %s): person found in %d of %d images (tracked %d, detector %d, events %d, whole "
+          "image %d), %d tracking losses, %.1f ms per image", config.model, config.at, found, n, how["tracked"],
+          how["detector"], how["events"], how["image"], len(seq.losses), ms)
     detector = (f"blazepose: BlazePose GHUM 3D {config.model} (MediaPipe Pose, TFLite) on {config.at} images, "
                 f"track={config.track}, find={config.find}")
     return {"detections": _detections(times, kp, conf, joints, conf3, detector)}

@@ -334,7 +334,7 @@ class SequenceResult:
     """Per image: the pose (None where the person was not found) and how its ROI was found."""
 
     poses: list
-    found_by: list  # "tracked" | "detector" | "events" | ""
+    found_by: list  # "tracked" | "detector" | "events" | "image" | ""
     losses: list  # (index, flag) where tracking lost the person
     seconds: float
 
@@ -347,7 +347,7 @@ def detect_sequence(net: BlazePose, images, times_us: np.ndarray, *, track: bool
     With ``track``, each image's ROI comes from the previous pose's auxiliary points while its pose flag stays at
     or above ``net.presence_threshold``; otherwise (and on the first image) the person is found again: by the
     person detector (``find='detector'``, falling back to the events when the detector sees nobody), or from the
-    events alone (``find='events'``)."""
+    events alone (``find='events'``); last, the landmark model looks at the whole image."""
     import time
 
     if find not in ("detector", "events"):
@@ -381,6 +381,9 @@ def detect_sequence(net: BlazePose, images, times_us: np.ndarray, *, track: bool
                 roi = events_roi(events, int(times_us[i]), events_window_us, w, h)
                 if roi is not None:
                     rois.append((roi, "events"))
+            # last: the whole image as one crop (a small actor that barely moves is missed by both above; the
+            # landmark model still finds it there, and its own framing then zooms in)
+            rois.append((Roi(w / 2, h / 2, float(max(w, h)), 0.0), "image"))
             for roi, origin in rois:
                 cand = net.landmarks(rgb, roi)
                 if cand.flag >= net.presence_threshold:

@@ -66,7 +66,8 @@ class BlazePoseConfig:
     track: bool = param(True, help="take each image's crop from the previous pose (the model's own auxiliary "
                                    "points); false: find the person anew in every image")
     find: str = param("detector", help="how a lost person is found: detector (BlazePose's person detector, then "
-                                       "the events if it sees nobody) | events (the box of the moving pixels)")
+                                       "the events if it sees nobody) | events (the box of the moving pixels); "
+                                       "last, the landmark model on the whole image")
     events_window_us: int = param(20000, help="events within this window around an image make its event box, us")
     detector_threshold: float = param(0.5, help="minimum score of a person-detector box")
     presence_threshold: float = param(0.5, help="minimum pose flag of the landmark model: below it, the person "
