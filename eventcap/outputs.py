@@ -71,8 +71,9 @@ class OutputsConfig:
     c3d: bool = False  # motion.c3d: joints + template landmarks, mm, at the tracking rate (eventcap/c3d.py)
     rerun: bool = False  # capture.rrd: a Rerun recording of the whole run (eventcap/viewer.py; eventcap view)
     rerun_events_ms: float = 1.0  # each event image shows the events of the last ... ms
-    rerun_every_ms: float = 1.0  # motion time between event images / silhouettes
-    rerun_max_frames: int = 2000  # at most this many event images / silhouettes (the step widens)
+    rerun_every_ms: float = 1.0  # motion time between event images
+    rerun_outline_every_ms: float = 5.0  # motion time between silhouette outlines (each costs a rasterization)
+    rerun_max_frames: int = 2000  # at most this many event images / outlines (the step widens)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None) -> OutputsConfig:
@@ -90,7 +91,8 @@ class OutputsConfig:
         for name in ("bvh", "npz", "video", "c3d", "rerun"):
             if not isinstance(getattr(cfg, name), bool):
                 raise ValueError(f"outputs.{name}: expected true or false, got {getattr(cfg, name)!r}")
-        for name in ("video_every_ms", "video_fps", "video_events_ms", "rerun_events_ms", "rerun_every_ms"):
+        for name in ("video_every_ms", "video_fps", "video_events_ms", "rerun_events_ms", "rerun_every_ms",
+                     "rerun_outline_every_ms"):
             v = getattr(cfg, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"outputs.{name}: expected a positive number, got {v!r}")
@@ -264,7 +266,7 @@ def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, templa
     content = collect_run_content(runner, result, t_us, poses, joints, rec, template,
                                   _first_output(runner, result, LatentFrames), cfg.poses)
     stats = write_recording(run_dir / RRD_NAME, content, cfg.rerun_events_ms, cfg.rerun_every_ms,
-                            cfg.rerun_max_frames)
+                            cfg.rerun_max_frames, cfg.rerun_outline_every_ms)
     summary["rerun"] = stats
     return run_dir / RRD_NAME
 

@@ -14,7 +14,7 @@ entity                                 what
                                        points coloured by their net polarity (red +, blue -)
 ``world/camera/image/detections``      the 2D detections (BODY_25 key points), at the intensity frames
 ``world/camera/image/tracks``          the sliced feature tracks at every tracking frame (one colour per track)
-``world/camera/image/silhouette``      the template's silhouette outline at the estimated pose, projected
+``world/camera/image/silhouette``      the template's silhouette outline at the estimated pose (every 5 ms)
 ``world/camera/image/skeleton``        the estimated skeleton projected (and ``.../truth`` the ground truth)
 ``world/skeleton/estimate``            the 3D skeleton at every tracking frame (1 kHz), joint names on hover
 ``world/skeleton/truth``               the ground-truth 3D skeleton (synthetic captures)
@@ -26,9 +26,11 @@ entity                                 what
                                        iterations; failures as errors) at the batch start; ``.../iterations``
 =====================================  ===========================================================================
 
-What would not fit is decimated and the log says so: event images and silhouettes are drawn at most
-``rerun_max_frames`` times (the step widens evenly over the run, as the overlay video's frames do); the 3D skeleton,
-the projected skeleton, the tracks and the speeds are kept at every tracking frame.
+What would not fit is decimated and the log says so: event images (one every ``rerun_every_ms``) and silhouette
+outlines (one every ``rerun_outline_every_ms``, 5 ms by default: each is a rasterization of the mesh, ~10-40 ms here;
+the viewer shows the latest outline until the next) are drawn at most ``rerun_max_frames`` times each (the step widens
+evenly over the run, as the overlay video's frames do); the 3D skeleton, the projected skeleton, the tracks and the
+speeds are kept at every tracking frame.
 
 This module is an app layer, like :mod:`eventcap.outputs`: it reads a finished run through the runner
 (:meth:`Runner.load_output`) and never imports a plugin. Rerun is an optional dependency (``rerun-sdk``, ~500 MB
@@ -212,7 +214,7 @@ def _blueprint(rrb, has_speed: bool):
 
 
 def write_recording(path, content: RunContent, events_ms: float = 1.0, every_ms: float = 1.0,
-                    max_frames: int = 2000) -> dict[str, Any]:
+                    max_frames: int = 2000, outline_every_ms: float = 5.0) -> dict[str, Any]:
     """Write ``content`` as a Rerun recording at ``path`` (atomically: ``<stem>.partial.rrd``, then renamed); returns
     what it holds (counts per layer, what was decimated, seconds, bytes)."""
     rr = require_rerun()
@@ -244,7 +246,7 @@ def write_recording(path, content: RunContent, events_ms: float = 1.0, every_ms:
         if content.t_us is not None and content.joints is not None:
             _log_motion(rr, stream, content, counts)
             if rec is not None and content.template is not None and content.poses is not None:
-                _log_silhouettes(rr, stream, content, every_ms, max_frames, stats)
+                _log_silhouettes(rr, stream, content, outline_every_ms, max_frames, stats)
             _log_speeds(rr, stream, content, JOINT_INDEX, counts)
         _log_truth(rr, stream, content, counts)
         _log_errors(rr, stream, content, counts)

@@ -75,7 +75,8 @@ def test_joints_and_landmarks_read_back_by_two_readers(tmp_path):
 def test_bad_input_is_refused_with_a_message_and_leaves_nothing(tmp_path):
     t = np.arange(0, 5000, 1000, dtype=np.int64)
     J = np.zeros((5, 24, 3))
-    with pytest.raises(ValueError, match=r"joints: expected shape \(5, 24, 3\) \(T, joints, xyz metres\), got \(5, 23, 3\)"):
+    with pytest.raises(ValueError, match=r"joints: expected shape \(5, 24, 3\) \(T, joints, xyz metres\), got "
+                                         r"\(5, 23, 3\)"):
         write_c3d(tmp_path / "a.c3d", t, J[:, :23])
     with pytest.raises(ValueError, match=r"frame 2 \(2500 us\) is not on the 1000 us grid starting at 0 us"):
         write_c3d(tmp_path / "a.c3d", np.array([0, 1000, 2500, 3000, 4000]), J, step_us=1000)

@@ -145,8 +145,9 @@ def test_the_recording_of_a_default_like_run_read_back_with_rerun(finished_run):
     assert min(t.min() for t in times.values()) == t0 and max(t.max() for t in times.values()) == t1
 
     # counts: one row per motion frame for the 1 kHz layers, per frame for images, per sliced frame for tracks
-    for e in ("events", "silhouette", "skeleton", "truth"):
+    for e in ("events", "skeleton", "truth"):
         assert np.array_equal(times[f"/world/camera/image/{e}"], m["t_us"]), e
+    assert np.array_equal(times["/world/camera/image/silhouette"], m["t_us"][::5])  # every 5 ms
     assert np.array_equal(times["/world/skeleton/estimate"], m["t_us"])
     assert np.array_equal(times["/world/camera/image/frame"], rec.frames.t_us)
     latent = runner.load_output(result, "sharpen.latent")[None]
@@ -204,7 +205,8 @@ def test_decimation_is_logged_and_respected(finished_run, caplog):
     rec = runner.load_output(result, "source.recording")[None]
     content = collect_run_content(runner, result, m["t_us"], m["poses"], m["joints"], rec, rec.template)
     with caplog.at_level(logging.INFO, logger="eventcap.viewer"):
-        stats = write_recording(tmp / "small.rrd", content, events_ms=2, every_ms=1, max_frames=20)
+        stats = write_recording(tmp / "small.rrd", content, events_ms=2, every_ms=1, max_frames=20,
+                                outline_every_ms=1)
     n = stats["counts"]["event images"]
     assert 15 <= n <= 20  # the overlay video's rule: the step widens evenly to a whole number of ms
     assert stats["decimated"] == {"event images": f"{n} of 81", "silhouettes": f"{n} of 81"}
