@@ -249,7 +249,7 @@ def cmd_view(args) -> int:
     import subprocess
 
     from .viewer import RRD_NAME, ViewError, build_run_recording, has_display, how_to_view, require_rerun, \
-        rerun_command
+        rerun_command, web_viewer_command, web_viewer_url
 
     try:
         require_rerun()
@@ -273,8 +273,9 @@ def cmd_view(args) -> int:
         return 2
     cmd = [*rerun_command(), str(rrd)]
     if args.web:
-        cmd += ["--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(args.port)]
-        print(f"eventcap view: serving the web viewer of {rrd} on http://127.0.0.1:{args.port} (Ctrl-C stops)")
+        cmd = [*rerun_command(), *web_viewer_command(rrd, args.port, args.grpc_port)]
+        print(f"eventcap view: serving the web viewer of {rrd}: open {web_viewer_url(args.port, args.grpc_port)} "
+              f"(Ctrl-C stops)", flush=True)
         try:
             return subprocess.call(cmd)
         except KeyboardInterrupt:
@@ -284,7 +285,8 @@ def cmd_view(args) -> int:
         print(f"eventcap view: opened {rrd} in the Rerun viewer")
         return 0
     why = "" if args.no_open else "no display here; "
-    print(f"eventcap view: {rrd} ({rrd.stat().st_size / 1e6:.1f} MB): {why}{how_to_view(rrd, args.port)}")
+    print(f"eventcap view: {rrd} ({rrd.stat().st_size / 1e6:.1f} MB): {why}"
+          f"{how_to_view(rrd, args.port, args.grpc_port)}")
     return 0
 
 
@@ -449,7 +451,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--recompute", action="store_true", help="run the run's config again first (cache hits; "
                                                              "recomputes entries gone from the cache)")
     p.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 (for a browser)")
-    p.add_argument("--port", type=int, default=9090, help="web viewer port (default: %(default)s)")
+    p.add_argument("--port", type=int, default=9090, help="web viewer port, HTTP (default: %(default)s)")
+    p.add_argument("--grpc-port", type=int, default=9876, help="web viewer's data port (default: %(default)s)")
     p.add_argument("--no-open", action="store_true", help="only build the recording and print how to open it")
     p = sub.add_parser("convert", help="convert a recording into the project's format (streaming, bounded memory)")
     p.add_argument("input", metavar="IN", help="the recording: AEDAT4, HDF5, EVT2/EVT3 .raw, DAT, npy/npz or an "

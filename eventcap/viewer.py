@@ -658,9 +658,21 @@ def rerun_command() -> list[str]:
     return [exe] if Path(exe).exists() else [sys.executable, "-m", "rerun"]
 
 
-def how_to_view(rrd: Path, port: int = 9090) -> str:
+def web_viewer_url(port: int = 9090, grpc_port: int = 9876) -> str:
+    """The address that opens the web viewer *with* the served recording (the bare address shows a welcome page)."""
+    from urllib.parse import quote
+
+    return f"http://127.0.0.1:{port}?url={quote(f'rerun+http://localhost:{grpc_port}/proxy', safe='')}"
+
+
+def web_viewer_command(rrd: Path, port: int = 9090, grpc_port: int = 9876) -> list[str]:
+    """Arguments of ``rerun`` serving the web viewer of ``rrd`` on 127.0.0.1 (HTTP ``port``, data on ``grpc_port``)."""
+    return [str(rrd), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), "--port", str(grpc_port)]
+
+
+def how_to_view(rrd: Path, port: int = 9090, grpc_port: int = 9876) -> str:
     return (f"open it with the Rerun viewer:\n  rerun {rrd}\n"
             f"or, on a machine without a display, serve the web viewer on this machine and open it in a browser "
-            f"(e.g. through an SSH tunnel: ssh -L {port}:localhost:{port} -L 9876:localhost:9876 HOST):\n"
-            f"  rerun {rrd} --serve-web --bind 127.0.0.1 --web-viewer-port {port}\n"
-            f"  then open http://127.0.0.1:{port}")
+            f"(from elsewhere through an SSH tunnel: ssh -L {port}:localhost:{port} -L {grpc_port}:localhost:"
+            f"{grpc_port} HOST):\n  rerun {' '.join(web_viewer_command(rrd, port, grpc_port))}\n"
+            f"  then open {web_viewer_url(port, grpc_port)}")

@@ -232,6 +232,8 @@ def test_eventcap_view_builds_the_recording_of_a_finished_run(finished_run, tmp_
     out = capsys.readouterr()
     assert "building" in out.err and "no display here" in out.out
     assert f"rerun {copy / 'capture.rrd'}" in out.out and "--serve-web --bind 127.0.0.1" in out.out
+    # the address that loads the served recording, not the bare viewer (a welcome page)
+    assert "open http://127.0.0.1:9090?url=rerun%2Bhttp%3A%2F%2Flocalhost%3A9876%2Fproxy" in out.out
     rows_a, times_a, _ = read_rrd(run_dir / "capture.rrd")
     rows_b, times_b, _ = read_rrd(copy / "capture.rrd")
     assert rows_a == rows_b and all(np.array_equal(times_a[k], times_b[k]) for k in times_a)
