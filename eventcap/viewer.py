@@ -637,6 +637,9 @@ def build_run_recording(run_dir: Path, recompute: bool = False) -> Path:
     else:
         runner, result = load_finished_run(run_dir)
     cfg = check_outputs_config(runner)
+    if cfg.poses is None:
+        raise ViewError(f"{run_dir}: this run has no motion to show (outputs.poses is null or names no node of its "
+                        f"pipeline, e.g. pipeline=simulate); `eventcap preview RECORDING.zarr` shows a recording")
     only = dataclasses.replace(cfg, bvh=False, npz=False, video=False, c3d=False, rerun=True)
     summary = write_run_outputs(runner, result, run_dir, only, merge=True)
     if "rerun" not in summary["written"]:
