@@ -265,6 +265,7 @@ def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, templa
 
     content = collect_run_content(runner, result, t_us, poses, joints, rec, template,
                                   _first_output(runner, result, LatentFrames), cfg.poses)
+    content.name = f"{content.name or 'run'}/{run_dir.name}"  # the recording id: runs of one name stay apart
     stats = write_recording(run_dir / RRD_NAME, content, cfg.rerun_events_ms, cfg.rerun_every_ms,
                             cfg.rerun_max_frames, cfg.rerun_outline_every_ms)
     summary["rerun"] = stats

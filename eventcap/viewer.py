@@ -330,7 +330,8 @@ def _event_windows(rr, s, ev_stream, ends: np.ndarray, window_us: int, h: int, w
     xy, cls = np.concatenate(xys), np.concatenate(classes)
     rr.send_columns("world/camera/image/events", indexes=_times(rr, ends),
                     columns=[*rr.Points2D.columns(positions=xy, class_ids=cls, radii=np.full(cls.size, 0.5, np.float32),
-                                                  draw_order=np.zeros(cls.size, np.float32)).partition(lengths)],
+                                                  draw_order=np.zeros(cls.size, np.float32),
+                                                  show_labels=np.zeros(cls.size, bool)).partition(lengths)],
                     recording=s)
     return len(lengths), int(cls.size)
 
