@@ -70,6 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=1000)
     ap.add_argument("--chromium", default=shutil.which("chromium") or "chromium")
+    ap.add_argument("--click", type=float, nargs=2, metavar=("X", "Y"), action="append", default=[],
+                    help="after loading, click at these page coordinates (e.g. on the time bar to seek), then wait "
+                         "5 s; repeatable")
     args = ap.parse_args(argv)
 
     rerun = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
@@ -121,6 +124,11 @@ def main(argv: list[str] | None = None) -> int:
         dt.call("Page.navigate", {"url": url}, session)
         print(f"loading for {args.wait:.0f} s ...", file=sys.stderr)
         time.sleep(args.wait)
+        for x, y in args.click:
+            for kind in ("mousePressed", "mouseReleased"):
+                dt.call("Input.dispatchMouseEvent", {"type": kind, "x": x, "y": y, "button": "left", "clickCount": 1},
+                        session)
+            time.sleep(5)
         shot = dt.call("Page.captureScreenshot", {"format": "png"}, session, timeout_s=120)
         args.out.write_bytes(base64.b64decode(shot["data"]))
         print(f"wrote {args.out}", file=sys.stderr)
