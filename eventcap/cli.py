@@ -8,6 +8,7 @@
     eventcap benchmark [overrides]       Table 1 / Fig. 7 on synthetic captures: methods x motions x seeds, one cache
                                          (benchmark=quick for a short one; conf/benchmark/*.yaml)
     eventcap report RUNS_DIR             one table (+ CSV, plot) of the jobs of a sweep (eventcap run -m ...)
+    eventcap view RUN_DIR | FILE.rrd     the run in the Rerun viewer (capture.rrd, built from the run if missing)
     eventcap convert IN OUT              convert a recording (AEDAT4, HDF5, EVT2/3, DAT, npy/npz, rpg) into the
                                          project's format, streaming (--t-start/--t-end, --roi, --calibration)
 """
@@ -243,6 +244,52 @@ def cmd_preview(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    """Open a run's Rerun recording (``capture.rrd``; built from the run folder when missing), or say how."""
+    import subprocess
+
+    from .viewer import RRD_NAME, ViewError, build_run_recording, has_display, how_to_view, require_rerun, \
+        rerun_command, web_viewer_command, web_viewer_url
+
+    try:
+        require_rerun()
+    except ImportError as exc:
+        print(f"eventcap view: {exc}", file=sys.stderr)
+        return 2
+    target = Path(args.target)
+    try:
+        if target.is_file() and target.suffix == ".rrd":
+            rrd = target
+        elif target.is_dir():
+            rrd = target / RRD_NAME
+            if args.rebuild or args.recompute or not rrd.is_file():
+                print(f"eventcap view: building {rrd} from the run (its config.yaml, run.json and the cache)",
+                      file=sys.stderr)
+                rrd = build_run_recording(target, recompute=args.recompute)
+        else:
+            raise ViewError(f"{target}: expected a run folder (runs/<name>/<timestamp>/) or an .rrd file")
+    except ViewError as exc:
+        print(f"eventcap view: {exc}", file=sys.stderr)
+        return 2
+    cmd = [*rerun_command(), str(rrd)]
+    if args.web:
+        cmd = [*rerun_command(), *web_viewer_command(rrd, args.port, args.grpc_port)]
+        print(f"eventcap view: serving the web viewer of {rrd}: open {web_viewer_url(args.port, args.grpc_port)} "
+              f"(Ctrl-C stops)", flush=True)
+        try:
+            return subprocess.call(cmd)
+        except KeyboardInterrupt:
+            return 0
+    if has_display() and not args.no_open:
+        subprocess.Popen(cmd, start_new_session=True)
+        print(f"eventcap view: opened {rrd} in the Rerun viewer")
+        return 0
+    why = "" if args.no_open else "no display here; "
+    print(f"eventcap view: {rrd} ({rrd.stat().st_size / 1e6:.1f} MB): {why}"
+          f"{how_to_view(rrd, args.port, args.grpc_port)}")
+    return 0
+
+
 def cmd_convert(args) -> int:
     """Convert a recording into the project's format, printing progress (stderr) and a summary (stdout)."""
     from .io import RecordingError
@@ -398,6 +445,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="output PNG (default: next to the recording)")
     p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
     p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
+    p = sub.add_parser("view", help="the run in the Rerun viewer (capture.rrd; built from the run folder if missing)")
+    p.add_argument("target", metavar="RUN_DIR", help="a run folder (runs/<name>/<timestamp>/) or an .rrd file")
+    p.add_argument("--rebuild", action="store_true", help="write capture.rrd again even if the run folder has one")
+    p.add_argument("--recompute", action="store_true", help="run the run's config again first (cache hits; "
+                                                             "recomputes entries gone from the cache)")
+    p.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 (for a browser)")
+    p.add_argument("--port", type=int, default=9090, help="web viewer port, HTTP (default: %(default)s)")
+    p.add_argument("--grpc-port", type=int, default=9876, help="web viewer's data port (default: %(default)s)")
+    p.add_argument("--no-open", action="store_true", help="only build the recording and print how to open it")
     p = sub.add_parser("convert", help="convert a recording into the project's format (streaming, bounded memory)")
     p.add_argument("input", metavar="IN", help="the recording: AEDAT4, HDF5, EVT2/EVT3 .raw, DAT, npy/npz or an "
                                                 "rpg folder")
@@ -433,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
         return cmd_preview(args)
     if args.command == "convert":
         return cmd_convert(args)
+    if args.command == "view":
+        return cmd_view(args)
     if args.command == "cache":
         if args.action == "explain" and not args.key:
             parser.error("cache explain needs a KEY")

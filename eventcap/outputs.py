@@ -15,6 +15,10 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
   (green) of the estimate projected into the camera, the ground-truth skeleton (grey) when the recording has one,
   and beside it an orthographic side view of the 3D skeleton. ``overlay_frames/`` keeps ``video_png_frames`` of its
   frames as PNG. The file appears atomically (written as ``overlay.partial.mp4``, then renamed).
+- ``motion.c3d`` (``c3d: true``): the joints and the template's landmarks in millimetres at the tracking rate, for
+  mocap tools (:mod:`eventcap.c3d`).
+- ``capture.rrd`` (``rerun: true``): a Rerun recording of everything the run saw and produced (:mod:`eventcap.viewer`;
+  ``eventcap view RUN_DIR`` opens it, or builds it from a finished run).
 
 A run whose poses node committed nothing (it failed or was skipped) gets none of these, with a log line saying so.
 """
@@ -64,6 +68,12 @@ class OutputsConfig:
     video_scale: int = 2  # image pixels per sensor pixel
     video_events_ms: float = 5.0  # events of the last ... ms are drawn
     video_png_frames: int = 4  # frames of the video also saved as PNG in overlay_frames/
+    c3d: bool = False  # motion.c3d: joints + template landmarks, mm, at the tracking rate (eventcap/c3d.py)
+    rerun: bool = False  # capture.rrd: a Rerun recording of the whole run (eventcap/viewer.py; eventcap view)
+    rerun_events_ms: float = 1.0  # each event image shows the events of the last ... ms
+    rerun_every_ms: float = 1.0  # motion time between event images
+    rerun_outline_every_ms: float = 5.0  # motion time between silhouette outlines (each costs a rasterization)
+    rerun_max_frames: int = 2000  # at most this many event images / outlines (the step widens)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None) -> OutputsConfig:
@@ -78,14 +88,16 @@ class OutputsConfig:
             raise ValueError(f"outputs.poses: expected '<node>.<port>' (e.g. solve.poses) or null, got {cfg.poses!r}")
         if cfg.join not in JOIN_RULES:
             raise ValueError(f"outputs.join: expected one of {', '.join(JOIN_RULES)}, got {cfg.join!r}")
-        for name in ("bvh", "npz", "video"):
+        for name in ("bvh", "npz", "video", "c3d", "rerun"):
             if not isinstance(getattr(cfg, name), bool):
                 raise ValueError(f"outputs.{name}: expected true or false, got {getattr(cfg, name)!r}")
-        for name in ("video_every_ms", "video_fps", "video_events_ms"):
+        for name in ("video_every_ms", "video_fps", "video_events_ms", "rerun_events_ms", "rerun_every_ms",
+                     "rerun_outline_every_ms"):
             v = getattr(cfg, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ValueError(f"outputs.{name}: expected a positive number, got {v!r}")
-        for name, low in (("video_max_frames", 1), ("video_scale", 1), ("video_png_frames", 0)):
+        for name, low in (("video_max_frames", 1), ("video_scale", 1), ("video_png_frames", 0),
+                          ("rerun_max_frames", 1)):
             v = getattr(cfg, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ValueError(f"outputs.{name}: expected an integer >= {low}, got {v!r}")
@@ -95,6 +107,13 @@ class OutputsConfig:
 def check_outputs_config(runner) -> OutputsConfig:
     """The run's outputs config, checked against its pipeline (before anything runs)."""
     cfg = OutputsConfig.from_mapping(runner.cfg.get("outputs"))
+    import importlib.util
+
+    for key, module, install in (("rerun", "rerun", "rerun-sdk (or: pip install -e \".[viewer]\")"),
+                                 ("c3d", "ezc3d", "ezc3d")):
+        if getattr(cfg, key) and importlib.util.find_spec(module) is None:  # refused before anything runs
+            raise ValueError(f"outputs.{key}=true needs the {module if module != 'rerun' else 'rerun-sdk'} package: "
+                             f"pip install {install}, or set outputs.{key}=false")
     if cfg.poses is None:
         return cfg
     node_name, _, port = cfg.poses.partition(".")
@@ -129,10 +148,12 @@ def _first_output(runner, result, cls, prefer: list[str] = ()) -> Any:
     return None
 
 
-def write_run_outputs(runner, result, run_dir: str | Path, cfg: OutputsConfig | None = None) -> dict[str, Any]:
+def write_run_outputs(runner, result, run_dir: str | Path, cfg: OutputsConfig | None = None,
+                      merge: bool = False) -> dict[str, Any]:
     """Write the configured outputs of a finished run into ``run_dir``; returns what was written (paths as
     strings), what was ``skipped`` and why, and ``problems`` (errors while writing). Missing inputs are logged and
-    skipped, not errors. The summary is also added to the run folder's ``run.json`` under ``outputs``."""
+    skipped, not errors. The summary is also added to the run folder's ``run.json`` under ``outputs`` (``merge``:
+    added to what an earlier call recorded there, e.g. ``eventcap view`` adding the recording to a finished run)."""
     cfg = cfg or check_outputs_config(runner)
     run_dir = Path(run_dir)
     summary: dict[str, Any] = {"written": {}, "skipped": {}, "problems": []}
@@ -141,7 +162,7 @@ def write_run_outputs(runner, result, run_dir: str | Path, cfg: OutputsConfig | 
     except Exception as exc:  # noqa: BLE001 - e.g. an unreadable cache entry: reported, the run's results stay
         summary["problems"].append(f"{type(exc).__name__}: {exc}")
         log.error("outputs: %s: %s", type(exc).__name__, exc)
-    _note_in_run_json(run_dir, summary)
+    _note_in_run_json(run_dir, summary, merge)
     return summary
 
 
@@ -150,7 +171,7 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     from .artifacts.tracking import LatentFrames
     from .body.template import Template
 
-    wanted = [k for k in ("bvh", "npz", "video") if getattr(cfg, k)]
+    wanted = [k for k in ("bvh", "npz", "video", "c3d", "rerun") if getattr(cfg, k)]
     if cfg.poses is None or not wanted:
         return summary
 
@@ -203,6 +224,11 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
             latent = _first_output(runner, result, LatentFrames)
             jobs.append(("video", lambda: write_overlay_video(run_dir, rec, template, t_us, poses, joints, cfg,
                                                               latent=latent)))
+    if cfg.c3d:
+        jobs.append(("c3d", lambda: _write_c3d(run_dir / "motion.c3d", t_us, poses, joints, template, step)))
+    if cfg.rerun:
+        jobs.append(("rerun", lambda: _write_rerun(run_dir, runner, result, t_us, poses, joints, rec, template,
+                                                   cfg, summary)))
     for name, job in jobs:
         try:
             path = job()
@@ -225,11 +251,37 @@ def _write_bvh(path: Path, t_us, poses, template, step_us: int) -> Path:
     return write_bvh(path, S, template.rest_joints, frame_time_s=step_us * 1e-6)
 
 
-def _note_in_run_json(run_dir: Path, summary: dict[str, Any]) -> None:
+def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int) -> Path:
+    from .body.kinematics import landmark_positions
+    from .c3d import write_c3d
+
+    return write_c3d(path, t_us, joints, landmark_positions(poses, template), step_us)
+
+
+def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, template, cfg: OutputsConfig,
+                 summary: dict[str, Any]) -> Path:
+    from .artifacts.tracking import LatentFrames
+    from .viewer import RRD_NAME, collect_run_content, write_recording
+
+    content = collect_run_content(runner, result, t_us, poses, joints, rec, template,
+                                  _first_output(runner, result, LatentFrames), cfg.poses)
+    content.name = f"{content.name or 'run'}/{run_dir.name}"  # the recording id: runs of one name stay apart
+    stats = write_recording(run_dir / RRD_NAME, content, cfg.rerun_events_ms, cfg.rerun_every_ms,
+                            cfg.rerun_max_frames, cfg.rerun_outline_every_ms)
+    summary["rerun"] = stats
+    return run_dir / RRD_NAME
+
+
+def _note_in_run_json(run_dir: Path, summary: dict[str, Any], merge: bool = False) -> None:
     p = run_dir / "run.json"
     if not p.is_file():
         return
     data = json.loads(p.read_text())
+    if merge and isinstance(data.get("outputs"), dict):
+        old = data["outputs"]
+        summary = {**old, **summary, "written": {**old.get("written", {}), **summary["written"]},
+                   "skipped": {**old.get("skipped", {}), **summary["skipped"]},
+                   "problems": old.get("problems", []) + summary["problems"]}
     data["outputs"] = summary
     tmp = p.with_name(".run.json.tmp")
     tmp.write_text(json.dumps(data, indent=1))
