@@ -39,6 +39,10 @@ def open_source(path, format: str | None = None, time_unit: str | None = None) -
         from eventcap.io.aedat4 import Aedat4Source
 
         return Aedat4Source(path, unit)
+    if fmt in ("aedat2", "aedat3"):
+        from eventcap.io.aedat_legacy import Aedat2Source, Aedat31Source
+
+        return (Aedat2Source if fmt == "aedat2" else Aedat31Source)(path, unit)
     if fmt == "hdf5":
         from eventcap.io.hdf5 import Hdf5Source
 
