@@ -93,8 +93,9 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     if not result.ok:
         failed = [f"{n} batch {f['batch']}" if f["batch"] is not None else n
                   for n, r in result.nodes.items() for f in r.failed]
-        skipped = [n for n, r in result.nodes.items() if r.skipped]
-        msg = f"failed: {', '.join(failed) or '-'}; skipped (upstream failed): {', '.join(skipped) or '-'}"
+        skipped = [f"{n} ({r.skip_causes[0]['cause']})" if r.skip_causes else n
+                   for n, r in result.nodes.items() if r.skipped]
+        msg = f"failed: {', '.join(failed) or '-'}; skipped: {', '.join(skipped) or '-'}"
         log.error("run incomplete: %s. Fix the cause and run the same command again: committed results are reused.", msg)
         failures.append(f"{run_dir}: {msg}")
     return runner, result
