@@ -15,7 +15,7 @@ from eventcap.io.rpg import EVENTS
 READ_FORMATS = ("aedat4", "aedat2", "aedat3", "hdf5", "rpg", "evt2", "evt3", "dat", "npy", "npz")
 
 _EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".hdf": "hdf5", ".raw": "evt", ".dat": "dat",
-               ".npy": "npy", ".npz": "npz", ".txt": "rpg"}
+               ".npy": "npy", ".npz": "npz", ".txt": "rpg", ".csv": "rpg"}
 
 
 def detect_format(path) -> str:
