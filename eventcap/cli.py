@@ -269,7 +269,8 @@ def cmd_convert(args) -> int:
         stats = convert_recording(args.input, args.output, format=args.format, chunk_events=args.chunk_events,
                                   calibration=args.calibration, width=args.width, height=args.height,
                                   time_window_us=window, roi=roi, time_unit=args.time_unit,
-                                  overwrite=args.overwrite, progress=progress)
+                                  overwrite=args.overwrite, progress=progress, columns=args.columns or None,
+                                  y_up=args.y_up)
     except (RecordingError, ValueError, OSError) as exc:
         if shown["any"] and tty:
             print(file=sys.stderr)
@@ -414,6 +415,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--roi", type=int, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
                    help="keep the region x0 <= x < x1, y0 <= y < y1 (moved to 0, 0)")
     p.add_argument("--time-unit", help="unit of array/text time columns when the default is wrong (s, ms, us, ns)")
+    p.add_argument("--columns", help="column order of unnamed array/text columns, e.g. x,y,t,p")
+    p.add_argument("--y-up", action="store_true", help="the file's y axis points up (origin bottom-left)")
     p.add_argument("--chunk-events", type=int, default=1 << 20, metavar="N",
                    help="events decoded per chunk (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")

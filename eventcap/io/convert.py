@@ -201,15 +201,18 @@ def _check_roi_inside(r: Roi, width: int, height: int) -> None:
 
 
 def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, width, height, window, roi, time_unit,
-                 progress) -> dict:
+                 progress, columns=None, y_up=False) -> dict:
     """Write the Recording group ``root`` from ``in_path``; returns the statistics of the conversion."""
     t_begin = time.perf_counter()
-    declared = open_source(in_path, format, time_unit).width is not None
+    declared = open_source(in_path, format, time_unit, columns).width is not None
     infer = not declared and width is None and height is None
+    if infer and y_up:
+        raise ValueError(f"{in_path}: y_up flips y about the sensor height, which the file does not declare: pass "
+                         f"width and height")
     # A file without a sensor size streams against the largest 16-bit sensor; the size is inferred from the
     # largest coordinates at the end, as read_recording does.
     chunks = iter_event_chunks(in_path, chunk_events, format, width=65536 if infer else width,
-                               height=65536 if infer else height, time_unit=time_unit)
+                               height=65536 if infer else height, time_unit=time_unit, columns=columns, y_up=y_up)
     source = chunks._source  # the same decoder object read_recording would ask for frames and calibration
     path = chunks.path
     full_w, full_h = (None, None) if infer else (chunks.width, chunks.height)
@@ -376,13 +379,14 @@ def _commit(tmp: Path, out: Path) -> None:
 def convert_recording(in_path, out_path, *, format: str | None = None, chunk_events: int = DEFAULT_CHUNK_EVENTS,
                       calibration=None, width: int | None = None, height: int | None = None,
                       time_window_us: tuple[int, int] | None = None, roi=None, time_unit: str | None = None,
-                      overwrite: bool = False,
+                      overwrite: bool = False, columns=None, y_up: bool = False,
                       progress: Callable[[int, int, float], None] | None = None) -> dict:
     """Convert a recording (any format :func:`eventcap.io.read_recording` reads) into the project's format at
     ``out_path`` (a zarr v3 folder, read with ``Recording.from_zarr``), in memory bounded by a few chunks.
 
-    - ``format``, ``width``, ``height``, ``time_unit``: as for :func:`eventcap.io.read_recording` (a file without a
-      sensor size and no ``width``/``height`` gets the size inferred from its events, noted as a repair).
+    - ``format``, ``width``, ``height``, ``time_unit``, ``columns``, ``y_up``: as for
+      :func:`eventcap.io.read_recording` (a file without a sensor size and no ``width``/``height`` gets the size
+      inferred from its events, noted as a repair; ``y_up`` then needs ``width``/``height``).
     - ``chunk_events``: events decoded per chunk.
     - ``calibration``: an rpg ``calib.txt`` (of the full sensor) overriding the file's calibration; without either,
       a nominal pinhole camera (the ``source`` attribute then says ``UNCALIBRATED``).
@@ -433,7 +437,7 @@ def convert_recording(in_path, out_path, *, format: str | None = None, chunk_eve
         root = zarr.open_group(str(tmp), mode="w-")
         stats = _stream_into(root, in_path, format=format, chunk_events=int(chunk_events), calibration=calibration,
                              width=width, height=height, window=window, roi=roi, time_unit=time_unit,
-                             progress=progress)
+                             progress=progress, columns=columns, y_up=y_up)
         _commit(tmp, out)
     except BaseException:
         _remove(tmp)
