@@ -85,6 +85,19 @@ def test_aedat2_round_trip_with_specials_wrap_and_streaming(tmp_path):
     np.testing.assert_array_equal(np.concatenate(list(chunks)), r.events)
 
 
+def test_aedat2_dhp19_multi_camera_reads_one_camera_and_counts_the_others(tmp_path):
+    p = tmp_path / "mov1.aedat"
+    chip = b"# AEChip: ch.unizh.ini.jaer.chip.multicamera.MultiDavis346BCameraChip\r\n"
+    recs = [(davis_address(345 - 10, 259 - 20, True) | 2, 10), (davis_address(0, 0, True) | 0, 20),
+            (davis_address(345 - 11, 259 - 21, False) | 2, 30), (davis_address(5, 5, True) | 3, 40)]
+    p.write_bytes(aedat2_bytes(recs, chip))
+    r = read_recording(p)
+    assert (r.width, r.height) == (346, 260)
+    assert r.events.tolist() == [(0, 10, 20, 1), (20, 11, 21, -1)]  # camera 2, the first one in the file
+    assert r.repairs == ("ch.unizh.ini.jaer.chip.multicamera.MultiDavis346BCameraChip records several cameras: "
+                         "read camera 2; left out 2 events of camera(s) 0, 3",)
+
+
 def test_aedat2_truncated_and_refused_files(tmp_path):
     ev = random_events(200)
     p = tmp_path / "t.aedat"

@@ -13,7 +13,11 @@ AEDAT 2.0 (big-endian ``int32 address, int32 timestamp µs`` after ``#`` header 
 jAER stores x mirrored and y from the bottom: both are flipped here into the project's top-left origin
 (``x = width - 1 - x_address``, ``y = height - 1 - y_address``). Special events, IMU and APS samples are left out
 (APS frames of AEDAT 2.0 are not assembled: the count of skipped APS samples is reported). The 32-bit timestamp
-wraps after 71.6 min; that is unwrapped like any 32-bit time column.
+wraps after 71.6 min; that is unwrapped like any 32-bit time column. DHP19's recordings are AEDAT 2.0 of the chip
+class ``MultiDavis346BCameraChip``: four DAVIS346 cameras in one stream, the camera index in address bits 0-3
+(as DHP19's own loader reads it); the first camera in the file is read (``Aedat2Source(path, camera=k)`` picks
+another) and the events of the others are left out and counted in a note. The x mirror and bottom-up y of jAER's
+DAVIS extractor are assumed for this chip class too (not checked against a DHP19 file: none was at hand).
 
 AEDAT 3.1 (little-endian packets after ``#!END-HEADER``; each a 28-byte header ``type, source (int16), size,
 ts offset, ts overflow, capacity, number, valid (int32)`` and ``capacity × size`` bytes of events):
@@ -107,10 +111,11 @@ class Aedat2Source(Source):
 
     format = "aedat2"
 
-    def __init__(self, path: Path, time_unit: str | None = None):
+    def __init__(self, path: Path, time_unit: str | None = None, camera: int | None = None):
         super().__init__(path, time_unit)
         if time_unit not in (None, "us"):
             raise RecordingError(path, f"AEDAT 2.0 stores µs; time_unit={time_unit!r} does not apply")
+        self._camera = camera
         version, lines, self._header_length = read_legacy_header(path)
         if version != "2.0":
             raise RecordingError(path, f"AEDAT version {version!r}: expected 2.0", "file header")
@@ -133,6 +138,7 @@ class Aedat2Source(Source):
                                            f"208, 128)", "file header")
             self._layout, self.width, self.height = found
             self._assumed = None
+        self._multi = chip is not None and "multi" in chip.lower()
 
     def _records(self, a: int, b: int) -> np.ndarray:
         if b <= a:
@@ -147,7 +153,7 @@ class Aedat2Source(Source):
         extra = (file_size(self.path) - self._header_length) % 8
         if extra:
             self.notes.append(f"the file ends with a partial 8-byte event ({extra} byte(s), truncated file?): ignored")
-        counts = {"aps": 0, "imu": 0, "special": 0}
+        counts = {"aps": 0, "imu": 0, "special": 0, "cameras": {}}
         rows = RowLocator()
 
         def columns():
@@ -169,6 +175,10 @@ class Aedat2Source(Source):
         if counts["aps"]:
             self.notes.append(f"{counts['aps']} APS samples (intensity frames) are not decoded from AEDAT 2.0: "
                               f"events only")
+        others = {c: n for c, n in counts["cameras"].items() if c != self._camera}
+        if others:
+            self.notes.append(f"{self.chip} records several cameras: read camera {self._camera}; left out "
+                              f"{sum(others.values())} events of camera(s) {', '.join(map(str, sorted(others)))}")
         if counts["special"] or counts["imu"]:
             logger.info("%s: left out %d special (external input) events and %d IMU samples", self.path,
                         counts["special"], counts["imu"])
@@ -192,6 +202,14 @@ class Aedat2Source(Source):
             counts["imu"] += int(np.sum(sample & (kind == 3)))
             counts["aps"] += int(np.sum(sample & (kind != 3)))
             keep = ~sample & ~special
+            if self._multi:  # the camera index in bits 0-3 (DHP19)
+                cam = (a & 0xF).astype(np.int64)
+                ids, n = np.unique(cam[keep], return_counts=True)
+                for c, k in zip(ids.tolist(), n.tolist()):
+                    counts["cameras"][c] = counts["cameras"].get(c, 0) + k
+                if self._camera is None and len(ids):
+                    self._camera = int(cam[keep][0])
+                keep &= cam == (self._camera if self._camera is not None else -1)
             xa, ya = (a >> 12) & 0x3FF, (a >> 22) & 0x1FF
             p = (a >> 11) & 1
         counts["special"] += int(np.sum(special))
