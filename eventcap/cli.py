@@ -401,10 +401,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
     p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
     p = sub.add_parser("convert", help="convert a recording into the project's format (streaming, bounded memory)")
-    p.add_argument("input", metavar="IN", help="the recording: AEDAT4, HDF5, EVT2/EVT3 .raw, DAT, npy/npz or an "
-                                                "rpg folder")
+    p.add_argument("input", metavar="IN", help="the recording: AEDAT4, AEDAT 2.0/3.1, HDF5, EVT2/EVT3 .raw, DAT, "
+                                                "npy/npz, csv/txt or an rpg folder")
     p.add_argument("output", metavar="OUT", help="the folder to write (a zarr group, e.g. rec.zarr)")
-    p.add_argument("--format", help="force the input format (aedat4, hdf5, evt2, evt3, dat, npy, npz, rpg)")
+    p.add_argument("--format", help="force the input format (aedat4, aedat2, aedat3, hdf5, evt2, evt3, dat, npy, "
+                                    "npz, rpg)")
     p.add_argument("--calibration", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3]) of the full sensor, "
                                          "overriding the file's")
     p.add_argument("--width", type=int, help="sensor width for files that do not store it")

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eventcap.events import EVENT_DTYPE, make_events
+from eventcap.events import make_events
 from eventcap.io import RecordingError, detect_format, iter_event_chunks, read_recording
 from eventcap.io.aedat_legacy import sensor_of, write_aedat2, write_aedat31
 
