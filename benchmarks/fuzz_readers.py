@@ -119,6 +119,11 @@ def make_corpus(folder: Path, include_real: bool = True) -> list[Entry]:
     file_ev["t"] = (ev["t"] + off) % 2**32  # jAER's 32-bit µs counter
     write_aedat2(folder / "small2.aedat", file_ev, specials_every=9)
     entries.append(Entry("aedat2", folder / "small2.aedat", ("",), (1.0,)))
+    yy, xx = np.mgrid[0:180, 0:240]
+    aps = np.stack([(512 + 400 * np.sin(xx / 9.0 + k) * np.cos(yy / 7.0)).astype(np.int64) for k in range(2)])
+    t_aps = (file_ev["t"][0] + np.array([10_000, 50_000])) % 2**32
+    write_aedat2(folder / "small2_aps.aedat", file_ev, frames=(aps, t_aps, t_aps + 4_000))
+    entries.append(Entry("aedat2_aps", folder / "small2_aps.aedat", ("",), (1.0,)))
     file_ev["t"] = ev["t"] + off
     f = rec.frames
     images = np.rint(np.asarray(f.images) * 65535).astype(np.uint16)

@@ -55,7 +55,63 @@ def test_aedat2_davis_addresses_follow_jaer(tmp_path):
     assert (r.format, r.width, r.height, r.t_offset_us) == ("aedat2", 240, 180, 100)
     assert r.events.tolist() == [(0, 0, 0, 1), (50, 239, 179, -1), (100, 229, 9, 1)]
     assert r.frames is None
-    assert r.repairs == ("1 APS samples (intensity frames) are not decoded from AEDAT 2.0: events only",)
+    assert r.repairs == ("1 APS samples are not in complete global-shutter frames (rolling shutter, a region of "
+                         "interest, or a frame cut short): left out",)
+
+
+def aps_frame_records(image_10bit: np.ndarray, t_reset: int, t_signal: int) -> list[tuple[int, int]]:
+    """A global-shutter APS frame as jAER stores it: reset reads (1023) of every pixel, then signal reads
+    (1023 - value); APS x addresses are not mirrored, y counts from the bottom."""
+    h, w = image_10bit.shape
+    out = []
+    for kind, t in ((0, t_reset), (1, t_signal)):
+        for row in range(h):
+            for col in range(w):
+                adc = 1023 if kind == 0 else 1023 - int(image_10bit[row, col])
+                out.append(((1 << 31) | ((h - 1 - row) << 22) | (col << 12) | (kind << 10) | adc, t))
+    return out
+
+
+def test_aedat2_global_shutter_aps_frames(tmp_path):
+    rng = np.random.default_rng(8)
+    frames = rng.integers(0, 1024, (2, 180, 240))
+    recs = [(davis_address(239, 179, True), 1_000)]
+    recs += aps_frame_records(frames[0], 2_000, 7_000)
+    recs += [(davis_address(0, 0, False), 20_000)]
+    recs += aps_frame_records(frames[1], 42_000, 47_000)
+    recs += aps_frame_records(frames[1], 82_000, 87_000)[:1000]  # cut short by the end of the file
+    p = tmp_path / "aps.aedat"
+    p.write_bytes(aedat2_bytes(recs))
+    r = read_recording(p)
+    assert r.events.tolist() == [(0, 0, 0, 1), (19_000, 239, 179, -1)]
+    np.testing.assert_array_equal(r.frames.images, (frames / 1023).astype(np.float32))
+    np.testing.assert_array_equal(r.frames.t_us, [3_500, 43_500])  # mid-exposure, on the events' clock
+    np.testing.assert_array_equal(r.frames.exposure_us, [5_000, 5_000])
+    assert r.repairs == ("1000 APS samples are not in complete global-shutter frames (rolling shutter, a region "
+                         "of interest, or a frame cut short): left out",)
+
+
+AEDAT4_REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "davis346_lab_aps.aedat4"
+CONVERTED = os.environ.get("EVENTCAP_AEDAT2_OF_DAVIS346", "")
+
+
+@pytest.mark.skipif(not (Path(CONVERTED).is_file() and AEDAT4_REAL.is_file()),
+                    reason="set EVENTCAP_AEDAT2_OF_DAVIS346 to the real DAVIS346 AEDAT4 file converted by iniVation's "
+                           "aedat4to2 (github.com/SensorsINI/aedat4to2: aedat4to2.py --no_imu davis346_lab_aps.aedat4)")
+def test_real_davis346_recording_through_inivations_aedat4to2_converter():
+    """The same real recording decoded from AEDAT4 (by the aedat library) and from the AEDAT 2.0 that iniVation's
+    converter writes: times, y and polarity agree exactly; the converter stores DVS x unmirrored while jAER's
+    extractor (which this reader follows) mirrors it, and it stores APS x mirrored, so both events and frames come
+    out mirrored, consistently with each other; frames hold the 8-bit values in the 10-bit field."""
+    a4, a2 = read_recording(AEDAT4_REAL), read_recording(CONVERTED)
+    e4, e2 = a4.events, a2.events
+    assert len(e2) == len(e4) == 117_667
+    np.testing.assert_array_equal(e2["t"], e4["t"])
+    np.testing.assert_array_equal(e2["y"], e4["y"])
+    np.testing.assert_array_equal(e2["p"], e4["p"])
+    np.testing.assert_array_equal(e2["x"], 345 - e4["x"].astype(np.int64))
+    np.testing.assert_array_equal(np.rint(a2.frames.images * 1023), np.rint(a4.frames.images * 255)[:, :, ::-1])
+    np.testing.assert_array_equal(a2.frames.t_us, a4.frames.t_us)
 
 
 def test_aedat2_dvs128_polarity_bit_zero_is_on(tmp_path):

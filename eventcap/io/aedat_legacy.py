@@ -10,9 +10,14 @@ AEDAT 2.0 (big-endian ``int32 address, int32 timestamp µs`` after ``#`` header 
 - DAVIS240/346/...: bit 31 set = APS or IMU sample, bit 10 set (with bit 31 clear) = external (special) event,
   otherwise a polarity event with bit 11 = ON, bits 12-21 x, bits 22-30 y.
 
-jAER stores x mirrored and y from the bottom: both are flipped here into the project's top-left origin
-(``x = width - 1 - x_address``, ``y = height - 1 - y_address``). Special events, IMU and APS samples are left out
-(APS frames of AEDAT 2.0 are not assembled: the count of skipped APS samples is reported). The 32-bit timestamp
+jAER's DAVIS extractor mirrors the x address of DVS events (``x = width - 1 - x_address``, not that of APS
+samples) and counts y from the bottom: both are undone here into the project's top-left origin
+(``y = height - 1 - y_address``). Special events and IMU samples are left out. APS samples (bit 31, readout type
+in bits 10-11: 0 reset read, 1 signal read, 10-bit ADC value in bits 0-9) are assembled into global-shutter
+frames: a run of reset reads of every pixel followed by a run of signal reads of every pixel gives one frame,
+intensity ``(reset - signal) / 1023`` clipped to [0, 1], exposure from the last reset read to the first signal
+read; samples in any other arrangement (rolling shutter, regions of interest, a frame cut by the end of the
+file) are left out and counted in a note. The 32-bit timestamp
 wraps after 71.6 min; that is unwrapped like any 32-bit time column. DHP19's recordings are AEDAT 2.0 of the chip
 class ``MultiDavis346BCameraChip``: four DAVIS346 cameras in one stream, the camera index in address bits 0-3
 (as DHP19's own loader reads it); the first camera in the file is read (``Aedat2Source(path, camera=k)`` picks
@@ -59,7 +64,7 @@ _FRAME31_HEADER = np.dtype([("info", "<u4"), ("frame_start", "<i4"), ("frame_end
 #: Chip / source names → (address layout of AEDAT 2.0, width, height); matched case-insensitively, first wins.
 SENSORS = (
     (r"dvs128|tmpdiff128", "dvs128", 128, 128),
-    (r"davis ?346|dvs ?346|davis346", "davis", 346, 260),
+    (r"davis? ?346|dvs ?346", "davis", 346, 260),  # "DAVI346": the chip name iniVation's aedat4to2 writes
     (r"davis ?240|sbret10|davis ?fx2", "davis", 240, 180),
     (r"davis ?640|davis ?rgb", "davis", 640, 480),
     (r"davis ?208", "davis", 208, 192),
@@ -155,12 +160,17 @@ class Aedat2Source(Source):
             self.notes.append(f"the file ends with a partial 8-byte event ({extra} byte(s), truncated file?): ignored")
         counts = {"aps": 0, "imu": 0, "special": 0, "cameras": {}}
         rows = RowLocator()
+        aps: list[tuple[np.ndarray, np.ndarray]] = []
 
         def columns():
             for a0 in range(0, self._n_records, chunk_events):
                 rec = self._records(a0, min(self._n_records, a0 + chunk_events))
                 addr, t = np.asarray(rec["a"]).astype(np.uint32), np.asarray(rec["t"]).astype(np.uint32)
                 x, y, p, keep = self._decode(addr, a0, counts)
+                if with_frames and self._layout == "davis":
+                    s = ((addr >> 31) == 1) & (((addr >> 10) & 3) < 2)
+                    if s.any():
+                        aps.append((addr[s], t[s]))
                 idx = np.flatnonzero(keep)
                 if len(idx):
                     rows.add(row_of[0], f"record {a0 + int(idx[0])} of the data")
@@ -172,9 +182,13 @@ class Aedat2Source(Source):
         for t, x, y, p in rechunk(columns(), chunk_events):
             yield RawChunk(t, x, y, p, row, rows)
             row += len(t)
-        if counts["aps"]:
-            self.notes.append(f"{counts['aps']} APS samples (intensity frames) are not decoded from AEDAT 2.0: "
-                              f"events only")
+        if with_frames:
+            self._frames = self._assemble_frames(aps)
+            used = 0 if self._frames is None else len(self._frames[0]) * 2 * self.width * self.height
+            left = counts["aps"] - used
+            if left:
+                self.notes.append(f"{left} APS samples are not in complete global-shutter frames (rolling shutter, a "
+                                  f"region of interest, or a frame cut short): left out")
         others = {c: n for c, n in counts["cameras"].items() if c != self._camera}
         if others:
             self.notes.append(f"{self.chip} records several cameras: read camera {self._camera}; left out "
@@ -182,6 +196,54 @@ class Aedat2Source(Source):
         if counts["special"] or counts["imu"]:
             logger.info("%s: left out %d special (external input) events and %d IMU samples", self.path,
                         counts["special"], counts["imu"])
+
+    def _assemble_frames(self, aps: list[tuple[np.ndarray, np.ndarray]]) -> tuple | None:
+        """(images float32 (N, H, W), exposure begin, end) from the APS samples in file order, or ``None``."""
+        if not aps:
+            return None
+        a = np.concatenate([s[0] for s in aps])
+        t = np.concatenate([s[1] for s in aps]).astype(np.int64)
+        t = t + (np.cumsum(np.diff(t, prepend=t[0]) < -(2**31)) << 32)  # the 32-bit counter's wraps
+        kind = ((a >> 10) & 1).astype(np.int8)  # 0 reset read, 1 signal read
+        w, h = self.width, self.height
+        n = w * h
+        starts = np.flatnonzero(np.diff(kind, prepend=-1))
+        ends = np.append(starts[1:], len(a))
+        images, begin, end = [], [], []
+        for k in range(len(starts) - 1):
+            r0, r1, s0, s1 = starts[k], ends[k], starts[k + 1], ends[k + 1]
+            if kind[r0] != 0 or r1 - r0 != n or s1 - s0 != n:
+                continue
+            reset = np.full((h, w), -1, np.int64)
+            signal = np.full((h, w), -1, np.int64)
+            for out, lo, hi in ((reset, r0, r1), (signal, s0, s1)):
+                xa, ya = (a[lo:hi] >> 12) & 0x3FF, (a[lo:hi] >> 22) & 0x1FF
+                if xa.max() >= w or ya.max() >= h:
+                    break
+                out[h - 1 - ya.astype(np.int64), xa.astype(np.int64)] = a[lo:hi] & 0x3FF
+            if (reset < 0).any() or (signal < 0).any():
+                continue  # not every pixel read once: not a full frame
+            images.append((np.clip(reset - signal, 0, 1023) / np.float32(1023)).astype(np.float32))
+            begin.append(int(t[r1 - 1]))
+            end.append(int(t[s0]))
+        if not images:
+            return None
+        return np.stack(images), np.array(begin, np.int64), np.array(end, np.int64)
+
+    def frames(self) -> FrameData | None:
+        if self._layout != "davis":
+            return None
+        if not hasattr(self, "_frames"):
+            for _ in self.chunks(with_frames=True):
+                pass
+        if self._frames is None:
+            return None
+        images, begin, end = self._frames
+        if np.any(end < begin):
+            i = int(np.argmax(end < begin))
+            raise RecordingError(self.path, f"APS frame {i}: the signal read ({end[i]} µs) precedes the end of the "
+                                            f"reset read ({begin[i]} µs)")
+        return FrameData(images, begin + (end - begin) // 2, end - begin, lambda i: f"APS frame {i}")
 
     def _decode(self, a: np.ndarray, a0: int, counts: dict):
         w, h = self.width, self.height
@@ -380,10 +442,12 @@ class Aedat31Source(Source):
 
 # ------------------------------------------------------------------------------------------------ writing (tests)
 def write_aedat2(path: Path, events: np.ndarray, chip: str = "eu.seebetter.ini.chips.davis.DAVIS240C",
-                 specials_every: int = 0, aps_samples: int = 0) -> None:
+                 specials_every: int = 0, aps_samples: int = 0, frames=None) -> None:
     """Write ``EVENT_DTYPE`` events (file time µs, < 2^32) as jAER would: AEDAT 2.0, big-endian, x mirrored, y
-    bottom-up. For tests and fixtures: ``specials_every`` inserts an external-input event after every n-th event
-    and ``aps_samples`` appends APS samples (both are left out by the reader)."""
+    bottom-up. For tests and fixtures: ``specials_every`` inserts an external-input event after every n-th event,
+    ``aps_samples`` appends stray APS samples (both left out by the reader), ``frames`` = ``(images (N, H, W) of
+    10-bit values, reset_t_us, signal_t_us)`` writes global-shutter APS frames (reset reads, then signal reads)
+    among the events by time."""
     layout, w, h = sensor_of(chip.rsplit(".", 1)[-1])
     xa = (w - 1 - events["x"].astype(np.uint32))
     ya = (h - 1 - events["y"].astype(np.uint32))
@@ -400,6 +464,22 @@ def write_aedat2(path: Path, events: np.ndarray, chip: str = "eu.seebetter.ini.c
         extra = np.empty(len(events) // specials_every, _AEDAT2_RECORD)
         extra["a"], extra["t"] = special, rec["t"][specials_every - 1::specials_every][:len(extra)]
         rec = np.insert(rec, np.arange(1, len(extra) + 1) * specials_every, extra)
+    if frames is not None:
+        images, t_reset, t_signal = frames
+        n, h, w = images.shape
+        rows, cols = np.mgrid[0:h, 0:w]
+        xy = ((h - 1 - rows.ravel()).astype(np.uint32) << 22) | (cols.ravel().astype(np.uint32) << 12)
+        parts = []
+        for i in range(n):
+            for kind, t, adc in ((0, t_reset[i], np.full(h * w, 1023, np.uint32)),
+                                 (1, t_signal[i], 1023 - images[i].ravel().astype(np.uint32))):
+                block = np.empty(h * w, _AEDAT2_RECORD)
+                block["a"] = np.uint32(1 << 31) | xy | np.uint32(kind << 10) | adc
+                block["t"] = int(t)
+                parts.append(block)
+        aps = np.concatenate(parts)
+        order = np.argsort(np.concatenate([rec["t"].astype(np.int64), aps["t"].astype(np.int64)]), kind="stable")
+        rec = np.concatenate([rec, aps])[order]
     if aps_samples:
         aps = np.empty(aps_samples, _AEDAT2_RECORD)
         aps["a"] = np.uint32(1 << 31) | (np.arange(aps_samples, dtype=np.uint32) % w << 12) | np.uint32(1 << 10)
@@ -408,7 +488,8 @@ def write_aedat2(path: Path, events: np.ndarray, chip: str = "eu.seebetter.ini.c
     header = (b"#!AER-DAT2.0\r\n# This is a raw AE data file - do not edit\r\n"
               b"# Data format is int32 address, int32 timestamp (8 bytes total), repeated for each event\r\n"
               b"# Timestamps tick is 1 us\r\n# AEChip: " + chip.encode() + b"\r\n")
-    Path(path).write_bytes(header + rec.tobytes())
+    # numpy's concatenate / insert may return native byte order: back to big-endian before writing.
+    Path(path).write_bytes(header + rec.astype(_AEDAT2_RECORD).tobytes())
 
 
 def write_aedat31(path: Path, events: np.ndarray, source: str = "DAVIS346B", packet_events: int = 4096,
