@@ -112,6 +112,8 @@ def test_real_davis346_recording_through_inivations_aedat4to2_converter():
     np.testing.assert_array_equal(e2["x"], 345 - e4["x"].astype(np.int64))
     np.testing.assert_array_equal(np.rint(a2.frames.images * 1023), np.rint(a4.frames.images * 255)[:, :, ::-1])
     np.testing.assert_array_equal(a2.frames.t_us, a4.frames.t_us)
+    assert a2.frames.exposure_us is None and a2.repairs == (
+        "the APS samples of each frame carry a single time stamp: exposure times not recorded",)
 
 
 def test_aedat2_dvs128_polarity_bit_zero_is_on(tmp_path):

@@ -243,7 +243,12 @@ class Aedat2Source(Source):
             i = int(np.argmax(end < begin))
             raise RecordingError(self.path, f"APS frame {i}: the signal read ({end[i]} µs) precedes the end of the "
                                             f"reset read ({begin[i]} µs)")
-        return FrameData(images, begin + (end - begin) // 2, end - begin, lambda i: f"APS frame {i}")
+        exposure = end - begin
+        if not exposure.any():
+            # Every sample of a frame at one time stamp (as iniVation's aedat4to2 writes them): not an exposure.
+            self.notes.append("the APS samples of each frame carry a single time stamp: exposure times not recorded")
+            exposure = None
+        return FrameData(images, begin + (end - begin) // 2, exposure, lambda i: f"APS frame {i}")
 
     def _decode(self, a: np.ndarray, a0: int, counts: dict):
         w, h = self.width, self.height
