@@ -1,4 +1,4 @@
-"""Legacy AEDAT files: 2.0 (jAER: DVS128, DAVIS) and 3.1 (cAER / DV before AEDAT4, e.g. DHP19), decoded by us.
+"""Legacy AEDAT files, decoded by us: 2.0 (jAER: DVS128, DAVIS, DHP19) and 3.1 (cAER / DV before AEDAT4).
 
 No package on PyPI decodes these correctly (NOTES.md: transposed x/y, a missing x flip, inverted polarity, kept
 invalid and special events, ignored timestamp overflow), so this module follows the formats' specifications:
