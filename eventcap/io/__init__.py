@@ -7,7 +7,7 @@ format     what                                               extras            
 =========  ================================================  ========================  =======
 aedat4     iniVation DV AEDAT 4.0                             frames + exposure         aedat (read), faery (write)
 aedat2     jAER AEDAT 2.0 (DVS128, DAVIS240/346, DHP19)       global-shutter APS frames our decoder (numpy)
-aedat3     cAER / DV legacy AEDAT 3.1                        frames + exposure         our decoder (numpy)
+aedat3     cAER / DV legacy AEDAT 3.1                         frames + exposure         our decoder (numpy)
 hdf5       ``events/{t,x,y,p}``, compound or (N, 4) ``events``  frames, calibration, GT   h5py
 rpg        rpg Event Camera Dataset folder (events.txt, ...)  frames, calib.txt, GT     numpy, OpenCV
 evt2/evt3  Prophesee RAW                                      —                         faery
