@@ -6,7 +6,7 @@ Formats (detected from the content, then the extension; or ``format=``):
 format     what                                               extras                    library
 =========  ================================================  ========================  =======
 aedat4     iniVation DV AEDAT 4.0                             frames + exposure         aedat (read), faery (write)
-aedat2     jAER AEDAT 2.0 (DVS128, DAVIS240/346, DHP19)       global-shutter APS frames our decoder (numpy)
+aedat2     jAER AEDAT 2.0 (DVS128, DAVIS240/346, DHP19)       APS frames (global sh.)   our decoder (numpy)
 aedat3     cAER / DV legacy AEDAT 3.1                         frames + exposure         our decoder (numpy)
 hdf5       ``events/{t,x,y,p}``, compound or (N, 4) ``events``  frames, calibration, GT   h5py
 rpg        rpg Event Camera Dataset folder (events.txt, ...)  frames, calib.txt, GT     numpy, OpenCV
