@@ -122,6 +122,14 @@ def test_inferred_sensor_size_ignores_a_few_far_outliers_and_says_so(tmp_path):
     assert (r.width, r.height) == (W, H) and len(r.events) == 19_998
     assert any("inferred 64 × 48" in s and "ignored and dropped 2 outlier event(s): 2 event(s) with x up to 60000 "
                "(beyond x = 63 of the others)" in s for s in r.repairs)
+    # eventcap convert has written them already when it finds them: it refuses and says how to crop them.
+    from eventcap.io.convert import convert_recording
+
+    with pytest.raises(RecordingError, match=r"2 event\(s\) with x up to 60000 while the others stay below x = 64: "
+                                             r"corrupted events, .* crop them with --roi 0 0 64 48"):
+        convert_recording(p, tmp_path / "o.zarr", chunk_events=3000)
+    assert not (tmp_path / "o.zarr").exists()
+    assert convert_recording(p, tmp_path / "o.zarr", roi=(0, 0, 64, 48))["events"] == 19_998
     # Many events far out are the data, not outliers: the size covers them.
     ev["x"][:100] = 60_000
     np.savez(p, t=ev["t"], x=ev["x"], y=ev["y"], p=ev["p"])

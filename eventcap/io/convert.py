@@ -28,7 +28,7 @@ from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.events import EVENT_DTYPE
 from eventcap.cache import pid_alive
-from eventcap.io.readers import Roi, _finish_frames, iter_event_chunks, open_source
+from eventcap.io.readers import Roi, _finish_frames, iter_event_chunks, largest_values, open_source, outlier_limit
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS
 
@@ -195,6 +195,26 @@ def _crop_frames(frames: Frames | None, r: Roi) -> Frames | None:
                   frames.exposure_us)
 
 
+def _refuse_outliers(path, tops: dict, n: int) -> None:
+    """A few events far beyond the others would make the inferred sensor huge; read_recording drops them (noted),
+    but they are already written here: refuse, saying how to crop them."""
+    far = {}
+    for axis, top in tops.items():
+        budget, limit = outlier_limit(top, n)
+        k = int(np.sum(top > limit))
+        if 0 < k <= budget:
+            far[axis] = (k, int(top[-1]), int(top[top <= limit][-1]))
+    if far:
+        what = "; ".join(f"{k} event(s) with {axis} up to {hi} while the others stay below {axis} = {lo + 1}"
+                         for axis, (k, hi, lo) in far.items())
+        w = far["x"][2] + 1 if "x" in far else int(tops["x"][-1]) + 1
+        h = far["y"][2] + 1 if "y" in far else int(tops["y"][-1]) + 1
+        raise RecordingError(path, f"the file does not declare its sensor size and {what}: corrupted events, which "
+                                   f"would make the inferred sensor {int(tops['x'][-1]) + 1} × "
+                                   f"{int(tops['y'][-1]) + 1}; crop them with --roi 0 0 {w} {h} (read_recording "
+                                   f"drops them itself)")
+
+
 def _check_roi_inside(r: Roi, width: int, height: int) -> None:
     if r.x < 0 or r.y < 0 or r.width <= 0 or r.height <= 0 or r.x + r.width > width or r.y + r.height > height:
         raise ValueError(f"roi {r} does not lie inside the {width} × {height} sensor")
@@ -229,6 +249,7 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
 
     read = in_window = 0
     max_x = max_y = -1
+    tops = {"x": np.empty(0, np.int64), "y": np.empty(0, np.int64)}  # the largest coordinates (outlier check)
     last_t_before = first_t_after = None
     stopped_early = False
     first_t = last_t = None
@@ -236,6 +257,8 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
         read += len(chunk)
         if infer:
             max_x, max_y = max(max_x, int(chunk["x"].max())), max(max_y, int(chunk["y"].max()))
+            for axis in tops:
+                tops[axis] = largest_values(np.concatenate([tops[axis], largest_values(chunk[axis])]))
         if window is not None:
             t = chunk["t"]
             a, b = np.searchsorted(t, [start, end], side="left")
@@ -272,6 +295,8 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
         raise RecordingError(path, f"no events in the time window {shown}: {span}")
     if infer:
         full_w, full_h = max_x + 1, max_y + 1
+        if roi is None:
+            _refuse_outliers(path, tops, read)
         if roi is not None:
             _check_roi_inside(roi, full_w, full_h)
     if check.rows == 0:  # only a crop can leave nothing (an empty file or window was refused above)

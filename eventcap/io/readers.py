@@ -159,6 +159,24 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
                         tuple(repairs))
 
 
+OUTLIER_BUDGET_MAX = 100
+
+
+def largest_values(v: np.ndarray, k: int = OUTLIER_BUDGET_MAX + 1) -> np.ndarray:
+    """The ``k`` largest values of ``v`` (all of them when there are fewer), sorted."""
+    v = np.asarray(v, np.int64)
+    return np.sort(np.partition(v, len(v) - k)[len(v) - k:]) if len(v) > k else np.sort(v)
+
+
+def outlier_limit(top: np.ndarray, n: int) -> tuple[int, int]:
+    """(budget, limit) of :func:`infer_sensor_size` for one axis: at most ``budget`` events above ``limit`` are
+    outliers. ``top`` holds the largest coordinates (at least ``OUTLIER_BUDGET_MAX + 1`` when ``n`` allows), sorted;
+    ``n`` is the number of events."""
+    budget = min(OUTLIER_BUDGET_MAX, max(1, n // 10_000))
+    bulk = int(top[-budget - 1]) if len(top) > budget else int(top[-1])  # the largest that is not a candidate
+    return budget, max(bulk + 16, int(bulk * 1.25))
+
+
 def infer_sensor_size(events: np.ndarray) -> tuple[np.ndarray, int, int, str]:
     """The sensor size of events whose file does not declare one: the largest coordinates + 1, ignoring a few
     outliers (events, then the note saying what was inferred and what was dropped).
@@ -167,14 +185,11 @@ def infer_sensor_size(events: np.ndarray) -> tuple[np.ndarray, int, int, str]:
     than 25 % (and 16 px) past the largest coordinate of the other events (a corrupted or mis-decoded event
     would otherwise make a 60000-pixel-wide sensor)."""
     n = len(events)
-    budget = min(100, max(1, n // 10_000))
     keep = np.ones(n, bool)
     sizes = {}
     for axis in ("x", "y"):
         v = events[axis].astype(np.int64)
-        top = np.sort(np.partition(v, n - budget - 1)[n - budget - 1:]) if n > budget else np.sort(v)
-        bulk = int(top[0]) if n > budget else int(v.max())  # the largest coordinate that is not a candidate
-        limit = max(bulk + 16, int(bulk * 1.25))
+        budget, limit = outlier_limit(largest_values(v), n)
         far = v > limit
         if far.any() and int(far.sum()) <= budget:
             keep &= ~far
