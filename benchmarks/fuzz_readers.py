@@ -3,7 +3,9 @@
 Usage: ``python3 benchmarks/fuzz_readers.py --n 2000 [--seed 0] [--workers 2] [--timeout 20]``
 
 Corpus: small synthetic recordings written by :mod:`eventcap.io` (aedat4, evt2, evt3, dat, hdf5 with frames and
-calibration, npz with frames, npy, an rpg folder with PNG frames) plus the real DAVIS346 AEDAT4 file. Each
+calibration, npz with frames, npy, a (4, N) Fortran-order npy, a csv with a header of column names, an rpg folder
+with PNG frames, AEDAT 2.0 (DAVIS240C, with special events) and AEDAT 3.1 with frames and invalid events, the last
+two written by the tool's own test writers) plus the real DAVIS346 AEDAT4 file. Each
 mutation (bit flips, truncation, byte insertion or deletion, garbage in the header) is applied to one file of
 one corpus entry; a forked child reads it with ``read_recording`` (and, when that succeeds, streams it with
 ``iter_event_chunks``) and reports one outcome:
@@ -105,6 +107,30 @@ def make_corpus(folder: Path, include_real: bool = True) -> list[Entry]:
     structured["t"], structured["x"], structured["y"], structured["p"] = ev["t"] + off, ev["x"], ev["y"], ev["p"]
     np.save(folder / "small.npy", structured)
     entries.append(Entry("npy", folder / "small.npy", ("",), (1.0,)))
+    cols = np.stack([ev["x"].astype(np.int64), ev["y"].astype(np.int64), ev["t"] + off, (ev["p"] > 0).astype(np.int64)])
+    np.save(folder / "small_4n.npy", np.asfortranarray(cols))
+    entries.append(Entry("npy_4n", folder / "small_4n.npy", ("",), (1.0,)))
+    (folder / "small.csv").write_text("x,y,t,p\n" + "".join(f"{x},{y},{t // 10**6}.{t % 10**6:06d},{p}\n"
+                                                             for x, y, t, p in cols.T))  # text times in seconds
+    entries.append(Entry("csv", folder / "small.csv", ("",), (1.0,)))
+    from eventcap.io.aedat_legacy import write_aedat2, write_aedat31
+
+    file_ev = ev.copy()
+    file_ev["t"] = (ev["t"] + off) % 2**32  # jAER's 32-bit µs counter
+    write_aedat2(folder / "small2.aedat", file_ev, specials_every=9)
+    entries.append(Entry("aedat2", folder / "small2.aedat", ("",), (1.0,)))
+    yy, xx = np.mgrid[0:180, 0:240]
+    aps = np.stack([(512 + 400 * np.sin(xx / 9.0 + k) * np.cos(yy / 7.0)).astype(np.int64) for k in range(2)])
+    t_aps = (file_ev["t"][0] + np.array([10_000, 50_000])) % 2**32
+    write_aedat2(folder / "small2_aps.aedat", file_ev, frames=(aps, t_aps, t_aps + 4_000))
+    entries.append(Entry("aedat2_aps", folder / "small2_aps.aedat", ("",), (1.0,)))
+    file_ev["t"] = ev["t"] + off
+    f = rec.frames
+    images = np.rint(np.asarray(f.images) * 65535).astype(np.uint16)
+    begin = f.t_us + off - f.exposure_us // 2
+    write_aedat31(folder / "small3.aedat", file_ev, source="Test64x48", packet_events=400,
+                  frames=(images, begin, begin + f.exposure_us), invalid_every=11)
+    entries.append(Entry("aedat3", folder / "small3.aedat", ("",), (1.0,)))
     write_recording(folder / "rpg", rec, format="rpg")
     entries.append(Entry("rpg", folder / "rpg", ("events.txt", "images.txt", "calib.txt", "images/frame_00000001.png"),
                          (0.55, 0.15, 0.15, 0.15)))

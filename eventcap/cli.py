@@ -94,8 +94,9 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     if not result.ok:
         failed = [f"{n} batch {f['batch']}" if f["batch"] is not None else n
                   for n, r in result.nodes.items() for f in r.failed]
-        skipped = [n for n, r in result.nodes.items() if r.skipped]
-        msg = f"failed: {', '.join(failed) or '-'}; skipped (upstream failed): {', '.join(skipped) or '-'}"
+        skipped = [f"{n} ({r.skip_causes[0]['cause']})" if r.skip_causes else n
+                   for n, r in result.nodes.items() if r.skipped]
+        msg = f"failed: {', '.join(failed) or '-'}; skipped: {', '.join(skipped) or '-'}"
         log.error("run incomplete: %s. Fix the cause and run the same command again: committed results are reused.", msg)
         failures.append(f"{run_dir}: {msg}")
     return runner, result
@@ -315,7 +316,8 @@ def cmd_convert(args) -> int:
         stats = convert_recording(args.input, args.output, format=args.format, chunk_events=args.chunk_events,
                                   calibration=args.calibration, width=args.width, height=args.height,
                                   time_window_us=window, roi=roi, time_unit=args.time_unit,
-                                  overwrite=args.overwrite, progress=progress)
+                                  overwrite=args.overwrite, progress=progress, columns=args.columns or None,
+                                  y_up=args.y_up)
     except (RecordingError, ValueError, OSError) as exc:
         if shown["any"] and tty:
             print(file=sys.stderr)
@@ -455,10 +457,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--grpc-port", type=int, default=9876, help="web viewer's data port (default: %(default)s)")
     p.add_argument("--no-open", action="store_true", help="only build the recording and print how to open it")
     p = sub.add_parser("convert", help="convert a recording into the project's format (streaming, bounded memory)")
-    p.add_argument("input", metavar="IN", help="the recording: AEDAT4, HDF5, EVT2/EVT3 .raw, DAT, npy/npz or an "
-                                                "rpg folder")
+    p.add_argument("input", metavar="IN", help="the recording: AEDAT4, AEDAT 2.0/3.1, HDF5, EVT2/EVT3 .raw, DAT, "
+                                                "npy/npz, csv/txt or an rpg folder")
     p.add_argument("output", metavar="OUT", help="the folder to write (a zarr group, e.g. rec.zarr)")
-    p.add_argument("--format", help="force the input format (aedat4, hdf5, evt2, evt3, dat, npy, npz, rpg)")
+    p.add_argument("--format", help="force the input format (aedat4, aedat2, aedat3, hdf5, evt2, evt3, dat, npy, "
+                                    "npz, rpg)")
     p.add_argument("--calibration", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3]) of the full sensor, "
                                          "overriding the file's")
     p.add_argument("--width", type=int, help="sensor width for files that do not store it")
@@ -469,6 +472,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--roi", type=int, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
                    help="keep the region x0 <= x < x1, y0 <= y < y1 (moved to 0, 0)")
     p.add_argument("--time-unit", help="unit of array/text time columns when the default is wrong (s, ms, us, ns)")
+    p.add_argument("--columns", help="column order of unnamed array/text columns, e.g. x,y,t,p")
+    p.add_argument("--y-up", action="store_true", help="the file's y axis points up (origin bottom-left)")
     p.add_argument("--chunk-events", type=int, default=1 << 20, metavar="N",
                    help="events decoded per chunk (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")

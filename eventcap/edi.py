@@ -301,6 +301,12 @@ class ContrastEstimate:
     energy: np.ndarray  # (G,) float64 energy at each grid value
     n_pixels: int  # (frame pair, pixel) residuals the energy averages over
 
+    @property
+    def at_range_edge(self) -> bool:
+        """The grid's best value is its first or last point: the minimum may lie outside the search range."""
+        j = int(np.argmin(self.energy))
+        return j in (0, self.energy.size - 1)
+
 
 class _ExposureEvents:
     """The c-independent part of EDI for one frame: its exposure's events as (t, pixel, polarity) arrays and the

@@ -275,6 +275,8 @@ class NodeReport:
     computed: int = 0
     failed: list[dict[str, Any]] = field(default_factory=list)
     skipped: int = 0
+    #: why each skipped unit was skipped: {"batch": index or None, "cause": "upstream failed: <node>[batch k]: ..."}
+    skip_causes: list[dict[str, Any]] = field(default_factory=list)
     elapsed_s: float = 0.0
 
 
@@ -333,6 +335,8 @@ class Runner:
         node_keys: dict[str, str] = {}  # node-level key (whole nodes: the entry key)
         batch_keys: dict[str, dict[int, str]] = {}  # per-batch nodes: batch index -> key (only successful ones)
         plans: dict[str, list[Batch]] = {}
+        # (node, batch index or None) -> the failure a failed or skipped unit goes back to: "<node>[batch k]: <cause>"
+        self._roots: dict[tuple[str, int | None], str] = {}
         t_run = time.perf_counter()
         with _executor(self.executor) as pool:
             for i, node in enumerate(self.nodes, 1):
@@ -340,19 +344,28 @@ class Runner:
                 rep = NodeReport(node.name, node.spec.name, node.spec.per_batch)
                 reports[node.name] = rep
                 label = f"[{i}/{len(self.nodes)}] {node.name} ({node.spec.name} v{node.spec.version})"
-                upstream_bad = [r.node for r in node.inputs.values() if reports[r.node].failed or reports[r.node].skipped]
-                base = self._base_doc(node)
-                if not node.spec.per_batch:
-                    if upstream_bad:
-                        rep.skipped = 1
-                        log.error("%s: skipped, upstream failed: %s", label, ", ".join(sorted(set(upstream_bad))))
-                        continue
-                    self._run_whole(node, base, node_keys, batch_keys, plans, rep, label)
-                else:
-                    self._run_batches(node, base, node_keys, batch_keys, plans, rep, label, pool)
-                rep.elapsed_s = time.perf_counter() - t0
+                try:
+                    if not node.spec.per_batch:
+                        root = self._upstream_root(node, None)
+                        if root is not None:
+                            self._skip(rep, None, root, label)
+                            continue
+                        self._run_whole(node, self._base_doc(node), node_keys, batch_keys, plans, rep, label)
+                    else:
+                        self._run_batches(node, node_keys, batch_keys, plans, rep, label, pool)
+                except Exception as exc:  # noqa: BLE001 - the driver's own failure for this node (a config that
+                    # cannot be keyed, a missing file, an unreadable plan): recorded, and the run goes on
+                    self._fail_node(node, rep, label, exc)
+                    plans.setdefault(node.name, [])
+                    batch_keys.setdefault(node.name, {})
+                finally:
+                    rep.elapsed_s = time.perf_counter() - t0
         self.cache.clean_orphans()  # also those of writers killed just before this run started
-        metrics = self._collect_metrics(reports, node_keys)
+        try:
+            metrics = self._collect_metrics(reports, node_keys)
+        except Exception as exc:  # noqa: BLE001 - the summary is still written
+            log.error("metrics could not be collected: %s: %s", type(exc).__name__, exc)
+            metrics = {}
         result = RunResult(reports, metrics, dict(node_keys), {n: dict(k) for n, k in batch_keys.items()})
         n_comp = result.computed_keys()
         n_hit = sum(r.cached for r in reports.values())
@@ -362,6 +375,45 @@ class Runner:
         if run_dir is not None:
             self._write_summary(Path(run_dir), result, node_keys, batch_keys)
         return result
+
+    # -- failures and skips ---------------------------------------------------------------------------------------
+    def _upstream_root(self, node: Node, batch: int | None) -> str | None:
+        """The failure a unit of ``node`` (a whole node: ``batch`` None) cannot run without, or ``None``.
+
+        A whole upstream node, or a per-batch upstream node as a whole (no plan, no batches), counts for every
+        unit; a per-batch upstream's batch counts for the same batch of a per-batch node, and any of its batches for
+        a whole node (which reads all of them)."""
+        for ref in node.inputs.values():
+            up = ref.node
+            if (up, None) in self._roots:
+                return self._roots[(up, None)]
+            if not self.by_name[up].spec.per_batch:
+                continue
+            if batch is not None and node.spec.per_batch:
+                if (up, batch) in self._roots:
+                    return self._roots[(up, batch)]
+            elif batch is None and not node.spec.per_batch:
+                bad = sorted(k for (n, k) in self._roots if n == up and k is not None)
+                if bad:
+                    more = f" (and {len(bad) - 1} more failed or skipped batch(es) of {up})" if len(bad) > 1 else ""
+                    return self._roots[(up, bad[0])] + more
+        if node.spec.per_batch and batch is None and (node.plan_node, None) in self._roots:
+            return self._roots[(node.plan_node, None)]
+        return None
+
+    def _skip(self, rep: NodeReport, batch: int | None, root: str, label: str | None) -> None:
+        rep.skipped += 1
+        cause = f"upstream failed: {root}"
+        rep.skip_causes.append({"batch": batch, "cause": cause})
+        self._roots[(rep.node, batch)] = root
+        if label is not None:
+            log.error("%s: skipped, %s", label, cause)
+
+    def _fail_node(self, node: Node, rep: NodeReport, label: str, exc: BaseException) -> None:
+        error = f"{type(exc).__name__}: {exc}"
+        rep.failed.append({"batch": None, "status": type(exc).__name__, "error": error, "key": ""})
+        self._roots[(node.name, None)] = f"{node.name}: {error}"
+        log.error("%s: FAILED (%s): %s", label, type(exc).__name__, error)
 
     def load_output(self, result: RunResult, output: str) -> dict[int | None, Artifact]:
         """The committed artifacts of output ``node.port`` of a finished run, read from the cache: ``{None:
@@ -425,6 +477,7 @@ class Runner:
             log.info("%s: computed in %.2f s", label, res.elapsed_s)
         else:
             rep.failed.append({"batch": None, "status": res.failure_status, "error": res.error, "key": key})
+            self._roots[(node.name, None)] = f"{node.name}: {res.error}"
             log.error("%s: FAILED (%s): %s", label, res.failure_status, res.error)
 
     def _lookup(self, stage: str, key: str) -> Entry | None:
@@ -444,28 +497,36 @@ class Runner:
             return None
         return entry
 
-    def _plan_for(self, node: Node, node_keys) -> list[Batch]:
+    def _plan_for(self, node: Node, node_keys, select: bool = True) -> list[Batch]:
         plan_node = self.by_name[node.plan_node]
         plan = _load(str(self.cache.root), plan_node.spec.name, node_keys[plan_node.name], node.plan_port, BatchPlan)
         batches = plan.batches()
-        if self.selection is not None:
+        if select and self.selection is not None:
             start, stop = self.selection
             batches = batches[start:stop]
         return batches
 
-    def _run_batches(self, node, base, node_keys, batch_keys, plans, rep, label, pool) -> None:
+    def _run_batches(self, node, node_keys, batch_keys, plans, rep, label, pool) -> None:
         from tqdm import tqdm
 
-        whole_bad = [r.node for r in node.inputs.values()
-                     if not self.by_name[r.node].spec.per_batch and r.node not in node_keys]
-        if whole_bad or node.plan_node not in node_keys:
-            rep.skipped = 1
-            log.error("%s: skipped, upstream failed: %s", label, ", ".join(sorted(set(whole_bad or [node.plan_node]))))
-            plans[node.name] = []
-            batch_keys[node.name] = {}
+        plans[node.name] = []
+        batch_keys[node.name] = {}
+        root = self._upstream_root(node, None)
+        if root is not None:
+            self._skip(rep, None, root, label)
             return
+        base = self._base_doc(node)
         batches = self._plan_for(node, node_keys)
         plans[node.name] = batches
+        if not batches:
+            n_plan = len(self._plan_for(node, node_keys, select=False))
+            why = (f"the batch plan of {node.plan_node} is empty" if not n_plan else
+                   f"batches={self.cfg.get('batches')!r} selects none of the {n_plan} batches of {node.plan_node}")
+            rep.skipped = 1
+            rep.skip_causes.append({"batch": None, "cause": f"no batches to run: {why}"})
+            self._roots[(node.name, None)] = f"{node.name}: no batches to run: {why}"
+            log.error("%s: skipped, no batches to run: %s", label, why)
+            return
         # Node-level key: the per-batch upstreams enter by their node-level keys; used by whole-recording consumers.
         node_doc = {**base, "inputs": {p: node_keys[r.node] for p, r in node.inputs.items()}}
         node_keys[node.name] = make_key(node_doc)
@@ -473,10 +534,15 @@ class Runner:
         batch_keys[node.name] = keys
         todo: list[Task] = []
         for b in batches:
-            ups = [r.node for r in node.inputs.values() if r.node in batch_keys and b.index not in batch_keys[r.node]
-                   and self.by_name[r.node].spec.per_batch]
-            if ups:
-                rep.skipped += 1
+            root = self._upstream_root(node, b.index)
+            if root is None and any(self.by_name[r.node].spec.per_batch and b.index not in batch_keys.get(r.node, {})
+                                    for r in node.inputs.values()):
+                root = next(f"{r.node}[batch {b.index}]: not in the upstream node's batch plan"
+                            for r in node.inputs.values() if self.by_name[r.node].spec.per_batch
+                            and b.index not in batch_keys.get(r.node, {}))
+            if root is not None:
+                self._skip(rep, b.index, root, None)
+                log.warning("%s: batch %d skipped, upstream failed: %s", node.name, b.index, root)
                 continue
             refs, keydoc = self._input_specs(node, node_keys, batch_keys, plans, b)
             doc = {**base, "inputs": keydoc, "batch": b.as_key()}
@@ -506,6 +572,7 @@ class Runner:
                 else:
                     rep.failed.append({"batch": res.batch, "status": res.failure_status, "error": res.error,
                                        "key": res.key})
+                    self._roots[(node.name, res.batch)] = f"{node.name}[batch {res.batch}]: {res.error}"
                     log.error("%s: batch %d FAILED (%s): %s", node.name, res.batch, res.failure_status, res.error)
         finally:
             bar.close()
@@ -543,7 +610,7 @@ class Runner:
             "cache_dir": str(self.cache.root),
             "nodes": {
                 n: {"stage": r.stage, "per_batch": r.per_batch, "cached": r.cached, "computed": r.computed,
-                    "skipped": r.skipped, "failed": r.failed, "elapsed_s": round(r.elapsed_s, 3),
+                    "skipped": r.skipped, "skip_causes": r.skip_causes, "failed": r.failed, "elapsed_s": round(r.elapsed_s, 3),
                     "keys": r.keys, "computed_keys": r.computed_keys}
                 for n, r in result.nodes.items()
             },

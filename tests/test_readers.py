@@ -160,7 +160,10 @@ def test_detect_format_by_content_not_extension(tmp_path):
 
 @pytest.mark.parametrize("content,match", [
     (b"", "the file is empty"),
-    (b"#!AER-DAT2.0\r\n# something", "AEDAT version 2.0 is not supported"),
+    (b"#!AER-DAT2.0\r\n# something", "contains no events"),
+    (b"#!AER-DAT3.0\r\n#!END-HEADER\r\n", "AEDAT version 3.0 is not supported"),
+    (b"#!AER-DAT3.1\r\n# no end", "no '#!END-HEADER' line"),
+    (b"#!AER-DAT2.0\r\n# AEChip: ch.unizh.ini.jaer.chip.cochlea.CochleaAMS1c\r\n", "unsupported chip"),
     (b"hello world", "unrecognised format"),
 ])
 def test_unreadable_files_are_named(tmp_path, content, match):
@@ -424,7 +427,9 @@ def test_flipped_bits_in_checksummed_data_are_rejected(synth, tmp_path):
     data = bytearray(q.read_bytes())
     data[-200] ^= 0x01
     q.write_bytes(bytes(data))
-    with pytest.raises(RecordingError, match=r"packet \d+: AEDAT4 decoder \(aedat\) failed"):
+    # The only packet's LZ4 checksum fails: it is skipped (and said), which leaves no events.
+    with pytest.raises(RecordingError, match=r"contains no events; skipped 1 corrupted compressed packet\(s\) .*"
+                                             r"packet 0 \(LZ4 error: ERROR_blockChecksum_invalid\)"):
         read_recording(q)
 
 

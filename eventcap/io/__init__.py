@@ -6,12 +6,19 @@ Formats (detected from the content, then the extension; or ``format=``):
 format     what                                               extras                    library
 =========  ================================================  ========================  =======
 aedat4     iniVation DV AEDAT 4.0                             frames + exposure         aedat (read), faery (write)
+aedat2     jAER AEDAT 2.0 (DVS128, DAVIS240/346, DHP19)       APS frames (global sh.)   our decoder (numpy)
+aedat3     cAER / DV legacy AEDAT 3.1                         frames + exposure         our decoder (numpy)
 hdf5       ``events/{t,x,y,p}``, compound or (N, 4) ``events``  frames, calibration, GT   h5py
 rpg        rpg Event Camera Dataset folder (events.txt, ...)  frames, calib.txt, GT     numpy, OpenCV
 evt2/evt3  Prophesee RAW                                      —                         faery
 dat        Prophesee DAT (CD events)                          —                         faery
 npy/npz    structured / column arrays                         npz: frames, calibration  numpy
+csv/txt    text columns (read by the rpg reader)              —                         numpy
 =========  ================================================  ========================  =======
+
+Layout options of :func:`read_recording` / :func:`iter_event_chunks`: ``columns=`` names the column order of
+unnamed (N, 4) or (4, N) arrays (C or Fortran order) and text files (e.g. ``"x,y,t,p"``; a csv's first line of
+names does the same), ``time_unit=`` the unit of their time column, ``y_up=True`` flips a bottom-up y axis.
 
 Everything comes out in the project's conventions: ``EVENT_DTYPE`` events sorted by time, µs since the first
 event (the file's time of that event is ``t_offset_us``), polarity ±1, coordinates inside the sensor; frames as
@@ -24,10 +31,12 @@ event index, packet, dataset) and the problem:
 - repaired: events out of time order (sorted), exact duplicate events (dropped), 32-bit timestamp wrap-around
   (unwrapped), a truncated tail (the complete part kept: AEDAT4 packets, npy rows, a text line, a partial
   EVT/DAT word), a missing sensor size (inferred from the events), unnamed (N, 4) columns (recognised by the
-  time-ordered column), colour frames (to grey), unsorted or repeated frame times;
+  time-ordered column), colour frames (to grey), unsorted or repeated frame times, a few far outlier events when
+  the sensor size is inferred (dropped), a corrupt compressed AEDAT4 packet (skipped, like a truncated tail);
 - rejected: empty or unrecognised files, missing datasets or keys, coordinates outside a declared sensor,
   negative or non-integer coordinates, non-finite times, polarity values outside {0, 1} / {-1, +1} or mixing
-  them, corrupted containers (whatever the decoding library reports).
+  them, corrupted containers (whatever the decoding library reports), EVT data whose words carry event types
+  the format does not define (random bytes after a valid header), corrupted AEDAT 3.1 packet headers.
 
 Prophesee decoders (faery) clamp backwards time steps and unwrap their counters themselves, so those repairs
 are not visible for evt2/evt3/dat. Decoding libraries' panics are caught; the fuzz script

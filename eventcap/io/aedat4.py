@@ -19,6 +19,10 @@ from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, RowLocator, Sour
 
 MAGIC = b"#!AER-DAT4.0"
 _TRUNCATED = ("failed to fill whole buffer", "UnexpectedEof", "unexpected end of file")
+# Decompression failures of one packet (its checksum or frame header): the decoder has read past the packet
+# and goes on with the next one, so the packet is skipped and reported.
+_CORRUPT_PACKET = ("LZ4 error", "lz4", "zstd", "Zstd", "ZSTD")
+_MAX_CORRUPT_PACKETS = 16
 
 
 def check_ioheader(path: Path) -> None:
@@ -104,23 +108,36 @@ class Aedat4Source(Source):
         with native_call(self.path, "AEDAT4 decoder (aedat)", "file header"):
             decoder = self._aedat.Decoder(str(self.path))
         k = 0
+        corrupt: list[str] = []
         while True:
             try:
                 packet = next(decoder)
             except StopIteration:
+                self._note_corrupt(corrupt)
                 return
             except (KeyboardInterrupt, SystemExit, GeneratorExit):
                 raise
             except BaseException as exc:
                 message = str(exc)
                 if any(s in message for s in _TRUNCATED):
+                    self._note_corrupt(corrupt)
                     self.notes.append(f"the file ends inside packet {k} (truncated, or a corrupted packet size): "
                                       f"kept the {k} complete packets before it")
                     return
+                if any(s in message for s in _CORRUPT_PACKET) and len(corrupt) < _MAX_CORRUPT_PACKETS:
+                    corrupt.append(f"packet {k} ({message.strip()[:80]})")
+                    k += 1
+                    continue
                 raise RecordingError(self.path, f"AEDAT4 decoder (aedat) failed: {type(exc).__name__}: {message}",
                                      f"packet {k}") from exc
             yield k, packet
             k += 1
+
+    def _note_corrupt(self, corrupt: list[str]) -> None:
+        if corrupt:
+            self.notes.append(f"skipped {len(corrupt)} corrupted compressed packet(s) whose data does not decompress, "
+                              f"their events are missing: {'; '.join(corrupt[:4])}" + (" ..." if len(corrupt) > 4
+                                                                                        else ""))
 
     def chunks(self, chunk_events: int = DEFAULT_CHUNK_EVENTS, with_frames: bool = False) -> Iterator[RawChunk]:
         self.notes.clear()

@@ -3,8 +3,10 @@
 Read (never with pickles):
 
 - ``.npy``: a structured array with fields t, x, y, p (or aliases, see ``source.COLUMN_NAMES``), or an (N, 4)
-  array whose time column is recognised as in HDF5 files. Memory-mapped, so it streams. A file shorter than
-  its header declares (truncated) keeps its complete rows and says so; trailing bytes are reported and ignored.
+  or (4, N) array (C or Fortran order) whose column order is given (``columns=("x", "y", "t", "p")``) or whose
+  time column is recognised as in HDF5 files. Memory-mapped, so it streams. A file shorter than its header
+  declares (truncated) keeps its complete events and says so (an array stored column by column cannot: refused);
+  trailing bytes are reported and ignored.
 - ``.npz``: column arrays ``t, x, y, p`` (or aliases) or one array ``events`` (structured or (N, 4));
   optional ``width``, ``height``, ``time_unit``; frames ``frames`` (N, H, W) with ``frames_t_us`` and optional
   ``frames_exposure_us``; ``calibration`` (9,) ``fx fy cx cy k1 k2 p1 p2 k3`` or (4,); ground-truth arrays
@@ -38,7 +40,15 @@ NPY_MAGIC = b"\x93NUMPY"
 ZIP_MAGICS = (b"PK\x03\x04", b"PK\x05\x06")
 
 
-def _event_columns(path, arr: np.ndarray, notes: list[str], where: str):
+def _event_major(path, arr: np.ndarray, notes: list[str], where: str) -> np.ndarray:
+    """An unnamed 2-D event array as (N, 4) (a (4, N) array is transposed, a view; noted)."""
+    if arr.ndim == 2 and arr.shape[0] == 4 and arr.shape[1] != 4:
+        notes.append(f"{where} has shape {arr.shape}: read as 4 rows of {arr.shape[1]} events, i.e. (4, N)")
+        return arr.T
+    return arr
+
+
+def _event_columns(path, arr: np.ndarray, notes: list[str], where: str, declared=None):
     """(t, x, y, p) views or a column-index tuple for a structured or (N, 4) array."""
     if arr.dtype.names:
         roles = match_columns(arr.dtype.names)
@@ -49,12 +59,12 @@ def _event_columns(path, arr: np.ndarray, notes: list[str], where: str):
             raise RecordingError(path, f"structured event array must be 1-D, got shape {arr.shape}", where)
         return ("fields", tuple(roles[r] for r in "txyp"))
     if arr.ndim == 2 and arr.shape[1] == 4:
-        cols, note = columns_of_2d(path, np.asarray(arr[:100_000]))
+        cols, note = columns_of_2d(path, np.asarray(arr[:100_000]), declared)
         if note:
             notes.append(note)
         return ("2d", cols)
     raise RecordingError(path, f"event array has shape {arr.shape} and dtype {arr.dtype}: expected a structured "
-                               f"array with t, x, y, p, or shape (N, 4)", where)
+                               f"array with t, x, y, p, or shape (N, 4) or (4, N)", where)
 
 
 def _split(arr: np.ndarray, layout, a: int, b: int):
@@ -70,10 +80,11 @@ class NpySource(Source):
 
     format = "npy"
 
-    def __init__(self, path: Path, time_unit: str | None = None):
+    def __init__(self, path: Path, time_unit: str | None = None, columns: tuple[str, ...] | None = None):
         super().__init__(path, time_unit)
-        self._array = self._map()
-        self._layout = _event_columns(path, self._array, self.notes, "array")
+        self.columns = columns
+        self._array = _event_major(path, self._map(), self.notes, "the array")
+        self._layout = _event_columns(path, self._array, self.notes, "array", columns)
 
     def _map(self) -> np.ndarray:
         path = self.path
@@ -86,27 +97,38 @@ class NpySource(Source):
             offset = f.tell()
         if dtype.hasobject:
             raise RecordingError(path, "the array holds Python objects: refusing to unpickle", "header")
-        if fortran and len(shape) > 1:
-            raise RecordingError(path, "Fortran-ordered 2-D event arrays are not supported: save C-ordered", "header")
         if len(shape) not in (1, 2) or any(s < 0 for s in shape):
-            raise RecordingError(path, f"event array has shape {shape}: expected (N,) structured or (N, 4)", "header")
-        row_bytes = dtype.itemsize * (int(np.prod(shape[1:])) if len(shape) > 1 else 1)
-        if row_bytes == 0:
+            raise RecordingError(path, f"event array has shape {shape}: expected (N,) structured, (N, 4) or (4, N)",
+                                 "header")
+        order = "F" if fortran and len(shape) == 2 else "C"
+        # The axis that counts events, and whether each event's values lie together on disk (then a truncated
+        # file keeps its complete events) or column by column (then it cannot).
+        events_axis = 1 if len(shape) == 2 and shape[0] == 4 and shape[1] != 4 else 0
+        event_major = len(shape) == 1 or (events_axis == 0) == (order == "C")
+        per_event = dtype.itemsize * (shape[1 - events_axis] if len(shape) == 2 else 1)
+        if per_event == 0:
             raise RecordingError(path, f"event array rows have no bytes (dtype {dtype}, shape {shape})", "header")
         data_bytes = path.stat().st_size - offset
-        declared = int(shape[0])
-        available = data_bytes // row_bytes
+        declared = int(shape[events_axis])
+        available = data_bytes // per_event
         rows = min(declared, available)
         if available < declared:
+            if not event_major:
+                raise RecordingError(path, f"file truncated: {data_bytes} of {declared * per_event} data bytes, and "
+                                           f"the {shape} array is stored column by column ({order} order), so no "
+                                           f"event is complete", "data")
             self.notes.append(f"file truncated: the header declares {declared} events but only {available} complete "
                               f"ones are stored: kept those")
-        elif data_bytes > declared * row_bytes:
-            self.notes.append(f"{data_bytes - declared * row_bytes} byte(s) after the declared {declared} events: "
+        elif data_bytes > declared * per_event:
+            self.notes.append(f"{data_bytes - declared * per_event} byte(s) after the declared {declared} events: "
                               f"ignored")
+        kept = tuple(shape) if len(shape) == 1 else ((rows, shape[1]) if events_axis == 0 else (shape[0], rows))
+        if len(shape) == 1:
+            kept = (rows,)
         if rows == 0:
-            return np.empty((0, *shape[1:]), dtype=dtype)
+            return np.empty(kept, dtype=dtype, order=order)
         with native_call(path, "npy reader (numpy)", "data"):
-            return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(rows, *shape[1:]))
+            return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=kept, order=order)
 
     def chunks(self, chunk_events: int = DEFAULT_CHUNK_EVENTS, with_frames: bool = False) -> Iterator[RawChunk]:
         n = len(self._array)
@@ -120,8 +142,9 @@ class NpzSource(Source):
 
     format = "npz"
 
-    def __init__(self, path: Path, time_unit: str | None = None):
+    def __init__(self, path: Path, time_unit: str | None = None, columns: tuple[str, ...] | None = None):
         super().__init__(path, time_unit)
+        self.columns = columns
         with native_call(path, "npz reader (numpy)", "archive"), np.load(path, allow_pickle=False) as npz:
             self._keys = list(npz.files)
             total = sum(i.file_size for i in npz.zip.infolist())
@@ -134,8 +157,8 @@ class NpzSource(Source):
                 raise RecordingError(path, f"event columns {[roles[r] for r in 'txyp']} must be 1-D and of one "
                                            f"length, got shapes {[c.shape for c in self._cols]}")
         elif "events" in self._keys:
-            arr = self._load("events")
-            layout = _event_columns(path, arr, self.notes, "array 'events'")
+            arr = _event_major(path, self._load("events"), self.notes, "array 'events'")
+            layout = _event_columns(path, arr, self.notes, "array 'events'", columns)
             self._cols = _split(arr, layout, 0, len(arr))
         else:
             raise RecordingError(path, f"no event data: expected arrays t, x, y, p (or aliases) or 'events'; found "

@@ -28,7 +28,7 @@ from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.events import EVENT_DTYPE
 from eventcap.cache import pid_alive
-from eventcap.io.readers import Roi, _finish_frames, iter_event_chunks, open_source
+from eventcap.io.readers import Roi, _finish_frames, iter_event_chunks, largest_values, open_source, outlier_limit
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS
 
@@ -195,21 +195,44 @@ def _crop_frames(frames: Frames | None, r: Roi) -> Frames | None:
                   frames.exposure_us)
 
 
+def _refuse_outliers(path, tops: dict, n: int) -> None:
+    """A few events far beyond the others would make the inferred sensor huge; read_recording drops them (noted),
+    but they are already written here: refuse, saying how to crop them."""
+    far = {}
+    for axis, top in tops.items():
+        budget, limit = outlier_limit(top, n)
+        k = int(np.sum(top > limit))
+        if 0 < k <= budget:
+            far[axis] = (k, int(top[-1]), int(top[top <= limit][-1]))
+    if far:
+        what = "; ".join(f"{k} event(s) with {axis} up to {hi} while the others stay below {axis} = {lo + 1}"
+                         for axis, (k, hi, lo) in far.items())
+        w = far["x"][2] + 1 if "x" in far else int(tops["x"][-1]) + 1
+        h = far["y"][2] + 1 if "y" in far else int(tops["y"][-1]) + 1
+        raise RecordingError(path, f"the file does not declare its sensor size and {what}: corrupted events, which "
+                                   f"would make the inferred sensor {int(tops['x'][-1]) + 1} × "
+                                   f"{int(tops['y'][-1]) + 1}; crop them with --roi 0 0 {w} {h} (read_recording "
+                                   f"drops them itself)")
+
+
 def _check_roi_inside(r: Roi, width: int, height: int) -> None:
     if r.x < 0 or r.y < 0 or r.width <= 0 or r.height <= 0 or r.x + r.width > width or r.y + r.height > height:
         raise ValueError(f"roi {r} does not lie inside the {width} × {height} sensor")
 
 
 def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, width, height, window, roi, time_unit,
-                 progress) -> dict:
+                 progress, columns=None, y_up=False) -> dict:
     """Write the Recording group ``root`` from ``in_path``; returns the statistics of the conversion."""
     t_begin = time.perf_counter()
-    declared = open_source(in_path, format, time_unit).width is not None
+    declared = open_source(in_path, format, time_unit, columns).width is not None
     infer = not declared and width is None and height is None
+    if infer and y_up:
+        raise ValueError(f"{in_path}: y_up flips y about the sensor height, which the file does not declare: pass "
+                         f"width and height")
     # A file without a sensor size streams against the largest 16-bit sensor; the size is inferred from the
     # largest coordinates at the end, as read_recording does.
     chunks = iter_event_chunks(in_path, chunk_events, format, width=65536 if infer else width,
-                               height=65536 if infer else height, time_unit=time_unit)
+                               height=65536 if infer else height, time_unit=time_unit, columns=columns, y_up=y_up)
     source = chunks._source  # the same decoder object read_recording would ask for frames and calibration
     path = chunks.path
     full_w, full_h = (None, None) if infer else (chunks.width, chunks.height)
@@ -226,6 +249,7 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
 
     read = in_window = 0
     max_x = max_y = -1
+    tops = {"x": np.empty(0, np.int64), "y": np.empty(0, np.int64)}  # the largest coordinates (outlier check)
     last_t_before = first_t_after = None
     stopped_early = False
     first_t = last_t = None
@@ -233,6 +257,8 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
         read += len(chunk)
         if infer:
             max_x, max_y = max(max_x, int(chunk["x"].max())), max(max_y, int(chunk["y"].max()))
+            for axis in tops:
+                tops[axis] = largest_values(np.concatenate([tops[axis], largest_values(chunk[axis])]))
         if window is not None:
             t = chunk["t"]
             a, b = np.searchsorted(t, [start, end], side="left")
@@ -269,6 +295,8 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
         raise RecordingError(path, f"no events in the time window {shown}: {span}")
     if infer:
         full_w, full_h = max_x + 1, max_y + 1
+        if roi is None:
+            _refuse_outliers(path, tops, read)
         if roi is not None:
             _check_roi_inside(roi, full_w, full_h)
     if check.rows == 0:  # only a crop can leave nothing (an empty file or window was refused above)
@@ -376,13 +404,14 @@ def _commit(tmp: Path, out: Path) -> None:
 def convert_recording(in_path, out_path, *, format: str | None = None, chunk_events: int = DEFAULT_CHUNK_EVENTS,
                       calibration=None, width: int | None = None, height: int | None = None,
                       time_window_us: tuple[int, int] | None = None, roi=None, time_unit: str | None = None,
-                      overwrite: bool = False,
+                      overwrite: bool = False, columns=None, y_up: bool = False,
                       progress: Callable[[int, int, float], None] | None = None) -> dict:
     """Convert a recording (any format :func:`eventcap.io.read_recording` reads) into the project's format at
     ``out_path`` (a zarr v3 folder, read with ``Recording.from_zarr``), in memory bounded by a few chunks.
 
-    - ``format``, ``width``, ``height``, ``time_unit``: as for :func:`eventcap.io.read_recording` (a file without a
-      sensor size and no ``width``/``height`` gets the size inferred from its events, noted as a repair).
+    - ``format``, ``width``, ``height``, ``time_unit``, ``columns``, ``y_up``: as for
+      :func:`eventcap.io.read_recording` (a file without a sensor size and no ``width``/``height`` gets the size
+      inferred from its events, noted as a repair; ``y_up`` then needs ``width``/``height``).
     - ``chunk_events``: events decoded per chunk.
     - ``calibration``: an rpg ``calib.txt`` (of the full sensor) overriding the file's calibration; without either,
       a nominal pinhole camera (the ``source`` attribute then says ``UNCALIBRATED``).
@@ -433,7 +462,7 @@ def convert_recording(in_path, out_path, *, format: str | None = None, chunk_eve
         root = zarr.open_group(str(tmp), mode="w-")
         stats = _stream_into(root, in_path, format=format, chunk_events=int(chunk_events), calibration=calibration,
                              width=width, height=height, window=window, roi=roi, time_unit=time_unit,
-                             progress=progress)
+                             progress=progress, columns=columns, y_up=y_up)
         _commit(tmp, out)
     except BaseException:
         _remove(tmp)

@@ -12,10 +12,10 @@ from eventcap.io.recording import RecordingError
 from eventcap.io.rpg import EVENTS
 
 #: Formats :func:`eventcap.io.read_recording` accepts as ``format=``.
-READ_FORMATS = ("aedat4", "hdf5", "rpg", "evt2", "evt3", "dat", "npy", "npz")
+READ_FORMATS = ("aedat4", "aedat2", "aedat3", "hdf5", "rpg", "evt2", "evt3", "dat", "npy", "npz")
 
 _EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".hdf": "hdf5", ".raw": "evt", ".dat": "dat",
-               ".npy": "npy", ".npz": "npz", ".txt": "rpg"}
+               ".npy": "npy", ".npz": "npz", ".txt": "rpg", ".csv": "rpg"}
 
 
 def detect_format(path) -> str:
@@ -37,9 +37,13 @@ def detect_format(path) -> str:
     if head.startswith(AEDAT4_MAGIC):
         return "aedat4"
     if head.startswith(b"#!AER-DAT"):
-        version = head[9:16].split(b"\r")[0].decode("ascii", "replace")
-        raise RecordingError(path, f"AEDAT version {version} is not supported (only AEDAT 4.0): convert it with "
-                                   f"DV or jAER", "file header")
+        version = head[9:16].split(b"\r")[0].split(b"\n")[0].strip().decode("ascii", "replace")
+        if version == "2.0":
+            return "aedat2"
+        if version == "3.1":
+            return "aedat3"
+        raise RecordingError(path, f"AEDAT version {version} is not supported (AEDAT 2.0, 3.1 and 4.0 are): convert "
+                                   f"it with DV or jAER", "file header")
     if head.startswith(HDF5_MAGIC):
         return "hdf5"
     if head.startswith(NPY_MAGIC):

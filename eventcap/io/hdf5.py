@@ -76,8 +76,9 @@ class Hdf5Source(Source):
 
     format = "hdf5"
 
-    def __init__(self, path: Path, time_unit: str | None = None):
+    def __init__(self, path: Path, time_unit: str | None = None, columns: tuple[str, ...] | None = None):
         super().__init__(path, time_unit)
+        self.columns = columns
         import h5py
 
         self._h5py = h5py
@@ -123,7 +124,8 @@ class Hdf5Source(Source):
                                                     f"t, x, y, p (or aliases)", ds.name)
                 return ("compound", ds.name, roles, ds.shape[0] if ds.ndim else 0)
             if ds.ndim == 2 and ds.shape[1] == 4:
-                declared = next((ds.attrs[k] for k in ("columns", "fields", "column_names") if k in ds.attrs), None)
+                declared = self.columns or next((ds.attrs[k] for k in ("columns", "fields", "column_names")
+                                                 if k in ds.attrs), None)
                 with native_call(self.path, _WHAT, ds.name):
                     sample = ds[: min(ds.shape[0], 100_000)]
                 cols, note = columns_of_2d(self.path, sample, declared)

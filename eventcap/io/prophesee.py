@@ -55,6 +55,33 @@ def header_kind(lines: list[str]) -> str | None:
     return None
 
 
+# Event types (the top 4 bits of a word) each format defines; other codes never occur in a valid stream.
+_EVT_TYPES = {"evt3": (0x0, 0x2, 0x3, 0x4, 0x5, 0x6, 0x7, 0x8, 0xA, 0xE, 0xF), "evt2": (0x0, 0x1, 0x8, 0xA, 0xE, 0xF)}
+_SAMPLE_BYTES = 1 << 20
+
+
+def check_evt_words(path: Path, header_length: int, version: str) -> None:
+    """Refuse data that is not an EVT stream: random bytes after a valid header decode into plausible-looking
+    events (faery reads any word), but about a third (EVT3) or more (EVT2) of random words carry an event type
+    the format does not define. More than 2 % of such words (and more than 16) in the first MiB is refused."""
+    word = 2 if version == "evt3" else 4
+    with open(path, "rb") as f:
+        f.seek(header_length)
+        data = f.read(_SAMPLE_BYTES)
+    n = len(data) // word
+    if n == 0:
+        return
+    words = np.frombuffer(data[:n * word], "<u2" if word == 2 else "<u4")
+    types = (words >> (12 if word == 2 else 28)).astype(np.int64)
+    bad = ~np.isin(types, _EVT_TYPES[version])
+    k = int(bad.sum())
+    if k > 16 and k > 0.02 * n:
+        first = int(np.argmax(bad))
+        raise RecordingError(path, f"not {version.upper()} data: {k} of the first {n} words ({100 * k / n:.0f} %) "
+                                   f"have event types {version.upper()} does not define (first: type "
+                                   f"0x{int(types[first]):X} at byte {header_length + word * first})", "data")
+
+
 def _size_from(decoder_dims, path: Path) -> tuple[int | None, int | None]:
     if tuple(decoder_dims) == _NO_SIZE:
         return None, None
@@ -88,6 +115,7 @@ class EvtSource(Source):
             dims = decoder.dimensions
         self.width, self.height = _size_from(dims, path)
         self._word = 4 if self.version == "evt2" else 2
+        check_evt_words(path, self._header_length, self.version)
 
     def chunks(self, chunk_events: int = DEFAULT_CHUNK_EVENTS, with_frames: bool = False) -> Iterator[RawChunk]:
         self.notes.clear()

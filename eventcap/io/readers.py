@@ -13,7 +13,10 @@ from eventcap.events import EVENT_DTYPE
 from eventcap.io.checks import ColumnConverter, OrderReport, parse_time_unit, sort_and_dedup
 from eventcap.io.detect import READ_FORMATS, detect_format
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
-from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, Source
+from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, Source, parse_columns
+
+#: Formats whose event arrays or text columns can be unnamed, so that ``columns=`` applies.
+COLUMN_FORMATS = ("npy", "npz", "hdf5", "rpg")
 
 
 @dataclass(frozen=True)
@@ -26,7 +29,7 @@ class Roi:
     height: int
 
 
-def open_source(path, format: str | None = None, time_unit: str | None = None) -> Source:
+def open_source(path, format: str | None = None, time_unit: str | None = None, columns=None) -> Source:
     """The format reader for ``path`` (format detected from the content when ``format`` is ``None``)."""
     path = Path(path)
     if not path.exists():
@@ -35,10 +38,25 @@ def open_source(path, format: str | None = None, time_unit: str | None = None) -
     if fmt not in READ_FORMATS and fmt != "evt":
         raise ValueError(f"unknown format {format!r}: expected one of {', '.join(READ_FORMATS)}")
     unit = parse_time_unit(time_unit)
+    cols = parse_columns(columns)
+    if cols is not None:
+        if fmt not in COLUMN_FORMATS:
+            raise ValueError(f"columns={columns!r} applies to array and text files ({', '.join(COLUMN_FORMATS)}); "
+                             f"{path} is {fmt}, whose fields are named by the format")
+        from eventcap.io.arrays import NpySource, NpzSource
+        from eventcap.io.hdf5 import Hdf5Source
+        from eventcap.io.rpg import RpgSource
+
+        cls = {"npy": NpySource, "npz": NpzSource, "hdf5": Hdf5Source, "rpg": RpgSource}[fmt]
+        return cls(path, unit, columns=cols)
     if fmt == "aedat4":
         from eventcap.io.aedat4 import Aedat4Source
 
         return Aedat4Source(path, unit)
+    if fmt in ("aedat2", "aedat3"):
+        from eventcap.io.aedat_legacy import Aedat2Source, Aedat31Source
+
+        return (Aedat2Source if fmt == "aedat2" else Aedat31Source)(path, unit)
     if fmt == "hdf5":
         from eventcap.io.hdf5 import Hdf5Source
 
@@ -84,7 +102,8 @@ def _converter(source: Source, width, height) -> ColumnConverter:
 
 def read_recording(path, format: str | None = None, time_window_us: tuple[int, int] | None = None,
                    roi: Roi | tuple[int, int, int, int] | None = None, *, width: int | None = None,
-                   height: int | None = None, time_unit: str | None = None) -> RawRecording:
+                   height: int | None = None, time_unit: str | None = None, columns=None,
+                   y_up: bool = False) -> RawRecording:
     """Decode a recording (any format of :mod:`eventcap.io`) into a checked :class:`RawRecording`.
 
     - ``format``: one of ``READ_FORMATS``; ``None`` detects it from the content (then the extension).
@@ -96,11 +115,16 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
       events and noted); conflicting with a declared size is an error.
     - ``time_unit``: unit of the time column of array/text formats ("s", "ms", "us", "ns") when the file's
       default (integers µs, floats s) is wrong.
+    - ``columns``: the column order of unnamed (N, 4) / (4, N) arrays and text files, e.g. ``"x,y,t,p"`` or
+      ``("x", "y", "t", "p")`` (npy, npz, hdf5, text); without it, names in the file or the time-ordered column
+      decide (noted).
+    - ``y_up``: the file's y axis points up (origin bottom-left): events are flipped to the project's top-left
+      origin (``y → height - 1 - y``). Frames are taken as stored (images are stored top row first).
 
     Raises :class:`RecordingError` (a ``ValueError``) naming the file, the position and the problem; every
     repair made is in ``repairs`` and logged as a warning on the ``eventcap.io`` logger.
     """
-    source = open_source(path, format, time_unit)
+    source = open_source(path, format, time_unit, columns)
     path = source.path
     width, height = _sensor_size(source, width, height)
     conv = _converter(source, width, height)
@@ -112,9 +136,12 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
     frame_data = source.frames()
     repairs = [*source.notes, *conv.repairs(), *order.repairs()]
     if width is None:
-        width, height = int(events["x"].max()) + 1, int(events["y"].max()) + 1
-        repairs.append(f"sensor size not in the file: inferred {width} × {height} from the largest event "
-                       f"coordinates (pass width= and height= to set it)")
+        events, width, height, note = infer_sensor_size(events)
+        repairs.append(note)
+        if len(events) == 0:
+            raise RecordingError(path, "the recording contains no events inside the inferred sensor")
+    if y_up:
+        events["y"] = height - 1 - events["y"]
     t_offset = int(events["t"][0])
     events["t"] -= t_offset
     frames = _finish_frames(frame_data, path, t_offset, width, height, repairs)
@@ -130,6 +157,54 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
         logger.warning("%s: %s", path, repair)
     return RawRecording(events, width, height, t_offset, path, source.format, frames, calibration, ground_truth,
                         tuple(repairs))
+
+
+OUTLIER_BUDGET_MAX = 100
+
+
+def largest_values(v: np.ndarray, k: int = OUTLIER_BUDGET_MAX + 1) -> np.ndarray:
+    """The ``k`` largest values of ``v`` (all of them when there are fewer), sorted."""
+    v = np.asarray(v, np.int64)
+    return np.sort(np.partition(v, len(v) - k)[len(v) - k:]) if len(v) > k else np.sort(v)
+
+
+def outlier_limit(top: np.ndarray, n: int) -> tuple[int, int]:
+    """(budget, limit) of :func:`infer_sensor_size` for one axis: at most ``budget`` events above ``limit`` are
+    outliers. ``top`` holds the largest coordinates (at least ``OUTLIER_BUDGET_MAX + 1`` when ``n`` allows), sorted;
+    ``n`` is the number of events."""
+    budget = min(OUTLIER_BUDGET_MAX, max(1, n // 10_000))
+    bulk = int(top[-budget - 1]) if len(top) > budget else int(top[-1])  # the largest that is not a candidate
+    return budget, max(bulk + 16, int(bulk * 1.25))
+
+
+def infer_sensor_size(events: np.ndarray) -> tuple[np.ndarray, int, int, str]:
+    """The sensor size of events whose file does not declare one: the largest coordinates + 1, ignoring a few
+    outliers (events, then the note saying what was inferred and what was dropped).
+
+    An outlier is one of at most 0.01 % of the events (and at most 100) whose coordinate lies beyond a gap: more
+    than 25 % (and 16 px) past the largest coordinate of the other events (a corrupted or mis-decoded event
+    would otherwise make a 60000-pixel-wide sensor)."""
+    n = len(events)
+    keep = np.ones(n, bool)
+    sizes = {}
+    for axis in ("x", "y"):
+        v = events[axis].astype(np.int64)
+        budget, limit = outlier_limit(largest_values(v), n)
+        far = v > limit
+        if far.any() and int(far.sum()) <= budget:
+            keep &= ~far
+            sizes[axis] = (int(v[~far].max()) + 1, int(far.sum()), int(v[far].max()))
+        else:
+            sizes[axis] = (int(v.max()) + 1, 0, 0)
+    width, height = sizes["x"][0], sizes["y"][0]
+    note = (f"sensor size not in the file: inferred {width} × {height} from the largest event coordinates (pass "
+            f"width= and height= to set it)")
+    dropped = [f"{k} event(s) with {axis} up to {far_max} (beyond {axis} = {size - 1} of the others)"
+               for axis, (size, k, far_max) in sizes.items() if k]
+    if dropped:
+        note += f"; ignored and dropped {int((~keep).sum())} outlier event(s): " + "; ".join(dropped)
+        events = events[keep]
+    return events, width, height, note
 
 
 # ------------------------------------------------------------------------------------------------------- frames
@@ -256,11 +331,13 @@ class EventChunks:
     """
 
     def __init__(self, path, format: str | None = None, chunk_events: int = DEFAULT_CHUNK_EVENTS,
-                 width: int | None = None, height: int | None = None, time_unit: str | None = None):
+                 width: int | None = None, height: int | None = None, time_unit: str | None = None,
+                 columns=None, y_up: bool = False):
         if int(chunk_events) < 1:
             raise ValueError(f"chunk_events must be ≥ 1, got {chunk_events}")
         self.chunk_events = int(chunk_events)
-        self._source = open_source(path, format, time_unit)
+        self.y_up = bool(y_up)
+        self._source = open_source(path, format, time_unit, columns)
         self.path, self.format = self._source.path, self._source.format
         w, h = _sensor_size(self._source, width, height)
         if w is None:
@@ -285,6 +362,8 @@ class EventChunks:
     def __iter__(self) -> Iterator[np.ndarray]:
         for chunk in self._absolute_chunks():
             chunk["t"] -= self.t_offset_us
+            if self.y_up:
+                chunk["y"] = self.height - 1 - chunk["y"]
             yield chunk
         for repair in self.repairs:
             logger.warning("%s: %s", self.path, repair)
@@ -319,11 +398,11 @@ class EventChunks:
 
 def iter_event_chunks(path, chunk_events: int = DEFAULT_CHUNK_EVENTS, format: str | None = None, *,
                       width: int | None = None, height: int | None = None,
-                      time_unit: str | None = None) -> EventChunks:
+                      time_unit: str | None = None, columns=None, y_up: bool = False) -> EventChunks:
     """Stream a recording's events in chunks of about ``chunk_events`` (see :class:`EventChunks`).
 
     The returned object is iterable (each pass re-reads the file) and tells ``width``, ``height``,
     ``t_offset_us`` and, as iteration proceeds, ``repairs``. Every format streams except npz (its members are
     loaded whole); memory is bounded by a few chunks.
     """
-    return EventChunks(path, format, chunk_events, width, height, time_unit)
+    return EventChunks(path, format, chunk_events, width, height, time_unit, columns, y_up)

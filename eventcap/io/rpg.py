@@ -9,7 +9,9 @@
     groundtruth.txt  t px py pz qx qy qz qw         (optional; becomes ground_truth {"t_us", "pose"})
 
 A path to a folder reads all of it; a path to a text file reads that file as events (and, if it is called
-``events.txt``, the other files beside it). The sensor size comes from the frames, else the caller, else the
+``events.txt``, the other files beside it). Other text event files (``.txt``, ``.csv``) read the same way:
+fields separated by spaces or commas; the column order is ``columns=`` if given, else a first line of names
+(``x,y,t,p``), else t x y p — or x y t p when only the third column is time-ordered (noted). The sensor size comes from the frames, else the caller, else the
 events (noted). Frame exposure is not recorded by the layout (``exposure_us`` is ``None``). Blank lines and
 ``#`` comments are skipped; an incomplete last line without a newline (a truncated file) is dropped and noted;
 any other malformed line is an error naming its line number.
@@ -44,6 +46,14 @@ def _data_line(line: str) -> bool:
     return bool(s) and not s.startswith("#")
 
 
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 def _parse_line(line: str, n_fields: int) -> str | None:
     """Why ``line`` is not ``n_fields`` numbers, or ``None`` if it is."""
     fields = line.split("#", 1)[0].split()
@@ -62,8 +72,11 @@ class RpgSource(Source):
 
     format = "rpg"
 
-    def __init__(self, path: Path, time_unit: str | None = None):
+    def __init__(self, path: Path, time_unit: str | None = None, columns: tuple[str, ...] | None = None):
         super().__init__(path, time_unit)
+        self.columns = columns
+        self._order: tuple[int, int, int, int] | None = None  # column indices of t, x, y, p, once known
+        self._header_line: int | None = None  # line number of a line of column names
         if path.is_dir():
             self.folder, self.events_path = path, path / EVENTS
             if not self.events_path.is_file():
@@ -71,18 +84,63 @@ class RpgSource(Source):
         else:
             self.folder, self.events_path = path.parent, path
         self._siblings = path.is_dir() or path.name == EVENTS
+        self._read_column_names()
         self._images = self._read_images_txt() if self._siblings else None
         if self._images:
             first = self._read_image(0)
             self.height, self.width = int(first.shape[0]), int(first.shape[1])
 
     # ------------------------------------------------------------------------------------------------ events
+    def _read_column_names(self) -> None:
+        """The column order from ``columns=`` or from a first data line of names (a csv header)."""
+        from eventcap.io.source import columns_of_2d
+
+        first, lineno = None, 0
+        try:
+            with open(self.events_path, encoding="utf-8", errors="replace") as f:
+                for lineno, line in enumerate(f, 1):
+                    if _data_line(line):
+                        first = line
+                        break
+                    if lineno > 1000:
+                        break
+        except OSError as exc:
+            raise RecordingError(self.events_path, f"cannot read the file: {exc}") from exc
+        names = None
+        if first is not None and _parse_line(first.replace(",", " "), 4) is not None:
+            tokens = [t.strip().strip('"') for t in first.replace(",", " ").split()]
+            if len(tokens) == 4 and not any(_is_number(t) for t in tokens):
+                names = tokens
+                self._header_line = lineno
+        declared = self.columns or names
+        if declared is not None:
+            try:
+                self._order = columns_of_2d(self.events_path, np.empty((0, 4)), declared)[0]
+            except RecordingError as exc:
+                raise RecordingError(self.events_path, exc.what, f"{self.events_path.name} line {lineno}"
+                                     if names and not self.columns else "columns=") from None
+
+    def _columns_of(self, block: np.ndarray) -> tuple[int, int, int, int]:
+        if self._order is None:
+            from eventcap.io.source import columns_of_2d
+
+            self._order = (0, 1, 2, 3)
+            if len(block) >= 3:
+                try:
+                    order, note = columns_of_2d(self.events_path, block[:100_000])
+                except RecordingError:
+                    order, note = (0, 1, 2, 3), None  # the layout's own t x y p; disorder is repaired later
+                self._order = order
+                if order != (0, 1, 2, 3) and note:
+                    self.notes.append(f"{self.events_path.name}: {note}")
+        return self._order
+
     def _line_of_row(self, row: int) -> str:
         """"events.txt line L" of data row ``row`` (scans the file; only used for error messages)."""
         with open(self.events_path, errors="replace") as f:
             k = -1
             for lineno, line in enumerate(f, 1):
-                if _data_line(line):
+                if _data_line(line) and lineno != self._header_line:
                     k += 1
                     if k == row:
                         return f"{self.events_path.name} line {lineno}"
@@ -110,6 +168,9 @@ class RpgSource(Source):
 
             lines = read_block()
             while lines:
+                lines = [ln.replace(",", " ") for ln in lines]
+                if self._header_line is not None and 0 <= self._header_line - first_line < len(lines):
+                    lines[self._header_line - first_line] = "# column names\n"
                 following = read_block()  # one block ahead, to know which block holds the file's last line
                 try:
                     with warnings.catch_warnings():
@@ -122,7 +183,8 @@ class RpgSource(Source):
                     raise RecordingError(self.events_path, f"expected 4 numbers t x y p, got {block.shape[1]}",
                                          f"{self.events_path.name} line {first_line + bad}")
                 if len(block):
-                    yield RawChunk(block[:, 0], block[:, 1], block[:, 2], block[:, 3], row, self._line_of_row)
+                    ct, cx, cy, cp = self._columns_of(block)
+                    yield RawChunk(block[:, ct], block[:, cx], block[:, cy], block[:, cp], row, self._line_of_row)
                     row += len(block)
                 first_line += len(lines)
                 lines = following

@@ -50,6 +50,8 @@ class Source:
         self.time_unit = time_unit
         self.t_add_us = 0
         self.notes: list[str] = []
+        #: column order of unnamed 2-D arrays / text columns given by the caller (names like ("x", "y", "t", "p"))
+        self.columns: tuple[str, ...] | None = None
 
     def chunks(self, chunk_events: int = DEFAULT_CHUNK_EVENTS, with_frames: bool = False) -> Iterator[RawChunk]:
         """Event columns in file order, about ``chunk_events`` at a time (memory bounded by the chunk)."""
@@ -175,6 +177,22 @@ def match_columns(names) -> dict[str, str] | None:
             return None
         found[role] = hit
     return found
+
+
+def parse_columns(value) -> tuple[str, ...] | None:
+    """A column order given by a user: ``"x,y,t,p"``, ``"x y t p"`` or a sequence of names → a tuple of 4 names
+    that name t, x, y and p once each (aliases of ``COLUMN_NAMES`` allowed), or ``None`` for an empty value."""
+    if value is None or (not isinstance(value, str) and len(value) == 0) or value == "":
+        return None
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    names = [s.strip() for s in value.replace(";", ",").replace(" ", ",").split(",") if s.strip()] \
+        if isinstance(value, str) else [n.decode() if isinstance(n, bytes) else str(n) for n in value]
+    roles = match_columns(names)
+    if roles is None or len(names) != 4 or len({n.lower() for n in names}) != 4:
+        raise ValueError(f"columns={value!r}: expected 4 names that name t, x, y, p once each, e.g. "
+                         f"'x,y,t,p' (aliases: {', '.join(a for v in COLUMN_NAMES.values() for a in v[:3])}, ...)")
+    return tuple(names)
 
 
 def columns_of_2d(path, sample: np.ndarray, declared=None) -> tuple[tuple[int, int, int, int], str | None]:

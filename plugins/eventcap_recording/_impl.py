@@ -51,7 +51,8 @@ def _read_external(path: Path, config, ctx) -> Recording:
     except ValueError as exc:
         raise ValueError(f"source.{exc}") from None
     raw = read_recording(path, format=config.format or None, time_window_us=win, roi=roi,
-                         width=config.width or None, height=config.height or None)
+                         width=config.width or None, height=config.height or None,
+                         time_unit=config.time_unit or None, columns=list(config.columns) or None, y_up=config.y_up)
     for r in raw.repairs:
         ctx.log.warning("%s: repaired: %s", path, r)
     if not config.calibration and raw.calibration is None:

@@ -12,16 +12,22 @@ from eventcap.stage import Port, StageSpec, param
 
 @dataclass
 class RecordingConfig:
-    path: str = param("", help="the recording: the project's zarr format, AEDAT4, HDF5, EVT2/EVT3 .raw, DAT, "
-                               "npy/npz, or an rpg dataset folder", file=True)
-    format: str = param("", help="force a format (aedat4, hdf5, evt2, evt3, dat, npy, npz, rpg, eventcap); "
-                                 "empty = detect from content/extension")
+    path: str = param("", help="the recording: the project's zarr format, AEDAT4, AEDAT 2.0/3.1, HDF5, EVT2/EVT3 "
+                               ".raw, DAT, npy/npz, csv/txt, or an rpg dataset folder", file=True)
+    format: str = param("", help="force a format (aedat4, aedat2, aedat3, hdf5, evt2, evt3, dat, npy, npz, rpg, "
+                                 "eventcap); empty = detect from content/extension")
     t_start_s: float = param(0.0, help="start of the time window, seconds from the first event")
     t_end_s: float = param(0.0, help="end of the time window (0 = to the end)")
     roi: list[int] = param(default_factory=list, help="region of interest [x0, y0, x1, y1] (external formats)")
     calibration: str = param("", help="rpg calib.txt overriding the file's calibration", file=True)
     width: int = param(0, help="sensor width for formats that do not store it (0 = from the file)")
     height: int = param(0, help="sensor height for formats that do not store it (0 = from the file)")
+    time_unit: str = param("", help="unit of array/text time columns when the default (integers us, floats s) is "
+                                    "wrong: s | ms | us | ns")
+    columns: list[str] = param(default_factory=list, help="column order of unnamed array/text columns, e.g. "
+                                                          "[x, y, t, p] (empty = names in the file or the "
+                                                          "time-ordered column)")
+    y_up: bool = param(False, help="the file's y axis points up (origin bottom-left): events are flipped")
 
 
 RECORDING = StageSpec(

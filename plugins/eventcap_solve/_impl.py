@@ -86,6 +86,9 @@ def run_batch(inputs, config, ctx):
     ctx.stats.update({"solve_s": sum(res.seconds.values()), "phases_s": res.seconds, "iterations": res.iterations,
                       "solves": [[st.status, st.iterations, st.seconds] for st in res.solves],
                       "n_correspondences": int(res.energies["n_correspondences"])})
+    if int(res.energies["n_correspondences"]) == 0 and config.lambda_cor > 0:
+        ctx.log.warning("batch %s: 0 track-to-mesh correspondences: E_cor is empty, the poses between the frames come "
+                        "from the detections and the temporal prior alone", b.index if b else "?")
     energies = {k: (int(v) if k == "n_correspondences" else float(v)) for k, v in res.energies.items()}
     return {"poses": PoseSequence(t_us=t_us.copy(), poses=res.poses, status=res.status, iterations=res.iterations,
                                   energies=energies)}

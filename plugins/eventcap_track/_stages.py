@@ -19,6 +19,11 @@ def run_edi(inputs, config, ctx):
                                     c_range=(config.c_min, config.c_max), eps=config.eps)
         c = float(est.c)
         ctx.log.info("EDI contrast threshold estimated at C = %.4f (%d pixel residuals)", c, est.n_pixels)
+        ctx.stats.update({"contrast": c, "contrast_at_range_edge": est.at_range_edge})
+        if est.at_range_edge:
+            ctx.log.warning("EDI contrast threshold C = %.4f is at the edge of its search range [%g, %g]: the best C "
+                            "may lie outside it (widen stages.sharpen.c_min / c_max, or set stages.sharpen.contrast)",
+                            c, config.c_min, config.c_max)
     else:
         c = float(config.contrast)
     logs = edi.sharpen_frames(frames.images, frames.t_us, frames.exposure_us, events, c, config.eps)
