@@ -22,6 +22,10 @@ class RecordingConfig:
     calibration: str = param("", help="rpg calib.txt overriding the file's calibration", file=True)
     width: int = param(0, help="sensor width for formats that do not store it (0 = from the file)")
     height: int = param(0, help="sensor height for formats that do not store it (0 = from the file)")
+    frames: bool = param(True, help="false: leave the file's intensity frames out (use it as an event-only "
+                                    "recording)")
+    batch_rate_hz: float = param(25.0, help="without intensity frames: batches of 1/rate from the first event (the "
+                                            "times images are reconstructed at, pipeline=events_only)")
 
 
 RECORDING = StageSpec(
