@@ -167,8 +167,9 @@ def small_recording(with_frames: bool) -> Recording:
         frames = FrameStack(images=np.stack([render(int(x)) for x in t]), t_us=t,
                             exposure_us=np.full(3, 10_000, np.int64), height=H, width=W)
     gt_t = np.array([50_000, 100_000, 150_000])
-    gt = GroundTruth(t_us=gt_t, poses=np.zeros((3, 33)), joints=np.zeros((3, 24, 3)), landmarks=np.zeros((3, 25, 3)),
-                     frame_poses=np.zeros((3, 33)), frame_joints=np.zeros((3, 24, 3)), height=H, width=W,
+    joints = np.tile(np.c_[np.linspace(-0.3, 0.3, 24), np.zeros(24), np.full(24, 2.0)], (3, 1, 1))  # 2 m away
+    gt = GroundTruth(t_us=gt_t, poses=np.zeros((3, 33)), joints=joints, landmarks=joints[:, :25 - 1].repeat(2, 1)[:, :25],
+                     frame_poses=np.zeros((3, 33)), frame_joints=joints, height=H, width=W,
                      sharp_images=np.stack([render(int(x)) for x in gt_t]))
     return Recording(events=EventStream(events=ev, width=W, height=H), camera=cam, frames=frames, ground_truth=gt,
                      name="square")
@@ -211,3 +212,38 @@ class TestReconstructStage(StageConformance):
         inputs = {"recording": small_recording(False), "batches": BatchPlan.at_rate(0, 1000, 25.0)}
         with pytest.raises(StageFailed, match="the batch plan is empty"):
             self.spec().load_run()(inputs, self.config(), StageContext(node="r", stage="reconstruct"))
+
+
+# ---------------------------------------------------------------------------------------------------------- preview
+def test_preview_shows_event_only_recordings(tmp_path):
+    """`eventcap preview` on a recording without frames: reconstruction | true sharp image | events | skeleton."""
+    import dataclasses
+    import subprocess
+    import sys
+
+    import cv2
+    import zarr
+
+    rec = small_recording(False)
+    gt = dataclasses.replace(rec.ground_truth, frame_t_us=np.array([50_000, 100_000, 150_000]))
+    rec = dataclasses.replace(rec, ground_truth=gt)
+    path = tmp_path / "eo.zarr"
+    rec.to_zarr(zarr.open_group(str(path), mode="w"))
+    out = tmp_path / "p.png"
+    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "preview", str(path), "--frame", "2", "--scale", "2",
+                        "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    img = cv2.imread(str(out))
+    assert img.shape == (2 * H, 4 * 2 * W, 3)  # four panels
+    recon = img[:, :2 * W].astype(int)
+    # the square (t = 150 ms: x0 = 14) is bright in the reconstruction, the wall it left mid-grey
+    assert recon[2 * 12, 2 * 17].mean() > recon[2 * 12, 2 * 4].mean() + 60
+    # the same recording with frames: no reconstruction unless asked (--reconstruct adds it)
+    rec_f = small_recording(True)
+    path_f = tmp_path / "f.zarr"
+    rec_f.to_zarr(zarr.open_group(str(path_f), mode="w"))
+    for extra, panels in (([], 4), (["--reconstruct"], 5)):
+        q = subprocess.run([sys.executable, "-m", "eventcap.cli", "preview", str(path_f), "--out", str(out), *extra],
+                           capture_output=True, text=True, timeout=120)
+        assert q.returncode == 0, q.stderr
+        assert cv2.imread(str(out)).shape[1] == panels * 2 * W
