@@ -3,6 +3,7 @@
     python benchmarks/bench_events_only.py images    [--motions a,b] [--duration 1] [--seed 0]
     python benchmarks/bench_events_only.py pipelines [--motions a,b] [--duration 1] [--seed 0] [--paths frames,events]
     python benchmarks/bench_events_only.py picture   [--motion karate_kick] [--frame 12] [--png out.png]
+    python benchmarks/bench_events_only.py withheld  [--motions a,b] [--duration 1]
 
 ``images``: on synthetic captures (the ``source`` node through the normal runner and cache), reconstructions from
 the events alone (:mod:`eventcap.reconstruct`: direct integration, the per-pixel high-pass filter at several
@@ -20,6 +21,10 @@ evaluate stage's metrics.json: Procrustes-aligned mean per-joint error on every 
 relative joints (pelvis subtracted), velocity by central differences over +-10 ms (v(t) = (J(t+10ms) - J(t-10ms)) /
 20 ms) of the estimate (motion.npz) and of the ground truth (the recording's 1 kHz joints), mean over joints and
 frames of |v_est - v_true| in mm/s (frames whose +-10 ms neighbours exist in both).
+
+``withheld``: checks that ``source.frames=false`` changes nothing but the frames (same events, ground truth,
+reconstructions), so the ``events_same_source`` path (pipeline=events_only on the capture with frames, which no
+stage of that pipeline reads) gives the poses of ``events`` at half the simulation cost.
 
 ``picture``: one PNG — the blurry frame, the reconstruction from events alone, the true sharp image, the events of
 the last 10 ms — at one frame time of a synthetic capture.
@@ -239,9 +244,33 @@ def cmd_picture(args) -> dict:
     return {"png": str(png), "frame": k, "t_us": t, "correlation": a.correlation}
 
 
+# --------------------------------------------------------------------------------------------------------- withheld
+def cmd_withheld(args) -> dict:
+    """source.frames=false withholds the frames and changes nothing else: the same events, ground truth, batches and
+    images from events as the capture with frames (so `events_same_source` runs give the poses `events` would)."""
+    from eventcap.reconstruct import reconstruct
+
+    out = {}
+    for motion in args.motions.split(","):
+        a, b = source_recording(motion, args, frames=True), source_recording(motion, args, frames=False)
+        same_events = bool(np.array_equal(a.events.events, b.events.events))
+        same_truth = bool(np.array_equal(a.ground_truth.joints, b.ground_truth.joints)
+                          and np.array_equal(a.ground_truth.sharp_images, b.ground_truth.sharp_images)
+                          and np.array_equal(b.ground_truth.frame_t_us, a.frames.t_us))
+        times = a.frames.t_us
+        same_images = bool(np.array_equal(reconstruct(a.events.events, a.height, a.width, times),
+                                          reconstruct(b.events.events, b.height, b.width, times)))
+        out[motion] = {"events": int(a.events.events.size), "same_events": same_events, "same_truth": same_truth,
+                       "same_images": same_images, "frames": (a.frames.t_us.size, b.frames)}
+        print(f"  {motion}: {a.events.events.size} events; identical events {same_events}, ground truth and its "
+              f"image times {same_truth}, reconstructions {same_images}; frames {a.frames.t_us.size} vs "
+              f"{'none' if b.frames is None else b.frames.t_us.size}")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["images", "pipelines", "picture"])
+    ap.add_argument("what", choices=["images", "pipelines", "picture", "withheld"])
     ap.add_argument("--motions", default=MOTIONS)
     ap.add_argument("--motion", default="karate_kick")
     ap.add_argument("--frame", type=int, default=12)
@@ -254,7 +283,8 @@ def main() -> None:
     ap.add_argument("--png", default=str(ROOT / "runs" / "bench_events_only" / "reconstruction.png"))
     ap.add_argument("--extra", default="", help="more hydra overrides for `pipelines`, space separated")
     args = ap.parse_args()
-    res = {"images": cmd_images, "pipelines": cmd_pipelines, "picture": cmd_picture}[args.what](args)
+    res = {"images": cmd_images, "pipelines": cmd_pipelines, "picture": cmd_picture,
+           "withheld": cmd_withheld}[args.what](args)
     dest = Path(args.out) / (f"pipelines-{args.paths.replace(',', '+')}.json" if args.what == "pipelines"
                              else f"{args.what}.json")
     dest.parent.mkdir(parents=True, exist_ok=True)

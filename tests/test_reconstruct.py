@@ -247,3 +247,84 @@ def test_preview_shows_event_only_recordings(tmp_path):
                            capture_output=True, text=True, timeout=120)
         assert q.returncode == 0, q.stderr
         assert cv2.imread(str(out)).shape[1] == panels * 2 * W
+
+
+# ------------------------------------------------------------------------------------------------------- pipeline
+@pytest.mark.parametrize("track", ["eklt", "klt_latent", "oracle"])
+def test_events_only_pipeline_builds_and_no_image_stage_reads_the_source_frames(track):
+    from pathlib import Path
+
+    from eventcap.benchmark import compose_run
+    from eventcap.pipeline import build_pipeline
+    from eventcap.registry import load_registry
+
+    root = Path(__file__).resolve().parents[1]
+    cfg, _ = compose_run(root / "conf", ["pipeline=events_only", f"stages/track={track}"])
+    nodes = {n.name: n for n in build_pipeline(cfg, load_registry())}
+    assert nodes["reconstruct"].spec.name == "reconstruct" and nodes["track"].spec.name == track
+    assert str(nodes["detect"].inputs["recording"]) == "reconstruct.recording"
+    assert str(nodes["track"].inputs["latent"]) == "reconstruct.latent"
+    assert "sharpen" not in nodes  # no EDI: it needs frames
+    # the default pipeline is untouched by the reconstruct stage's config group
+    cfg_d, _ = compose_run(root / "conf", [])
+    assert "reconstruct" not in cfg_d["pipeline"]["nodes"] and cfg_d["stages"]["sharpen"]["stage"] == "edi"
+
+
+def test_recording_source_cuts_event_only_files_at_the_batch_rate(tmp_path):
+    from eventcap.io import write_events
+    from eventcap.stage import StageContext
+
+    spec = load_registry_spec("recording")
+    rng = np.random.default_rng(0)
+    n = 4000
+    ev = make_events(np.sort(rng.integers(10_000, 230_000, n)), rng.integers(0, 64, n), rng.integers(0, 48, n),
+                     rng.choice([-1, 1], n))
+    path = write_events(tmp_path / "eo.npz", ev, width=64, height=48)
+    from eventcap.config import build_config
+
+    run = spec.load_run()
+    out = run({}, build_config(spec, {"path": str(path), "batch_rate_hz": 20.0}, "source"),
+              StageContext(node="source", stage="recording"))
+    plan, rec = out["batches"], out["recording"]
+    assert rec.frames is None
+    t0 = int(rec.events.events["t"][0])
+    assert list(plan.t0_us - t0) == [0, 50_000, 100_000, 150_000] and list(plan.t1_us - plan.t0_us) == [50_000] * 4
+    with pytest.raises(ValueError, match="source.batch_rate_hz: expected a rate > 0 Hz"):
+        run({}, build_config(spec, {"path": str(path), "batch_rate_hz": 0.0}, "source"),
+            StageContext(node="source", stage="recording"))
+
+
+def load_registry_spec(name):
+    from eventcap.registry import load_registry
+
+    return load_registry().get(name)
+
+
+def test_synthetic_source_without_frames_keeps_events_truth_and_batches():
+    from eventcap.body.procedural import procedural_template
+    from eventcap.config import build_config
+    from eventcap.stage import StageContext
+
+    spec = load_registry_spec("synthetic")
+    tpl = procedural_template(target_faces=3000)
+    base = {"duration_s": 0.09, "supersample": 1, "n_track_points": 10, "motion": "jumping_jack", "speed": 2.0}
+    outs = [spec.load_run()({"template": tpl}, build_config(spec, {**base, "frames": f}, "source"),
+                            StageContext(node="source", stage="synthetic")) for f in (True, False)]
+    (rec_f, plan_f), (rec_e, plan_e) = [(o["recording"], o["batches"]) for o in outs]
+    assert rec_f.frames is not None and rec_e.frames is None
+    assert np.array_equal(rec_f.events.events, rec_e.events.events) and rec_e.events.events.size > 1000
+    assert np.array_equal(plan_f.t0_us, plan_e.t0_us) and np.array_equal(plan_f.t1_us, plan_e.t1_us)
+    assert rec_f.ground_truth.frame_t_us is None  # with frames the recording stays as it was
+    assert np.array_equal(rec_e.ground_truth.frame_t_us, rec_f.frames.t_us)
+    assert np.array_equal(rec_e.ground_truth.sharp_images, rec_f.ground_truth.sharp_images)
+    # the simulated detector finds its truth at the reconstructed images' times
+    from eventcap_detect.simulated import frame_truth
+
+    rspec = load_registry_spec("reconstruct")
+    rec_r = rspec.load_run()({"recording": rec_e, "batches": plan_e}, build_config(rspec, {}, "stages.reconstruct"),
+                             StageContext(node="reconstruct", stage="reconstruct"))["recording"]
+    truth = frame_truth(rec_r, occlusion=False)
+    assert np.array_equal(truth.t_us, rec_f.frames.t_us)
+    np.testing.assert_array_equal(truth.joints_rel_m,
+                                  rec_f.ground_truth.frame_joints - rec_f.ground_truth.frame_joints[:, :1])
+    assert truth.streak_px.max() == 0.0  # declared sharp (exposure 0)
