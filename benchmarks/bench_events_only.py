@@ -20,7 +20,9 @@ frames left out, images reconstructed from events for the tracker and the detect
 evaluate stage's metrics.json: Procrustes-aligned mean per-joint error on every 10th frame, mm) and MPJVE: root-
 relative joints (pelvis subtracted), velocity by central differences over +-10 ms (v(t) = (J(t+10ms) - J(t-10ms)) /
 20 ms) of the estimate (motion.npz) and of the ground truth (the recording's 1 kHz joints), mean over joints and
-frames of |v_est - v_true| in mm/s (frames whose +-10 ms neighbours exist in both).
+frames of |v_est - v_true| in mm/s (frames whose +-10 ms neighbours exist in both). ``events_same_source``: the
+event-only pipeline on the capture with frames (see ``withheld``); ``events_blur10``: the same with the reconstructions
+declared as 10 ms exposures, so the simulated detector errs as much as on the blurry frames (the tracker's share).
 
 ``withheld``: checks that ``source.frames=false`` changes nothing but the frames (same events, ground truth,
 reconstructions), so the ``events_same_source`` path (pipeline=events_only on the capture with frames, which no
@@ -171,7 +173,9 @@ def cmd_pipelines(args) -> dict:
     # events_same_source: the source keeps its frames but no stage of pipeline=events_only reads them (the detector
     # reads reconstruct.recording): the same poses as `events`, with one simulation per sequence instead of two.
     paths = {"frames": [], "events": ["pipeline=events_only", "source.frames=false"],
-             "events_same_source": ["pipeline=events_only"]}
+             "events_same_source": ["pipeline=events_only"],
+             # the detector's blur model as for the 10 ms frames (instead of sharp): isolates the tracker's share
+             "events_blur10": ["pipeline=events_only", "stages.reconstruct.exposure_us=10000"]}
     out: dict = {}
     motions = args.motions.split(",")
     for motion in reversed(motions) if args.reverse else motions:
@@ -276,7 +280,8 @@ def main() -> None:
     ap.add_argument("--frame", type=int, default=12)
     ap.add_argument("--duration", type=float, default=1.0, help="seconds of capture per motion")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--paths", default="frames,events", help="frames | events | events_same_source, comma-separated")
+    ap.add_argument("--paths", default="frames,events",
+                    help="frames | events | events_same_source | events_blur10, comma-separated")
     ap.add_argument("--reverse", action="store_true", help="motions in reverse order (two processes sharing a cache)")
     ap.add_argument("--cache", default=str(ROOT / "runs" / "cache"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_events_only"))
