@@ -150,7 +150,7 @@ def velocities(t_us: np.ndarray, joints: np.ndarray, h_us: int = 10_000) -> tupl
     rel = joints - joints[:, :1]
     index = {int(t): i for i, t in enumerate(t_us)}
     ts, vs = [], []
-    for i, t in enumerate(t_us):
+    for t in t_us:
         a, b = index.get(int(t) - h_us), index.get(int(t) + h_us)
         if a is not None and b is not None:
             ts.append(int(t))
