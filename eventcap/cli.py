@@ -235,8 +235,9 @@ def cmd_preview(args) -> int:
             batch = plan.batch(int(np.searchsorted(plan.t0_us, sliced.t_us[0])))
             img = tracks_overview(rec, latent, sliced, batch)
         else:
-            img = recording_overview(rec, frame_index=args.frame, scale=args.scale, latent=latent)
-    except (ArtifactError, FileNotFoundError) as exc:
+            img = recording_overview(rec, frame_index=args.frame, scale=args.scale, latent=latent,
+                                     reconstruct=True if args.reconstruct else None, rate_hz=args.rate)
+    except (ArtifactError, FileNotFoundError, ValueError) as exc:
         print(f"eventcap preview: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out or Path(args.recording).with_suffix(f".frame{args.frame}.png"))
@@ -440,13 +441,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache-dir", default=default_cache_dir(), help="cache root (default: %(default)s)")
     p.add_argument("--older-than", type=float, default=None, help="gc: also remove entries older than this many days")
     p.add_argument("--all", action="store_true", help="gc: remove every entry")
-    p = sub.add_parser("preview", help="PNG of a recording: frame, sharp image, events, ground-truth skeleton")
+    p = sub.add_parser("preview", help="PNG of a recording: frame (or image from events), sharp image, events, "
+                                       "ground-truth skeleton")
     p.add_argument("recording", help="a recording in the project's format (e.g. runs/simulate/*/source.recording.zarr)")
     p.add_argument("--frame", type=int, default=1, help="intensity frame index")
     p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
     p.add_argument("--out", help="output PNG (default: next to the recording)")
     p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
     p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
+    p.add_argument("--reconstruct", action="store_true", help="add the image reconstructed from the events alone "
+                                                               "(always shown for event-only recordings)")
+    p.add_argument("--rate", type=float, default=25.0, help="event-only recordings: image times every 1/rate s")
     p = sub.add_parser("view", help="the run in the Rerun viewer (capture.rrd; built from the run folder if missing)")
     p.add_argument("target", metavar="RUN_DIR", help="a run folder (runs/<name>/<timestamp>/) or an .rrd file")
     p.add_argument("--rebuild", action="store_true", help="write capture.rrd again even if the run folder has one")

@@ -46,32 +46,77 @@ def draw_skeleton(img: np.ndarray, joints_px: np.ndarray, landmarks_px: np.ndarr
     return out
 
 
+def image_times(rec, rate_hz: float = 25.0) -> tuple[np.ndarray, str]:
+    """The times a preview shows: the intensity frames, else those of the ground truth's sharp images (an event-only
+    synthetic capture), else every 1/rate_hz from the first event; and what they are."""
+    if rec.frames is not None and rec.frames.t_us.size:
+        return np.asarray(rec.frames.t_us, np.int64), "frame"
+    gt = rec.ground_truth
+    if gt is not None and gt.frame_t_us is not None and gt.frame_t_us.size:
+        return np.asarray(gt.frame_t_us, np.int64), "image"
+    t = rec.events.events["t"]
+    if t.size == 0:
+        raise ValueError(f"recording {rec.name or rec.source or '(unnamed)'!r} has neither intensity frames nor "
+                         f"events: nothing to show")
+    period = 1e6 / rate_hz
+    return int(t[0]) + np.round(np.arange(int((int(t[-1]) - int(t[0])) // period) + 1) * period).astype(np.int64), \
+        "image"
+
+
 def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int = 10_000, latent=None,
-                       ) -> np.ndarray:
+                       reconstruct: bool | None = None, rate_hz: float = 25.0) -> np.ndarray:
     """One picture of a Recording at an intensity frame: blurry frame | EDI-sharpened frame (if ``latent``, a
-    LatentFrames, is given) | true sharp image (if known) | events within ±window_us of the frame | frame with the
-    ground-truth skeleton projected (if known)."""
+    LatentFrames, is given) | reconstruction from the events alone (``reconstruct``; default: only when the
+    recording has no frames) | true sharp image (if known) | events within ±window_us of the frame | frame (or
+    reconstruction) with the ground-truth skeleton projected (if known).
+
+    Event-only recordings have no frame: image ``frame_index`` is at the ground truth's image times (synthetic
+    ``source.frames=false``) or every 1/rate_hz from the first event."""
     import cv2
 
-    frames = rec.require_frames("preview")
-    k = int(np.clip(frame_index, 0, frames.images.shape[0] - 1))
-    t = int(frames.t_us[k])
+    from eventcap.reconstruct import DEFAULT_BASELINE, DEFAULT_CUTOFF_RAD_S, reconstruct as events_to_images
+    from eventcap.reconstruct import to_intensity, to_log_images
+
+    times, what = image_times(rec, rate_hz)
+    has_frames = what == "frame"
+    if reconstruct is None:
+        reconstruct = not has_frames
+    k = int(np.clip(frame_index, 0, times.size - 1))
+    t = int(times[k])
     h, w = rec.height, rec.width
-    panels = [("frame %d (t=%.3f s)" % (k, t / 1e6), to_bgr(frames.images[k]))]
+    panels = []
+    if has_frames:
+        panels.append(("frame %d (t=%.3f s)" % (k, t / 1e6), to_bgr(rec.frames.images[k])))
+    base = to_bgr(rec.frames.images[k]) if has_frames else None
     if latent is not None:
-        lin = np.clip(np.exp(latent.log_images[k].astype(np.float64)) - latent.eps, 0.0, 1.0)
+        lk = int(np.argmin(np.abs(latent.t_us - t)))
+        lin = np.clip(np.exp(latent.log_images[lk].astype(np.float64)) - latent.eps, 0.0, 1.0)
         panels.append((f"EDI sharpened (C={latent.contrast:.3f})", to_bgr(lin)))
+    if reconstruct:
+        rel = events_to_images(rec.events.events, h, w, [t])
+        img = to_bgr(to_intensity(to_log_images(rel))[0])
+        title = f"from events only (t={t / 1e6:.3f} s)" if not has_frames else "from events only"
+        panels.append((title + f", high-pass {DEFAULT_CUTOFF_RAD_S:g} rad/s - {DEFAULT_BASELINE}", img))
+        base = img if base is None else base
     gt = rec.ground_truth
-    if gt is not None and gt.sharp_images is not None:
-        panels.append(("true sharp image", to_bgr(gt.sharp_images[k])))
+    gt_k = None
+    if gt is not None and gt.frame_joints.shape[0]:
+        gt_t = gt.frame_t_us if gt.frame_t_us is not None else (rec.frames.t_us if has_frames else None)
+        if gt_t is not None and gt_t.size == gt.frame_joints.shape[0] and np.any(gt_t == t):
+            gt_k = int(np.flatnonzero(gt_t == t)[0])
+    if gt_k is not None and gt.sharp_images is not None:
+        panels.append(("true sharp image", to_bgr(gt.sharp_images[gt_k])))
     ev = rec.events.window(t - window_us, t + window_us)
     panels.append((f"events +-{window_us / 1000:.0f} ms ({ev.size})", event_image(ev, h, w)))
     if gt is not None:
-        jp = rec.camera.project(gt.frame_joints[k])
+        jp = rec.camera.project(gt.frame_joints[gt_k]) if gt_k is not None else None
         lm_i = int(np.argmin(np.abs(gt.t_us - t)))
         lp = rec.camera.project(gt.landmarks[lm_i])
-        base = cv2.resize(to_bgr(frames.images[k]), (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)
-        panels.append(("ground-truth skeleton", draw_skeleton(base, jp, lp, scale=scale)))
+        if jp is None:  # joints at the nearest ground-truth sample
+            jp = rec.camera.project(gt.joints[lm_i])
+        big = cv2.resize(base if base is not None else event_image(ev, h, w), (w * scale, h * scale),
+                         interpolation=cv2.INTER_NEAREST)
+        panels.append(("ground-truth skeleton", draw_skeleton(big, jp, lp, scale=scale)))
     tiles = []
     for title, img in panels:
         if img.shape[0] != h * scale:

@@ -53,6 +53,16 @@ class BatchPlan(Artifact):
         t = np.asarray(frame_t_us, dtype=np.int64)
         return cls(t0_us=t[:-1].copy(), t1_us=t[1:].copy(), frame0=np.arange(max(len(t) - 1, 0), dtype=np.int64))
 
+    @classmethod
+    def at_rate(cls, t_first_us: int, t_last_us: int, rate_hz: float) -> BatchPlan:
+        """Batches of 1/rate_hz from ``t_first_us`` while they end by ``t_last_us`` (a recording without intensity
+        frames: its images are reconstructed at these boundaries, ``frame0`` counts them)."""
+        if not rate_hz > 0:
+            raise ValueError(f"batch rate: expected a rate > 0 Hz, got {rate_hz!r}")
+        period = 1e6 / float(rate_hz)
+        n = int(np.floor((int(t_last_us) - int(t_first_us)) / period + 1e-9)) + 1
+        return cls.between_frames(int(t_first_us) + np.round(np.arange(max(n, 0)) * period).astype(np.int64))
+
 
 @dataclass(frozen=True, eq=False)
 class Metrics(Artifact):

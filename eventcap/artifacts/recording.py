@@ -96,6 +96,9 @@ class GroundTruth(Artifact):
     track_bary: np.ndarray = array("float32", ("p", 3), optional=True)
     track_px: np.ndarray = array("float32", ("t", "p", 2), units="px", optional=True)
     track_visible: np.ndarray = array("bool", ("t", "p"), optional=True)
+    frame_t_us: np.ndarray = array("int64", ("n",), units="us", optional=True,
+                                   doc="times of frame_poses, frame_joints and sharp_images; None = the recording's "
+                                       "intensity frame times (set when they differ, e.g. an event-only capture)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,6 +139,6 @@ class Recording(Artifact):
             n = 0 if self.frames is None else self.frames.images.shape[0]
             raise ArtifactError(
                 f"stage {stage!r} needs intensity frames (at least 2), but recording {self.name or self.source!r} "
-                f"has {n}"
+                f"has {n} (an event-only recording: run pipeline=events_only, images reconstructed from the events)"
             )
         return self.frames

@@ -12,7 +12,8 @@ from eventcap.artifacts.pose import Detections
 def _frame_times(rec, stage: str) -> np.ndarray:
     if rec.frames is None or rec.frames.t_us.size == 0:
         raise ValueError(f"stage {stage!r} detects joints in intensity frames, but recording "
-                         f"{rec.name or rec.source or '(unnamed)'!r} has none")
+                         f"{rec.name or rec.source or '(unnamed)'!r} has none (an event-only recording: pipeline=events_only "
+                         f"detects in images reconstructed from the events)")
     return rec.frames.t_us
 
 

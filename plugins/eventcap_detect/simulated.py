@@ -216,7 +216,10 @@ def frame_truth(recording, occlusion: bool = True, occlusion_margin_m: float = 0
     landmarks = interpolate_at(gt.t_us, gt.landmarks, t_us, where)
     if landmarks.shape[1] != NUM_LANDMARKS:
         raise ValueError(f"{where}: expected {NUM_LANDMARKS} landmarks (BODY_25 order), got {landmarks.shape[1]}")
-    if gt.frame_joints.shape[0] == t_us.size:
+    # frame_* hold the truth at the recording's frame times, or at gt.frame_t_us when it says so.
+    at_frames = gt.frame_joints.shape[0] == t_us.size and (gt.frame_t_us is None
+                                                          or np.array_equal(gt.frame_t_us, t_us))
+    if at_frames:
         joints = np.asarray(gt.frame_joints, dtype=np.float64)
     else:
         joints = interpolate_at(gt.t_us, gt.joints, t_us, f"recording {name!r}: ground-truth joints")
@@ -224,7 +227,7 @@ def frame_truth(recording, occlusion: bool = True, occlusion_margin_m: float = 0
     visible = in_image(keypoints, cam.height, cam.width)
     checked = bool(occlusion and recording.template is not None)
     if checked:
-        poses = (np.asarray(gt.frame_poses) if gt.frame_poses.shape[0] == t_us.size
+        poses = (np.asarray(gt.frame_poses) if at_frames
                  else interpolate_at(gt.t_us, gt.poses, t_us, f"recording {name!r}: ground-truth poses"))
         visible &= ~hidden_by_body(cam, recording.template, poses, landmarks, occlusion_margin_m)
     return FrameTruth(

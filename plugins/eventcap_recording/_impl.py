@@ -73,9 +73,19 @@ def run_recording(inputs, config, ctx):
         rec = _read_external(path, config, ctx)
     if inputs.get("template") is not None and rec.template is None:
         rec = dataclasses.replace(rec, template=inputs["template"])
+    if not config.frames and rec.frames is not None:
+        ctx.log.info("source.frames=false: %d intensity frames of %s left out (an event-only recording)",
+                     rec.frames.t_us.size, path)
+        rec = dataclasses.replace(rec, frames=None, source=f"{rec.source} [frames left out]")
     t = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)
-    if t.size < 2:
-        ctx.log.warning("%s has %d intensity frames: no batches (stages that need frames will say so)", path, t.size)
-    plan = BatchPlan.between_frames(t) if t.size >= 2 else BatchPlan(
-        t0_us=np.zeros(0, np.int64), t1_us=np.zeros(0, np.int64), frame0=np.zeros(0, np.int64))
+    if t.size >= 2:
+        return {"recording": rec, "batches": BatchPlan.between_frames(t)}
+    ev = rec.events.events["t"]
+    if config.batch_rate_hz <= 0:
+        raise ValueError(f"source.batch_rate_hz: expected a rate > 0 Hz to cut {path} (it has {t.size} intensity "
+                         f"frames) into batches, got {config.batch_rate_hz}")
+    plan = BatchPlan.at_rate(int(ev[0]), int(ev[-1]), config.batch_rate_hz) if ev.size else BatchPlan.between_frames(t)
+    ctx.log.info("%s has %d intensity frames: %d batches of %.1f ms from the events (source.batch_rate_hz=%g); "
+                 "images reconstructed from the events stand in for frames with pipeline=events_only", path, t.size,
+                 len(plan), 1e3 / config.batch_rate_hz, config.batch_rate_hz)
     return {"recording": rec, "batches": plan}

@@ -28,6 +28,10 @@ class RecordingConfig:
                                                           "[x, y, t, p] (empty = names in the file or the "
                                                           "time-ordered column)")
     y_up: bool = param(False, help="the file's y axis points up (origin bottom-left): events are flipped")
+    frames: bool = param(True, help="false: leave the file's intensity frames out (use it as an event-only "
+                                    "recording)")
+    batch_rate_hz: float = param(25.0, help="without intensity frames: batches of 1/rate from the first event (the "
+                                            "times images are reconstructed at, pipeline=events_only)")
 
 
 RECORDING = StageSpec(

@@ -74,13 +74,18 @@ def run_synthetic(inputs, config, ctx):
         frame_poses=cap.frame_poses, frame_joints=cap.frame_joints, sharp_images=cap.sharp_images.astype(np.float32),
         track_tri=cap.track_tri, track_bary=cap.track_bary, track_px=cap.track_px, track_visible=cap.track_visible,
         height=h, width=w,
+        # Without frames the sharp images and frame poses no longer sit at the recording's frame times: say when.
+        frame_t_us=None if config.frames else cap.frame_t_us.copy(),
     )
+    frame_stack = FrameStack(images=cap.frame_images.astype(np.float32) / np.float32(255.0), t_us=cap.frame_t_us,
+                        exposure_us=cap.frame_exposure_us, height=h, width=w) if config.frames else None
+    if not config.frames:
+        ctx.log.info("source.frames=false: an event-only recording (the %d simulated frames are left out; batches "
+                     "keep their clock)", len(cap.frame_t_us))
     rec = Recording(
         events=EventStream(events=cap.events, width=w, height=h), camera=cam,
-        frames=FrameStack(images=cap.frame_images.astype(np.float32) / np.float32(255.0), t_us=cap.frame_t_us, exposure_us=cap.frame_exposure_us,
-                          height=h, width=w),
-        template=template, ground_truth=gt, name=f"synthetic-{'+'.join(names)}-seed{config.seed}",
+        frames=frame_stack, template=template, ground_truth=gt, name=f"synthetic-{'+'.join(names)}-seed{config.seed}",
         source=f"synthetic: motion={config.motion} duration_s={config.duration_s} seed={config.seed} "
-               f"speed={config.speed} amplitude={config.amplitude}",
+               f"speed={config.speed} amplitude={config.amplitude}" + ("" if config.frames else " frames=false"),
     )
     return {"recording": rec, "batches": BatchPlan.between_frames(cap.frame_t_us)}

@@ -57,6 +57,10 @@ class SyntheticConfig:
     background_seed: int = param(0, help="texture of the static background")
     gt_rate_hz: float = param(1000.0, help="rate of the ground-truth poses, joints and tracks")
     n_track_points: int = param(300, help="surface points whose ground-truth 2D tracks are recorded")
+    frames: bool = param(True, help="false: an event-only camera. The capture is simulated exactly as with frames "
+                                    "(the same events) and its intensity frames are left out of the recording; "
+                                    "batches keep the frame clock (fps), and the ground truth keeps the true sharp "
+                                    "images at those times (frame_t_us)")
 
 
 PROCEDURAL = StageSpec(name="procedural", kind="template", version=1,
