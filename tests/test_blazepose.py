@@ -332,3 +332,15 @@ def test_stage_at_latent_and_tracking_uses_the_edi_images():
     assert np.all(trk.confidence_2d[:, nose] > 0.5)
     with pytest.raises(ValueError, match="tracking_step_us: expected a positive step"):
         run(at="tracking", tracking_step_us=0)
+
+
+def test_no_person_anywhere_fails_the_stage_with_the_reason():
+    from eventcap.stage import StageFailed
+
+    rec = photo_recording()
+    blank = FrameStack(images=np.zeros_like(rec.frames.images), t_us=rec.frames.t_us,
+                       exposure_us=rec.frames.exposure_us, height=rec.height, width=rec.width)
+    empty = Recording(events=rec.events, camera=rec.camera, frames=blank, name="blank")
+    with pytest.raises(StageFailed, match="no person found in any of the 3 images") as info:
+        detect(empty)
+    assert info.value.status == "no_person"

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from eventcap.artifacts.pose import Detections
+from eventcap.stage import StageFailed
 
 
 def _frame_times(rec, stage: str) -> np.ndarray:
@@ -144,6 +145,10 @@ def run_blazepose(inputs, config, ctx):
     conf[outside] = 0.0
     kp[conf == 0] = 0.0
     found = sum(p is not None for p in seq.poses)
+    if n and not found:
+        raise StageFailed(f"blazepose ({config.model}, at {config.at}): no person found in any of the {n} images "
+                          f"(detector, events and the whole image tried; is there a person in view?)",
+                          status="no_person")
     how = {k: seq.found_by.count(k) for k in ("tracked", "detector", "events", "image")}
     ms = 1000 * seq.seconds / max(n, 1)
     ctx.stats.update({"images": n, "found": found, "found_by": how, "tracking_losses": len(seq.losses),
