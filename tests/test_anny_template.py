@@ -244,3 +244,19 @@ class TestAnnyStage(StageConformance):
 
     def make_inputs(self):
         return {}
+
+
+def test_renders_as_a_clothed_person_in_the_default_camera(actor):
+    from eventcap.camera import davis240c_default
+    from eventcap.render import render
+
+    cam = davis240c_default(distortion=False, eye=(0.0, 1.0, 3.0), target=(0.0, 1.0, 0.0))
+    r = render(cam, actor.vertices, actor.faces, actor.vertex_albedo, background=np.full((180, 240), 0.5, np.float32))
+    hit = r.tri_id >= 0
+    rows = np.flatnonzero(hit.any(axis=1))
+    top, bottom = cam.project(np.array([[0.0, 1.75, 0.0], [0.0, 0.0, 0.0]]))[:, 1]
+    assert abs(rows.min() - top) <= 3 and abs(rows.max() - bottom) <= 5  # the whole body, at its stature
+    region = anny_region_labels()[actor.faces[r.tri_id[hit], 0]]
+    level = {n: float(np.median(r.intensity[hit][region == REGIONS.index(n)])) for n in ("skin", "shirt", "trousers")}
+    assert level["trousers"] < level["shirt"] < level["skin"]
+    assert level["skin"] - level["trousers"] > 0.2
