@@ -17,6 +17,8 @@ from eventcap.stage import StageFailed
 def run_procedural(inputs, config, ctx):
     from eventcap.body.procedural import procedural_template
 
+    ctx.log.info("template: the generic procedural actor (%.2f m); for a real person give their height "
+                 "(template.height_m=...) or use template=anny with height_m, build and sex", config.height_m)
     return {"template": procedural_template(seed=config.seed, height_m=config.height_m,
                                             target_faces=config.target_faces)}
 
