@@ -77,7 +77,7 @@ class BlazePoseConfig:
 
 
 BLAZEPOSE = StageSpec(
-    name="blazepose", kind="detect", version=1,
+    name="blazepose", kind="detect", version=2,
     description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints",
     config=BlazePoseConfig,
     inputs={"recording": Port(Recording),
