@@ -154,6 +154,76 @@ def plot_wrist(path: Path, rec: Recording, t_us: np.ndarray, curves: dict, joint
     return path
 
 
+def timing(args) -> None:
+    """CPU seconds of one window solve against the window length (half_window 0..4), on batch --timing-batch of the
+    first motion at the first rate: the spline stage's own code on the runner's cached inputs. CPU time (not wall
+    time) so that a shared machine does not blur the comparison; the per-frame fits are excluded (cached per
+    process in the stage: each frame is fitted once per run)."""
+    from eventcap.artifacts.pose import Detections
+    from eventcap.artifacts.tracking import SlicedTracks
+    from eventcap.energy.detections import select_detections
+    from eventcap.energy.ipopt import IpoptSettings
+    from eventcap.energy.spline import UniformCubicBSpline
+    from eventcap_spline._impl import window_of
+    from eventcap_spline.solve import SplineProblem, SplineWeights, fit_window, solve_window
+
+    motion, rate = args.motions.split(",")[0], args.rates.split(",")[0]
+    rd = Path(args.out) / f"timing-{motion}-{rate}fps"
+    ov = [f"source.motion={motion}", f"source.duration_s={args.duration}", f"source.seed={args.seed}",
+          f"cache_dir={args.cache}", "export=[source.recording,slice.sliced,detect.detections]",
+          "outputs.video=false", "outputs.bvh=false", "log_level=WARNING", *RATES[rate], *METHODS["linear"],
+          *args.extra.split()]
+    r = run_method(ov, rd)
+    rec = r["rec"]
+    det = Detections.from_zarr(zarr.open_group(str(rd / "detect.detections.zarr"), mode="r"))
+    sliced = [SlicedTracks.from_zarr(zarr.open_group(str(f), mode="r"))
+              for f in sorted((rd / "slice.sliced").glob("batch*.zarr"))]
+    k = min(args.timing_batch, len(sliced) - 1)
+    frames = np.array([int(x.t_us[0]) for x in sliced] + [int(sliced[-1].t_us[-1])])
+    w = SplineWeights()
+    print(f"window solve of batch {k} ({motion}, {rate} fps), CPU seconds (fits excluded)")
+    print(f"{'half_window':>11} {'batches':>7} {'ctrl':>5} {'build s':>8} {'solve s':>8} {'iters':>6} {'corr':>6}")
+    for hw in range(0, 5):
+        a, z = window_of(len(sliced), k, hw)
+        t_det = frames[a:z + 2]
+        d = select_detections(det, t_det)
+        n_seg = int(np.ceil((t_det[-1] - t_det[0]) / 10_000))
+        spl = UniformCubicBSpline(int(t_det[0]), 10_000, n_seg)
+        s = sliced[k]
+        c0 = time.process_time()
+        prob = SplineProblem(rec.template, rec.camera, n_seg, t_det.size, s.t_us.size, IpoptSettings(max_iter=200))
+        c1 = time.process_time()
+        fit_window(prob, d, w)  # fills the per-process fit cache: not timed below
+        c2 = time.process_time()
+        res = solve_window(prob, spl, t_det, d, np.asarray(s.t_us), np.asarray(s.xy, dtype=np.float64),
+                           np.asarray(s.valid), w)
+        c3 = time.process_time()
+        its = sum(x.iterations for x in res.solves)
+        print(f"{hw:>11} {z - a + 1:>7} {spl.n_ctrl:>5} {c1 - c0:8.2f} {c3 - c2:8.2f} {its:>6} "
+              f"{res.energies['n_correspondences']:>6}", flush=True)
+
+
+def plot_runs(spec: str, png: Path) -> None:
+    """The wrist figure from finished run folders: spec 'name=run_dir,...' (a run named linear also gives
+    frames_smooth)."""
+    curves, rec, t = {}, None, None
+    for item in spec.split(","):
+        name, d = item.split("=", 1)
+        m = np.load(Path(d) / "motion.npz")
+        if rec is None:
+            rec = Recording.from_zarr(zarr.open_group(str(Path(d) / "source.recording.zarr"), mode="r"))
+            t = m["t_us"]
+        if m["t_us"].shape != t.shape:
+            raise SystemExit(f"{d}: {m['t_us'].size} frames, the first run has {t.size}")
+        curves[name] = m["joints"]
+        print(f"{name:<14} " + " ".join(f"{k} {v:.1f}" for k, v in measures(rec, m["t_us"], m["joints"]).items()))
+        if name == "linear":
+            fs = joint_positions(frames_smooth(rec, {"t_us": m["t_us"], "poses": m["poses"]}), rec.template.rest_joints)
+            curves["frames_smooth"] = fs
+            print(f"{'frames_smooth':<14} " + " ".join(f"{k} {v:.1f}" for k, v in measures(rec, t, fs).items()))
+    print(f"figure: {plot_wrist(png, rec, t, curves)}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--motions", default="karate_kick")
@@ -166,7 +236,16 @@ def main() -> None:
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_spline"))
     ap.add_argument("--extra", default="", help="more hydra overrides for every run, space separated")
     ap.add_argument("--spline-extra", default="", help="more hydra overrides for the spline runs only")
+    ap.add_argument("--timing", action="store_true", help="only time one window solve against the window length")
+    ap.add_argument("--timing-batch", type=int, default=12)
+    ap.add_argument("--plot-runs", default="", help="only draw the wrist figure from run folders: name=dir,...")
     args = ap.parse_args()
+    if args.plot_runs:
+        plot_runs(args.plot_runs, Path(args.out) / "wrist.png")
+        return
+    if args.timing:
+        timing(args)
+        return
     out = Path(args.out)
     results = []
     rpath = out / "results.json"

@@ -185,7 +185,7 @@ FAST = {"icp_rounds": 1, "half_window": 1, "knot_ms": 20.0, "cor_step": 4}
 class TestSplineStageConformance(StageConformance):
     stage_name = "spline"
     config_overrides = FAST
-    sensitive = ("lambda_prior", 1e-4)
+    sensitive = ("lambda_prior", 5e-4)
     insensitive = ("max_iter", 50)
 
     def make_inputs(self):
@@ -224,60 +224,62 @@ def _stitch(poses, plan, **changes):
                     for k in range(len(poses))], ctx
 
 
-def test_stitch_removes_seams_and_keeps_smooth_batches():
-    """Three batches of a smooth motion, the middle one 0.05 rad off and the last one on another 2π branch of the
-    root yaw: the stitched motion has no jump larger than the motion's own 1 ms steps, and inside the batches it
-    stays on the batches' curves (the seam is spread over the knots next to it)."""
+def test_stitch_blends_overlapping_windows_without_a_seam():
+    """Three windows of a smooth motion over 3 batches (each covering its batch and its neighbours), the middle one
+    0.05 rad off and the last one on another 2π branch of the root yaw. Kept per batch they would jump by 0.05 rad
+    where the batches meet; blended, no 1 ms step is larger than the motion's own plus the offset spread over the
+    overlap, the acceleration stays bounded (C²), and where only one window has weight it is that window."""
     from eventcap.artifacts.pose import PoseSequence
+    from eventcap_spline.stitch import smootherstep
 
     plan = BatchPlan.between_frames(np.array([5_000, 45_000, 85_000, 125_000]))
     t = np.arange(5_000, 125_001, 1_000)
     truth = np.zeros((t.size, 33))
     truth[:, :27] = 0.3 * np.sin(2 * np.pi * 2.0 * t[:, None] * 1e-6 + np.arange(27)[None, :])
     truth[:, 27] = 3.1 + 2.0 * t * 1e-6  # yaw crossing π
-    poses = []
-    for k in range(3):
-        sel = (t >= plan.t0_us[k]) & (t <= plan.t1_us[k])
+    spans = [(5_000, 85_000), (5_000, 125_000), (45_000, 125_000)]
+    windows = []
+    for k, (a_, b_) in enumerate(spans):
+        sel = (t >= a_) & (t <= b_)
         p = truth[sel].copy()
         p[:, :27] += 0.05 if k == 1 else 0.0
         p[:, 27] -= 2 * np.pi if k == 2 else 0.0
-        poses.append(PoseSequence(t_us=t[sel], poses=p, status="Solve_Succeeded", iterations=1, energies={}))
-    motion, cut, ctx = _stitch(poses, plan)
+        windows.append(PoseSequence(t_us=t[sel], poses=p, status="Solve_Succeeded", iterations=1, energies={}))
+    motion, cut, ctx = _stitch(windows, plan)
     assert ctx.stats["seam_rad_max"] == pytest.approx(0.05)
     assert motion.t_us.tolist() == t.tolist()
-    steps = np.abs(np.diff(motion.poses, axis=0)).max()
-    assert steps < 2 * np.abs(np.diff(truth, axis=0)).max() + 0.002, steps
-    # away from the seams (> 15 ms), the batches' own curves
-    for k in range(3):
-        sel = (t >= plan.t0_us[k] + 15_000) & (t <= plan.t1_us[k] - 15_000)
-        ref = truth[sel, :27] + (0.05 if k == 1 else 0.0)
-        assert np.abs(motion.poses[sel, :27] - ref).max() < 0.02
+    d1 = np.abs(np.diff(motion.poses, axis=0)).max()
+    assert d1 < np.abs(np.diff(truth, axis=0)).max() + 0.05 / 20, d1  # the offset spread over >= 20 ms
+    d2 = np.abs(np.diff(motion.poses[:, :27] - truth[:, :27], 2, axis=0)).max()
+    assert d2 < 0.05 * 20 / 40**2, d2  # second differences of a smooth 40 ms blend of a 0.05 rad offset
+    np.testing.assert_allclose(motion.poses[:, 27], truth[:, 27], atol=1e-12)  # every window on one branch
+    # Window ends at the recording's ends are not tapered: at 125 ms windows 1 and 2 weigh 1 each.
+    assert motion.poses[-1, 0] == pytest.approx(truth[-1, 0] + 0.05 / 2)
     assert [c.t_us[0] for c in cut] == plan.t0_us.tolist() and cut[1].t_us[-1] == 85_000
     assert cut[0].poses[-1].tolist() == cut[1].poses[0].tolist()
+    u = np.linspace(0, 1, 101)
+    assert smootherstep(u)[[0, -1]].tolist() == [0.0, 1.0] and np.all(np.diff(smootherstep(u)) >= 0)
 
 
-def test_stitched_stage_outputs_join_without_a_seam():
-    """Batches 0 and 1 solved in different windows (one batch each: the largest disagreement) meet with a jump;
-    after stitch + cut the jump is spread over the neighbouring knots."""
+def test_stitched_stage_output_is_smooth_where_batches_meet():
+    """The three batches of the scene, each solved in its own window task (each task sees only its own batch's
+    tracks, so the windows differ): after stitch + cut, the largest 1 ms joint step is no larger than inside the
+    windows, and batch 0's last frame is batch 1's first."""
     rec = scene()[0]
     outs = []
-    for k in (0, 1):
+    for k in (0, 1, 2):
         inputs = stage_inputs(k)
-        out, ctx = _run_stage(inputs, inputs["batches"].batch(k), half_window=0)
+        out, ctx = _run_stage(inputs, inputs["batches"].batch(k), half_window=1)
         outs.append(out["poses"])
-        assert ctx.stats["window"] == [k, k] and out["poses"].status == "Solve_Succeeded"
+        assert ctx.stats["window"] == [0, 2] and out["poses"].status == "Solve_Succeeded"
+        assert out["poses"].t_us[0] == 5_000 and out["poses"].t_us[-1] == 125_000  # the whole window
     rest = rec.template.rest_joints
-    J0, J1 = joint_positions(outs[0].poses, rest), joint_positions(outs[1].poses, rest)
-    assert outs[0].t_us[-1] == outs[1].t_us[0]
-    seam = np.linalg.norm(J1[0] - J0[-1], axis=1).max()
-    step = np.linalg.norm(np.diff(J0, axis=0), axis=2).max()
-    motion, cut, _ = _stitch(outs, stage_inputs()["batches"])
+    inside = max(np.linalg.norm(np.diff(joint_positions(o.poses, rest), axis=0), axis=2).max() for o in outs)
+    motion, cut, ctx = _stitch(outs, stage_inputs()["batches"])
     J = joint_positions(motion.poses, rest)
-    joined = np.linalg.norm(np.diff(J, axis=0), axis=2).max()
-    # Measured: a 70 mm jump between the one-batch windows (4 mm the largest 1 ms step inside a batch) becomes
-    # at most 6.5 mm per ms, spread over the knots next to the seam.
-    assert seam > 5 * step  # the windows disagree ...
-    assert joined < 0.15 * seam and joined < 2 * step, (seam, step, joined)  # ... the stitched motion does not jump
+    assert np.linalg.norm(np.diff(J, axis=0), axis=2).max() <= 1.05 * inside
+    assert cut[0].poses[-1].tolist() == cut[1].poses[0].tolist() and cut[2].t_us[-1] == 125_000
+    assert ctx.stats["seam_rad_max"] > 0  # the windows did differ
 
 
 def test_a_failed_window_raises_with_the_solver_status():

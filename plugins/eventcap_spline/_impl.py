@@ -113,9 +113,14 @@ def run_spline(inputs, config, ctx):
         if what in str(exc):
             raise
         raise StageFailed(f"{what}: {exc}", status=exc.status, details=getattr(exc, "details", {})) from exc
-    poses = spline.evaluate(res.control, t_us)
-    # The window unwrapped its root angles from its own first fit: put each batch on one branch (its first pose's
-    # root angles in (-π, π]), so that neighbouring batches, solved in different windows, agree.
+    # The output is the window's whole curve at the tracking rate: stitch blends the overlapping windows.
+    step = int(np.median(np.diff(t_us)))
+    t_win = np.arange(int(t_det[0]), int(t_det[-1]) + 1, step, dtype=np.int64)
+    if t_win[-1] != t_det[-1]:
+        t_win = np.append(t_win, t_det[-1])
+    poses = spline.evaluate(res.control, t_win)
+    # The window unwrapped its root angles from its own first fit: one branch per window (its first pose's root
+    # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.
     poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[0, 27:30] / (2.0 * np.pi))
     iters = int(sum(s.iterations for s in res.solves))
     secs = sum(res.seconds.values())
@@ -127,5 +132,5 @@ def run_spline(inputs, config, ctx):
                       "solves": [[s.status, s.iterations, s.seconds] for s in res.solves],
                       "n_correspondences": int(res.energies["n_correspondences"])})
     energies = {k: (int(v) if k == "n_correspondences" else float(v)) for k, v in res.energies.items()}
-    return {"poses": PoseSequence(t_us=t_us.copy(), poses=poses, status=res.solves[-1].status, iterations=iters,
+    return {"poses": PoseSequence(t_us=t_win, poses=poses, status=res.solves[-1].status, iterations=iters,
                                   energies=energies)}
