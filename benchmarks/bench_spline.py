@@ -164,7 +164,8 @@ def timing(args) -> None:
     from eventcap.energy.detections import select_detections
     from eventcap.energy.ipopt import IpoptSettings
     from eventcap.energy.spline import UniformCubicBSpline
-    from eventcap_spline._impl import window_of
+    from eventcap_spline._impl import cor_frames, window_of
+    from eventcap_spline.spec import SplineSolveConfig
     from eventcap_spline.solve import SplineProblem, SplineWeights, fit_window, solve_window
 
     motion, rate = args.motions.split(",")[0], args.rates.split(",")[0]
@@ -181,7 +182,9 @@ def timing(args) -> None:
     k = min(args.timing_batch, len(sliced) - 1)
     frames = np.array([int(x.t_us[0]) for x in sliced] + [int(sliced[-1].t_us[-1])])
     w = SplineWeights()
-    print(f"window solve of batch {k} ({motion}, {rate} fps), CPU seconds (fits excluded)")
+    step = SplineSolveConfig().cor_step
+    print(f"window solve of batch {k} ({motion}, {rate} fps, stage defaults: correspondences every {step} "
+          f"tracking frames), CPU seconds (fits excluded)")
     print(f"{'half_window':>11} {'batches':>7} {'ctrl':>5} {'build s':>8} {'solve s':>8} {'iters':>6} {'corr':>6}")
     for hw in range(0, 5):
         a, z = window_of(len(sliced), k, hw)
@@ -190,13 +193,14 @@ def timing(args) -> None:
         n_seg = int(np.ceil((t_det[-1] - t_det[0]) / 10_000))
         spl = UniformCubicBSpline(int(t_det[0]), 10_000, n_seg)
         s = sliced[k]
+        idx = cor_frames(s.t_us.size, step)
         c0 = time.process_time()
-        prob = SplineProblem(rec.template, rec.camera, n_seg, t_det.size, s.t_us.size, IpoptSettings(max_iter=200))
+        prob = SplineProblem(rec.template, rec.camera, n_seg, t_det.size, idx.size, IpoptSettings(max_iter=200))
         c1 = time.process_time()
         fit_window(prob, d, w)  # fills the per-process fit cache: not timed below
         c2 = time.process_time()
-        res = solve_window(prob, spl, t_det, d, np.asarray(s.t_us), np.asarray(s.xy, dtype=np.float64),
-                           np.asarray(s.valid), w)
+        res = solve_window(prob, spl, t_det, d, np.asarray(s.t_us)[idx], np.asarray(s.xy, dtype=np.float64)[idx],
+                           np.asarray(s.valid)[idx], w)
         c3 = time.process_time()
         its = sum(x.iterations for x in res.solves)
         print(f"{hw:>11} {z - a + 1:>7} {spl.n_ctrl:>5} {c1 - c0:8.2f} {c3 - c2:8.2f} {its:>6} "
