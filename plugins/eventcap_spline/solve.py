@@ -66,7 +66,7 @@ class SplineWeights:
     d2: float = 200.0
     d3: float = 1.0
     cor: float = 500.0
-    prior: float = 1e-4
+    prior: float = 5e-4
     damp: float = 1e-4
 
     def __post_init__(self) -> None:
