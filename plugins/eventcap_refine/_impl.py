@@ -17,7 +17,7 @@ _KERNELS: dict = {}
 
 def bounds_with(limits) -> tuple[np.ndarray, np.ndarray]:
     """skeleton.pose_bounds() with the config's overrides {name: [min, max]} applied (as the solve's)."""
-    from eventcap_solve._impl import bounds_with as solve_bounds
+    from eventcap.energy.ipopt import bounds_with as solve_bounds
 
     return solve_bounds(limits, "stages.refine.limits")
 
@@ -25,7 +25,7 @@ def bounds_with(limits) -> tuple[np.ndarray, np.ndarray]:
 def problem_for(template, camera, frames: int, settings, limits=None):
     """The RefineProblem for this template, camera, batch length, solver settings and bounds, built once per
     process. Returns (problem, built_now)."""
-    from eventcap_solve.batch import SkinningKernels
+    from eventcap.energy.kernels import SkinningKernels
 
     from .refine import RefineProblem
 
@@ -47,7 +47,7 @@ def problem_for(template, camera, frames: int, settings, limits=None):
 
 
 def run_refine(inputs, config, ctx):
-    from eventcap_solve.batch import IpoptSettings
+    from eventcap.energy.ipopt import IpoptSettings
 
     from .refine import RefineWeights, refine_batch
 

@@ -1,9 +1,9 @@
 """Compiled inner loops of the refinement (numba): camera projection and residual derivatives, the sparse
 skinning products of the energy, the silhouette boundary scan, the rest-point solve and the event search.
 
-Each is checked in tests/test_refine.py against a plain reference: ``eventcap_solve.batch.project_derivatives``
+Each is checked in tests/test_refine.py against a plain reference: ``eventcap.energy.kernels.project_derivatives``
 (camera model and its derivatives), ``eventcap.render.rasterize`` (projection), finite differences (the energy's
-gradient and Hessian built from the sparse products), ``eventcap_solve.correspondences.rest_point`` (rest
+gradient and Hessian built from the sparse products), ``eventcap.energy.correspondences.rest_point`` (rest
 points), the definition on a disc (boundary and normals) and a brute-force scan of all events (search, support).
 """
 
@@ -178,7 +178,7 @@ def _fill_sparse(rest, weights, idx, val):
 
 def sparse_premultiplied(rest_points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The premultiplied weights WX (P, 96) of points — posed point = WX · G, entry 4j + c = w_j [x, 1]_c (see
-    ``eventcap_solve.batch.premultiplied_weights``) — as their nonzeros only: (P, K) column indices and values,
+    ``eventcap.energy.kernels.premultiplied_weights``) — as their nonzeros only: (P, K) column indices and values,
     padded with value 0 (K = 4 × the most joints any point is weighted to; a point has 2-9 of 24)."""
     weights = np.ascontiguousarray(weights, dtype=np.float64)
     rest_points = np.ascontiguousarray(rest_points, dtype=np.float64)
@@ -310,7 +310,7 @@ def boundary_scan(masks: np.ndarray, sigma_px: float, min_gradient: float):
 def rest_points(posed, weights, frame, transforms, min_det, rest, w_out):
     """Rest points x with Σ_j w_j (R_j x + b_j) = posed (transforms (F, 24, 4, 4) of each point's frame); where
     |det Σ_j w_j R_j| < min_det the point is attached rigidly to its dominant joint instead (one-hot weights).
-    The compiled, all-frames form of eventcap_solve.correspondences.rest_point."""
+    The compiled, all-frames form of eventcap.energy.correspondences.rest_point."""
     J = weights.shape[1]
     A = np.empty((3, 3))
     c = np.empty(3)

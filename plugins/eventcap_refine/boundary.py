@@ -13,7 +13,7 @@ Per tracking frame the template is posed with the current estimate S_f (linear b
 - Surface point v_b: the triangle under s_b's pixel centre and its perspective-correct barycentrics (from the
   rasteriser) give the 3D point seen there. It is stored as a rest-space point with skinning weights blended from
   the triangle's vertices; the rest point is solved so that LBS with S_f maps it *exactly* onto the picked point
-  (as ``eventcap_solve.correspondences.rest_point`` does, compiled for all frames at once; rigid attachment to the
+  (as ``eventcap.energy.correspondences.rest_point`` does, compiled for all frames at once; rigid attachment to the
   dominant joint where the blended rotation is nearly singular), so π(v_b(S_f)) is s_b's pixel centre at the pose
   it was found with.
 
@@ -114,7 +114,7 @@ def boundary_pixels(mask: np.ndarray, sigma_px: float = NORMAL_SIGMA_PX):
 def boundary_samples(template: Template, camera: Camera, poses: np.ndarray,
                      sigma_px: float = NORMAL_SIGMA_PX) -> BoundarySamples:
     """Boundary samples of the template posed with each row of ``poses`` (F, 33) (module doc)."""
-    from eventcap_solve.correspondences import MIN_BLEND_DET
+    from eventcap.energy.correspondences import MIN_BLEND_DET
 
     from ._kernels import rest_points
 

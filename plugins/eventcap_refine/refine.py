@@ -16,7 +16,7 @@ Boundary pixels without any event in their patch and window are left out (counte
   nearest ones then pull linearly instead of quadratically.
 - E_stab (Eq. 10): the 24 joints stay close to where the batch solve put them.
 
-Units (as in :mod:`eventcap_solve.batch`): image residuals are divided by the focal length f = sqrt(fx·fy) in
+Units (as in the batch solve): image residuals are divided by the focal length f = sqrt(fx·fy) in
 pixels (focal-normalised image units, ≈ radians; 1 px ≈ 5 mrad for the DAVIS240C), 3D residuals are metres.
 With the paper's λ_sil = 1, λ_stab = 5 a boundary pixel off by 1 px costs as much as one joint off by 2.2 mm
 (1/f² = 5·d², d = 1 / (f √5) m), and ~280 boundary pixels of a body (240×180 image, 3 m away) moved by 1 px
@@ -27,13 +27,13 @@ How it is computed. All frames of a batch are one NLP over the F·33 pose parame
 Hessian is block diagonal; one NLP needs as many IPOPT iterations as the slowest frame, 41 separate ones would pay
 IPOPT's and CasADi's overhead 41 times per ICP iteration), built once per process for a template, camera and frame
 count (~0.1 s), and solved by IPOPT (exact Hessian, MUMPS, the batch solver's pinned options
-:class:`eventcap_solve.batch.IpoptSettings` with tol = :data:`TOL`), warm-started from the previous ICP iteration.
+:class:`eventcap.energy.ipopt.IpoptSettings` with tol = :data:`TOL`), warm-started from the previous ICP iteration.
 The energy is evaluated exactly — value, gradient and Hessian — as in the batch solver's E_cor: per frame, the 24
 skinning transforms G(S) (96×3), their Jacobian and the contraction of their second derivatives come from the
-solver's CasADi kernels (:class:`eventcap_solve.batch.SkinningKernels`); each surface point is v = WX·G
+solver's CasADi kernels (:class:`eventcap.energy.kernels.SkinningKernels`); each surface point is v = WX·G
 (premultiplied weights, kept sparse: a point is weighted to 2-9 of the 24 joints), its Jacobian WX·∂G; the
 residuals' derivatives w.r.t. the point (camera model of :meth:`Camera.project`, closed form) and the per-point
-products are compiled loops (:mod:`._kernels`, checked against ``eventcap_solve.batch.project_derivatives`` and
+products are compiled loops (:mod:`._kernels`, checked against ``eventcap.energy.kernels.project_derivatives`` and
 finite differences in the tests). IPOPT sees the energy through CasADi callbacks plugged in as ``grad_f`` /
 ``hess_lag``; the correspondences are handed to the energy object per solve, never rebuilt into the NLP. Every
 solve's status is checked: anything but success raises :class:`eventcap.stage.StageFailed` with IPOPT's status.
@@ -72,7 +72,7 @@ TOL = 1e-4
 
 def default_settings():
     """The pinned IPOPT options of the refinement: the batch solver's, with tol = :data:`TOL`."""
-    from eventcap_solve.batch import IpoptSettings
+    from eventcap.energy.ipopt import IpoptSettings
 
     return IpoptSettings(tol=TOL)
 
@@ -138,7 +138,7 @@ class RefineEnergy:
     """
 
     def __init__(self, camera: Camera, kernels, rest_joints: np.ndarray):
-        from eventcap_solve.batch import premultiplied_weights
+        from eventcap.energy.kernels import premultiplied_weights
 
         from ._kernels import camera_params
 
@@ -289,13 +289,14 @@ class SolveStats:
 class RefineProblem:
     """The refinement NLP of one batch (F frames), built once per (template, camera, F, settings, bounds).
 
-    settings: :class:`eventcap_solve.batch.IpoptSettings` (pinned IPOPT options; warm-started solves).
+    settings: :class:`eventcap.energy.ipopt.IpoptSettings` (pinned IPOPT options; warm-started solves).
     lower/upper: bounds of the 33 pose parameters (default :func:`skeleton.pose_bounds`).
     """
 
     def __init__(self, template: Template, camera: Camera, frames: int, settings=None,
                  lower: np.ndarray | None = None, upper: np.ndarray | None = None, kernels=None):
-        from eventcap_solve.batch import NumpyCallback, SkinningKernels, checked_bounds
+        from eventcap.energy.ipopt import NumpyCallback, checked_bounds
+        from eventcap.energy.kernels import SkinningKernels
 
         if not isinstance(template, Template):
             raise ValueError(f"RefineProblem: expected a Template, got {type(template).__name__}")
@@ -348,7 +349,7 @@ class RefineProblem:
 
     def solve(self, start: np.ndarray, what: str = "refinement") -> tuple[np.ndarray, SolveStats]:
         """Minimise E_refine (data: :meth:`set_data`) from ``start`` (F, 33), within the bounds."""
-        from eventcap_solve.batch import SUCCESS_STATUSES
+        from eventcap.energy.ipopt import SUCCESS_STATUSES
 
         start = np.asarray(start, dtype=np.float64)
         if start.shape != (self.F, _NP):

@@ -5,31 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
+from eventcap.energy.ipopt import bounds_with  # noqa: F401  (shared with the other solves; imported from here by bench_fusion)
 from eventcap.stage import StageFailed
 
 #: Built problems of this process, by (template digest, camera, frames, solver settings): built once per run.
 _PROBLEMS: dict = {}
-
-
-def bounds_with(limits, where: str = "stages.solve.limits") -> tuple[np.ndarray, np.ndarray]:
-    """Default joint limits (skeleton.pose_bounds) with the config's overrides {name: [min, max]} applied;
-    StageFailed(status="invalid_bounds") naming ``where`` for an unknown name or a malformed pair."""
-    from eventcap.body.skeleton import pose_bounds
-    from eventcap.registry import unknown_name_message
-
-    from .batch import PARAM_NAMES
-
-    lo, hi = pose_bounds()
-    for name, pair in (limits or {}).items():
-        if name not in PARAM_NAMES:
-            raise StageFailed(f"{where}: " + unknown_name_message("pose parameter", name, list(PARAM_NAMES)),
-                              status="invalid_bounds")
-        if len(pair) != 2:
-            raise StageFailed(f"{where}.{name}: expected [min, max], got {list(pair)}",
-                              status="invalid_bounds")
-        k = PARAM_NAMES.index(name)
-        lo[k], hi[k] = float(pair[0]), float(pair[1])
-    return lo, hi
 
 
 def problem_for(template, camera, frames: int, settings, limits=None, robust_px: float = 0.0):

@@ -1,0 +1,251 @@
+"""The detection terms E_2D (Eq. 6, optionally Cauchy-robust) and E_3D (Eq. 7) of one frame, the one-frame fit to
+them (the paper's initialisation) with its closed-form start, and the detections' per-frame container.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import casadi as ca
+import numpy as np
+
+from eventcap.body.kinematics import joint_positions, landmark_positions
+from eventcap.body.skeleton import (
+    JOINT_INDEX,
+    LANDMARK_INDEX,
+    LANDMARK_ON_JOINT,
+    NUM_JOINTS,
+    NUM_LANDMARKS,
+    NUM_POSE_PARAMS,
+    pose_bounds,
+)
+from eventcap.body.template import Template
+from eventcap.camera import Camera
+from eventcap.stage import StageFailed
+
+from .ipopt import IpoptSettings, SolveStats, run_ipopt
+
+_NP = NUM_POSE_PARAMS
+#: Torso joints whose 3D detections fix the initial root rotation (rigid enough in any pose).
+_TORSO = tuple(JOINT_INDEX[n] for n in ("pelvis", "l_hip", "r_hip", "spine1", "spine2", "spine3", "neck",
+                                         "l_collar", "r_collar", "l_shoulder", "r_shoulder"))
+#: (landmark index, joint index) pairs of landmarks that sit on a joint: the 2D/3D detections they share.
+_ON_JOINT = tuple((LANDMARK_INDEX[lm], JOINT_INDEX[j]) for lm, j in LANDMARK_ON_JOINT.items())
+
+@dataclass(frozen=True)
+class FrameDetections:
+    """Detections at D frames (2D landmarks in BODY_25 order, root-relative 3D joints in SMPL order).
+
+    keypoints_2d (D, 25, 2) pixels; confidence_2d (D, 25) in [0, 1]; joints_3d (D, 24, 3) metres relative to the
+    pelvis; confidence_3d (D, 24) in [0, 1]. Confidence 0 = not detected (the value is then ignored, NaN allowed).
+    """
+
+    keypoints_2d: np.ndarray
+    confidence_2d: np.ndarray
+    joints_3d: np.ndarray
+    confidence_3d: np.ndarray
+
+    def __post_init__(self) -> None:
+        kp = np.asarray(self.keypoints_2d, dtype=np.float64)
+        D = kp.shape[0] if kp.ndim == 3 else -1
+        shapes = {"keypoints_2d": (D, NUM_LANDMARKS, 2), "confidence_2d": (D, NUM_LANDMARKS),
+                  "joints_3d": (D, NUM_JOINTS, 3), "confidence_3d": (D, NUM_JOINTS)}
+        for name, shape in shapes.items():
+            a = np.asarray(getattr(self, name), dtype=np.float64)
+            if a.shape != shape or D < 1:
+                raise ValueError(f"FrameDetections.{name}: expected shape {shape} (D frames, BODY_25 landmarks, "
+                                 f"SMPL joints), got {a.shape}")
+            object.__setattr__(self, name, a)
+
+    @property
+    def n(self) -> int:
+        return int(self.keypoints_2d.shape[0])
+
+    def rows(self, idx) -> FrameDetections:
+        idx = np.atleast_1d(np.asarray(idx))
+        return FrameDetections(self.keypoints_2d[idx], self.confidence_2d[idx], self.joints_3d[idx],
+                               self.confidence_3d[idx])
+
+    def problems(self) -> list[str]:
+        """What makes these detections unusable (non-finite values where confidence > 0, bad confidences)."""
+        out = []
+        for name, cname in (("keypoints_2d", "confidence_2d"), ("joints_3d", "confidence_3d")):
+            c = getattr(self, cname)
+            if not np.all(np.isfinite(c)) or c.min() < 0 or c.max() > 1:
+                out.append(f"{cname} must be finite values in [0, 1]")
+                continue
+            bad = (c > 0) & ~np.all(np.isfinite(getattr(self, name)), axis=-1)
+            if bad.any():
+                d, k = (int(v[0]) for v in np.nonzero(bad))
+                out.append(f"{name} is not finite at detection frame {d}, entry {k} (confidence {c[d, k]:.2f})")
+        return out
+
+
+def select_detections(detections, times_us) -> FrameDetections:
+    """Rows of a Detections artifact at the given times (exact match), as FrameDetections; ValueError if missing."""
+    t = np.asarray(detections.t_us, dtype=np.int64)
+    want = np.asarray(times_us, dtype=np.int64).ravel()
+    idx = np.searchsorted(t, want)
+    ok = (idx < t.size) & (t[np.minimum(idx, max(t.size - 1, 0))] == want) if t.size else np.zeros(want.size, bool)
+    if not ok.all():
+        missing = want[~ok]
+        raise ValueError(f"detections: no detection row at t = {missing[:5].tolist()} us "
+                         f"({missing.size} of {want.size} times missing; detections cover {t.size} frames)")
+    return FrameDetections(detections.keypoints_2d[idx], detections.confidence_2d[idx], detections.joints_3d[idx],
+                           detections.confidence_3d[idx])
+
+
+# --------------------------------------------------------------------------------------------- closed-form guess
+def _euler_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(yaw, pitch, roll) with R = R_y(yaw) R_x(pitch) R_z(roll) (skeleton convention)."""
+    pitch = math.asin(float(np.clip(-R[1, 2], -1.0, 1.0)))
+    yaw = math.atan2(R[0, 2], R[2, 2])
+    roll = math.atan2(R[1, 0], R[1, 1])
+    return np.array([yaw, pitch, roll])
+
+
+def initial_guess(template: Template, camera: Camera, det: FrameDetections, d: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form start (S (33,), t' (3,)) for fitting detection frame d: joint angles zero (clipped into the
+    bounds), root rotation by weighted Kabsch of the torso joints of the 3D detection against the rest skeleton,
+    pelvis position by linear least squares on the rays of the 2D detections of joints (with their 3D offsets).
+    """
+    lo, hi = pose_bounds()
+    S = np.clip(np.zeros(_NP), lo, hi)
+    rest = template.rest_joints - template.rest_joints[0]
+    P3, c3 = det.joints_3d[d], det.confidence_3d[d]
+    idx = np.array([j for j in _TORSO if c3[j] > 0])
+    R = np.eye(3)
+    if idx.size >= 3:
+        w = c3[idx]
+        A, B = rest[idx], P3[idx]
+        A0 = A - np.average(A, axis=0, weights=w)
+        B0 = B - np.average(B, axis=0, weights=w)
+        U, _, Vt = np.linalg.svd((B0 * w[:, None]).T @ A0)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+        R = U @ D @ Vt
+    S[27:30] = _euler_from_matrix(R)
+    # Pelvis position T: rays of detected 2D joints through (R-posed or detected) 3D offsets from the pelvis.
+    offsets = np.where(c3[:, None] > 0, np.nan_to_num(P3), rest @ R.T)
+    rows, rhs, wts = [], [], []
+    kp, c2 = det.keypoints_2d[d], det.confidence_2d[d]
+    for lm, j in _ON_JOINT:
+        if c2[lm] <= 0:
+            continue
+        xn, yn = camera.undistort_points(kp[lm][None])[0]
+        for k, v in ((0, xn), (1, yn)):
+            a = camera.R[k] - v * camera.R[2]
+            rows.append(a)
+            rhs.append(-(a @ offsets[j]) - (camera.t[k] - v * camera.t[2]))
+            wts.append(c2[lm])
+    if len(rows) >= 3:
+        sw = np.sqrt(np.asarray(wts))[:, None]
+        T = np.linalg.lstsq(np.asarray(rows) * sw, np.asarray(rhs) * sw[:, 0], rcond=None)[0]
+    else:
+        T = template.rest_joints[0].copy()
+    S[30:33] = T - template.rest_joints[0]
+    return S, T
+
+
+def interpolate_poses(S0: np.ndarray, SN: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+    """Linear interpolation of S_0 and S_N at the tracking frame times (N+1, 33), proportional to time."""
+    t = np.asarray(t_us, dtype=np.float64)
+    a = ((t - t[0]) / (t[-1] - t[0]))[:, None]
+    return (1.0 - a) * S0[None, :] + a * SN[None, :]
+
+
+def unwrap_root(S: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """S with its root Euler angles moved by multiples of 2π to the nearest equivalent of ref's."""
+    out = S.copy()
+    d = out[27:30] - ref[27:30]
+    out[27:30] -= 2.0 * np.pi * np.round(d / (2.0 * np.pi))
+    return out
+
+
+
+
+# --------------------------------------------------------------------------------------------- E_2D, E_3D of a frame
+def detection_terms(template: Template, camera: Camera, S, tp, kp, c2, j3, c3, robust_px: float = 0.0):
+    """E_2D and E_3D of one frame as CasADi expressions of the pose S (33) and the auxiliary translation t' (3).
+
+    kp (25, 2) px, c2 (25, 1), j3 (24, 3) m root-relative, c3 (24, 1): the detections (symbols or values).
+    Image residuals are focal-normalised; with robust_px > 0 each landmark's squared error e² becomes the Cauchy
+    loss σ² log(1 + e²/σ²), σ = robust_px (also focal-normalised). Returns (E_2D, E_3D).
+    """
+    scale = 1.0 / math.sqrt(camera.fx * camera.fy)
+    L = landmark_positions(S, template)  # (25, 3)
+    uv = camera.project_sym(L.T)  # (2, 25)
+    r2 = (uv - kp.T) * scale
+    sq = ca.sum1(r2 * r2)  # (1, 25) squared landmark errors, focal-normalised
+    if robust_px > 0:  # Cauchy: ≈ ‖r‖² for small errors, grows only logarithmically for outliers
+        s2 = (robust_px * scale) ** 2
+        sq = s2 * ca.log1p(sq / s2)
+    e2 = ca.sum2(c2.T * sq)
+    J = joint_positions(S, template.rest_joints)  # (24, 3)
+    r3 = J - (j3 + ca.repmat(tp.T, NUM_JOINTS, 1))
+    e3 = ca.sum1(c3 * ca.sum2(r3 * r3))
+    return e2, e3
+
+
+def det_symbols(prefix: str):
+    """SX symbols of one frame's detections: kp (25, 2), c2 (25, 1), j3 (24, 3), c3 (24, 1)."""
+    return (ca.SX.sym(f"{prefix}kp", NUM_LANDMARKS, 2), ca.SX.sym(f"{prefix}c2", NUM_LANDMARKS, 1),
+            ca.SX.sym(f"{prefix}j3", NUM_JOINTS, 3), ca.SX.sym(f"{prefix}c3", NUM_JOINTS, 1))
+
+
+def det_values(det: FrameDetections, d: int) -> list[np.ndarray]:
+    """Detection frame d as the values of :func:`det_symbols` (column-major), undetected entries zeroed."""
+    c2, c3 = det.confidence_2d[d], det.confidence_3d[d]
+    # Undetected entries carry confidence 0; their (possibly NaN) values must not poison the sums.
+    kp = np.where(c2[:, None] > 0, det.keypoints_2d[d], 0.0)
+    j3 = np.where(c3[:, None] > 0, det.joints_3d[d], 0.0)
+    return [kp.ravel(order="F"), c2, j3.ravel(order="F"), c3]
+
+
+class FrameFitter:
+    """The one-frame fit of a pose to its detections (E_2D + E_3D, the paper's initialisation), built once.
+
+    lower/upper: bounds (33,) of the pose parameters; settings: pinned IPOPT options (cold-started fits).
+    """
+
+    def __init__(self, template: Template, camera: Camera, settings: IpoptSettings, lower: np.ndarray,
+                 upper: np.ndarray, robust_px: float = 0.0):
+        self.template, self.camera, self.settings = template, camera, settings
+        self.lower, self.upper, self.robust_px = lower, upper, float(robust_px)
+        S = ca.SX.sym("S", _NP)
+        tp = ca.SX.sym("tp", 3)
+        lam = ca.SX.sym("lam", 3)  # 2D, 3D, damp
+        ref = ca.SX.sym("ref", _NP)
+        det = det_symbols("")
+        e2, e3 = detection_terms(template, camera, S, tp, *det, robust_px=self.robust_px)
+        p = ca.vertcat(lam, ref, *[ca.vec(d) for d in det])
+        x = ca.vertcat(S, tp)
+        f = lam[0] * e2 + lam[1] * e3 + lam[2] * ca.sumsqr(S - ref)
+        self.solver = ca.nlpsol("fit_frame", "ipopt", {"x": x, "p": p, "f": f}, settings.options(False))
+        self.terms = ca.Function("fit_terms", [x, p], [e2, e3])
+
+    def fit(self, det: FrameDetections, d: int, d2: float, d3: float, damp: float,
+            start: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, SolveStats]:
+        """Fit one pose to detection frame d with weights (λ_2D, λ_3D, λ_damp): (S (33,), t' (3,), stats).
+
+        start: (S, t') warm start; default :func:`initial_guess`, from which E_3D alone is fitted first.
+        """
+        if det.confidence_2d[d].max() <= 0 and det.confidence_3d[d].max() <= 0:
+            raise StageFailed(f"detection frame {d}: nothing detected (all confidences 0): cannot fit a pose",
+                              status="no_detections")
+        lbx = np.concatenate([self.lower, np.full(3, -np.inf)])
+        ubx = np.concatenate([self.upper, np.full(3, np.inf)])
+        stages = [(d2, d3)]
+        if start is None:
+            start = initial_guess(self.template, self.camera, det, d)
+            # From the closed-form guess (a T-pose), the projection term has many poor local minima (limbs
+            # swung to the wrong side); the 3D term alone has few. Fit it first, then everything.
+            if det.confidence_3d[d].max() > 0 and d3 > 0:
+                stages.insert(0, (0.0, d3))
+        x = np.concatenate([np.clip(start[0], self.lower, self.upper), start[1]])
+        its, secs = 0, 0.0
+        for w2, w3 in stages:
+            p = np.concatenate([[w2, w3, damp], x[:_NP], *det_values(det, d)])
+            x, stats = run_ipopt(self.solver, x, p, lbx, ubx, f"fit of detection frame {d}")
+            its, secs = its + stats.iterations, secs + stats.seconds
+        return x[:_NP], x[_NP:], replace(stats, iterations=its, seconds=secs)

@@ -1,0 +1,136 @@
+"""Run function of the spline stage (imported when the stage runs)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from eventcap.artifacts.pose import PoseSequence
+from eventcap.energy.ipopt import bounds_with
+from eventcap.stage import StageFailed
+
+#: Built problems of this process, keyed by template, camera, sizes and solver settings: built once per run.
+_PROBLEMS: dict = {}
+
+
+def window_of(n_batches: int, k: int, half: int) -> tuple[int, int]:
+    """First and last batch (inclusive) of batch k's window: 2·half + 1 batches centred on k, shifted inwards at
+    the ends of the recording (all batches when there are fewer)."""
+    if n_batches <= 2 * half + 1:
+        return 0, n_batches - 1
+    a = min(max(k - half, 0), n_batches - 2 * half - 1)
+    return a, a + 2 * half
+
+
+def cor_frames(n_frames: int, step: int) -> np.ndarray:
+    """Indices of the tracking frames whose poses E_cor compares: every ``step``-th, always with the last."""
+    idx = np.arange(0, n_frames, step)
+    return idx if idx[-1] == n_frames - 1 else np.append(idx, n_frames - 1)
+
+
+def problem_for(template, camera, n_seg, n_det, n_cor, settings, limits, robust_px, prior):
+    from .solve import SplineProblem
+
+    lo, hi = bounds_with(limits, "stages.spline.limits")
+    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), n_seg, n_det, n_cor, settings,
+           lo.tobytes(), hi.tobytes(), float(robust_px), prior)
+    prob = _PROBLEMS.get(key)
+    built = prob is None
+    if built:
+        try:
+            prob = SplineProblem(template, camera, n_seg, n_det, n_cor, settings, lo, hi, robust_px, prior)
+        except ValueError as exc:
+            raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
+        _PROBLEMS[key] = prob
+    return prob, built
+
+
+def run_spline(inputs, config, ctx):
+    from eventcap.energy.detections import select_detections
+    from eventcap.energy.ipopt import IpoptSettings
+    from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
+
+    from .solve import SplineWeights, solve_window
+
+    rec, sliced, detections, plan, b = (inputs["recording"], inputs["sliced"], inputs["detections"],
+                                        inputs["batches"], ctx.batch)
+    where = f"batch {b.index}" if b is not None else "batch ?"
+    if rec.template is None:
+        raise StageFailed(f"stage 'spline' needs the actor template, but recording {rec.name or rec.source!r} has "
+                          "none", status="missing_template")
+    if b is None:
+        raise StageFailed("stage 'spline' runs per batch (no batch given)", status="invalid_input")
+    for name in ("half_window", "cor_step", "icp_rounds"):
+        v = getattr(config, name)
+        if isinstance(v, bool) or int(v) != v or v < (1 if name == "cor_step" else 0):
+            raise StageFailed(f"stages.spline.{name}: expected an integer >= {1 if name == 'cor_step' else 0}, "
+                              f"got {v!r}", status="invalid_config")
+    if config.prior not in PRIOR_ORDERS:
+        raise StageFailed(f"stages.spline.prior: expected one of {sorted(PRIOR_ORDERS)}, got {config.prior!r}",
+                          status="invalid_config")
+    h_us = int(round(config.knot_ms * 1000))
+    if not (math.isfinite(config.knot_ms) and h_us >= 1):
+        raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
+                          f"{config.knot_ms!r}", status="invalid_config")
+    try:
+        weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor,
+                                prior=config.lambda_prior, damp=config.lambda_damp)
+        settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
+    except ValueError as exc:
+        raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
+    t_us = np.asarray(sliced.t_us, dtype=np.int64)
+    if t_us.size < 2:
+        raise StageFailed(f"{where}: {t_us.size} tracking frame(s); need at least 2", status="invalid_input")
+    a, z = window_of(len(plan), b.index, int(config.half_window))
+    t_det = np.unique(np.concatenate([plan.t0_us[a:z + 1], plan.t1_us[a:z + 1]]))
+    try:
+        det = select_detections(detections, t_det)
+    except ValueError as exc:
+        raise StageFailed(f"{where}: {exc}", status="missing_detections") from exc
+    problems = det.problems()
+    if problems:
+        raise StageFailed(f"{where}: detections unusable: " + "; ".join(problems), status="invalid_input")
+    n_seg = int(math.ceil((t_det[-1] - t_det[0]) / h_us))
+    spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
+    idx = cor_frames(t_us.size, int(config.cor_step))
+    xy = np.asarray(sliced.xy, dtype=np.float64)[idx]
+    valid = np.asarray(sliced.valid)[idx]
+    bad = valid & ~np.all(np.isfinite(xy), axis=-1)
+    if bad.any():
+        raise StageFailed(f"{where}: a track has a non-finite position where it is marked valid", status="invalid_input")
+    prob, built = problem_for(rec.template, rec.camera, n_seg, t_det.size, idx.size, settings, config.limits,
+                              config.robust_2d_px, config.prior)
+    if built:
+        ctx.log.info("built the spline NLP (%d control points, %d detection frames, %d correspondence frames) in "
+                     "%.2f s (once per process)", spline.n_ctrl, t_det.size, idx.size, prob.build_seconds)
+        ctx.stats["build_s"] = prob.build_seconds
+    what = f"{where} (window of batches {a}..{z})"
+    try:
+        res = solve_window(prob, spline, t_det, det, t_us[idx], xy, valid, weights, int(config.icp_rounds),
+                           config.edge_margin_px, what=what)
+    except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
+        if what in str(exc):
+            raise
+        raise StageFailed(f"{what}: {exc}", status=exc.status, details=getattr(exc, "details", {})) from exc
+    # The output is the window's whole curve at the tracking rate: stitch blends the overlapping windows.
+    step = int(np.median(np.diff(t_us)))
+    t_win = np.arange(int(t_det[0]), int(t_det[-1]) + 1, step, dtype=np.int64)
+    if t_win[-1] != t_det[-1]:
+        t_win = np.append(t_win, t_det[-1])
+    poses = spline.evaluate(res.control, t_win)
+    # The window unwrapped its root angles from its own first fit: one branch per window (its first pose's root
+    # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.
+    poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[0, 27:30] / (2.0 * np.pi))
+    iters = int(sum(s.iterations for s in res.solves))
+    secs = sum(res.seconds.values())
+    ctx.log.info("%s: window of batches %d..%d (%d frames of detections, %d fitted here, %d control points), %d "
+                 "correspondences, %d IPOPT iterations, %.2f s (%s)", where, a, z, t_det.size, res.fits_computed,
+                 spline.n_ctrl, res.energies["n_correspondences"], iters, secs, res.solves[-1].status)
+    ctx.stats.update({"solve_s": secs, "phases_s": res.seconds, "iterations": iters, "window": [a, z],
+                      "fits_computed": res.fits_computed,
+                      "solves": [[s.status, s.iterations, s.seconds] for s in res.solves],
+                      "n_correspondences": int(res.energies["n_correspondences"])})
+    energies = {k: (int(v) if k == "n_correspondences" else float(v)) for k, v in res.energies.items()}
+    return {"poses": PoseSequence(t_us=t_win, poses=poses, status=res.solves[-1].status, iterations=iters,
+                                  energies=energies)}

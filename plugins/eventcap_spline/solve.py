@@ -1,0 +1,332 @@
+"""The spline solve (not in the paper): one continuous-time pose trajectory over a window of several batches.
+
+    min_C,t'  Σ_d λ_2D E_2D(S(t_d)) + λ_3D E_3D(S(t_d), t'_d)          every intensity frame d of the window
+              + λ_cor E_cor(S(t_0), S(t_s), S(t_2s), ...)               the batch's event tracks (ICP)
+              + λ_prior Σ_p ∫ (S_p^(k)(t))² dt                           motion prior, k = 2 or 3, exact
+              + λ_damp ‖x - x_start‖²
+    s.t.      θ_min <= C_i <= θ_max  for every control point i           (exact joint limits on S(t))
+
+S(t) = Σ_i B_i(t) C_i is a uniform cubic B-spline in the 33 pose parameters (:mod:`eventcap.energy.spline`), so
+the unknowns are the n_seg + 3 control points instead of 1,000 poses per second, and the motion is C² at any rate.
+
+Why. The paper's batches are pinned at both ends to per-frame detection fits that are 3-7 cm off, independently
+from frame to frame (NOTES.md): the 1 kHz motion between them cannot be smooth, and no batch can average that
+noise. Here detections enter as soft, robust observations at every intensity frame of the window, the events add
+the relative motion within the batch, and the prior keeps velocities smooth; averaging the detector's noise over
+several frames is where the accuracy comes from.
+
+Terms (all from :mod:`eventcap.energy`): E_2D (Cauchy-robust) and E_3D of one frame are CasADi SX expressions of
+(S, t') whose value, gradient and 36×36 Hessian are one mapped CasADi function; E_cor is the numpy energy of the
+batch solve (:class:`eventcap.energy.cor.CorrespondenceEnergy`, relative form, exact block-tridiagonal Hessian) at
+the spline's poses at the correspondence frames; the prior is a fixed quadratic form. Every term is a function of
+poses S = B C, linear in C, so the chain rule is a product with the (sparse) basis: g_C = Bᵀ g_S and
+H_C = Bᵀ H_S B. IPOPT sees the sum through numpy callbacks (value, gradient, exact Hessian with a banded sparsity:
+control points i and j interact only when |i - j| <= 3, plus the t' of each detection frame).
+
+Built once per run (:class:`SplineProblem`, keyed by the window's sizes); each window's data are handed to the
+numpy callbacks before its solve. Correspondences are re-searched at the current spline (ICP), as in the batch
+solve. Every IPOPT status is checked (:func:`eventcap.energy.ipopt.run_ipopt`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
+from eventcap.body.template import Template
+from eventcap.camera import Camera
+from eventcap.energy.cor import CorrespondenceEnergy
+from eventcap.energy.correspondences import Correspondences, find_correspondences
+from eventcap.energy.detections import (
+    FrameDetections,
+    FrameFitter,
+    det_symbols,
+    det_values,
+    detection_terms,
+    unwrap_root,
+)
+from eventcap.energy.ipopt import IpoptSettings, NumpyCallback, SolveStats, checked_bounds, run_ipopt
+from eventcap.energy.kernels import Buffered, SkinningKernels
+from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
+
+_NP = NUM_POSE_PARAMS
+#: Per-frame fits of this process, by (fitter, weights, detections of the frame): each frame is in several windows.
+_FITS: dict = {}
+
+
+@dataclass(frozen=True)
+class SplineWeights:
+    """λ of the spline energy (units: as in the batch solve; the prior per (unit/s^k)²·s)."""
+
+    d2: float = 200.0
+    d3: float = 1.0
+    cor: float = 500.0
+    prior: float = 5e-4
+    damp: float = 1e-4
+
+    def __post_init__(self) -> None:
+        for name in ("d2", "d3", "cor", "prior", "damp"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"SplineWeights.{name}: expected a finite number >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class WindowResult:
+    """The solved spline of one window and how it was obtained."""
+
+    spline: UniformCubicBSpline
+    control: np.ndarray  #: (n_ctrl, 33) control points
+    t_prime: np.ndarray  #: (D, 3) t' of E_3D per detection frame
+    fits: np.ndarray  #: (D, 33) the per-frame fits (root angles unwrapped along the window) it started from
+    energies: dict
+    solves: tuple[SolveStats, ...]  #: the spline solves (one per ICP round)
+    seconds: dict
+    fits_computed: int = 0  #: per-frame fits computed for this window (the others came from neighbouring windows)
+
+
+def _banded_triu(n_ctrl: int, n_t: int):
+    """Upper-triangular sparsity of the Hessian: 33×33 blocks of control points with |i - j| <= 3, every (C, t')
+    entry, the t' × t' upper triangle. Returns (sparsity, rows, cols) with rows/cols in CasADi's nonzero order."""
+    nC = n_ctrl * _NP
+    r, c = np.triu_indices(nC + n_t)
+    keep = (c >= nC) | (np.abs(r // _NP - c // _NP) <= 3)
+    r, c = r[keep], c[keep]
+    order = np.lexsort((r, c))
+    r, c = r[order], c[order]
+    return ca.Sparsity.triplet(nC + n_t, nC + n_t, r.tolist(), c.tolist()), r, c
+
+
+class SplineProblem:
+    """The spline NLP for windows of ``n_seg`` knot intervals, ``n_det`` detection frames and ``n_cor`` frames of
+    correspondences, built once (template, camera, sizes, prior order, settings, bounds)."""
+
+    def __init__(self, template: Template, camera: Camera, n_seg: int, n_det: int, n_cor: int,
+                 settings: IpoptSettings = IpoptSettings(), lower=None, upper=None, robust_px: float = 2.0,
+                 prior: str = "acceleration"):
+        if prior not in PRIOR_ORDERS:
+            raise ValueError(f"prior: expected one of {sorted(PRIOR_ORDERS)}, got {prior!r}")
+        for name, v, least in (("n_seg", n_seg, 1), ("n_det", n_det, 1), ("n_cor", n_cor, 2)):
+            if isinstance(v, bool) or int(v) != v or v < least:
+                raise ValueError(f"SplineProblem: {name} must be an integer >= {least}, got {v!r}")
+        t0 = time.perf_counter()
+        self.template, self.camera, self.settings = template, camera, settings
+        self.n_seg, self.n_det, self.n_cor = int(n_seg), int(n_det), int(n_cor)
+        self.n_ctrl = self.n_seg + 3
+        self.order = PRIOR_ORDERS[prior]
+        self.lower, self.upper = checked_bounds(lower, upper, "SplineProblem")
+        self.nC, self.nT = self.n_ctrl * _NP, 3 * self.n_det
+        self.nx = self.nC + self.nT
+        self.fitter = FrameFitter(template, camera, settings, self.lower, self.upper, robust_px)
+        # --- E_2D + E_3D of one frame: value, gradient, Hessian in (S, t'), mapped over the detection frames
+        S, tp, lam = ca.SX.sym("S", _NP), ca.SX.sym("tp", 3), ca.SX.sym("lam", 2)
+        det = det_symbols("")
+        e2, e3 = detection_terms(template, camera, S, tp, *det, robust_px=float(robust_px))
+        z = ca.vertcat(S, tp)
+        e = lam[0] * e2 + lam[1] * e3
+        H, g = ca.hessian(e, z)
+        fn = ca.Function("E_det", [z, *det, lam], [e, g, ca.densify(H), e2, e3])
+        self._det = Buffered(fn.map(self.n_det))
+        # --- E_cor at n_cor frames
+        self.cor = CorrespondenceEnergy(camera, SkinningKernels(template.rest_joints, self.n_cor),
+                                        template.rest_joints)
+        # --- the NLP: x = [C (n_ctrl × 33, row-major); t' (n_det × 3)], data through set_window
+        self._sp, self._hr, self._hc = _banded_triu(self.n_ctrl, self.nT)
+        self._cache: dict = {}
+        self._data = None
+        nx = self.nx
+        self._callbacks = [
+            NumpyCallback("E_spline", nx, [ca.Sparsity.dense(1, 1)], lambda v: [self._eval(v, 0)["value"]]),
+            NumpyCallback("E_spline_grad", nx, [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(nx, 1)],
+                          lambda v: [self._eval(v, 1)["value"], self._eval(v, 1)["grad"]]),
+            NumpyCallback("E_spline_hess", nx, [self._sp], lambda v: [self._hessian(v)[self._hr, self._hc]]),
+        ]
+        cb_f, cb_g, cb_h = self._callbacks
+        X, P = ca.MX.sym("x", nx), ca.MX.sym("p", 0)
+        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0)
+        val, grad = cb_g(X)
+        grad_f = ca.Function("grad_f", [X, P], [val, grad], ["x", "p"], ["f", "grad_f_x"])
+        hess_lag = ca.Function("hess_lag", [X, P, lam_f, lam_g], [lam_f * cb_h(X)],
+                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        #: Objective, gradient and upper-triangular Hessian exactly as IPOPT sees them (for derivative checks).
+        self.objective = ca.Function("objective", [X], [cb_f(X)])
+        self.gradient = ca.Function("gradient", [X], [val, grad])
+        self.hessian = ca.Function("hessian", [X], [cb_h(X)])
+        opts = dict(settings.options(True), grad_f=grad_f, hess_lag=hess_lag)
+        self.solver = ca.nlpsol("spline", "ipopt", {"x": X, "p": P, "f": cb_f(X)}, opts)
+        self.build_seconds = time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ data of one window
+    def set_window(self, spline: UniformCubicBSpline, t_det_us, det: FrameDetections, t_cor_us,
+                   corr: Correspondences, weights: SplineWeights, x_ref: np.ndarray) -> None:
+        """Hand one window's data to the energy: the spline basis, detections at t_det_us (n_det rows),
+        correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x."""
+        if spline.n_seg != self.n_seg:
+            raise ValueError(f"set_window: the problem was built for {self.n_seg} knot intervals, got {spline.n_seg}")
+        if det.n != self.n_det or np.size(t_det_us) != self.n_det:
+            raise ValueError(f"set_window: expected {self.n_det} detection frames, got {det.n} rows at "
+                             f"{np.size(t_det_us)} times")
+        if np.size(t_cor_us) != self.n_cor:
+            raise ValueError(f"set_window: expected {self.n_cor} correspondence frames, got {np.size(t_cor_us)}")
+        x_ref = np.asarray(x_ref, dtype=np.float64)
+        if x_ref.shape != (self.nx,):
+            raise ValueError(f"set_window: expected x_ref of shape ({self.nx},), got {x_ref.shape}")
+        self.cor.set_correspondences(corr, relative=True)
+        dv = [det_values(det, d) for d in range(self.n_det)]
+        Q = spline.gram(self.order)
+        self._data = {
+            "Bd": spline.basis(t_det_us), "Be": spline.basis(t_cor_us), "Q": Q,
+            "Hprior": (2.0 * weights.prior) * np.kron(Q, np.eye(_NP)),
+            "det": [np.concatenate([v[k] for v in dv]) for k in range(4)],
+            "lam_det": np.tile([weights.d2, weights.d3], self.n_det), "w": weights, "x_ref": x_ref,
+            "phi": np.zeros((self.n_cor - 1, NUM_JOINTS)), "lam_cor": np.array([weights.cor, 0.0]),
+        }
+        self._cache = {}
+
+    def _split(self, x):
+        return x[:self.nC].reshape(self.n_ctrl, _NP), x[self.nC:].reshape(self.n_det, 3)
+
+    def _eval(self, x, order: int) -> dict:
+        """Value (order 0) and gradient (order 1) of the energy at x, with its pieces (cached per x)."""
+        if self._data is None:
+            raise RuntimeError("SplineProblem: set_window() must be called before evaluating the energy")
+        x = np.asarray(x, dtype=np.float64)
+        key = x.tobytes()
+        c = self._cache
+        if c.get("key") == key and c.get("order", -1) >= order:
+            return c
+        D = self._data
+        w: SplineWeights = D["w"]
+        C, T = self._split(x)
+        Sd, Se = D["Bd"] @ C, D["Be"] @ C
+        e, g, H, e2, e3 = self._det(np.concatenate([Sd, T], axis=1), *D["det"], D["lam_det"])
+        QC = D["Q"] @ C
+        dx = x - D["x_ref"]
+        e_prior = float(np.sum(C * QC))
+        out = {"key": key, "order": order, "Sd": Sd, "Se": Se,
+               "det": float(e.sum()), "2d": float(e2.sum()), "3d": float(e3.sum()), "prior": e_prior,
+               "damp": float(dx @ dx)}
+        if order == 0:
+            out["cor_w"] = self.cor.value(Se, D["phi"], D["lam_cor"])
+        else:
+            out["cor_w"], gS = self.cor.gradient(Se, D["phi"], D["lam_cor"])
+            gz = g.reshape(self.n_det, _NP + 3)
+            gC = D["Bd"].T @ gz[:, :_NP] + D["Be"].T @ gS + (2.0 * w.prior) * QC
+            grad = np.concatenate([gC.ravel(), gz[:, _NP:].ravel()]) + (2.0 * w.damp) * dx
+            out.update(grad=grad, Hdet=H.reshape(self.n_det, _NP + 3, _NP + 3))
+        out["value"] = out["det"] + out["cor_w"] + w.prior * e_prior + w.damp * out["damp"]
+        self._cache = out
+        return out
+
+    def _hessian(self, x) -> np.ndarray:
+        """The full (symmetric, dense) Hessian of the energy at x."""
+        c = self._eval(x, 1)
+        D = self._data
+        n, nC = self.n_ctrl, self.nC
+        Hx = np.zeros((self.nx, self.nx))
+        # detections: S_d = b_dᵀ C
+        Bd, Hd = D["Bd"], c["Hdet"]
+        Wd = (Bd[:, :, None] * Bd[:, None, :]).reshape(self.n_det, n * n)
+        Hcc = (Wd.T @ Hd[:, :_NP, :_NP].reshape(self.n_det, -1)).reshape(n, n, _NP, _NP)
+        Hx[:nC, :nC] = Hcc.transpose(0, 2, 1, 3).reshape(nC, nC)
+        Hct = np.einsum("di,dab->iadb", Bd, Hd[:, :_NP, _NP:]).reshape(nC, self.nT)
+        Hx[:nC, nC:] = Hct
+        Hx[nC:, :nC] = Hct.T
+        for d in range(self.n_det):
+            Hx[nC + 3 * d:nC + 3 * d + 3, nC + 3 * d:nC + 3 * d + 3] = Hd[d, _NP:, _NP:]
+        # correspondences: S_f = b_fᵀ C, block-tridiagonal in f
+        diag, upper = self.cor.hessian(c["Se"], D["phi"], D["lam_cor"])
+        Be = D["Be"]
+        Wdg = (Be[:, :, None] * Be[:, None, :]).reshape(self.n_cor, n * n)
+        Wup = (Be[:-1, :, None] * Be[1:, None, :]).reshape(self.n_cor - 1, n * n)
+        Hd4 = (Wdg.T @ diag.reshape(self.n_cor, -1)).reshape(n, n, _NP, _NP).transpose(0, 2, 1, 3).reshape(nC, nC)
+        Hu4 = (Wup.T @ upper.reshape(self.n_cor - 1, -1)).reshape(n, n, _NP, _NP).transpose(0, 2, 1, 3)
+        Hu4 = Hu4.reshape(nC, nC)
+        Hx[:nC, :nC] += Hd4 + Hu4 + Hu4.T
+        # prior and proximal term
+        Hx[:nC, :nC] += D["Hprior"]
+        Hx[np.diag_indices(self.nx)] += 2.0 * D["w"].damp
+        return Hx
+
+    # ------------------------------------------------------------------ solving
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lbx = np.concatenate([np.tile(self.lower, self.n_ctrl), np.full(self.nT, -np.inf)])
+        ubx = np.concatenate([np.tile(self.upper, self.n_ctrl), np.full(self.nT, np.inf)])
+        return lbx, ubx
+
+    def solve(self, x0: np.ndarray, what: str) -> tuple[np.ndarray, SolveStats]:
+        lbx, ubx = self.bounds()
+        x0 = np.clip(np.asarray(x0, dtype=np.float64), lbx, ubx)
+        return run_ipopt(self.solver, x0, np.zeros(0), lbx, ubx, what)
+
+
+def fit_window(problem: SplineProblem, det: FrameDetections,
+               weights: SplineWeights) -> tuple[np.ndarray, np.ndarray, list[SolveStats], int]:
+    """Per-frame fits (E_2D + E_3D, the paper's initialisation) at every detection frame of the window, with the
+    root angles unwrapped along the window: (S (D, 33), t' (D, 3), stats, how many were computed here rather than
+    taken from this process's earlier windows)."""
+    S = np.zeros((det.n, _NP))
+    T = np.zeros((det.n, 3))
+    stats = []
+    computed = 0
+    for d in range(det.n):
+        # A frame's fit is a deterministic function of its detections: neighbouring windows share it.
+        key = (id(problem.fitter), weights.d2, weights.d3, *(v.tobytes() for v in det_values(det, d)))
+        if key not in _FITS:
+            if len(_FITS) > 256:
+                _FITS.clear()
+            _FITS[key] = problem.fitter.fit(det, d, weights.d2, weights.d3, 1e-3)
+            computed += 1
+        s, t, st = _FITS[key]
+        S[d], T[d] = (unwrap_root(s, S[d - 1]) if d else s), t
+        stats.append(st)
+    return S, T, stats, computed
+
+
+def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: np.ndarray, det: FrameDetections,
+                 t_cor_us: np.ndarray, xy: np.ndarray, valid: np.ndarray, weights: SplineWeights = SplineWeights(),
+                 icp_rounds: int = 2, edge_margin_px: float = 1.0, what: str = "window") -> WindowResult:
+    """Solve one window: fits at its detection frames, a smoothing spline through them as the start, then
+    ``icp_rounds`` alternations of correspondence search (at the current spline's poses at t_cor_us, with the
+    tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve."""
+    if int(icp_rounds) != icp_rounds or icp_rounds < 0:
+        raise ValueError(f"icp_rounds: expected an integer >= 0, got {icp_rounds!r}")
+    seconds = {}
+    t0 = time.perf_counter()
+    fits, tps, _, n_fits = fit_window(problem, det, weights)
+    solves = []
+    # Start: a penalised spline through the fits (the same prior; fits weighted as ~1 per rad² of error).
+    C = spline.fit(t_det_us, fits, smooth=max(weights.prior, 1e-12), deriv=problem.order)
+    C = np.clip(C, problem.lower, problem.upper)
+    x = np.concatenate([C.ravel(), tps.ravel()])
+    seconds["fit"] = time.perf_counter() - t0
+    seconds["correspondences"] = seconds["solve"] = 0.0
+    corr = Correspondences.empty()
+    for r in range(int(icp_rounds)):
+        t1 = time.perf_counter()
+        Se = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_cor_us)
+        corr = find_correspondences(problem.template, problem.camera, Se, xy, valid, edge_margin_px)
+        t2 = time.perf_counter()
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x)
+        x, st = problem.solve(x, f"{what}: spline solve (ICP round {r + 1})")
+        solves.append(SolveStats(st.status, st.iterations, st.seconds, corr.n))
+        seconds["correspondences"] += t2 - t1
+        seconds["solve"] += time.perf_counter() - t2
+    if icp_rounds == 0:  # detections and prior only (no events)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x)
+        x, st = problem.solve(x, f"{what}: spline solve (no correspondences)")
+        solves.append(st)
+    c = problem._eval(x, 0)
+    energies = {"2d": c["2d"], "3d": c["3d"], "cor": c["cor_w"] / weights.cor if weights.cor else 0.0,
+                "prior": c["prior"], "total": c["value"], "n_correspondences": corr.n}
+    C, T = problem._split(x)
+    return WindowResult(spline=spline, control=C.copy(), t_prime=T.copy(), fits=fits, energies=energies,
+                        solves=tuple(solves), seconds=seconds, fits_computed=n_fits)
+
+
+__all__ = ["SplineProblem", "SplineWeights", "WindowResult", "fit_window", "solve_window"]

@@ -1,0 +1,89 @@
+"""Spec of the spline solve (not in the paper): a continuous-time pose trajectory per window of batches.
+Declarations only: the solver loads when it runs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eventcap.artifacts import BatchPlan
+from eventcap.artifacts.pose import Detections, PoseSequence
+from eventcap.artifacts.recording import Recording
+from eventcap.artifacts.tracking import SlicedTracks
+from eventcap.stage import Port, StageSpec, param
+
+
+@dataclass
+class SplineSolveConfig:
+    half_window: int = param(2, help="batches on each side of the batch being solved: the window spans "
+                                     "2·half_window + 1 batches (shifted inwards at the ends of the recording)")
+    knot_ms: float = param(10.0, help="knot spacing of the cubic B-spline, ms (control points every knot_ms)")
+    prior: str = param("acceleration", help="motion prior: acceleration | jerk (∫‖S''‖² or ∫‖S'''‖² dt)")
+    lambda_prior: float = param(5e-4, help="weight of the motion prior, the integral of the squared acceleration "
+                                          "(or jerk) of the poses (rad and m, time in s); measured (EKLT, MPJVE in "
+                                          "mm/s) 1e-4 -> 5e-4: karate_kick 25 fps 354 -> 302, 10 fps 309 -> 263, "
+                                          "boxing_combo 386 -> 332, AE within 0.2 mm")
+    lambda_2d: float = param(200.0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
+    robust_2d_px: float = param(2.0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
+    lambda_3d: float = param(1.0, help="weight of E_3D at every intensity frame of the window (metres)")
+    lambda_cor: float = param(500.0, help="weight of E_cor, the event correspondences of this batch's tracks "
+                                          "(measured on karate_kick, 25 fps, with cor_step 5: EKLT 50 / 500 / 2000 "
+                                          "gave AE 26.0 / 25.8 / 26.0 mm, exact tracks 25.8 / 24.5 / 24.1 mm)")
+    cor_step: int = param(5, help="tracking frames between the two frames of a correspondence (1 = adjacent "
+                                  "frames, as the batch solve; 5 measured better and 5x cheaper: larger "
+                                  "displacements against the same pixel noise)")
+    icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
+    edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette edge give no correspondence")
+    lambda_damp: float = param(1e-4, help="proximal pull of the control points towards each solve's start")
+    limits: dict[str, list[float]] = param(
+        default_factory=dict, help="joint-limit overrides {parameter name: [min, max]} (radians; metres for root_t*)")
+    max_iter: int = param(200, affects_result=False, help="IPOPT iteration limit per solve; reaching it fails the "
+                                                          "window (failures are never cached)")
+    tol: float = param(1e-6, help="IPOPT convergence tolerance")
+    mumps_pivot_order: int = param(0, help="MUMPS ordering (0 AMD ... 7 auto), pinned for reproducibility")
+
+
+SPLINE = StageSpec(
+    name="spline", kind="solve", version=2,
+    description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
+                "window of batches, fitted to the detections at every intensity frame (robust, soft), this batch's "
+                "event correspondences and a motion prior, joint limits on the control points (CasADi + IPOPT); "
+                "the output is the window's whole curve at the tracking rate (the stitch stage blends the windows)",
+    config=SplineSolveConfig,
+    inputs={"recording": Port(Recording), "sliced": Port(SlicedTracks), "detections": Port(Detections),
+            "batches": Port(BatchPlan)},
+    outputs={"poses": Port(PoseSequence)}, per_batch=True,
+    run="eventcap_spline._impl:run_spline",
+)
+
+
+@dataclass
+class StitchConfig:
+    taper: float = param(0.5, help="fraction of a window's length over which its blending weight rises from 0 to 1 "
+                                   "at each of its ends (0.5: a bump over the whole window); a window's end at the "
+                                   "start or end of the recording is not tapered")
+
+
+STITCH = StageSpec(
+    name="stitch", kind="fuse", version=2,
+    description="the spline solve's overlapping windows blended into one motion over the whole recording, each "
+                "window weighted by a C² bump over its span (no seam where batches meet; not in the paper)",
+    config=StitchConfig,
+    inputs={"windows": Port(PoseSequence, "every batch's spline-solve window", all_batches=True)},
+    outputs={"motion": Port(PoseSequence, doc="the joined motion at every tracking frame")},
+    run="eventcap_spline.stitch:run_stitch",
+)
+
+
+@dataclass
+class CutConfig:
+    pass
+
+
+CUT = StageSpec(
+    name="cut", kind="fuse", version=1,
+    description="a batch's frames of the stitched whole-recording motion",
+    config=CutConfig,
+    inputs={"motion": Port(PoseSequence, "the stitch stage's motion"), "batches": Port(BatchPlan)},
+    outputs={"poses": Port(PoseSequence)}, per_batch=True,
+    run="eventcap_spline.stitch:run_cut",
+)

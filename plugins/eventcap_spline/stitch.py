@@ -1,0 +1,124 @@
+"""Joining the windows of the spline solve into one motion without seams (not in the paper).
+
+Each batch's task solves a window of several batches (:mod:`.solve`) and returns the window's whole curve.
+Neighbouring windows overlap but disagree slightly (each sees its own batch's events and different detections at
+its far ends). Keeping only each batch's own interval leaves a jump where two batches meet: measured on the README
+capture, a speed spike of up to 1 m/s at every batch boundary, the largest part of the velocity error.
+
+``stitch`` (whole recording) blends the windows instead: at every tracking frame t,
+
+    S(t) = Σ_k w_k(t) S_k(t) / Σ_k w_k(t),
+
+with w_k a C² bump over window k's span (the quintic smoothstep 6u⁵ - 15u⁴ + 10u³ over the first and last
+``taper`` of the window, 1 between; a window's end at the start or end of the recording is not tapered, so every
+frame has weight). Each S_k is a C² cubic B-spline and every weight and its first two derivatives vanish at the
+window's ends, so the blend is C² everywhere: no seam, and overlapping windows average their errors. Root angles
+are moved by multiples of 2π so each window continues the ones before it. ``cut`` (per batch) gives each batch its
+frames of the blended motion, so everything downstream (evaluate, outputs) keeps the batch boundaries.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from eventcap.artifacts.pose import PoseSequence
+from eventcap.stage import StageFailed
+
+
+def smootherstep(u: np.ndarray) -> np.ndarray:
+    """6u⁵ - 15u⁴ + 10u³ on [0, 1] (0 below, 1 above): its first and second derivatives vanish at both ends."""
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * u * (u * (6.0 * u - 15.0) + 10.0)
+
+
+def window_weight(t_us: np.ndarray, a_us: int, b_us: int, taper: float, open_start: bool, open_end: bool):
+    """Blending weight of a window spanning [a_us, b_us] at times t_us (0 outside)."""
+    t = np.asarray(t_us, dtype=np.float64)
+    ramp = max(taper * (b_us - a_us), 1.0)
+    w = np.ones_like(t)
+    if not open_start:
+        w *= smootherstep((t - a_us) / ramp)
+    if not open_end:
+        w *= smootherstep((b_us - t) / ramp)
+    return np.where((t >= a_us) & (t <= b_us), w, 0.0)
+
+
+def blend(windows: list[tuple[np.ndarray, np.ndarray]], taper: float) -> tuple[np.ndarray, np.ndarray]:
+    """Blend windows [(t_us (T_k,), poses (T_k, 33))] into one motion at the union of their times."""
+    t_all = np.unique(np.concatenate([np.asarray(t, dtype=np.int64) for t, _ in windows]))
+    t0, t1 = int(t_all[0]), int(t_all[-1])
+    num = np.zeros((t_all.size, 33))
+    den = np.zeros(t_all.size)
+    prev = None  # the blend so far, for the root branch of the next window
+    for t, P in windows:
+        t = np.asarray(t, dtype=np.int64)
+        P = np.asarray(P, dtype=np.float64).copy()
+        idx = np.searchsorted(t_all, t)
+        if prev is not None:
+            have = den[idx] > 0
+            if have.any():
+                j = int(np.flatnonzero(have)[0])
+                ref = num[idx[j], 27:30] / den[idx[j]]
+                P[:, 27:30] -= 2.0 * np.pi * np.round((P[j, 27:30] - ref) / (2.0 * np.pi))
+        w = window_weight(t, int(t[0]), int(t[-1]), taper, int(t[0]) == t0, int(t[-1]) == t1)
+        num[idx] += w[:, None] * P
+        den[idx] += w
+        prev = True
+    if np.any(den <= 0):
+        k = int(np.flatnonzero(den <= 0)[0])
+        raise ValueError(f"no window covers t = {int(t_all[k])} us with a positive weight")
+    return t_all, num / den[:, None]
+
+
+def run_stitch(inputs, config, ctx):
+    seq = inputs["windows"]
+    K = len(seq)
+    if K < 1:
+        raise StageFailed("stitch: no batches of the spline solve", status="invalid_input")
+    if not (math.isfinite(config.taper) and 0.0 < config.taper <= 0.5):
+        raise StageFailed(f"stages.stitch.taper: expected a fraction in (0, 0.5], got {config.taper!r}",
+                          status="invalid_config")
+    windows = []
+    for k in range(K):
+        p = seq[k]
+        windows.append((np.asarray(p.t_us, dtype=np.int64), np.asarray(p.poses)))
+        ctx.report(k + 1, K)
+    b = seq.batches
+    # Every batch's own interval must be covered by its window (the spline stage's output).
+    for k, (t, _) in enumerate(windows):
+        if t[0] > b[k].t0_us or t[-1] < b[k].t1_us:
+            raise StageFailed(f"stitch: batch {b[k].index}'s window [{int(t[0])}, {int(t[-1])}] us does not cover the "
+                              f"batch [{b[k].t0_us}, {b[k].t1_us}] us: is the input the spline stage's?",
+                              status="invalid_input")
+    try:
+        t_out, poses = blend(windows, float(config.taper))
+    except ValueError as exc:
+        raise StageFailed(f"stitch: {exc}", status="invalid_input") from exc
+    # Seams the blend removed: where batch k's own window and batch k+1's own window meet.
+    seams = []
+    for k in range(1, K):
+        t_prev, P_prev = windows[k - 1]
+        t_next, P_next = windows[k]
+        tb = b[k].t0_us
+        i, j = np.searchsorted(t_prev, tb), np.searchsorted(t_next, tb)
+        if i < t_prev.size and j < t_next.size and t_prev[i] == tb and t_next[j] == tb:
+            seams.append(float(np.abs(P_prev[i, :27] - P_next[j, :27]).max()))
+    ctx.log.info("stitch: %d windows blended over %d tracking frames; largest joint-angle disagreement of two "
+                 "neighbouring windows where their batches meet: %.3f rad", K, t_out.size, max(seams, default=0.0))
+    ctx.stats.update({"seam_rad_max": max(seams, default=0.0), "seam_rad_median": float(np.median(seams or [0]))})
+    return {"motion": PoseSequence(t_us=t_out, poses=poses, status="stitched", iterations=0, energies={})}
+
+
+def run_cut(inputs, config, ctx):
+    motion, b = inputs["motion"], ctx.batch
+    if b is None:
+        raise StageFailed("cut runs per batch (no batch given)", status="invalid_input")
+    t = np.asarray(motion.t_us, dtype=np.int64)
+    sel = (t >= b.t0_us) & (t <= b.t1_us)
+    if sel.sum() < 2 or t[sel][0] != b.t0_us or t[sel][-1] != b.t1_us:
+        raise StageFailed(f"cut: the stitched motion has no frames spanning batch {b.index} [{b.t0_us}, {b.t1_us}] "
+                          "us", status="invalid_input")
+    return {"poses": PoseSequence(t_us=t[sel].copy(), poses=np.asarray(motion.poses)[sel].copy(), status="stitched",
+                                  iterations=0, energies={})}

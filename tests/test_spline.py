@@ -1,0 +1,302 @@
+"""The spline solve (not in the paper; plugins/eventcap_spline): the B-spline basis and its priors, derivatives of
+every term of the spline energy against finite differences, accuracy against ground truth, the stage."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+from conftest import assert_derivatives_match_fd
+from test_detect import detect, posed_recording
+
+from eventcap.artifacts import Batch, BatchPlan
+from eventcap.artifacts.tracking import SlicedTracks
+from eventcap.body.kinematics import joint_positions
+from eventcap.body.skeleton import pose_bounds
+from eventcap.energy.correspondences import find_correspondences
+from eventcap.energy.detections import select_detections
+from eventcap.energy.spline import UniformCubicBSpline
+from eventcap.metrics import mean_joint_error
+from eventcap.sim.capture import _pick_track_points, _track_points
+from eventcap.stage import StageContext, StageFailed
+from eventcap.testing import StageConformance
+from eventcap_spline._impl import cor_frames, window_of
+from eventcap_spline.solve import SplineProblem, SplineWeights, solve_window
+
+H_US = 10_000  # knot spacing of the test splines
+EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
+
+
+# ------------------------------------------------------------------------------------------------ the basis
+def test_basis_is_a_partition_of_unity_and_its_derivatives_match_finite_differences():
+    spl = UniformCubicBSpline(5_000, H_US, 6)
+    assert spl.n_ctrl == 9 and spl.t1_us == 65_000
+    t = np.linspace(5_000, 65_000, 97)
+    B = spl.basis(t)
+    np.testing.assert_allclose(B.sum(axis=1), 1.0, atol=1e-12)
+    assert B.min() >= 0 and np.count_nonzero(B, axis=1).max() <= 4
+    tin = t[1:-1] + 2.0  # off the knots by more than the difference step (the 3rd derivative jumps there)
+    for k in (1, 2, 3):
+        fd = (spl.basis(tin + 0.5, k - 1) - spl.basis(tin - 0.5, k - 1)) / 1e-6  # per second
+        scale = np.abs(fd).max()
+        np.testing.assert_allclose(spl.basis(tin, k), fd, atol=1e-5 * scale, err_msg=f"derivative {k}")
+    with pytest.raises(ValueError, match="outside its span"):
+        spl.basis([4_000])
+
+
+@pytest.mark.parametrize("deriv", [1, 2, 3])
+def test_prior_gram_matrix_is_the_exact_integral(deriv):
+    spl = UniformCubicBSpline(0, H_US, 5)
+    C = np.random.default_rng(deriv).normal(size=(spl.n_ctrl, 3))
+    Q = spl.gram(deriv)
+    t = np.linspace(0, spl.t1_us, 200_001)  # dense trapezoid: the integrand is a piecewise polynomial
+    v = np.sum(spl.evaluate(C, t, deriv) ** 2, axis=1)
+    numeric = np.sum(0.5 * (v[1:] + v[:-1]) * np.diff(t) * 1e-6)
+    assert np.trace(C.T @ Q @ C) == pytest.approx(numeric, rel=1e-6)
+    assert np.allclose(Q, Q.T) and np.all(np.abs(np.triu(Q, 4)) == 0)  # symmetric, banded
+
+
+def test_fit_reproduces_a_cubic_and_smoothing_keeps_a_straight_line():
+    spl = UniformCubicBSpline(0, H_US, 8)
+    t = np.linspace(0, spl.t1_us, 17)
+    ts = t * 1e-6
+    cubic = np.stack([1 + 2 * ts - 30 * ts**2 + 400 * ts**3, -ts], axis=1)
+    C = spl.fit(t, cubic, smooth=0.0, ridge=0.0)
+    tq = np.linspace(0, spl.t1_us, 333)
+    tqs = tq * 1e-6
+    np.testing.assert_allclose(spl.evaluate(C, tq), np.stack([1 + 2 * tqs - 30 * tqs**2 + 400 * tqs**3, -tqs], 1),
+                               atol=1e-9)
+    line = 0.3 + 5.0 * ts
+    C = spl.fit(t, line[:, None], smooth=1.0, deriv=2, ridge=0.0)  # zero acceleration: not penalised at all
+    np.testing.assert_allclose(spl.evaluate(C, tq)[:, 0], 0.3 + 5.0 * tqs, atol=1e-9)
+
+
+def test_windows_cover_the_batch_and_shift_inwards_at_the_ends():
+    assert [window_of(10, k, 2) for k in (0, 1, 2, 5, 8, 9)] == [(0, 4), (0, 4), (0, 4), (3, 7), (5, 9), (5, 9)]
+    assert window_of(3, 1, 2) == (0, 2) and window_of(1, 0, 0) == (0, 0)
+    assert cor_frames(41, 1).tolist() == list(range(41))
+    assert cor_frames(41, 3).tolist() == list(range(0, 41, 3)) + [40]
+
+
+# ------------------------------------------------------------------------------------------------ a window
+@functools.lru_cache(maxsize=2)
+def scene(exact: bool = False):
+    """4 intensity frames (3 batches, 120 ms) of a fast motion, simulated detections (default noise unless exact),
+    ground-truth surface tracks in the middle batch."""
+    rec = posed_recording("high_knees", n_frames=4, speed=1.0, with_template=True)
+    det = select_detections(detect("simulated", rec, **(EXACT if exact else {})), rec.frames.t_us)
+    t_det = rec.frames.t_us.astype(np.int64)
+    t_us = t_det[1] + 1_000 * np.arange(41, dtype=np.int64)
+    gt = rec.ground_truth
+    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
+    tri, bary = _pick_track_points(rec.template, rec.camera, lambda t: S[np.searchsorted(t_us, np.rint(t * 1e6))],
+                                   t_us[[0, 20, 40]], 100, seed=0)
+    xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
+    return rec, det, t_det, t_us, S, xy, valid
+
+
+@functools.lru_cache(maxsize=1)
+def problem() -> SplineProblem:
+    rec, det, t_det = scene()[:3]
+    return SplineProblem(rec.template, rec.camera, int((t_det[-1] - t_det[0]) // H_US), t_det.size, 41)
+
+
+def joint_error_mm(rec, poses, truth) -> float:
+    rest = rec.template.rest_joints
+    return float(np.mean(1000 * mean_joint_error(joint_positions(poses, rest), joint_positions(truth, rest))))
+
+
+def ca_dense(m) -> np.ndarray:
+    import casadi as ca
+
+    return np.asarray(ca.DM(m).full())
+
+
+@pytest.mark.parametrize("term", ["d2", "d3", "cor", "prior", "damp"])
+def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
+    rec, det, t_det, t_us, S, xy, valid = scene()
+    prob = problem()
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
+    rng = np.random.default_rng(0)
+    lo, hi = pose_bounds()
+    gt = rec.ground_truth
+    tk = np.linspace(t_det[0], t_det[-1], 25).astype(np.int64) // 1000 * 1000
+    C = spl.fit(tk, gt.poses[np.searchsorted(gt.t_us, tk)], smooth=1e-6)
+    C = np.clip(C + rng.normal(0, 0.03, C.shape), lo + 1e-3, hi - 1e-3)
+    corr = find_correspondences(rec.template, rec.camera, spl.evaluate(C, t_us), xy, valid)
+    assert corr.n > 500
+    tp = rng.normal(0, 0.05, (t_det.size, 3))
+    x = np.concatenate([C.ravel(), tp.ravel()])
+    w = SplineWeights(**{n: (1.0 if n == term else 0.0) for n in ("d2", "d3", "cor", "prior", "damp")})
+    prob.set_window(spl, t_det, det, t_us, corr, w, x + rng.normal(0, 0.01, x.shape))
+    f = lambda v: float(prob.objective(v))
+    grad = lambda v: np.asarray(prob.gradient(v)[1]).ravel()
+    g = grad(x)
+    Hu = ca_dense(prob.hessian(x))
+    H = np.triu(Hu) + np.triu(Hu, 1).T
+    assert f(x) > 0 and np.abs(g).max() > 0
+    # Control points 0, 4 (inside the middle batch), the last one; t' of two detection frames.
+    coords = np.concatenate([rng.choice(33, 5, replace=False) + 33 * i for i in (0, 4, 6, prob.n_ctrl - 1)]
+                            + [prob.nC + np.array([0, 4, 8])])
+    assert_derivatives_match_fd(f, grad, x, g, H, coords, 1e-4, term)
+    # Nothing outside the declared sparsity (blocks of control points more than 3 apart never interact).
+    full = prob._hessian(x)
+    assert np.abs(full - H).max() <= 1e-12 * max(1.0, np.abs(full).max())
+
+
+def test_spline_through_noisy_detections_beats_the_per_frame_fits():
+    """Detections with the default simulated noise: the spline over 4 frames (no events) is nearer the truth in
+    the middle batch than linear interpolation of the per-frame fits, and the joint limits hold at 1 kHz."""
+    rec, det, t_det, t_us, S, xy, valid = scene()
+    prob = problem()
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
+    res = solve_window(prob, spl, t_det, det, t_us, xy, valid, SplineWeights(), icp_rounds=0)
+    assert all(s.status == "Solve_Succeeded" for s in res.solves[-1:])
+    P = spl.evaluate(res.control, t_us)
+    a = ((t_us - t_us[0]) / (t_us[-1] - t_us[0]))[:, None]
+    linear = (1 - a) * res.fits[1] + a * res.fits[2]
+    e_spline, e_linear = joint_error_mm(rec, P, S), joint_error_mm(rec, linear, S)
+    assert e_spline < 0.85 * e_linear, (e_spline, e_linear)
+    lo, hi = pose_bounds()
+    dense = spl.evaluate(res.control, np.arange(t_det[0], t_det[-1] + 1, 250))
+    assert np.all(dense[:, :27] >= lo[:27] - 1e-7) and np.all(dense[:, :27] <= hi[:27] + 1e-7)
+
+
+# ------------------------------------------------------------------------------------------------ the stage
+def stage_inputs(batch: int = 0):
+    rec, det_rows, t_det = scene()[:3]
+    det = detect("simulated", rec)
+    t_us = t_det[batch] + 1_000 * np.arange(41, dtype=np.int64)
+    gt = rec.ground_truth
+    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
+    tri, bary = _pick_track_points(rec.template, rec.camera, lambda t: S[np.searchsorted(t_us, np.rint(t * 1e6))],
+                                   t_us[[0, 20, 40]], 60, seed=1)
+    xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
+    sliced = SlicedTracks(t_us=t_us, xy=np.where(valid[..., None], xy, np.nan).astype(np.float32), valid=valid,
+                          track_id=np.arange(xy.shape[1], dtype=np.int32))
+    plan = BatchPlan.between_frames(t_det)
+    return {"recording": rec, "sliced": sliced, "detections": det, "batches": plan}
+
+
+FAST = {"icp_rounds": 1, "half_window": 1, "knot_ms": 20.0, "cor_step": 4}
+
+
+class TestSplineStageConformance(StageConformance):
+    stage_name = "spline"
+    config_overrides = FAST
+    sensitive = ("lambda_prior", 2e-3)
+    insensitive = ("max_iter", 50)
+
+    def make_inputs(self):
+        return stage_inputs()
+
+
+def _run_stage(inputs, batch, **changes):
+    from eventcap.config import build_config
+    from eventcap.registry import load_registry
+
+    spec = load_registry().get("spline")
+    ctx = StageContext(node="solve", stage="spline", batch=batch)
+    return spec.load_run()(inputs, build_config(spec, {**FAST, **changes}, "stages.solve"), ctx), ctx
+
+
+class _Seq(list):
+    """Stands in for the runner's lazy BatchSequence (a list with .batches)."""
+
+    def __init__(self, items, batches):
+        super().__init__(items)
+        self.batches = batches
+
+
+def _stitch(poses, plan, **changes):
+    from eventcap.config import build_config
+    from eventcap.registry import load_registry
+
+    reg = load_registry()
+    spec = reg.get("stitch")
+    ctx = StageContext(node="stitch", stage="stitch")
+    motion = spec.load_run()({"windows": _Seq(poses, plan.batches()[:len(poses)])},
+                             build_config(spec, changes, "stages.stitch"), ctx)["motion"]
+    cut = reg.get("cut")
+    return motion, [cut.load_run()({"motion": motion, "batches": plan}, build_config(cut, {}, "stages.cut"),
+                                   StageContext(node="cut", stage="cut", batch=plan.batch(k)))["poses"]
+                    for k in range(len(poses))], ctx
+
+
+def test_stitch_blends_overlapping_windows_without_a_seam():
+    """Three windows of a smooth motion over 3 batches (each covering its batch and its neighbours), the middle one
+    0.05 rad off and the last one on another 2π branch of the root yaw. Kept per batch they would jump by 0.05 rad
+    where the batches meet; blended, no 1 ms step is larger than the motion's own plus the offset spread over the
+    overlap, the acceleration stays bounded (C²), and where only one window has weight it is that window."""
+    from eventcap.artifacts.pose import PoseSequence
+    from eventcap_spline.stitch import smootherstep
+
+    plan = BatchPlan.between_frames(np.array([5_000, 45_000, 85_000, 125_000]))
+    t = np.arange(5_000, 125_001, 1_000)
+    truth = np.zeros((t.size, 33))
+    truth[:, :27] = 0.3 * np.sin(2 * np.pi * 2.0 * t[:, None] * 1e-6 + np.arange(27)[None, :])
+    truth[:, 27] = 3.1 + 2.0 * t * 1e-6  # yaw crossing π
+    spans = [(5_000, 85_000), (5_000, 125_000), (45_000, 125_000)]
+    windows = []
+    for k, (a_, b_) in enumerate(spans):
+        sel = (t >= a_) & (t <= b_)
+        p = truth[sel].copy()
+        p[:, :27] += 0.05 if k == 1 else 0.0
+        p[:, 27] -= 2 * np.pi if k == 2 else 0.0
+        windows.append(PoseSequence(t_us=t[sel], poses=p, status="Solve_Succeeded", iterations=1, energies={}))
+    motion, cut, ctx = _stitch(windows, plan)
+    assert ctx.stats["seam_rad_max"] == pytest.approx(0.05)
+    assert motion.t_us.tolist() == t.tolist()
+    d1 = np.abs(np.diff(motion.poses, axis=0)).max()
+    assert d1 < np.abs(np.diff(truth, axis=0)).max() + 0.05 / 20, d1  # the offset spread over >= 20 ms
+    d2 = np.abs(np.diff(motion.poses[:, :27] - truth[:, :27], 2, axis=0)).max()
+    assert d2 < 0.05 * 20 / 40**2, d2  # second differences of a smooth 40 ms blend of a 0.05 rad offset
+    np.testing.assert_allclose(motion.poses[:, 27], truth[:, 27], atol=1e-12)  # every window on one branch
+    # Window ends at the recording's ends are not tapered: at 125 ms windows 1 and 2 weigh 1 each.
+    assert motion.poses[-1, 0] == pytest.approx(truth[-1, 0] + 0.05 / 2)
+    assert [c.t_us[0] for c in cut] == plan.t0_us.tolist() and cut[1].t_us[-1] == 85_000
+    assert cut[0].poses[-1].tolist() == cut[1].poses[0].tolist()
+    u = np.linspace(0, 1, 101)
+    assert smootherstep(u)[[0, -1]].tolist() == [0.0, 1.0] and np.all(np.diff(smootherstep(u)) >= 0)
+
+
+def test_stitched_stage_output_is_smooth_where_batches_meet():
+    """The three batches of the scene, each solved in its own window task (each task sees only its own batch's
+    tracks, so the windows differ): after stitch + cut, the largest 1 ms joint step is no larger than inside the
+    windows, and batch 0's last frame is batch 1's first."""
+    rec = scene()[0]
+    outs = []
+    for k in (0, 1, 2):
+        inputs = stage_inputs(k)
+        out, ctx = _run_stage(inputs, inputs["batches"].batch(k), half_window=1)
+        outs.append(out["poses"])
+        assert ctx.stats["window"] == [0, 2] and out["poses"].status == "Solve_Succeeded"
+        assert out["poses"].t_us[0] == 5_000 and out["poses"].t_us[-1] == 125_000  # the whole window
+    rest = rec.template.rest_joints
+    inside = max(np.linalg.norm(np.diff(joint_positions(o.poses, rest), axis=0), axis=2).max() for o in outs)
+    motion, cut, ctx = _stitch(outs, stage_inputs()["batches"])
+    J = joint_positions(motion.poses, rest)
+    assert np.linalg.norm(np.diff(J, axis=0), axis=2).max() <= 1.05 * inside
+    assert cut[0].poses[-1].tolist() == cut[1].poses[0].tolist() and cut[2].t_us[-1] == 125_000
+    assert ctx.stats["seam_rad_max"] > 0  # the windows did differ
+
+
+def test_a_failed_window_raises_with_the_solver_status():
+    inputs = stage_inputs()
+    with pytest.raises(StageFailed) as err:
+        _run_stage(inputs, Batch(0, int(inputs["sliced"].t_us[0]), int(inputs["sliced"].t_us[-1]), 0), max_iter=1)
+    assert err.value.status == "Maximum_Iterations_Exceeded" and "window of batches 0..2" in str(err.value)
+
+
+def test_bad_config_and_missing_detections_are_named():
+    inputs = stage_inputs()
+    b = inputs["batches"].batch(0)
+    with pytest.raises(StageFailed, match="stages.spline.knot_ms"):
+        _run_stage(inputs, b, knot_ms=0.0)
+    with pytest.raises(StageFailed, match="stages.spline.prior"):
+        _run_stage(inputs, b, prior="snap")
+    few = dict(inputs, batches=BatchPlan(t0_us=np.array([5_000, 47_000]), t1_us=np.array([47_000, 85_000]),
+                                         frame0=np.array([0, 1])))
+    with pytest.raises(StageFailed, match="no detection row at t = \\[47000\\]"):
+        _run_stage(few, b)
