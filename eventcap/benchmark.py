@@ -19,7 +19,6 @@ their per-frame errors, table) and ``fig7_per_frame_error.png``, and prints the 
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -32,6 +31,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .jobs import save_figure, write_csv  # noqa: F401 (also this module's API, as before)
 
 log = logging.getLogger("eventcap.benchmark")
 
@@ -158,7 +159,7 @@ class Benchmark:
         return active, left_out
 
     def run(self, echo=print) -> dict[str, Any]:
-        from .cli import run_job
+        from .jobs import run_job
 
         methods, left_out = self.active_methods()
         for name, why in left_out.items():
@@ -372,29 +373,6 @@ def run_csv_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
         row["run_dir"] = r.get("run_dir")
         out.append(row)
     return out
-
-
-def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
-    cols = list(dict.fromkeys(k for r in rows for k in r))
-    tmp = path.with_name(path.name + ".partial")
-    with open(tmp, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=cols)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in cols})
-    tmp.replace(path)
-    return path
-
-
-def save_figure(fig, path: Path) -> Path:
-    """Write a matplotlib figure to ``path`` atomically (a partial file renamed into place) and close it."""
-    import matplotlib.pyplot as plt
-
-    tmp = path.with_name(path.stem + ".partial.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
 
 
 def plot_per_frame_errors(path: Path, records: Sequence[Mapping[str, Any]], methods: Sequence[str],

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .benchmark import save_figure, write_csv
+from .jobs import save_figure, write_csv
 
 log = logging.getLogger("eventcap.report")
 
