@@ -30,7 +30,8 @@ pelvis; the pelvis itself left out: 23 joints) at every tracking frame:
 - ``peak_speed_err``: for each batch (the span of one input PoseSequence) and each end effector
   (``end_effectors``: feet, wrists, hands), the relative error of its peak speed in the batch,
   |max pred - max true| / max true; the median over all (batch, end effector) pairs (a fraction: 0.15 = 15%), and
-  per end effector in ``peak_speed_err_per_joint``.
+  per end effector in ``peak_speed_err_per_joint``, and every pair in ``peak_speed_errors`` (batches x end
+  effectors; null where the true peak is 0).
 
 The truth at a tracking frame is the ground truth's joints at that time (exact on its 1 kHz grid, linearly
 interpolated between its samples otherwise); frames outside the ground truth's time span are not evaluated.
@@ -205,6 +206,8 @@ def detail_values(t_us: np.ndarray, pred: np.ndarray, true: np.ndarray, window_m
             fin = errs[:, j][np.isfinite(errs[:, j])]
             out["peak_speed_err_per_joint"][name] = float(np.median(fin)) if fin.size else None
         out["n_peak_pairs"] = int(np.isfinite(errs).sum())
+        # every (batch, end effector) pair, so that results of many runs can be pooled (null: no true motion)
+        out["peak_speed_errors"] = [[round(float(v), 5) if np.isfinite(v) else None for v in row] for row in errs]
     return out
 
 
