@@ -193,3 +193,31 @@ def test_quick_preset_twice(tmp_path):
     runs = list(csv.DictReader(open(tmp_path / "out" / "runs.csv")))
     assert len(runs) == n and all(r["computed"] == "0" for r in runs)
     assert (tmp_path / "out" / "fig7_per_frame_error.png").stat().st_size > 10_000
+
+
+def test_apps_do_not_import_each_other():
+    """cli -> benchmark -> cli was an import cycle: what both need (run_job, the file writers) lives in
+    eventcap.jobs, below cli, benchmark and report."""
+    code = ("import sys, eventcap.benchmark, eventcap.report; "
+            "print(sorted(m for m in sys.modules if m in ('eventcap.cli', 'eventcap.benchmark', 'eventcap.report')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "['eventcap.benchmark', 'eventcap.report']"  # neither pulled in eventcap.cli
+    from eventcap import cli, jobs
+
+    assert cli.run_job is jobs.run_job
+
+
+def test_speed_figure_from_run_records(tmp_path):
+    from eventcap.benchmark import plot_speeds
+
+    t = (1000 * np.arange(200)).tolist()
+    true = np.abs(np.sin(np.arange(200) / 30.0)) * 3.0
+    runs = [{"motion": "kick", "seed": 0, "method": m, "MPJVE_mm_s": 100.0 * k,
+             "speed": {"joint": "r_foot", "t_us": t, "true_mps": true.tolist(),
+                       "pred_mps": (true + 0.3 * k * np.cos(np.arange(200))).tolist()}}
+            for k, m in enumerate(["A", "B"])]
+    runs.append({"motion": "wave", "seed": 0, "method": "A", "speed": None})  # no series: no panel
+    path = plot_speeds(tmp_path / "speed.png", runs, ["A", "B"], ["kick", "wave"])
+    assert path is not None and path.stat().st_size > 10_000
+    assert plot_speeds(tmp_path / "none.png", runs[2:], ["A"], ["wave"]) is None and not (tmp_path / "none.png").exists()
