@@ -137,12 +137,20 @@ def test_evaluate_stage_reports_motion_detail(monkeypatch):
     monkeypatch.setenv("EVENTCAP_STAGES", te.STAGES)
     reset_process_caches()
     rec = te.recording()
-    values, _ = te.evaluate(rec, te.batch_sequences(rec))
+    values, _ = te.evaluate(rec, te.batch_sequences(rec), peak_min_speed_mps=0.0)
     assert values["MPJVE_mm_s"] == pytest.approx(0.0, abs=1e-9)
     assert values["accel_err_m_s2"] == pytest.approx(0.0, abs=1e-9)
     assert values["peak_speed_err"] == pytest.approx(0.0, abs=1e-12) and values["AE_rootrel_mm"] < 1e-9
     assert values["velocity_window_ms"] == 10.0 and values["n_velocity_frames"] == 121 - 10
     assert values["n_peak_pairs"] == 3 * 6 and set(values["peak_speed_err_per_joint"]) == set(END_EFFECTORS)
+    assert np.array(values["peak_speed_errors"]).shape == (3, 6)
+    # a pair counts only where the true peak exceeds peak_min_speed_mps (default 0.5 m/s: every end effector of
+    # this jumping jack at double speed does, in every batch)
+    values, _ = te.evaluate(rec, te.batch_sequences(rec))
+    assert values["n_peak_pairs"] == 18 and values["peak_min_speed_mps"] == 0.5
+    values, _ = te.evaluate(rec, te.batch_sequences(rec), peak_min_speed_mps=100.0)
+    assert values["n_peak_pairs"] == 0 and values["peak_speed_err"] is None
+    assert all(v is None for row in values["peak_speed_errors"] for v in row)
 
     # a constant shift of the root translation moves every joint: AE without alignment sees it, root-relative
     # joints do not

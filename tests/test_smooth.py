@@ -73,7 +73,7 @@ def test_smooth_poses_groups_and_parameters():
     for pool in ("group", "parameter"):
         out, choices = smooth_poses(t_us, noisy, t_eval, pool)
         assert out.shape == (want.size, 33)
-        assert len(choices) == (3 if pool == "group" else 33)
+        assert len(choices) == (2 if pool == "group" else 33)
         on_knots = out[np.searchsorted(t_eval, t_us)]
         assert np.sqrt(np.mean((on_knots - clean) ** 2)) < 0.7 * np.sqrt(np.mean((noisy - clean) ** 2))
     # a fixed lam, the same for all groups
@@ -137,8 +137,7 @@ def test_smooth_and_split_stages():
     ctx = StageContext(node="smooth", stage="smooth")
     motion = run_smooth({"fits": parts}, SmoothConfig(), ctx)["motion"]
     assert motion.t_us.size == 10 * 40 + 1 and motion.status == "smoothed"
-    assert set(motion.energies) == {"lam_theta", "lam_root_rotation", "lam_root_translation", "dof_theta",
-                                    "dof_root_rotation", "dof_root_translation"}
+    assert set(motion.energies) == {"lam_angles", "lam_root_translation", "dof_angles", "dof_root_translation"}
     at_frames = motion.poses[np.searchsorted(motion.t_us, np.arange(11) * FRAME_US)]
     assert np.sqrt(np.mean((at_frames - clean) ** 2)) < np.sqrt(np.mean((fits - clean) ** 2))
     for k in (0, 4):

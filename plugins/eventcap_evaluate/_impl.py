@@ -29,9 +29,10 @@ pelvis; the pelvis itself left out: 23 joints) at every tracking frame:
 - ``accel_err_m_s2``: mean per-joint acceleration error, (x(t + h) - 2x(t) + x(t - h)) / h², same frames;
 - ``peak_speed_err``: for each batch (the span of one input PoseSequence) and each end effector
   (``end_effectors``: feet, wrists, hands), the relative error of its peak speed in the batch,
-  |max pred - max true| / max true; the median over all (batch, end effector) pairs (a fraction: 0.15 = 15%), and
+  |max pred - max true| / max true; the median over the (batch, end effector) pairs whose true peak exceeds
+  ``peak_min_speed_mps`` (0.5 m/s: a joint that hardly moves has no peak to get right) (a fraction: 0.15 = 15%), and
   per end effector in ``peak_speed_err_per_joint``, and every pair in ``peak_speed_errors`` (batches x end
-  effectors; null where the true peak is 0).
+  effectors; null where the true peak is below the threshold).
 
 The truth at a tracking frame is the ground truth's joints at that time (exact on its 1 kHz grid, linearly
 interpolated between its samples otherwise); frames outside the ground truth's time span are not evaluated.
@@ -124,7 +125,7 @@ def require_truth(rec: Recording) -> tuple[GroundTruth, Any]:
 def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: int = 10,
                     align: str = "procrustes", velocity_window_ms: float = 10.0,
                     end_effectors: tuple[str, ...] = END_EFFECTORS, intervals_us: np.ndarray | None = None,
-                    ) -> tuple[dict[str, Any], JointErrors]:
+                    peak_min_speed_mps: float = 0.5) -> tuple[dict[str, Any], JointErrors]:
     """Table 1 measures of a joined motion against the recording's ground truth (see the module docstring)."""
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
         raise ValueError(f"stages.evaluate.every: expected an int >= 1, got {every!r}")
@@ -179,13 +180,13 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
         "data_rate": data_rate(rec, int(t_us[0]), int(t_us[-1]), step),
     }
     values.update(detail_values(t_us[inside], pred_all, truth, velocity_window_ms, end_effectors, intervals_us,
-                                frame_t))
+                                frame_t, peak_min_speed_mps))
     return values, errors
 
 
 def detail_values(t_us: np.ndarray, pred: np.ndarray, true: np.ndarray, window_ms: float,
                   end_effectors: tuple[str, ...], intervals_us: np.ndarray | None, frame_t_us: np.ndarray,
-                  ) -> dict[str, Any]:
+                  peak_min_speed_mps: float = 0.5) -> dict[str, Any]:
     """The motion-detail metrics (module docstring) of joints (T, 24, 3) at t_us; batches are ``intervals_us``
     (B, 2), else the spans between consecutive intensity frames."""
     if intervals_us is None:
@@ -194,10 +195,11 @@ def detail_values(t_us: np.ndarray, pred: np.ndarray, true: np.ndarray, window_m
     ee = tuple(JOINT_INDEX[n] for n in end_effectors)
     out: dict[str, Any] = {"MPJVE_mm_s": None, "accel_err_m_s2": None, "peak_speed_err": None,
                            "peak_speed_err_per_joint": {}, "velocity_window_ms": None, "n_velocity_frames": 0,
-                           "end_effectors": list(end_effectors)}
+                           "end_effectors": list(end_effectors), "peak_min_speed_mps": peak_min_speed_mps,
+                           "n_peak_pairs": 0}
     if t_us.size < 3:
         return out
-    d = motion_detail(t_us, pred, true, window_ms * 1000.0, intervals_us, ee)
+    d = motion_detail(t_us, pred, true, window_ms * 1000.0, intervals_us, ee, peak_min_speed_mps)
     out.update({k: d[k] for k in ("MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "n_velocity_frames")})
     out["velocity_window_ms"] = d["window_ms"]
     errs = d.get("peak_speed_errors")
@@ -238,7 +240,7 @@ def run(inputs: dict[str, Any], config, ctx: StageContext) -> dict[str, Any]:
     ctx.report(1, 2)
     spans = np.array([[p.t_us[0], p.t_us[-1]] for p in parts if len(p.t_us) > 1], dtype=np.int64).reshape(-1, 2)
     values, errors = evaluate_motion(rec, t_us, poses, config.every, config.align, config.velocity_window_ms,
-                                     tuple(config.end_effectors), spans)
+                                     tuple(config.end_effectors), spans, config.peak_min_speed_mps)
     statuses: dict[str, int] = {}
     for p in parts:
         if p.status:

@@ -23,6 +23,9 @@ class EvaluateConfig:
                                                  "window (x(t+h) - x(t-h)) / 2h, h = half of it, ms")
     end_effectors: list[str] = param(default_factory=lambda: list(END_EFFECTORS),
                                      help="joints whose peak speed per batch is measured (feet, wrists, hands)")
+    peak_min_speed_mps: float = param(0.5, help="a (batch, end effector) pair counts in the peak-speed error only "
+                                                "if its true peak speed exceeds this, m/s: a relative error of a "
+                                                "joint that does not move is not defined")
 
 
 EVALUATE = StageSpec(

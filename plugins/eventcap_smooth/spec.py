@@ -10,14 +10,14 @@ from eventcap.stage import Port, StageSpec, param
 
 @dataclass
 class SmoothConfig:
-    pool: str = param("group", help="one smoothing parameter per group of pose parameters (group: joint angles, "
-                                    "root rotation, root translation) | per parameter (parameter)")
+    pool: str = param("group", help="one smoothing parameter per group of pose parameters (group: all angles, "
+                                    "root translation) | per parameter (parameter)")
     lam: float = param(0.0, help="smoothing parameter in s³ for every group (0 = chosen by generalised "
                                  "cross-validation from the fits alone)")
 
 
 SMOOTH = StageSpec(
-    name="smooth", kind="fuse", version=1,
+    name="smooth", kind="fuse", version=2,
     description="frames only: cubic smoothing splines through the per-frame fits at the intensity frames, smoothing "
                 "chosen by GCV, sampled at every tracking frame (the frames_smooth baseline; not in the paper)",
     config=SmoothConfig,
