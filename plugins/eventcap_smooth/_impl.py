@@ -39,7 +39,7 @@ def run_smooth(inputs, config, ctx):
                           f"spline needs at least {MIN_KNOTS} (a longer capture)", status="invalid_input")
     t_all = np.unique(np.concatenate([np.asarray(p.t_us, dtype=np.int64) for p in parts]))
     try:
-        poses, choices = smooth_poses(t_knots, fits, t_all, config.pool, config.lam)
+        poses, choices = smooth_poses(t_knots, fits, t_all, config.pool, config.lam, config.criterion)
     except ValueError as exc:
         raise StageFailed(f"smooth: {exc}", status="invalid_input") from exc
     energies: dict[str, float] = {}

@@ -12,14 +12,16 @@ from eventcap.stage import Port, StageSpec, param
 class SmoothConfig:
     pool: str = param("group", help="one smoothing parameter per group of pose parameters (group: all angles, "
                                     "root translation) | per parameter (parameter)")
-    lam: float = param(0.0, help="smoothing parameter in s³ for every group (0 = chosen by generalised "
-                                 "cross-validation from the fits alone)")
+    lam: float = param(0.0, help="smoothing parameter in s³ for every group (0 = chosen from the fits alone by "
+                                 "the criterion)")
+    criterion: str = param("reml", help="how lam is chosen from the fits alone: reml (restricted likelihood) | gcv "
+                                        "(generalised cross-validation; undersmooths when the fits are few)")
 
 
 SMOOTH = StageSpec(
-    name="smooth", kind="fuse", version=2,
+    name="smooth", kind="fuse", version=3,
     description="frames only: cubic smoothing splines through the per-frame fits at the intensity frames, smoothing "
-                "chosen by GCV, sampled at every tracking frame (the frames_smooth baseline; not in the paper)",
+                "chosen from the fits (REML or GCV), sampled at every tracking frame (frames_smooth; not in the paper)",
     config=SmoothConfig,
     inputs={"fits": Port(PoseSequence, "every batch's poses; their first and last rows are the per-frame fits at "
                                        "the batch's two intensity frames (solve mode linear)", all_batches=True)},
