@@ -13,13 +13,18 @@ is the mean over the runs of the evaluate stage's data rate named by the method'
 stage comes from the cache manifests (``elapsed_s`` of the committed entries, whether computed now or earlier; a
 whole-recording stage's time is divided by the run's number of batches).
 
+Motion detail (beyond the paper; the evaluate stage's root-relative measures): AE of root-relative joints, MPJVE and
+acceleration error are the mean over the runs; the end effectors' peak-speed error is the median over the pooled
+(batch, end effector) pairs of the runs. ``fig_end_effector_speed.png`` shows, per motion (first seed), the speed of
+the end effector that moves fastest in the truth, truth against each method (from each run's ``motion.npz``).
+
 Writes ``table.csv`` (one row per method), ``runs.csv`` (one row per run), ``benchmark.json`` (config, runs with
-their per-frame errors, table) and ``fig7_per_frame_error.png``, and prints the tables.
+their per-frame errors, table), ``fig7_per_frame_error.png`` and ``fig_end_effector_speed.png``, and prints the
+tables.
 """
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -33,9 +38,13 @@ from typing import Any
 
 import numpy as np
 
+from .jobs import save_figure, write_csv  # noqa: F401 (also this module's API, as before)
+
 log = logging.getLogger("eventcap.benchmark")
 
 DATA_FIELDS = ("total_MBps", "events_MBps", "frames_MBps", "highspeed_MBps")
+#: The evaluate stage's motion-detail measures a run record keeps (root-relative joints; see eventcap.metrics).
+DETAIL_FIELDS = ("AE_rootrel_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "velocity_window_ms")
 _METHOD_KEYS = {"name", "description", "overrides", "data", "requires"}
 
 
@@ -158,7 +167,7 @@ class Benchmark:
         return active, left_out
 
     def run(self, echo=print) -> dict[str, Any]:
-        from .cli import run_job
+        from .jobs import run_job
 
         methods, left_out = self.active_methods()
         for name, why in left_out.items():
@@ -186,6 +195,11 @@ class Benchmark:
                 rec["error"] = "; ".join(failures) or "refused"
             else:
                 rec.update(collect_run(*got, self.cfg["metrics"], self.cfg["errors"], method.data))
+                if self.cfg.get("speed_figure", True) and seed == self.seeds[0]:
+                    rec["speed"] = speed_series(got[0], got[1], run_dir, self.cfg.get("recording",
+                                                                                      "source.recording"),
+                                                float((got[1].metrics.get(self.cfg["metrics"]) or {}).get(
+                                                    "velocity_window_ms") or 10.0))
                 rec["error"] = "; ".join(failures) or None
             rec["wall_s"] = time.perf_counter() - t0
             records.append(rec)
@@ -220,6 +234,8 @@ def collect_run(runner, result, metrics_out: str, errors_out: str, data_field: s
     dr = m.get("data_rate") or {}
     rec.update({"AE_mm": m.get("AE_mm"), "STD_mm": m.get("STD_mm"), "AE_raw_mm": m.get("AE_raw_mm"),
                 "AE_nonRaw_mm": m.get("AE_nonRaw_mm"), "data_MBps": dr.get(data_field), "data_field": data_field})
+    rec.update({k: m.get(k) for k in DETAIL_FIELDS})
+    rec["peak_speed_errors"] = m.get("peak_speed_errors")
     rec["frames"] = None
     node = errors_out.partition(".")[0]
     if node in runner.by_name:
@@ -230,6 +246,38 @@ def collect_run(runner, result, metrics_out: str, errors_out: str, data_field: s
                              "sampled": e.sampled.tolist(), "raw": e.raw.tolist()}
     rec.update(stage_times(runner, result))
     return rec
+
+
+def speed_series(runner, result, run_dir: Path, recording_out: str, window_ms: float) -> dict[str, Any] | None:
+    """For the speed figure: the root-relative speed over time of the end effector that moves fastest in the truth,
+    true and estimated (from the run's ``motion.npz``), by the evaluate stage's central differences."""
+    from .metrics import END_EFFECTORS, motion_detail, truth_at
+
+    npz = run_dir / "motion.npz"
+    node = recording_out.partition(".")[0]
+    if not npz.is_file() or node not in runner.by_name:
+        return None
+    try:
+        got = runner.load_output(result, recording_out)
+        gt = got[None].ground_truth if got else None
+        if gt is None:
+            return None
+        with np.load(npz) as z:
+            t_us, joints = np.asarray(z["t_us"], np.int64), np.asarray(z["joints"], np.float64)
+        true, inside = truth_at(gt.t_us, gt.joints, t_us)
+        from .body.skeleton import JOINT_INDEX
+
+        ee = tuple(JOINT_INDEX[n] for n in END_EFFECTORS)
+        d = motion_detail(t_us[inside], joints[inside], true, window_ms * 1000.0, None, ee)
+    except Exception as exc:  # noqa: BLE001 - a figure must not fail the benchmark
+        log.warning("no speed series for %s: %s", run_dir, exc)
+        return None
+    ok = d["valid"]
+    if not ok.any():
+        return None
+    j = int(np.argmax(np.nanmax(d["speed_true"][ok], axis=0)))
+    return {"joint": END_EFFECTORS[j], "t_us": t_us[inside][ok].tolist(),
+            "true_mps": d["speed_true"][ok, j].round(4).tolist(), "pred_mps": d["speed_pred"][ok, j].round(4).tolist()}
 
 
 def stage_times(runner, result) -> dict[str, Any]:
@@ -277,6 +325,25 @@ def _mean_std(x: np.ndarray) -> tuple[float | None, float | None]:
     return (float(x.mean()), float(x.std())) if x.size else (None, None)
 
 
+def _mean_of(records: Sequence[Mapping[str, Any]], key: str) -> float | None:
+    vals = [r[key] for r in records if isinstance(r.get(key), (int, float)) and math.isfinite(r[key])]
+    return float(np.mean(vals)) if vals else None
+
+
+def detail_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Motion detail over runs: AE of root-relative joints, MPJVE and acceleration error as the mean over the runs
+    (runs of one suite have the same length), the peak-speed error as the median over the pooled (batch, end
+    effector) pairs of all runs (a fraction)."""
+    out: dict[str, Any] = {k: _mean_of(records, k) for k in ("AE_rootrel_mm", "MPJVE_mm_s", "accel_err_m_s2")}
+    pairs = [v for r in records for row in (r.get("peak_speed_errors") or []) for v in row if v is not None]
+    if pairs:
+        out["peak_speed_err"] = float(np.median(pairs))
+    else:  # records from before the pairs were kept: the median of the runs' own medians
+        vals = [r["peak_speed_err"] for r in records if r.get("peak_speed_err") is not None]
+        out["peak_speed_err"] = float(np.median(vals)) if vals else None
+    return out
+
+
 def aggregate(records: Sequence[Mapping[str, Any]], methods: Sequence[str], motions: Sequence[str]) -> list[dict]:
     """One row per method: pooled AE ± STD (all / raw / nonRaw), per motion, data rate, time per batch per stage."""
     rows = []
@@ -287,12 +354,14 @@ def aggregate(records: Sequence[Mapping[str, Any]], methods: Sequence[str], moti
                                "incomplete": sum(1 for r in mine if not r.get("ok"))}
         for which, key in (("all", "AE"), ("raw", "AE_raw"), ("nonRaw", "AE_nonRaw")):
             row[f"{key}_mm"], row[f"{key}_STD_mm"] = _mean_std(_pool(good, which))
+        row.update(detail_summary(good))
         rates = [r["data_MBps"] for r in mine if r.get("data_MBps") is not None]
         row["data_MBps"] = float(np.mean(rates)) if rates else None
         row["per_motion"] = {}
         for motion in motions:
             ae, sd = _mean_std(_pool([r for r in good if r["motion"] == motion], "all"))
-            row["per_motion"][motion] = {"AE_mm": ae, "STD_mm": sd}
+            row["per_motion"][motion] = {"AE_mm": ae, "STD_mm": sd,
+                                         **detail_summary([r for r in good if r["motion"] == motion])}
         nodes: dict[str, list[float]] = {}
         stats: dict[str, list[float]] = {}
         for r in mine:
@@ -315,6 +384,10 @@ def _num(x, digits: int = 1) -> str:
     return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
 
 
+def _pct(x) -> str:
+    return "n/a" if x is None else f"{100.0 * x:.0f}%"
+
+
 def _pm(mean, std) -> str:
     return "n/a" if mean is None else f"{mean:.1f} ± {std:.1f}"
 
@@ -329,15 +402,22 @@ def _grid(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], note: str = "") -> str:
     """The printed report: Table 1, AE per motion, time per batch per stage."""
     parts = []
-    head = ["method", "AE.all (mm)", "AE.raw (mm)", "AE.nonRaw (mm)", "Size.sec (MB/s)", "runs"]
+    head = ["method", "AE.all (mm)", "AE.raw (mm)", "AE.nonRaw (mm)", "AE.rootrel (mm)", "MPJVE (mm/s)",
+            "Acc.err (m/s²)", "peak speed err", "Size.sec (MB/s)", "runs"]
     rows = [[r["method"], _pm(r["AE_mm"], r["AE_STD_mm"]), _pm(r["AE_raw_mm"], r["AE_raw_STD_mm"]),
-             _pm(r["AE_nonRaw_mm"], r["AE_nonRaw_STD_mm"]), _num(r["data_MBps"], 2),
+             _pm(r["AE_nonRaw_mm"], r["AE_nonRaw_STD_mm"]), _num(r.get("AE_rootrel_mm")), _num(r.get("MPJVE_mm_s"), 0),
+             _num(r.get("accel_err_m_s2"), 1), _pct(r.get("peak_speed_err")), _num(r["data_MBps"], 2),
              f"{r['evaluated']}/{r['runs']}"] for r in table]
     parts.append("Table 1" + (f" ({note})" if note else "") + "\n" + _grid(head, rows))
     head = ["method", *motions]
     rows = [[r["method"], *(_pm(r["per_motion"][m]["AE_mm"], r["per_motion"][m]["STD_mm"]) for m in motions)]
             for r in table]
     parts.append("AE per motion (mm, mean ± STD over the frames of all seeds)\n" + _grid(head, rows))
+    rows = [[r["method"], *(f"{_num(r['per_motion'][m].get('AE_rootrel_mm'))} / "
+                            f"{_num(r['per_motion'][m].get('MPJVE_mm_s'), 0)} / "
+                            f"{_pct(r['per_motion'][m].get('peak_speed_err'))}" for m in motions)] for r in table]
+    parts.append("Per motion: AE of root-relative joints (mm) / MPJVE (mm/s) / median peak-speed error per batch "
+                 "of the end effectors\n" + _grid(head, rows))
     nodes = list(dict.fromkeys(n for r in table for n in r["s_per_batch"]))
     stats = list(dict.fromkeys(k for r in table for k in r["stats"]))
     head = ["method", *nodes, "sum", *stats]
@@ -351,11 +431,15 @@ def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], no
 def table_csv_rows(table: Sequence[Mapping[str, Any]], motions: Sequence[str]) -> list[dict[str, Any]]:
     out = []
     for r in table:
-        row = {k: r[k] for k in ("method", "runs", "evaluated", "incomplete", "AE_mm", "AE_STD_mm", "AE_raw_mm",
-                                 "AE_raw_STD_mm", "AE_nonRaw_mm", "AE_nonRaw_STD_mm", "data_MBps")}
+        row = {k: r.get(k) for k in ("method", "runs", "evaluated", "incomplete", "AE_mm", "AE_STD_mm", "AE_raw_mm",
+                                     "AE_raw_STD_mm", "AE_nonRaw_mm", "AE_nonRaw_STD_mm", "AE_rootrel_mm",
+                                     "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "data_MBps")}
         for m in motions:
-            row[f"AE_{m}_mm"] = r["per_motion"][m]["AE_mm"]
-            row[f"STD_{m}_mm"] = r["per_motion"][m]["STD_mm"]
+            pm = r["per_motion"][m]
+            row[f"AE_{m}_mm"] = pm["AE_mm"]
+            row[f"STD_{m}_mm"] = pm["STD_mm"]
+            for k in ("AE_rootrel_mm", "MPJVE_mm_s", "peak_speed_err"):
+                row[f"{k}.{m}"] = pm.get(k)
         row.update({f"s_per_batch.{n}": v for n, v in r["s_per_batch"].items()})
         row.update(r["stats"])
         out.append(row)
@@ -366,35 +450,13 @@ def run_csv_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     out = []
     for r in records:
         row = {k: r.get(k) for k in ("motion", "seed", "method", "ok", "computed", "cached", "wall_s", "AE_mm",
-                                     "STD_mm", "AE_raw_mm", "AE_nonRaw_mm", "data_MBps", "data_field", "n_batches")}
+                                     "STD_mm", "AE_raw_mm", "AE_nonRaw_mm", *DETAIL_FIELDS, "data_MBps", "data_field",
+                                     "n_batches")}
         row.update({f"s_per_batch.{n}": v for n, v in (r.get("s_per_batch") or {}).items()})
         row["error"] = r.get("error") or ""
         row["run_dir"] = r.get("run_dir")
         out.append(row)
     return out
-
-
-def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
-    cols = list(dict.fromkeys(k for r in rows for k in r))
-    tmp = path.with_name(path.name + ".partial")
-    with open(tmp, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=cols)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in cols})
-    tmp.replace(path)
-    return path
-
-
-def save_figure(fig, path: Path) -> Path:
-    """Write a matplotlib figure to ``path`` atomically (a partial file renamed into place) and close it."""
-    import matplotlib.pyplot as plt
-
-    tmp = path.with_name(path.stem + ".partial.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
 
 
 def plot_per_frame_errors(path: Path, records: Sequence[Mapping[str, Any]], methods: Sequence[str],
@@ -441,6 +503,51 @@ def plot_per_frame_errors(path: Path, records: Sequence[Mapping[str, Any]], meth
     return save_figure(fig, path)
 
 
+def plot_speeds(path: Path, records: Sequence[Mapping[str, Any]], methods: Sequence[str],
+                motions: Sequence[str]) -> Path | None:
+    """Per motion (first seed): the speed over time of its fastest end effector (root-relative, as in the MPJVE),
+    the truth against each method."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log.warning("no plot: matplotlib is not installed (pip install matplotlib)")
+        return None
+    have = [m for m in motions if any(r["motion"] == m and r.get("speed") for r in records)]
+    if not have:
+        return None
+    fig, axes = plt.subplots(len(have), 1, figsize=(11, 2.9 * len(have)), squeeze=False)
+    for ax, motion in zip(axes[:, 0], have):
+        runs = [r for r in records if r["motion"] == motion and r.get("speed")]
+        first = runs[0]["speed"]
+        t0 = first["t_us"][0]
+        ax.plot((np.asarray(first["t_us"]) - t0) / 1000.0, first["true_mps"], color="k", lw=2.2, label="truth",
+                zorder=5)
+        colors = plt.get_cmap("tab10").colors
+        for i, name in enumerate(methods):
+            r = next((r for r in runs if r["method"] == name), None)
+            if r is None:
+                continue
+            sp = r["speed"]
+            ax.plot((np.asarray(sp["t_us"]) - t0) / 1000.0, sp["pred_mps"], lw=1.6 if i < 4 else 0.9,
+                    alpha=0.9, color=colors[i % len(colors)], ls="-" if i < 4 else "--",
+                    label=f"{name} (MPJVE {_num(r.get('MPJVE_mm_s'), 0)} mm/s)")
+        # spikes of the noisiest methods would flatten the truth: the axis stops at 3x its peak
+        ax.set_ylim(0.0, max(3.0 * float(np.max(first["true_mps"])), 1.0))
+        ax.set_title(f"{motion}, seed {runs[0]['seed']}: speed of {first['joint']} relative to the pelvis", fontsize=9)
+        ax.set_xlabel("time (ms)", fontsize=8)
+        ax.set_ylabel("speed (m/s)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=3, loc="upper right")
+    fig.suptitle("End-effector speed (central differences over the evaluate stage's window), truth against each "
+                 "method; y axis up to 3x the true peak (or 1 m/s)", fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
+    return save_figure(fig, path)
+
+
 def write_results(out: Path, results: Mapping[str, Any], plot: bool = True) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     files = {"table": write_csv(out / "table.csv", table_csv_rows(results["table"], results["motions"])),
@@ -454,6 +561,9 @@ def write_results(out: Path, results: Mapping[str, Any], plot: bool = True) -> d
                                   results["motions"])
         if p is not None:
             files["plot"] = p
+        p = plot_speeds(out / "fig_end_effector_speed.png", results["runs"], results["methods"], results["motions"])
+        if p is not None:
+            files["speed_plot"] = p
     return files
 
 

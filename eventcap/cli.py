@@ -22,6 +22,8 @@ import os
 import sys
 from pathlib import Path
 
+from .jobs import run_job  # noqa: F401 (part of this module's API: eventcap.cli.run_job)
+
 log = logging.getLogger("eventcap")
 
 
@@ -62,44 +64,6 @@ def _run_job(cfg) -> bool:
     before = len(_RUN_FAILURES)
     run_job(data, run_dir, OmegaConf.to_yaml(cfg, resolve=True), _RUN_FAILURES)
     return len(_RUN_FAILURES) == before
-
-
-def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
-    """Run one composed config into ``run_dir``: the pipeline, then the run outputs (motion files, video).
-
-    Returns ``(runner, result)``, or None when the config was refused before anything ran. Problems are appended to
-    ``failures`` (one line each); the caller decides the exit code. Shared by ``eventcap run`` and ``benchmark``.
-    """
-    from .cache import CacheError
-    from .config import ConfigError
-    from .outputs import check_outputs_config, write_run_outputs
-    from .pipeline import PipelineError
-    from .registry import UnknownStageError
-    from .runner import Runner
-
-    try:
-        runner = Runner(data)
-        outputs_cfg = check_outputs_config(runner)
-        result = runner.run(run_dir)
-    except (PipelineError, ConfigError, UnknownStageError, CacheError, ValueError) as exc:
-        log.error("%s", exc)
-        failures.append(f"{run_dir}: {exc}")
-        return None
-    (run_dir / "config.yaml").write_text(config_yaml)
-    if result.metrics:
-        log.info("metrics: %s", json.dumps(result.metrics, default=str)[:2000])
-    written = write_run_outputs(runner, result, run_dir, outputs_cfg)
-    if written["problems"]:
-        failures.append(f"{run_dir}: outputs: {'; '.join(written['problems'])}")
-    if not result.ok:
-        failed = [f"{n} batch {f['batch']}" if f["batch"] is not None else n
-                  for n, r in result.nodes.items() for f in r.failed]
-        skipped = [f"{n} ({r.skip_causes[0]['cause']})" if r.skip_causes else n
-                   for n, r in result.nodes.items() if r.skipped]
-        msg = f"failed: {', '.join(failed) or '-'}; skipped: {', '.join(skipped) or '-'}"
-        log.error("run incomplete: %s. Fix the cause and run the same command again: committed results are reused.", msg)
-        failures.append(f"{run_dir}: {msg}")
-    return runner, result
 
 
 def cmd_run(argv: list[str]) -> int:

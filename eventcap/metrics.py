@@ -1,11 +1,9 @@
-"""Measures against ground truth: where a tracked image feature truly is over time, and track errors."""
+"""Measures against ground truth: where a tracked image feature truly is over time, track errors, joint errors and
+the motion detail of a 1 kHz capture (velocity, acceleration, peak speeds). Pure functions of arrays."""
 
 from __future__ import annotations
 
 import numpy as np
-
-from eventcap.body.kinematics import skin
-from eventcap.render import Render, pick_surface_points, rasterize
 
 
 def pose_at(gt, t_us: np.ndarray) -> np.ndarray:
@@ -22,6 +20,9 @@ def feature_ground_truth(rec, t_ref_us: int, xy_ref: np.ndarray, times_us: np.nd
     template), moved by the ground-truth motion and projected; a point on the static background stays where it is.
     Returns positions (T, H, 2) and on_actor (H,) bool.
     """
+    from eventcap.body.kinematics import skin  # here, not at the top: the stage specs import this module's constants
+    from eventcap.render import Render, pick_surface_points, rasterize
+
     gt, tpl, cam = rec.ground_truth, rec.template, rec.camera
     if gt is None or tpl is None:
         raise ValueError("feature_ground_truth needs a recording with ground truth and its template (synthetic)")
@@ -93,3 +94,146 @@ def mean_joint_error(pred_joints: np.ndarray, true_joints: np.ndarray, align: bo
     """
     pred = procrustes_align(pred_joints, true_joints) if align else np.asarray(pred_joints, dtype=np.float64)
     return np.linalg.norm(pred - np.asarray(true_joints, dtype=np.float64), axis=-1).mean(axis=-1)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Motion detail: velocities, accelerations and peak speeds of root-relative joints (what a 1 kHz capture is for)
+# ---------------------------------------------------------------------------------------------------------------------
+#: Joints whose speed shows the fast motion: feet, wrists and hands of the 24-joint skeleton.
+END_EFFECTORS: tuple[str, ...] = ("l_foot", "r_foot", "l_wrist", "r_wrist", "l_hand", "r_hand")
+
+
+def truth_at(gt_t_us: np.ndarray, gt_joints: np.ndarray, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth joints (n, J, 3) at the times ``t_us`` inside the truth's span (exact on its grid, linear between
+    its samples), and that mask (T,)."""
+    gt_t = np.asarray(gt_t_us, dtype=np.int64)
+    t_us = np.asarray(t_us, dtype=np.int64)
+    inside = (t_us >= gt_t[0]) & (t_us <= gt_t[-1])
+    ti = t_us[inside]
+    k = np.searchsorted(gt_t, ti)  # gt_t[k] >= ti
+    exact = gt_t[k] == ti
+    J = np.empty((ti.size, gt_joints.shape[1], 3))
+    J[exact] = gt_joints[k[exact]]
+    if not exact.all():
+        kb = k[~exact]
+        w = ((ti[~exact] - gt_t[kb - 1]) / (gt_t[kb] - gt_t[kb - 1]))[:, None, None]
+        J[~exact] = (1.0 - w) * gt_joints[kb - 1] + w * gt_joints[kb]
+    return J, inside
+
+
+def root_relative(joints: np.ndarray, root: int = 0) -> np.ndarray:
+    """Joints (..., J, 3) minus the root joint (the pelvis, index 0): the body's own motion, without its travel."""
+    joints = np.asarray(joints, dtype=np.float64)
+    return joints - joints[..., root:root + 1, :]
+
+
+def half_window_steps(t_us: np.ndarray, window_us: float) -> tuple[int, int]:
+    """(k, step_us): central differences reach k tracking steps to each side, k = round(window / 2 / step) >= 1, where
+    step is the median time step. The window actually used is 2·k·step."""
+    t = np.asarray(t_us, dtype=np.int64)
+    if t.size < 3:
+        raise ValueError(f"central differences need at least 3 frames, got {t.size}")
+    if not window_us > 0:
+        raise ValueError(f"window: expected a positive time window (us), got {window_us!r}")
+    step = int(np.median(np.diff(t)))
+    if step <= 0:
+        raise ValueError("t_us: times must increase")
+    return max(1, int(round(window_us / 2.0 / step))), step
+
+
+def central_derivative(x: np.ndarray, t_us: np.ndarray, window_us: float, order: int = 1,
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """First (order=1) or second (order=2) time derivative of x (T, ...) by central differences over a window,
+    per second: with h = k·step (:func:`half_window_steps`)
+
+        order 1: (x(t + h) - x(t - h)) / 2h          order 2: (x(t + h) - 2 x(t) + x(t - h)) / h²
+
+    Returns (T, ...) derivatives and a mask (T,) of the frames where both neighbours exist exactly h away (not near
+    the ends, nor across a gap); elsewhere the values are NaN."""
+    if order not in (1, 2):
+        raise ValueError(f"order: expected 1 or 2, got {order!r}")
+    x = np.asarray(x, dtype=np.float64)
+    t = np.asarray(t_us, dtype=np.int64)
+    if x.shape[0] != t.size:
+        raise ValueError(f"central_derivative: x has {x.shape[0]} frames but t_us {t.size}")
+    k, step = half_window_steps(t, window_us)
+    out = np.full(x.shape, np.nan)
+    valid = np.zeros(t.size, dtype=bool)
+    if t.size <= 2 * k:
+        return out, valid
+    i = np.arange(k, t.size - k)
+    h = k * step
+    ok = (t[i + k] - t[i] == h) & (t[i] - t[i - k] == h)
+    i = i[ok]
+    hs = h * 1e-6
+    if order == 1:
+        out[i] = (x[i + k] - x[i - k]) / (2.0 * hs)
+    else:
+        out[i] = (x[i + k] - 2.0 * x[i] + x[i - k]) / (hs * hs)
+    valid[i] = True
+    return out, valid
+
+
+def peak_speed_errors(t_us: np.ndarray, speed_pred: np.ndarray, speed_true: np.ndarray, valid: np.ndarray,
+                      intervals_us: np.ndarray, min_true_mps: float = 0.0) -> np.ndarray:
+    """Relative error of the peak speed of each joint in each interval (a batch): (B, E) of
+    |max pred - max true| / max true over the valid frames with t0 <= t <= t1; NaN where an interval has no valid
+    frame or the true peak is at or below ``min_true_mps``.
+
+    speed_pred, speed_true: (T, E) m/s; valid (T,); intervals_us (B, 2)."""
+    t = np.asarray(t_us, dtype=np.int64)
+    iv = np.asarray(intervals_us, dtype=np.int64).reshape(-1, 2)
+    sp, st = np.asarray(speed_pred, dtype=np.float64), np.asarray(speed_true, dtype=np.float64)
+    out = np.full((iv.shape[0], sp.shape[1]), np.nan)
+    for b, (t0, t1) in enumerate(iv):
+        m = valid & (t >= t0) & (t <= t1)
+        if not m.any():
+            continue
+        pp, pt = sp[m].max(axis=0), st[m].max(axis=0)
+        ok = pt > max(min_true_mps, 0.0)
+        out[b, ok] = np.abs(pp[ok] - pt[ok]) / pt[ok]
+    return out
+
+
+def motion_detail(t_us: np.ndarray, pred_joints: np.ndarray, true_joints: np.ndarray, window_us: float = 10_000,
+                  intervals_us: np.ndarray | None = None, end_effectors: tuple[int, ...] = (),
+                  min_true_mps: float = 0.0) -> dict:
+    """Velocity measures of an estimated motion against the truth, both (T, J, 3) metres at times t_us (T,).
+
+    Joints are taken root-relative (minus the pelvis, which is then left out: 23 joints). Velocities and
+    accelerations by central differences over ``window_us`` (:func:`central_derivative`), at every frame where
+    they exist. Returns:
+
+    - ``MPJVE_mm_s``: mean over frames and joints of |v_pred - v_true| (mm/s);
+    - ``accel_err_m_s2``: mean over frames and joints of |a_pred - a_true| (m/s²);
+    - ``peak_speed_err``: median over (interval, end effector) of the relative error of the peak speed in each
+      interval (:func:`peak_speed_errors`; a fraction, 0.15 = 15%), and ``peak_speed_errors`` (B, E) itself;
+    - ``window_ms``: the window actually used; ``n_velocity_frames``;
+    - ``speed_pred`` / ``speed_true`` (T, E) m/s of the end effectors (NaN where no derivative) and ``valid``.
+    """
+    P = root_relative(pred_joints)[:, 1:]
+    G = root_relative(true_joints)[:, 1:]
+    if P.shape != G.shape:
+        raise ValueError(f"motion_detail: pred {P.shape} and truth {G.shape} differ")
+    k, step = half_window_steps(t_us, window_us)
+    vp, valid = central_derivative(P, t_us, window_us, 1)
+    vt, _ = central_derivative(G, t_us, window_us, 1)
+    ap, _ = central_derivative(P, t_us, window_us, 2)
+    at, _ = central_derivative(G, t_us, window_us, 2)
+    out: dict = {"window_ms": 2 * k * step / 1000.0, "n_velocity_frames": int(valid.sum()),
+                 "MPJVE_mm_s": None, "accel_err_m_s2": None, "peak_speed_err": None}
+    if valid.any():
+        out["MPJVE_mm_s"] = float(1000.0 * np.linalg.norm(vp[valid] - vt[valid], axis=-1).mean())
+        out["accel_err_m_s2"] = float(np.linalg.norm(ap[valid] - at[valid], axis=-1).mean())
+    ee = [j - 1 for j in end_effectors]  # indices into the root-relative joints without the root
+    if any(j < 0 for j in ee):
+        raise ValueError("end_effectors: the root (joint 0) has no root-relative speed")
+    sp = np.linalg.norm(vp[:, ee], axis=-1)
+    st = np.linalg.norm(vt[:, ee], axis=-1)
+    out.update(speed_pred=sp, speed_true=st, valid=valid)
+    if ee and intervals_us is not None and valid.any():
+        errs = peak_speed_errors(t_us, sp, st, valid, intervals_us, min_true_mps)
+        out["peak_speed_errors"] = errs
+        fin = errs[np.isfinite(errs)]
+        out["peak_speed_err"] = float(np.median(fin)) if fin.size else None
+    return out

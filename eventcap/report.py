@@ -6,7 +6,8 @@ line overrides) when every job has one, otherwise from the differences between t
 columns are the keys whose values differ between jobs (keys under ``hydra`` are left out; those equal in every job
 are printed once above the table). Jobs with the same override set (the same sweep run twice) make one row, their
 metrics averaged (column ``jobs``). Metrics come from each job's ``metrics.json`` (the evaluate stage's Table-1
-measures by default).
+measures and its motion detail by default: AE of root-relative joints, MPJVE, acceleration error, and the median
+relative error of the end effectors' peak speed per batch as a fraction).
 
 Writes ``report.csv`` and ``report.png`` (AE ± STD per row; a line over the swept value when exactly one numeric key
 varies) into RUNS_DIR (or ``--out``) and prints the table.
@@ -22,13 +23,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .benchmark import save_figure, write_csv
+from .jobs import save_figure, write_csv
 
 log = logging.getLogger("eventcap.report")
 
 #: (column title, dotted key into the metrics of the chosen node)
 DEFAULT_COLUMNS = (("AE (mm)", "AE_mm"), ("STD (mm)", "STD_mm"), ("AE.raw (mm)", "AE_raw_mm"),
-                   ("AE.nonRaw (mm)", "AE_nonRaw_mm"), ("MB/s", "data_rate.total_MBps"))
+                   ("AE.nonRaw (mm)", "AE_nonRaw_mm"), ("AE.rootrel (mm)", "AE_rootrel_mm"),
+                   ("MPJVE (mm/s)", "MPJVE_mm_s"), ("Acc.err (m/s²)", "accel_err_m_s2"),
+                   ("peak speed err", "peak_speed_err"), ("MB/s", "data_rate.total_MBps"))
 
 
 class ReportError(ValueError):

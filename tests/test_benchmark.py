@@ -26,21 +26,24 @@ TESTS = Path(__file__).resolve().parent
 CONF = TESTS.parent / "conf"
 
 
-def fake_run(method, motion, seed, err, raw_every=4, data=2.0, solve_s=1.0):
-    """A run record with per-frame errors ``err`` (mm) on every-n-th frames; every ``raw_every``-th is also raw."""
+def fake_run(method, motion, seed, err, raw_every=4, data=2.0, solve_s=1.0, mpjve=None, peaks=None):
+    """A run record with per-frame errors ``err`` (mm) on every-n-th frames; every ``raw_every``-th is also raw;
+    optionally its MPJVE (mm/s) and peak-speed errors per (batch, end effector)."""
     err = np.asarray(err, dtype=float)
     n = err.size
     raw = np.arange(n) % raw_every == 0
     return {"motion": motion, "seed": seed, "method": method, "ok": True, "computed": 0, "cached": 10,
-            "AE_mm": float(err.mean()), "data_MBps": data,
+            "AE_mm": float(err.mean()), "data_MBps": data, "MPJVE_mm_s": mpjve, "peak_speed_errors": peaks,
+            "AE_rootrel_mm": None if mpjve is None else 2 * float(err.mean()),
             "frames": {"t_us": (10_000 * np.arange(n)).tolist(), "err_mm": err.tolist(),
                        "sampled": [True] * n, "raw": raw.tolist()},
             "s_per_batch": {"track": 0.5, "solve": solve_s}, "stats": {"solve": {"solve_s": solve_s, "iterations": 20}}}
 
 
 def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
-    runs = [fake_run("A", "kick", 0, [10, 20, 30, 40]), fake_run("A", "kick", 1, [20, 20, 20, 20], data=4.0),
-            fake_run("A", "wave", 0, [50, 50, 50, 50], solve_s=3.0),
+    runs = [fake_run("A", "kick", 0, [10, 20, 30, 40], mpjve=300.0, peaks=[[0.1, None], [0.5, 0.2]]),
+            fake_run("A", "kick", 1, [20, 20, 20, 20], data=4.0, mpjve=500.0, peaks=[[0.3, 0.9]]),
+            fake_run("A", "wave", 0, [50, 50, 50, 50], solve_s=3.0, mpjve=1000.0, peaks=[[2.0, None]]),
             fake_run("B", "kick", 0, [100, 100, 100, 100], data=1.0),
             {"motion": "wave", "seed": 0, "method": "B", "ok": False, "error": "solve batch 0", "frames": None}]
     table = aggregate(runs, ["A", "B"], ["kick", "wave"])
@@ -53,15 +56,26 @@ def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
     assert a["per_motion"]["kick"]["AE_mm"] == pytest.approx(22.5) and a["per_motion"]["wave"]["STD_mm"] == 0
     assert a["data_MBps"] == pytest.approx((2 + 4 + 2) / 3)
     assert a["s_per_batch"] == {"track": 0.5, "solve": pytest.approx(5 / 3)} and a["stats"]["solve.solve_s"] == 1.0
+    # motion detail: MPJVE the mean of the runs, the peak-speed error the median of all pooled pairs
+    assert a["MPJVE_mm_s"] == pytest.approx(600.0) and a["per_motion"]["kick"]["MPJVE_mm_s"] == pytest.approx(400.0)
+    assert a["peak_speed_err"] == pytest.approx(0.4)  # median of 0.1, 0.5, 0.2, 0.3, 0.9, 2.0
+    assert a["per_motion"]["kick"]["peak_speed_err"] == pytest.approx(0.3)  # of 0.1, 0.5, 0.2, 0.3, 0.9
+    assert a["per_motion"]["wave"]["AE_rootrel_mm"] == pytest.approx(100.0)
+    assert b["MPJVE_mm_s"] is None and b["peak_speed_err"] is None
     assert (b["runs"], b["evaluated"], b["incomplete"]) == (2, 1, 1)
     assert b["per_motion"]["wave"]["AE_mm"] is None and b["AE_mm"] == 100
     text = format_tables(table, ["kick", "wave"], "fake")
     lines = text.splitlines()
     assert lines[0] == "Table 1 (fake)"
-    assert lines[1].split() == ["method", "AE.all", "(mm)", "AE.raw", "(mm)", "AE.nonRaw", "(mm)", "Size.sec",
+    assert lines[1].split() == ["method", "AE.all", "(mm)", "AE.raw", "(mm)", "AE.nonRaw", "(mm)", "AE.rootrel",
+                                "(mm)", "MPJVE", "(mm/s)", "Acc.err", "(m/s²)", "peak", "speed", "err", "Size.sec",
                                 "(MB/s)", "runs"]
-    assert lines[3].split() == ["A", "31.7", "±", "14.6", "26.7", "±", "17.0", "33.3", "±", "13.3", "2.67", "3/3"]
-    assert lines[4].split() == ["B", "100.0", "±", "0.0", "100.0", "±", "0.0", "100.0", "±", "0.0", "1.00", "1/2"]
+    assert lines[3].split() == ["A", "31.7", "±", "14.6", "26.7", "±", "17.0", "33.3", "±", "13.3", "63.3", "600",
+                                "n/a", "40%", "2.67", "3/3"]
+    assert lines[4].split() == ["B", "100.0", "±", "0.0", "100.0", "±", "0.0", "100.0", "±", "0.0", "n/a", "n/a",
+                                "n/a", "n/a", "1.00", "1/2"]
+    detail = text.split("Per motion: AE of root-relative joints")[1].splitlines()
+    assert detail[3].split() == ["A", "45.0", "/", "400", "/", "30%", "100.0", "/", "1000", "/", "200%"]
     per_motion = text.split("AE per motion")[1].splitlines()
     assert per_motion[1].split() == ["method", "kick", "wave"]
     assert per_motion[3].split() == ["A", "22.5", "±", "8.3", "50.0", "±", "0.0"]  # sqrt(550 / 8)
@@ -72,6 +86,7 @@ def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
     assert [r["method"] for r in rows] == ["A", "B"]
     assert float(rows[0]["AE_mm"]) == pytest.approx(380 / 12) and rows[1]["AE_wave_mm"] == ""
     assert float(rows[0]["s_per_batch.solve"]) == pytest.approx(5 / 3)
+    assert float(rows[0]["MPJVE_mm_s"]) == 600 and float(rows[0]["peak_speed_err.kick"]) == pytest.approx(0.3)
     assert len(list(csv.DictReader(open(files["runs"])))) == 5
     assert json.loads(files["json"].read_text())["table"][0]["method"] == "A"
     assert files["plot"].stat().st_size > 1000
@@ -81,7 +96,7 @@ def test_method_list_comes_from_config_and_rows_needing_a_missing_node_are_left_
     cfg = compose_benchmark(CONF, "default", [])
     assert len(cfg["motions"]) >= 6 and len(cfg["seeds"]) >= 2
     names = [m.name for m in parse_methods(cfg["methods"])]
-    assert names == ["EventCap", "linear", "all", "w/o_batch", "w/o_refine", "fused"]
+    assert names == ["default", "paper", "linear", "frames_smooth", "all", "w/o_batch", "w/o_refine", "fused"]
     # a pipeline without a refine node: the w/o_refine row is left out (detected from the composed pipeline)
     plain = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses"]
     active, left_out = Benchmark(cfg, CONF, plain).active_methods()
@@ -144,6 +159,12 @@ def test_tiny_benchmark_end_to_end_twice_second_time_from_the_cache(tmp_path, kn
     assert 0 < float(right["AE_mm"]) < float(wrong["AE_mm"])
     assert float(wrong["data_MBps"]) < float(right["data_MBps"])  # frames only vs events + frames
     assert (tmp_path / "out" / "runs" / "jumping_jack-s0" / "wrongmotion" / "motion.bvh").is_file()
+    # every run keeps its motion.npz; the speed series (first seed) come from it and the recording's truth
+    assert (tmp_path / "out" / "runs" / "jumping_jack-s0" / "right" / "motion.npz").is_file()
+    sp = {r["method"]: r["speed"] for r in results["runs"]}
+    assert sp["right"]["joint"] == sp["wrong/motion"]["joint"] and len(sp["right"]["t_us"]) > 50
+    assert np.allclose(sp["right"]["true_mps"], sp["wrong/motion"]["true_mps"])
+    assert float(right["MPJVE_mm_s"]) < float(wrong["MPJVE_mm_s"])
     assert float(right["s_per_batch.solve"]) > 0 and float(right["s_per_batch.source"]) > 0
 
 
@@ -162,13 +183,41 @@ def test_quick_preset_twice(tmp_path):
     if "w/o_refine" not in methods:  # the default pipeline has no refine node
         assert "method w/o_refine: left out (the pipeline has no node 'refine')" in second.stdout
     table = list(csv.DictReader(open(tmp_path / "out" / "table.csv")))
-    assert [r["method"] for r in table] == methods and methods[:4] == ["EventCap", "linear", "all", "w/o_batch"]
+    assert [r["method"] for r in table] == methods and methods[:4] == ["default", "paper", "linear", "frames_smooth"]
     for r in table:
         assert r["evaluated"] == "2" and 0 < float(r["AE_mm"]) < 300 and float(r["s_per_batch.solve"]) > 0
         assert r["AE_jumping_jack_mm"] and r["AE_karate_kick_mm"]
     rate = {r["method"]: float(r["data_MBps"]) for r in table}
-    assert rate["linear"] < rate["EventCap"] < rate["all"]
+    assert rate["linear"] == rate["frames_smooth"] < rate["paper"] < rate["all"]
     assert "Table 1 (2 motion(s) x 1 seed(s) x 0.2 s" in second.stdout
     runs = list(csv.DictReader(open(tmp_path / "out" / "runs.csv")))
     assert len(runs) == n and all(r["computed"] == "0" for r in runs)
     assert (tmp_path / "out" / "fig7_per_frame_error.png").stat().st_size > 10_000
+
+
+def test_apps_do_not_import_each_other():
+    """cli -> benchmark -> cli was an import cycle: what both need (run_job, the file writers) lives in
+    eventcap.jobs, below cli, benchmark and report."""
+    code = ("import sys, eventcap.benchmark, eventcap.report; "
+            "print(sorted(m for m in sys.modules if m in ('eventcap.cli', 'eventcap.benchmark', 'eventcap.report')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "['eventcap.benchmark', 'eventcap.report']"  # neither pulled in eventcap.cli
+    from eventcap import cli, jobs
+
+    assert cli.run_job is jobs.run_job
+
+
+def test_speed_figure_from_run_records(tmp_path):
+    from eventcap.benchmark import plot_speeds
+
+    t = (1000 * np.arange(200)).tolist()
+    true = np.abs(np.sin(np.arange(200) / 30.0)) * 3.0
+    runs = [{"motion": "kick", "seed": 0, "method": m, "MPJVE_mm_s": 100.0 * k,
+             "speed": {"joint": "r_foot", "t_us": t, "true_mps": true.tolist(),
+                       "pred_mps": (true + 0.3 * k * np.cos(np.arange(200))).tolist()}}
+            for k, m in enumerate(["A", "B"])]
+    runs.append({"motion": "wave", "seed": 0, "method": "A", "speed": None})  # no series: no panel
+    path = plot_speeds(tmp_path / "speed.png", runs, ["A", "B"], ["kick", "wave"])
+    assert path is not None and path.stat().st_size > 10_000
+    assert plot_speeds(tmp_path / "none.png", runs[2:], ["A"], ["wave"]) is None and not (tmp_path / "none.png").exists()

@@ -27,7 +27,9 @@ def fake_job(folder: Path, overrides: list[str] | None, config: dict, ae: float 
     if ran:
         (folder / "run.json").write_text(json.dumps({"ok": ok, "nodes": {}}))
         metrics = {} if ae is None else {"evaluate.metrics": {"AE_mm": ae, "STD_mm": ae / 10, "AE_raw_mm": ae + 1,
-                                                              "AE_nonRaw_mm": ae - 1,
+                                                              "AE_nonRaw_mm": ae - 1, "AE_rootrel_mm": ae + 5,
+                                                              "MPJVE_mm_s": 10 * ae, "accel_err_m_s2": ae / 4,
+                                                              "peak_speed_err": ae / 100,
                                                               "data_rate": {"total_MBps": 2.0},
                                                               "per_joint_mm": {"l_wrist": 2 * ae}}}
         (folder / "metrics.json").write_text(json.dumps(metrics))
@@ -57,9 +59,11 @@ def test_fake_sweep_one_row_per_override_set(tmp_path, capsys):
     lines = out.splitlines()
     head = next(i for i, line in enumerate(lines) if line.startswith("stages.track.stitch_px"))
     assert lines[head].split() == ["stages.track.stitch_px", "AE", "(mm)", "STD", "(mm)", "AE.raw", "(mm)",
-                                   "AE.nonRaw", "(mm)", "MB/s", "per_joint_mm.l_wrist", "jobs", "status"]
-    assert lines[head + 3].split() == ["4", "42.0", "4.20", "43.0", "41.0", "2.00", "84.0", "2", "ok"]
-    assert lines[head + 4].split() == ["6", "n/a", "n/a", "n/a", "n/a", "n/a", "n/a", "1", "incomplete"]
+                                   "AE.nonRaw", "(mm)", "AE.rootrel", "(mm)", "MPJVE", "(mm/s)", "Acc.err",
+                                   "(m/s²)", "peak", "speed", "err", "MB/s", "per_joint_mm.l_wrist", "jobs", "status"]
+    assert lines[head + 3].split() == ["4", "42.0", "4.20", "43.0", "41.0", "47.0", "420.0", "10.5", "0.42", "2.00",
+                                       "84.0", "2", "ok"]
+    assert lines[head + 4].split() == ["6", *["n/a"] * 10, "1", "incomplete"]
     table = list(csv.DictReader(open(sweep / "report.csv")))
     assert [r["stages.track.stitch_px"] for r in table] == ["2", "4", "6", "8"] and table[2]["AE (mm)"] == ""
     assert (sweep / "report.png").stat().st_size > 1000

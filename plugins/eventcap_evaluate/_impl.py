@@ -18,6 +18,22 @@ Measures (Table 1), in millimetres:
   ``AE_nonRaw_mm``: mean over the every-n-th frames that are not at intensity frames;
 - ``per_joint_mm``: each joint's mean distance over the every-n-th frames.
 
+Motion detail (beyond the paper; what a 1 kHz capture is for), on root-relative joints (each joint minus the
+pelvis; the pelvis itself left out: 23 joints) at every tracking frame:
+
+- ``AE_rootrel_mm``: the mean per-joint error of root-relative joints (no rotation alignment) over the every-n-th
+  frames;
+- ``MPJVE_mm_s``: mean per-joint velocity error, velocities by central differences over ``velocity_window_ms``
+  (x(t + h) - x(t - h)) / 2h with h the nearest multiple of the tracking step to half the window
+  (``velocity_window_ms`` in the metrics is the window actually used), at every frame with both neighbours;
+- ``accel_err_m_s2``: mean per-joint acceleration error, (x(t + h) - 2x(t) + x(t - h)) / h², same frames;
+- ``peak_speed_err``: for each batch (the span of one input PoseSequence) and each end effector
+  (``end_effectors``: feet, wrists, hands), the relative error of its peak speed in the batch,
+  |max pred - max true| / max true; the median over the (batch, end effector) pairs whose true peak exceeds
+  ``peak_min_speed_mps`` (0.5 m/s: a joint that hardly moves has no peak to get right) (a fraction: 0.15 = 15%), and
+  per end effector in ``peak_speed_err_per_joint``, and every pair in ``peak_speed_errors`` (batches x end
+  effectors; null where the true peak is below the threshold).
+
 The truth at a tracking frame is the ground truth's joints at that time (exact on its 1 kHz grid, linearly
 interpolated between its samples otherwise); frames outside the ground truth's time span are not evaluated.
 
@@ -36,9 +52,9 @@ from eventcap.artifacts import Metrics
 from eventcap.artifacts.pose import JointErrors
 from eventcap.artifacts.recording import GroundTruth, Recording
 from eventcap.body.kinematics import joint_positions
-from eventcap.body.skeleton import JOINT_NAMES
+from eventcap.body.skeleton import JOINT_INDEX, JOINT_NAMES
 from eventcap.events import EVENT_DTYPE
-from eventcap.metrics import procrustes_align
+from eventcap.metrics import END_EFFECTORS, motion_detail, procrustes_align, root_relative, truth_at
 from eventcap.motion import JOIN_RULES, join_batches  # noqa: F401 (join_batches: part of this module's API)
 from eventcap.stage import StageContext, StageFailed
 
@@ -48,18 +64,7 @@ _MB = 1e6
 
 def truth_joints(gt: GroundTruth, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """True joints (n, 24, 3) at the times inside the ground truth's span, and that mask (T,)."""
-    gt_t = np.asarray(gt.t_us, dtype=np.int64)
-    inside = (t_us >= gt_t[0]) & (t_us <= gt_t[-1])
-    ti = t_us[inside]
-    k = np.searchsorted(gt_t, ti)  # gt_t[k] >= ti
-    exact = gt_t[k] == ti
-    J = np.empty((ti.size, gt.joints.shape[1], 3))
-    J[exact] = gt.joints[k[exact]]
-    if not exact.all():
-        kb = k[~exact]
-        w = ((ti[~exact] - gt_t[kb - 1]) / (gt_t[kb] - gt_t[kb - 1]))[:, None, None]
-        J[~exact] = (1.0 - w) * gt.joints[kb - 1] + w * gt.joints[kb]
-    return J, inside
+    return truth_at(gt.t_us, gt.joints, t_us)
 
 
 def raw_frames(t_us: np.ndarray, frame_t_us: np.ndarray, step_us: float) -> np.ndarray:
@@ -118,12 +123,20 @@ def require_truth(rec: Recording) -> tuple[GroundTruth, Any]:
 
 
 def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: int = 10,
-                    align: str = "procrustes") -> tuple[dict[str, Any], JointErrors]:
+                    align: str = "procrustes", velocity_window_ms: float = 10.0,
+                    end_effectors: tuple[str, ...] = END_EFFECTORS, intervals_us: np.ndarray | None = None,
+                    peak_min_speed_mps: float = 0.5) -> tuple[dict[str, Any], JointErrors]:
     """Table 1 measures of a joined motion against the recording's ground truth (see the module docstring)."""
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
         raise ValueError(f"stages.evaluate.every: expected an int >= 1, got {every!r}")
     if align not in ALIGN_MODES:
         raise ValueError(f"stages.evaluate.align: expected one of {', '.join(ALIGN_MODES)}, got {align!r}")
+    bad = [n for n in end_effectors if n not in JOINT_INDEX or JOINT_INDEX[n] == 0]
+    if bad:
+        raise ValueError(f"stages.evaluate.end_effectors: {bad[0]!r} is not a joint other than the root; joints: "
+                         f"{', '.join(JOINT_NAMES[1:])}")
+    if not velocity_window_ms > 0:
+        raise ValueError(f"stages.evaluate.velocity_window_ms: expected a positive window, got {velocity_window_ms!r}")
     gt, tpl = require_truth(rec)
     who = _who(rec)
     if gt.t_us.size == 0:
@@ -139,8 +152,11 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
     raw = raw_frames(t_us, frame_t, step if step is not None else 1.0)
     keep = inside & (sampled | raw)  # the frames measured at all
     k_in = keep[inside]
-    pred = joint_positions(poses[keep], tpl)
+    pred_all = joint_positions(poses[inside], tpl)  # every frame: velocities need the neighbours
+    pred = pred_all[k_in]
     true = truth[k_in]
+    s_in = sampled[keep]
+    rootrel = np.linalg.norm(root_relative(pred[s_in])[:, 1:] - root_relative(true[s_in])[:, 1:], axis=-1)
     if align == "procrustes":
         pred = procrustes_align(pred, true)
     err = np.linalg.norm(pred - true, axis=-1)  # (n, 24) metres
@@ -158,11 +174,46 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
         "n_nonRaw": int((s & ~r).sum()),
         "n_tracking_frames": int(t_us.size),
         "n_outside_ground_truth": int((~inside).sum()),
+        "AE_rootrel_mm": _mean_mm(rootrel.mean(axis=1)) if rootrel.size else None,
         "every": int(every),
         "align": align,
         "data_rate": data_rate(rec, int(t_us[0]), int(t_us[-1]), step),
     }
+    values.update(detail_values(t_us[inside], pred_all, truth, velocity_window_ms, end_effectors, intervals_us,
+                                frame_t, peak_min_speed_mps))
     return values, errors
+
+
+def detail_values(t_us: np.ndarray, pred: np.ndarray, true: np.ndarray, window_ms: float,
+                  end_effectors: tuple[str, ...], intervals_us: np.ndarray | None, frame_t_us: np.ndarray,
+                  peak_min_speed_mps: float = 0.5) -> dict[str, Any]:
+    """The motion-detail metrics (module docstring) of joints (T, 24, 3) at t_us; batches are ``intervals_us``
+    (B, 2), else the spans between consecutive intensity frames."""
+    if intervals_us is None:
+        ft = np.asarray(frame_t_us, dtype=np.int64)
+        intervals_us = np.stack([ft[:-1], ft[1:]], axis=1) if ft.size > 1 else np.zeros((0, 2), np.int64)
+    ee = tuple(JOINT_INDEX[n] for n in end_effectors)
+    out: dict[str, Any] = {"MPJVE_mm_s": None, "accel_err_m_s2": None, "peak_speed_err": None,
+                           "peak_speed_err_per_joint": {}, "velocity_window_ms": None, "n_velocity_frames": 0,
+                           "end_effectors": list(end_effectors), "peak_min_speed_mps": peak_min_speed_mps,
+                           "n_peak_pairs": 0}
+    if t_us.size < 3:
+        return out
+    d = motion_detail(t_us, pred, true, window_ms * 1000.0, intervals_us, ee, peak_min_speed_mps)
+    out.update({k: d[k] for k in ("MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "n_velocity_frames")})
+    out["velocity_window_ms"] = d["window_ms"]
+    errs = d.get("peak_speed_errors")
+    if errs is not None:
+        for j, name in enumerate(end_effectors):
+            fin = errs[:, j][np.isfinite(errs[:, j])]
+            out["peak_speed_err_per_joint"][name] = float(np.median(fin)) if fin.size else None
+        out["n_peak_pairs"] = int(np.isfinite(errs).sum())
+        # every (batch, end effector) pair, so that results of many runs can be pooled (null: no true motion)
+        out["peak_speed_errors"] = [[round(float(v), 5) if np.isfinite(v) else None for v in row] for row in errs]
+    return out
+
+
+
 
 
 def run(inputs: dict[str, Any], config, ctx: StageContext) -> dict[str, Any]:
@@ -187,7 +238,9 @@ def run(inputs: dict[str, Any], config, ctx: StageContext) -> dict[str, Any]:
     parts = [seq[i] for i in range(len(seq))]  # each batch loaded once (a runner BatchSequence reads the cache)
     t_us, poses, shared = join_batches(parts, config.join)
     ctx.report(1, 2)
-    values, errors = evaluate_motion(rec, t_us, poses, config.every, config.align)
+    spans = np.array([[p.t_us[0], p.t_us[-1]] for p in parts if len(p.t_us) > 1], dtype=np.int64).reshape(-1, 2)
+    values, errors = evaluate_motion(rec, t_us, poses, config.every, config.align, config.velocity_window_ms,
+                                     tuple(config.end_effectors), spans, config.peak_min_speed_mps)
     statuses: dict[str, int] = {}
     for p in parts:
         if p.status:

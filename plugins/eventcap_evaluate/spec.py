@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from eventcap.metrics import END_EFFECTORS
+
 from eventcap.artifacts import Metrics
 from eventcap.artifacts.pose import JointErrors, PoseSequence
 from eventcap.artifacts.recording import Recording
@@ -17,12 +19,20 @@ class EvaluateConfig:
                                           "frame, as the paper | none: raw world-space distances")
     join: str = param("later", help="a tracking frame two batches share (their boundary): later (the later "
                                     "batch's pose) | mean (the average of the batches' poses)")
+    velocity_window_ms: float = param(10.0, help="MPJVE and acceleration error: central differences over this "
+                                                 "window (x(t+h) - x(t-h)) / 2h, h = half of it, ms")
+    end_effectors: list[str] = param(default_factory=lambda: list(END_EFFECTORS),
+                                     help="joints whose peak speed per batch is measured (feet, wrists, hands)")
+    peak_min_speed_mps: float = param(0.5, help="a (batch, end effector) pair counts in the peak-speed error only "
+                                                "if its true peak speed exceeds this, m/s: a relative error of a "
+                                                "joint that does not move is not defined")
 
 
 EVALUATE = StageSpec(
-    name="evaluate", kind="evaluate", version=1,
+    name="evaluate", kind="evaluate", version=2,
     description="mean per-joint 3D error (AE, Procrustes-aligned) and its STD on every 10th frame, AE.raw / "
-                "AE.nonRaw, per-joint errors, data rate (MB/s) against 1000 fps frames",
+                "AE.nonRaw, per-joint errors, data rate (MB/s) against 1000 fps frames; velocity error (MPJVE), acceleration "
+                "error and end-effector peak speed per batch, root-relative",
     config=EvaluateConfig,
     inputs={"recording": Port(Recording, "the recording, with ground truth and the actor template"),
             "poses": Port(PoseSequence, "the estimated poses of every batch", all_batches=True)},

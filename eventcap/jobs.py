@@ -1,0 +1,75 @@
+"""What the apps (``eventcap run``, ``benchmark``, ``report``) share: running one composed config into a run folder,
+and writing result files atomically. It lives below all of them so none imports another (cli -> benchmark -> cli
+was a cycle)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("eventcap")
+
+
+def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
+    """Run one composed config into ``run_dir``: the pipeline, then the run outputs (motion files, video).
+
+    Returns ``(runner, result)``, or None when the config was refused before anything ran. Problems are appended to
+    ``failures`` (one line each); the caller decides the exit code. Shared by ``eventcap run`` and ``benchmark``.
+    """
+    from .cache import CacheError
+    from .config import ConfigError
+    from .outputs import check_outputs_config, write_run_outputs
+    from .pipeline import PipelineError
+    from .registry import UnknownStageError
+    from .runner import Runner
+
+    try:
+        runner = Runner(data)
+        outputs_cfg = check_outputs_config(runner)
+        result = runner.run(run_dir)
+    except (PipelineError, ConfigError, UnknownStageError, CacheError, ValueError) as exc:
+        log.error("%s", exc)
+        failures.append(f"{run_dir}: {exc}")
+        return None
+    (run_dir / "config.yaml").write_text(config_yaml)
+    if result.metrics:
+        log.info("metrics: %s", json.dumps(result.metrics, default=str)[:2000])
+    written = write_run_outputs(runner, result, run_dir, outputs_cfg)
+    if written["problems"]:
+        failures.append(f"{run_dir}: outputs: {'; '.join(written['problems'])}")
+    if not result.ok:
+        failed = [f"{n} batch {f['batch']}" if f["batch"] is not None else n
+                  for n, r in result.nodes.items() for f in r.failed]
+        skipped = [f"{n} ({r.skip_causes[0]['cause']})" if r.skip_causes else n
+                   for n, r in result.nodes.items() if r.skipped]
+        msg = f"failed: {', '.join(failed) or '-'}; skipped: {', '.join(skipped) or '-'}"
+        log.error("run incomplete: %s. Fix the cause and run the same command again: committed results are reused.", msg)
+        failures.append(f"{run_dir}: {msg}")
+    return runner, result
+
+
+def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
+    cols = list(dict.fromkeys(k for r in rows for k in r))
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in cols})
+    tmp.replace(path)
+    return path
+
+
+def save_figure(fig, path: Path) -> Path:
+    """Write a matplotlib figure to ``path`` atomically (a partial file renamed into place) and close it."""
+    import matplotlib.pyplot as plt
+
+    tmp = path.with_name(path.stem + ".partial.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,175 @@
+"""Motion-detail metrics (eventcap.metrics): central differences, MPJVE, acceleration error and peak speeds per
+batch against values worked out by hand on analytic trajectories, and the evaluate stage's new columns."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eventcap.metrics import (END_EFFECTORS, central_derivative, half_window_steps, motion_detail, peak_speed_errors,
+                              root_relative, truth_at)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def still_body(T: int) -> np.ndarray:
+    """(T, 24, 3): a fixed random skeleton that does not move."""
+    return np.repeat(np.random.default_rng(0).normal(0.0, 0.3, (1, 24, 3)), T, axis=0)
+
+
+T_US = np.arange(0, 201_000, 1_000, dtype=np.int64)  # 0..200 ms at 1 kHz
+t_s = T_US * 1e-6
+
+
+def test_central_differences_of_a_sinusoid_by_hand():
+    """d/dt sin(wt) by (x(t+h) - x(t-h)) / 2h is cos(wt)·sin(wh)/h exactly; the second difference is
+    -sin(wt)·(2 - 2cos(wh))/h²; h = 5 ms for a 10 ms window at 1 kHz."""
+    w = 2 * np.pi * 7.0
+    x = np.sin(w * t_s)
+    v, ok = central_derivative(x, T_US, 10_000, 1)
+    a, ok2 = central_derivative(x, T_US, 10_000, 2)
+    h = 0.005
+    assert np.array_equal(ok, ok2) and ok.sum() == T_US.size - 10 and not ok[:5].any() and not ok[-5:].any()
+    assert np.allclose(v[ok], np.cos(w * t_s[ok]) * np.sin(w * h) / h, atol=1e-9)
+    assert np.allclose(a[ok], -np.sin(w * t_s[ok]) * (2 - 2 * np.cos(w * h)) / h**2, atol=1e-6)
+    assert np.isnan(v[~ok]).all()
+    # the window snaps to whole tracking steps on each side: 9 ms at 1 ms steps -> 2·5 ms (round half to even: 4.5->4)
+    assert half_window_steps(T_US, 9_000) == (4, 1000) and half_window_steps(T_US, 500) == (1, 1000)
+
+
+def test_a_gap_invalidates_only_the_frames_that_reach_across_it():
+    t = np.delete(T_US, 100)  # frame at 100 ms missing
+    v, ok = central_derivative(2.0 * t * 1e-6, t, 4_000, 1)
+    assert np.allclose(v[ok], 2.0)
+    # frames 98..102 ms (other than the missing one) reach 100 ms with h = 2 ms
+    bad_t = t[~ok]
+    assert set(bad_t.tolist()) == {0, 1000, 98_000, 99_000, 101_000, 102_000, 199_000, 200_000}
+
+
+def test_mpjve_and_acceleration_error_by_hand():
+    """Truth still; the estimate's left wrist moves at 0.3 m/s along x plus 4 m/s² along y (relative to the pelvis).
+    Differences of a quadratic are exact: v_err(t) = |(0.3, 4t)|, a_err = 4, on 1 of the 23 non-root joints."""
+    true = still_body(T_US.size)
+    pred = true.copy()
+    j = 20  # l_wrist
+    pred[:, j, 0] += 0.3 * t_s
+    pred[:, j, 1] += 0.5 * 4.0 * t_s**2
+    d = motion_detail(T_US, pred, true, 10_000)
+    ok = d["valid"]
+    assert d["window_ms"] == 10.0 and d["n_velocity_frames"] == T_US.size - 10
+    by_hand = 1000.0 * np.hypot(0.3, 4.0 * t_s[ok]).mean() / 23
+    assert d["MPJVE_mm_s"] == pytest.approx(by_hand, rel=1e-9)
+    assert d["accel_err_m_s2"] == pytest.approx(4.0 / 23, rel=1e-9)
+    # moving the whole body (every joint and the pelvis alike) changes nothing: root-relative
+    d2 = motion_detail(T_US, pred + np.array([1.0, 2.0, 0.0]) * t_s[:, None, None] ** 2, true, 10_000)
+    assert d2["MPJVE_mm_s"] == pytest.approx(by_hand, rel=1e-9)
+    assert d2["accel_err_m_s2"] == pytest.approx(4.0 / 23, rel=1e-9)
+
+
+def test_peak_speed_per_batch_by_hand():
+    """A wrist swings x = A sin(wt) relative to the pelvis (peak speed A·sin(wh)/h with the 10 ms window, at 50 and
+    150 ms); the estimate swings with amplitude 1.5 A up to 100 ms and 0.8 A after: relative errors 50% and 20% in
+    batches [0, 90] and [110, 200] ms (whose differences do not reach across 100 ms)."""
+    A, w = 0.2, 2 * np.pi * 10.0  # two full periods in 200 ms: each 100 ms batch holds a peak
+    true, pred = still_body(T_US.size), still_body(T_US.size)
+    wrist = END_EFFECTORS.index("l_wrist")
+    ee = (10, 11, 20, 21, 22, 23)
+    assert ee[wrist] == 20
+    true[:, 20, 0] += A * np.sin(w * t_s)
+    amp = np.where(t_s <= 0.1, 1.5 * A, 0.8 * A)
+    pred[:, 20, 0] += amp * np.sin(w * t_s)
+    iv = np.array([[0, 90_000], [110_000, 200_000]])
+    d = motion_detail(T_US, pred, true, 10_000, iv, ee)
+    peak = A * np.sin(w * 0.005) / 0.005
+    assert np.nanmax(d["speed_true"][:, wrist]) == pytest.approx(peak, rel=1e-9)
+    errs = d["peak_speed_errors"]
+    assert errs.shape == (2, 6)
+    assert errs[0, wrist] == pytest.approx(0.5, abs=1e-9)
+    assert errs[1, wrist] == pytest.approx(0.2, abs=1e-9)
+    # the other end effectors do not move: their true peak is 0, so no relative error is defined
+    assert np.isnan(np.delete(errs, wrist, axis=1)).all()
+    assert d["peak_speed_err"] == pytest.approx(np.median(errs[:, wrist]))
+
+
+def test_peak_speed_errors_direct_and_threshold():
+    t = np.arange(6, dtype=np.int64) * 1000
+    true = np.array([[1.0, 0.0], [2.0, 0.05], [1.0, 0.0], [3.0, 0.0], [4.0, 0.0], [1.0, 0.0]])
+    pred = np.array([[1.0, 0.0], [3.0, 0.10], [1.0, 0.0], [1.0, 0.0], [2.0, 0.0], [1.0, 0.0]])
+    valid = np.array([True, True, True, True, True, False])
+    e = peak_speed_errors(t, pred, true, valid, np.array([[0, 2000], [2000, 5000]]))
+    # batch 0: peaks 3 vs 2 -> 0.5, 0.10 vs 0.05 -> 1.0; batch 1 (frames 2..4; 5 invalid): 2 vs 4 -> 0.5, 0 vs 0 -> nan
+    assert e[0].tolist() == [0.5, 1.0] and e[1, 0] == 0.5 and np.isnan(e[1, 1])
+    e = peak_speed_errors(t, pred, true, valid, np.array([[0, 2000]]), min_true_mps=0.1)
+    assert e[0, 0] == 0.5 and np.isnan(e[0, 1])
+
+
+def test_truth_at_and_root_relative():
+    gt_t = np.array([0, 1000, 2000], np.int64)
+    J = np.arange(3 * 2 * 3, dtype=np.float64).reshape(3, 2, 3)
+    got, inside = truth_at(gt_t, J, np.array([-5, 0, 500, 2000, 2500]))
+    assert inside.tolist() == [False, True, True, True, False]
+    assert np.allclose(got[1], 0.5 * (J[0] + J[1])) and np.array_equal(got[2], J[2])
+    rr = root_relative(J)
+    assert np.all(rr[:, 0] == 0) and np.allclose(rr[:, 1], 3.0)
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="at least 3 frames"):
+        central_derivative(np.zeros(2), np.array([0, 1000]), 10_000)
+    with pytest.raises(ValueError, match="positive time window"):
+        central_derivative(np.zeros(5), np.arange(5) * 1000, 0)
+    with pytest.raises(ValueError, match="order: expected 1 or 2"):
+        central_derivative(np.zeros(5), np.arange(5) * 1000, 2000, 3)
+    with pytest.raises(ValueError, match="x has 4 frames but t_us 5"):
+        central_derivative(np.zeros(4), np.arange(5) * 1000, 2000)
+    with pytest.raises(ValueError, match="root"):
+        motion_detail(T_US, still_body(T_US.size), still_body(T_US.size), 10_000, np.array([[0, 1000]]), (0,))
+
+
+# -- the evaluate stage's columns ------------------------------------------------------------------------------------
+def test_evaluate_stage_reports_motion_detail(monkeypatch):
+    import test_evaluate as te
+    from eventcap.runner import reset_process_caches
+
+    monkeypatch.setenv("EVENTCAP_STAGES", te.STAGES)
+    reset_process_caches()
+    rec = te.recording()
+    values, _ = te.evaluate(rec, te.batch_sequences(rec), peak_min_speed_mps=0.0)
+    assert values["MPJVE_mm_s"] == pytest.approx(0.0, abs=1e-9)
+    assert values["accel_err_m_s2"] == pytest.approx(0.0, abs=1e-9)
+    assert values["peak_speed_err"] == pytest.approx(0.0, abs=1e-12) and values["AE_rootrel_mm"] < 1e-9
+    assert values["velocity_window_ms"] == 10.0 and values["n_velocity_frames"] == 121 - 10
+    assert values["n_peak_pairs"] == 3 * 6 and set(values["peak_speed_err_per_joint"]) == set(END_EFFECTORS)
+    assert np.array(values["peak_speed_errors"]).shape == (3, 6)
+    # a pair counts only where the true peak exceeds peak_min_speed_mps (default 0.5 m/s: every end effector of
+    # this jumping jack at double speed does, in every batch)
+    values, _ = te.evaluate(rec, te.batch_sequences(rec))
+    assert values["n_peak_pairs"] == 18 and values["peak_min_speed_mps"] == 0.5
+    values, _ = te.evaluate(rec, te.batch_sequences(rec), peak_min_speed_mps=100.0)
+    assert values["n_peak_pairs"] == 0 and values["peak_speed_err"] is None
+    assert all(v is None for row in values["peak_speed_errors"] for v in row)
+
+    # a constant shift of the root translation moves every joint: AE without alignment sees it, root-relative
+    # joints do not
+    def shift(t, S):
+        S[:, 30:33] += [0.1, 0.0, 0.0]
+        return S
+
+    values, _ = te.evaluate(rec, te.batch_sequences(rec, shift), align="none")
+    assert values["AE_mm"] == pytest.approx(100.0, rel=1e-6)
+    assert values["AE_rootrel_mm"] < 1e-9 and values["MPJVE_mm_s"] < 1e-6
+
+    # the estimate lags the truth by 1 ms: its velocity error is the truth's acceleration × 1 ms, on average
+    def lag(t, S):
+        return rec.ground_truth.poses[np.searchsorted(rec.ground_truth.t_us, np.maximum(t - 1000, 0))]
+
+    values, _ = te.evaluate(rec, te.batch_sequences(rec, lag), velocity_window_ms=4.0)
+    assert values["velocity_window_ms"] == 4.0 and values["MPJVE_mm_s"] > 1.0
+    with pytest.raises(ValueError, match=r"end_effectors: 'pelvis' is not a joint other than the root"):
+        te.evaluate(rec, te.batch_sequences(rec), end_effectors=["pelvis"])
+    with pytest.raises(ValueError, match=r"velocity_window_ms: expected a positive window"):
+        te.evaluate(rec, te.batch_sequences(rec), velocity_window_ms=0.0)
+    reset_process_caches()
