@@ -148,7 +148,12 @@ class Benchmark:
 
     def sequence_overrides(self, motion: str, seed: int) -> list[str]:
         values = {"motion": motion, "seed": seed, "duration_s": self.cfg["duration_s"]}
-        return [str(o).format(**values) for o in self.cfg.get("sequence_overrides") or ()]
+        detectors = self.cfg.get("detectors") or {}
+        detector = self.cfg.get("detector")
+        if detector is not None and detector not in detectors:
+            raise ValueError(f"detector: expected one of {sorted(detectors)} (benchmark key detectors), got {detector!r}")
+        chosen = detectors.get(detector) or () if detector is not None else ()
+        return [str(o).format(**values) for o in [*(self.cfg.get("sequence_overrides") or ()), *chosen]]
 
     def base_overrides(self) -> list[str]:
         return [f"cache_dir={self.cfg['cache_dir']}", *map(str, self.cfg.get("overrides") or ()), *self.run_overrides]

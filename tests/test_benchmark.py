@@ -96,7 +96,7 @@ def test_method_list_comes_from_config_and_rows_needing_a_missing_node_are_left_
     cfg = compose_benchmark(CONF, "default", [])
     assert len(cfg["motions"]) >= 6 and len(cfg["seeds"]) >= 2
     names = [m.name for m in parse_methods(cfg["methods"])]
-    assert names == ["default", "paper", "linear", "frames_smooth", "all", "w/o_batch", "w/o_refine", "fused"]
+    assert names == ["default", "paper", "linear", "frames_smooth", "all", "w/o_batch", "w/o_refine", "fused", "spline"]
     # a pipeline without a refine node: the w/o_refine row is left out (detected from the composed pipeline)
     plain = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses"]
     active, left_out = Benchmark(cfg, CONF, plain).active_methods()
@@ -121,7 +121,7 @@ def test_bad_benchmark_configs_are_refused():
     from eventcap.benchmark import main
 
     with pytest.raises(ValueError, match=r"(?s)Could not override 'motion'.*not benchmark keys are overrides of every "
-                                         r"run; the benchmark keys: cache_dir, duration_s"):
+                                         r"run; the benchmark keys: cache_dir, detector, detectors, duration_s"):
         main(["benchmark=quick", "motion=[a]"], CONF)  # a typo of motions: refused before anything runs
 
 
@@ -137,7 +137,8 @@ def test_tiny_benchmark_end_to_end_twice_second_time_from_the_cache(tmp_path, kn
     """Two methods on one 0.09 s synthetic sequence whose 'solve' returns known poses: the right one (the motion
     performed) and a wrong one; a second call recomputes nothing and writes the same table."""
     cfg = compose_benchmark(CONF, "quick", [f"out={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}",
-                                            "motions=[jumping_jack]", "duration_s=0.09", "plot=false"])
+                                            "motions=[jumping_jack]", "duration_s=0.09", "plot=false",
+                                            "detector=simulated"])
     cfg["methods"] = [{"name": "right", "overrides": ["stages.solve.motion=jumping_jack"]},
                       {"name": "wrong/motion", "overrides": ["stages.solve.motion=karate_kick"], "data": "frames_MBps"}]
     run_ov = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses", "stages/solve=known_poses",
@@ -221,3 +222,16 @@ def test_speed_figure_from_run_records(tmp_path):
     path = plot_speeds(tmp_path / "speed.png", runs, ["A", "B"], ["kick", "wave"])
     assert path is not None and path.stat().st_size > 10_000
     assert plot_speeds(tmp_path / "none.png", runs[2:], ["A"], ["wave"]) is None and not (tmp_path / "none.png").exists()
+
+
+def test_detector_choice_adds_its_overrides_to_every_sequence():
+    cfg = compose_benchmark(CONF, "default", [])
+    assert cfg["detector"] == "blazepose"  # a real CNN by default, as the paper's Table 1
+    bench = Benchmark(cfg, CONF, [])
+    assert bench.sequence_overrides("karate_kick", 1)[-1] == "stages/detect=blazepose"
+    sim = Benchmark(compose_benchmark(CONF, "default", ["detector=simulated"]), CONF, [])
+    assert sim.sequence_overrides("karate_kick", 1)[-2:] == ["stages/detect=simulated", "stages.detect.seed=1"]
+    linear = next(m for m in parse_methods(cfg["methods"]) if m.name == "linear")
+    assert "stages.detect.at=frames" in linear.overrides  # *_linear looks at the raw frames
+    with pytest.raises(ValueError, match=r"detector: expected one of \['blazepose', 'simulated'\].*got 'openpose'"):
+        Benchmark(compose_benchmark(CONF, "default", ["detector=openpose"]), CONF, []).sequence_overrides("a", 0)
