@@ -15,7 +15,7 @@ import numpy as np
 
 from eventcap.io.checks import RawChunk
 from eventcap.io.recording import RecordingError, logger
-from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, RowLocator, Source, native_call, rechunk
+from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, RowLocator, Source, native_call, numbered_chunks
 
 MAGIC = b"#!AER-DAT4.0"
 _TRUNCATED = ("failed to fill whole buffer", "UnexpectedEof", "unexpected end of file")
@@ -156,10 +156,7 @@ class Aedat4Source(Source):
                 elif with_frames and packet.get("stream_id") == self._frame_id and "frame" in packet:
                     frames.append({**packet["frame"], "packet": k})
 
-        row0 = 0
-        for t, x, y, p in rechunk(columns(), chunk_events):
-            yield RawChunk(t, x, y, p, row0, locate)
-            row0 += len(t)
+        yield from numbered_chunks(columns(), chunk_events, locate)
         if with_frames:
             self._frames = frames
 

@@ -49,7 +49,7 @@ import numpy as np
 
 from eventcap.io.checks import RawChunk
 from eventcap.io.recording import RecordingError, logger
-from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, RowLocator, Source, file_size, rechunk
+from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, RowLocator, Source, file_size, numbered_chunks
 
 MAGIC = b"#!AER-DAT"
 _MAX_HEADER_BYTES = 1 << 24
@@ -178,10 +178,7 @@ class Aedat2Source(Source):
                     yield t[idx], x[idx], y[idx], p[idx]
 
         row_of = [0]
-        row = 0
-        for t, x, y, p in rechunk(columns(), chunk_events):
-            yield RawChunk(t, x, y, p, row, rows)
-            row += len(t)
+        yield from numbered_chunks(columns(), chunk_events, rows)
         if with_frames:
             self._frames = self._assemble_frames(aps)
             used = 0 if self._frames is None else len(self._frames[0]) * 2 * self.width * self.height
@@ -395,10 +392,7 @@ class Aedat31Source(Source):
                     elif kind == 2 and with_frames and number:
                         self._read_frames(f, offset, h, k, frames)
 
-        row = 0
-        for t, x, y, p in rechunk(columns(), chunk_events):
-            yield RawChunk(t, x, y, p, row, rows)
-            row += len(t)
+        yield from numbered_chunks(columns(), chunk_events, rows)
         if with_frames:
             self._frames = frames
 

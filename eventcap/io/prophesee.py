@@ -15,7 +15,7 @@ import numpy as np
 
 from eventcap.io.checks import RawChunk
 from eventcap.io.recording import RecordingError
-from eventcap.io.source import DEFAULT_CHUNK_EVENTS, Source, file_size, native_call, rechunk
+from eventcap.io.source import DEFAULT_CHUNK_EVENTS, Source, file_size, native_call, numbered_chunks
 
 _MAX_HEADER_BYTES = 1 << 20
 # Passed to faery when the header has no size: large enough to disable its range check; the size is then
@@ -132,10 +132,7 @@ class EvtSource(Source):
                     if ev is not None and len(ev):
                         yield ev["t"], ev["x"], ev["y"], ev["on"]
 
-        row = 0
-        for t, x, y, p in rechunk(_guarded(columns(), self.path, "EVT decoder (faery)"), chunk_events):
-            yield RawChunk(t, x, y, p, row)
-            row += len(t)
+        yield from numbered_chunks(_guarded(columns(), self.path, "EVT decoder (faery)"), chunk_events)
 
 
 class DatSource(Source):
@@ -180,10 +177,7 @@ class DatSource(Source):
                     if len(ev):
                         yield ev["t"], ev["x"], ev["y"], ev["payload"]
 
-        row = 0
-        for t, x, y, p in rechunk(_guarded(columns(), self.path, "DAT decoder (faery)"), chunk_events):
-            yield RawChunk(t, x, y, p, row)
-            row += len(t)
+        yield from numbered_chunks(_guarded(columns(), self.path, "DAT decoder (faery)"), chunk_events)
 
 
 def _guarded(columns: Iterator[tuple], path: Path, what: str) -> Iterator[tuple]:

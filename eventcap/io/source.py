@@ -87,6 +87,15 @@ class RowLocator:
         return f"{self._labels[k]}, event index {row}" if k >= 0 else f"event index {row}"
 
 
+def numbered_chunks(arrays: Iterator[tuple], chunk_events: int, locate=None) -> Iterator[RawChunk]:
+    """:func:`rechunk` a decoder's (t, x, y, p) column tuples into RawChunks that carry their first row's index in
+    the file (and ``locate``, the row -> place-in-file describer for error messages, when the format has one)."""
+    row = 0
+    for t, x, y, p in rechunk(arrays, chunk_events):
+        yield RawChunk(t, x, y, p, row) if locate is None else RawChunk(t, x, y, p, row, locate)
+        row += len(t)
+
+
 def rechunk(arrays: Iterator[tuple], chunk_events: int) -> Iterator[tuple]:
     """Regroup a stream of column tuples into tuples of about ``chunk_events`` rows (the last may be shorter)."""
     pending: list[tuple] = []
