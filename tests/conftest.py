@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import functools
 import os
 import sys
 from pathlib import Path
@@ -94,3 +95,16 @@ def toy_cfg(tmp_path, toy):
 
 def eventcap_cmd() -> list[str]:
     return [sys.executable, "-m", "eventcap.cli"]
+
+
+@functools.lru_cache(maxsize=1)
+def small_capture_config() -> dict:
+    """The composed default config of a tiny synthetic capture (0.09 s, 2 batches, light template): callers copy it
+    and swap in their own pipeline, cache and outputs."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["experiment=quick", "source.duration_s=0.09",
+                                                       "template.target_faces=2000", "source.n_track_points=20"])
+    return OmegaConf.to_container(cfg, resolve=True)

@@ -4,13 +4,13 @@ committed per-batch poses, the ``outputs:`` config, and runs that cannot have th
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import logging
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import small_capture_config
 
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.motions import motion_poses
@@ -31,20 +31,9 @@ POSES_PIPELINE = {"nodes": {
 pytestmark = pytest.mark.usefixtures("known_poses")  # conftest: tests/output_stages.py registered
 
 
-@functools.lru_cache(maxsize=1)
-def _base_config() -> dict:
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["experiment=quick", "source.duration_s=0.09",
-                                                       "template.target_faces=2000", "source.n_track_points=20"])
-    return OmegaConf.to_container(cfg, resolve=True)
-
-
 def config(cache: Path, **outputs) -> dict:
     """A small synthetic capture (0.09 s: 2 batches) whose 'solve' node returns the poses of a known motion."""
-    data = json.loads(json.dumps(_base_config()))
+    data = json.loads(json.dumps(small_capture_config()))
     data.update(pipeline=json.loads(json.dumps(POSES_PIPELINE)), cache_dir=str(cache),
                 stages={"solve": {"stage": "known_poses"}})
     data["outputs"].update({"poses": "solve.poses", **outputs})
@@ -59,9 +48,8 @@ def run(cfg: dict, run_dir: Path):
 
 
 def test_bvh_npz_and_video_of_a_tiny_run(tmp_path):
-    from test_bvh import positions_via_bvh_package, stacked
-
     import cv2
+    from test_bvh import positions_via_bvh_package, stacked
 
     run_dir = tmp_path / "run"
     runner, result, summary = run(config(tmp_path / "cache", video_every_ms=4, video_png_frames=3), run_dir)

@@ -4,7 +4,6 @@ default-like run, read back with Rerun's own reader (entities, time range, row c
 from __future__ import annotations
 
 import collections
-import functools
 import json
 import logging
 import shutil
@@ -17,6 +16,7 @@ import pytest
 from eventcap.bvh import read_motion_npz
 
 pytest.importorskip("rerun")
+from conftest import small_capture_config
 from rerun.chunk import RrdReader  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
@@ -40,19 +40,8 @@ DEFAULT_LIKE = {"nodes": {
 pytestmark = pytest.mark.usefixtures("known_poses")  # conftest: tests/output_stages.py registered
 
 
-@functools.lru_cache(maxsize=1)
-def _base_config() -> dict:
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["experiment=quick", "source.duration_s=0.09",
-                                                       "template.target_faces=2000", "source.n_track_points=20"])
-    return OmegaConf.to_container(cfg, resolve=True)
-
-
 def config(cache: Path, **outputs) -> dict:
-    data = json.loads(json.dumps(_base_config()))
+    data = json.loads(json.dumps(small_capture_config()))
     data["pipeline"] = json.loads(json.dumps(DEFAULT_LIKE))
     data["cache_dir"] = str(cache)
     data["stages"]["solve"] = {"stage": "known_poses"}
