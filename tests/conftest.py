@@ -106,5 +106,5 @@ def small_capture_config() -> dict:
 
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(config_name="config", overrides=["experiment=quick", "source.duration_s=0.09",
-                                                       "template.target_faces=2000", "source.n_track_points=20"])
+                                                       "template=procedural", "template.target_faces=2000", "source.n_track_points=20"])
     return OmegaConf.to_container(cfg, resolve=True)

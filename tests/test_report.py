@@ -90,7 +90,7 @@ def test_a_real_tiny_sweep(tmp_path):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
                EVENTCAP_STAGES="output_stages:SPECS")
     run = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
-                          "pipeline=known_poses", "stages/solve=known_poses", "template.target_faces=2000",
+                          "pipeline=known_poses", "stages/solve=known_poses", "template=procedural", "template.target_faces=2000",
                           "source.duration_s=0.09", "source.supersample=1", "source.motion=jumping_jack",
                           "outputs.video=false", "stages.solve.motion=jumping_jack,karate_kick", "source.seed=0,1",
                           "hydra.sweep.dir=sweep"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)

@@ -82,7 +82,7 @@ def test_missing_recording_fails_the_source_node_and_run_json_is_written(tmp_pat
     # keying it), the rest is skipped with that cause, and the run is summarised.
     run_dir = tmp_path / "e"
     code = main(["run", "pipeline=simulate", "source=recording", f"source.path={tmp_path / 'nope.aedat4'}",
-                 "template.target_faces=3000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
+                 "template=procedural", "template.target_faces=3000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     assert code == 1
     s = json.loads((run_dir / "run.json").read_text())
     [fail] = s["nodes"]["source"]["failed"]

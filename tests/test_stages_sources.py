@@ -76,13 +76,13 @@ def test_simulate_then_read_back_as_recording(tmp_path):
     env = {**__import__("os").environ}
     cmd = [sys.executable, "-m", "eventcap.cli"]
     subprocess.run(cmd + ["simulate", "motion=jumping_jack", "duration_s=0.1", "seed=3", "supersample=1",
-                          "n_track_points=10", "hydra.run.dir=runs/sim", "template.target_faces=3000"],
+                          "n_track_points=10", "hydra.run.dir=runs/sim", "template=procedural", "template.target_faces=3000"],
                    cwd=tmp_path, env=env, check=True, capture_output=True, timeout=600)
     rec_path = tmp_path / "runs" / "sim" / "source.recording.zarr"
     original = Recording.from_zarr(zarr.open_group(str(rec_path), mode="r"))
     assert original.name == "synthetic-jumping_jack-seed3" and original.ground_truth is not None
     p = subprocess.run(cmd + ["run", "pipeline=simulate", "source=recording", f"source.path={rec_path}",
-                              "export=[source.recording]", "hydra.run.dir=runs/read", "template.target_faces=3000"],
+                              "export=[source.recording]", "hydra.run.dir=runs/read", "template=procedural", "template.target_faces=3000"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
     back = Recording.from_zarr(zarr.open_group(str(tmp_path / "runs" / "read" / "source.recording.zarr"), mode="r"))
@@ -96,7 +96,7 @@ def test_simulate_then_read_back_as_recording(tmp_path):
 
 def test_missing_path_is_a_clear_error(tmp_path):
     p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "pipeline=simulate", "source=recording",
-                        f"source.path={tmp_path / 'nope.aedat4'}", "template.target_faces=3000"],
+                        f"source.path={tmp_path / 'nope.aedat4'}", "template=procedural", "template.target_faces=3000"],
                        cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert p.returncode == 1
     assert "source.path: file not found" in p.stdout + p.stderr
@@ -112,7 +112,7 @@ def test_recording_without_frames_is_rejected_by_sharpen_with_a_clear_message(tm
                      rng.choice([-1, 1], n))
     path = write_events(tmp_path / "events_only.npz", ev, width=64, height=48)
     p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "source=recording", f"source.path={path}",
-                        "template.target_faces=3000", "hydra.run.dir=runs/nf"], cwd=tmp_path, capture_output=True,
+                        "template=procedural", "template.target_faces=3000", "hydra.run.dir=runs/nf"], cwd=tmp_path, capture_output=True,
                        text=True, timeout=600)
     out = p.stdout + p.stderr
     assert p.returncode == 1

@@ -159,7 +159,7 @@ class TestBspline(StageConformance):
 
 def test_default_pipeline_runs_through_solving(tmp_path):
     p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "experiment=quick", "source.duration_s=0.09",
-                        "template.target_faces=3000", "hydra.run.dir=runs/x"], cwd=tmp_path, capture_output=True,
+                        "template=procedural", "template.target_faces=3000", "hydra.run.dir=runs/x"], cwd=tmp_path, capture_output=True,
                        text=True, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
     run = json.loads((tmp_path / "runs" / "x" / "run.json").read_text())
