@@ -140,6 +140,14 @@ class Benchmark:
     def __post_init__(self) -> None:
         c = self.cfg
         self.methods = parse_methods(c.get("methods"))
+        only = c.get("only")
+        if only is not None:
+            only = [only] if isinstance(only, str) else [str(o) for o in only]
+            known = [m.name for m in self.methods]
+            unknown = [o for o in only if o not in known]
+            if unknown or not only:
+                raise ValueError(f"only: expected names of methods ({', '.join(known)}), got {only!r}")
+            self.methods = [m for m in self.methods if m.name in only]
         self.motions = [str(m) for m in c["motions"]]
         self.seeds = [int(s) for s in c["seeds"]]
         if not self.motions or not self.seeds:

@@ -142,7 +142,7 @@ def test_tiny_benchmark_end_to_end_twice_second_time_from_the_cache(tmp_path, kn
     cfg["methods"] = [{"name": "right", "overrides": ["stages.solve.motion=jumping_jack"]},
                       {"name": "wrong/motion", "overrides": ["stages.solve.motion=karate_kick"], "data": "frames_MBps"}]
     run_ov = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses", "stages/solve=known_poses",
-              "template.target_faces=2000", "source.n_track_points=20"]
+              "template=procedural", "template.target_faces=2000", "source.n_track_points=20"]
     tables = []
     for call in range(2):
         bench = Benchmark(cfg, CONF, run_ov)
@@ -235,3 +235,11 @@ def test_detector_choice_adds_its_overrides_to_every_sequence():
     assert "stages.detect.at=frames" in linear.overrides  # *_linear looks at the raw frames
     with pytest.raises(ValueError, match=r"detector: expected one of \['blazepose', 'simulated'\].*got 'openpose'"):
         Benchmark(compose_benchmark(CONF, "default", ["detector=openpose"]), CONF, []).sequence_overrides("a", 0)
+
+
+def test_only_picks_rows_by_name_and_refuses_unknown_names():
+    bench = Benchmark(compose_benchmark(CONF, "default", ["only=[spline,linear]"]), CONF, [])
+    assert [m.name for m in bench.methods] == ["linear", "spline"]  # the config's order, not the option's
+    assert [m.name for m in Benchmark(compose_benchmark(CONF, "default", ["only=paper"]), CONF, []).methods] == ["paper"]
+    with pytest.raises(ValueError, match=r"only: expected names of methods \(default, paper, linear.*got \['splin'\]"):
+        Benchmark(compose_benchmark(CONF, "default", ["only=[splin]"]), CONF, [])
