@@ -1,0 +1,109 @@
+"""The spline solve (pipeline=spline) through `eventcap run`: a failed window is recorded, the nodes after it are
+skipped with its cause, and once the cause is gone only that window is computed again; a run killed with SIGKILL
+during the window solves resumes without recomputing a committed window and ends with the same motion."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+from eventcap.cli import main
+from eventcap.stage import StageFailed
+
+# A tiny capture of 3 batches (light procedural actor), windows of 3 batches, no video.
+TINY = ["pipeline=spline", "experiment=quick", "source.duration_s=0.13", "template=procedural",
+        "template.target_faces=2000", "source.n_track_points=20", "stages.spline.half_window=1", "outputs.video=false"]
+
+
+def _run(tmp_path, name: str, cache: str) -> tuple[int, dict]:
+    run_dir = tmp_path / name
+    code = main(["run", *TINY, f"cache_dir={tmp_path / cache}", f"hydra.run.dir={run_dir}"])
+    return code, json.loads((run_dir / "run.json").read_text())
+
+
+def _motion(tmp_path, name: str) -> dict[str, np.ndarray]:
+    with np.load(tmp_path / name / "motion.npz") as z:
+        return {k: z[k] for k in z.files}
+
+
+def test_a_failed_window_is_recorded_and_alone_recomputed_once_its_cause_is_gone(tmp_path, monkeypatch):
+    import eventcap_spline.solve as spline_solve
+
+    real = spline_solve.solve_window
+
+    def failing(*args, what: str, **kw):  # stands in for a solver failure of batch 1's window
+        if what.startswith("batch 1 "):
+            raise StageFailed(f"{what}: IPOPT stopped (Maximum_Iterations_Exceeded)",
+                              status="Maximum_Iterations_Exceeded")
+        return real(*args, what=what, **kw)
+
+    monkeypatch.setattr(spline_solve, "solve_window", failing)
+    code, first = _run(tmp_path, "first", "cache")
+    assert code == 1 and not first["ok"]
+    solve = first["nodes"]["solve"]
+    [fail] = solve["failed"]
+    assert fail["batch"] == 1 and "window of batches 0..2" in fail["error"] and solve["computed"] == 2
+    cause = first["nodes"]["stitch"]["skip_causes"][0]["cause"]
+    assert cause.startswith("upstream failed: solve[batch 1]") and first["nodes"]["stitch"]["computed"] == 0
+    assert not (tmp_path / "first" / "motion.npz").exists()
+
+    monkeypatch.setattr(spline_solve, "solve_window", real)  # the cause is gone
+    code, second = _run(tmp_path, "second", "cache")
+    assert code == 0 and second["ok"]
+    solve = second["nodes"]["solve"]
+    assert (solve["computed"], solve["cached"]) == (1, 2)  # batch 1's window alone
+    assert second["nodes"]["source"]["cached"] == 1 and second["nodes"]["track"]["computed"] == 0
+
+    # the same motion as a run that never failed (its window entries and everything after them computed afresh)
+    for stage in ("spline", "stitch", "cut", "evaluate"):
+        shutil.rmtree(tmp_path / "cache" / "entries" / stage)
+    code, clean = _run(tmp_path, "clean", "cache")
+    assert code == 0 and clean["nodes"]["solve"]["computed"] == 3
+    a, b = _motion(tmp_path, "second"), _motion(tmp_path, "clean")
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    assert a["poses"].shape == (121, 33)  # 5..125 ms at 1 kHz
+
+
+def _entries(cache, stage: str) -> set[str]:
+    d = cache / "entries" / stage
+    return {p.name for p in d.iterdir() if (p / "manifest.json").exists()} if d.exists() else set()
+
+
+@pytest.mark.slow
+def test_killed_during_the_window_solves_resumes_without_recomputing_and_ends_equal(tmp_path):
+    cache = tmp_path / "cache"
+    cmd = [sys.executable, "-m", "eventcap.cli", "run", *TINY, "source.duration_s=0.25", f"cache_dir={cache}"]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([*cmd, f"hydra.run.dir={tmp_path / 'killed'}"], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 600
+    while len(_entries(cache, "spline")) < 2:  # two windows committed, the next ones under way
+        assert proc.poll() is None, "the run ended before it could be killed"
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    committed = _entries(cache, "spline")
+    assert 2 <= len(committed) < 6  # 6 batches at 25 fps in 0.25 s
+
+    resumed = subprocess.run([*cmd, f"hydra.run.dir={tmp_path / 'resumed'}"], cwd=ROOT, env=env,
+                             capture_output=True, text=True, timeout=900)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    summary = json.loads((tmp_path / "resumed" / "run.json").read_text())
+    solve = summary["nodes"]["solve"]
+    assert not set(solve["computed_keys"]) & committed and solve["cached"] >= len(committed)
+
+    fresh = subprocess.run([*cmd, f"cache_dir={tmp_path / 'fresh'}", f"hydra.run.dir={tmp_path / 'fresh_run'}"],
+                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    assert fresh.returncode == 0, fresh.stderr[-3000:]
+    with np.load(tmp_path / "resumed" / "motion.npz") as a, np.load(tmp_path / "fresh_run" / "motion.npz") as b:
+        assert all(np.array_equal(a[k], b[k]) for k in a.files)
