@@ -214,8 +214,12 @@ class _DaskPool:
             fut.release()  # results are small, but nothing stays held on the scheduler either
 
 
-def _init_worker(level: int) -> None:
+def _init_worker(level: int, parent_pid: int | None = None) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if parent_pid is not None:  # a worker never outlives its driver, even a driver killed by kill -9
+        from .lifeline import die_with_parent
+
+        die_with_parent(parent_pid)
 
 
 @contextmanager
@@ -233,7 +237,8 @@ def _executor(cfg: ExecutorConfig) -> Iterator[Any]:
         if cfg.kind == "processes":
             # spawn, not fork: zarr and tqdm run background threads, and forking a threaded process can deadlock.
             with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("spawn"),
-                                     initializer=_init_worker, initargs=(logging.getLogger().level,)) as pool:
+                                     initializer=_init_worker,
+                                     initargs=(logging.getLogger().level, os.getpid())) as pool:
                 yield pool
         else:
             yield from _dask(cfg)
