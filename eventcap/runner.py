@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from .artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
-from .cache import Cache, CacheCorruptError, Entry, explain_difference, make_key
+from .cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
 from .config import build_config, config_to_dict, file_digests, result_config
 from .pipeline import Node, build_pipeline
 from .registry import Registry, load_registry
@@ -61,6 +61,9 @@ class Task:
     doc: dict[str, Any]
     batch: Batch | None = None
     n_batches: int = 0
+    #: another run is computing this entry: return "busy" at once instead of waiting for it (the driver runs the
+    #: task again later, after the others)
+    defer_if_busy: bool = False
 
 
 @dataclass
@@ -68,7 +71,7 @@ class TaskResult:
     node: str
     key: str
     batch: int | None
-    status: str  # "computed" | "failed"
+    status: str  # "computed" | "failed" | "loaded" (committed by another run meanwhile) | "busy" (see Task)
     elapsed_s: float = 0.0
     error: str = ""
     failure_status: str = ""
@@ -110,9 +113,48 @@ def _registry() -> Registry:
 
 
 def execute_task(task: Task) -> TaskResult:
-    """Load inputs, run the stage, commit or record the failure. Never raises for a stage's own error."""
+    """Load inputs, run the stage, commit or record the failure. Never raises for a stage's own error.
+
+    The entry's lock is held while computing: when another run (or worker) is computing the same entry, this waits
+    for it (or, with ``task.defer_if_busy``, returns "busy") and then returns "loaded" if it was committed."""
     t0 = time.perf_counter()
     bidx = task.batch.index if task.batch is not None else None
+    what = f"{task.node}" + (f" batch {bidx}" if bidx is not None else "")
+    lock = EntryLock(task.cache_root, task.key)
+
+    def waiting(holder: str, waited_s: float) -> None:
+        log.info("%s: waiting for another run computing entry %s/%s (%s; %.0f s so far)", what, task.stage,
+                 task.key[:12], holder, waited_s)
+
+    if not lock.acquire(blocking=not task.defer_if_busy, owner=f"node {what}", on_wait=waiting):
+        return TaskResult(task.node, task.key, bidx, "busy")
+    try:
+        if _committed_meanwhile(task):
+            return TaskResult(task.node, task.key, bidx, "loaded", time.perf_counter() - t0)
+        return _compute(task, t0, bidx)
+    finally:
+        lock.release()
+
+
+def _committed_meanwhile(task: Task) -> bool:
+    """Whether a good entry for the task's key exists now (committed by another run while this one waited)."""
+    cache = _cache_at(task.cache_root)
+    entry = cache.lookup(task.stage, task.key)
+    if entry is None:
+        return False
+    try:
+        spec = _registry().get(task.stage)
+        want = {p: port.type.schema_signature() for p, port in spec.outputs.items()}
+        if want != {p: o.get("schema") for p, o in entry.manifest["outputs"].items()}:
+            return False  # written by other code; the driver's next lookup quarantines it
+        cache.verify(entry)
+    except CacheCorruptError as exc:
+        cache.quarantine(entry.path, str(exc))
+        return False
+    return True
+
+
+def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
     cache = _cache_at(task.cache_root)
     try:
         spec = _registry().get(task.stage)
@@ -480,6 +522,10 @@ class Runner:
             rep.computed = 1
             rep.computed_keys.append(key)
             log.info("%s: computed in %.2f s", label, res.elapsed_s)
+        elif res.status == "loaded":
+            rep.cached = 1
+            log.info("%s: committed by another run meanwhile (waited %.2f s): loaded, not recomputed", label,
+                     res.elapsed_s)
         else:
             rep.failed.append({"batch": None, "status": res.failure_status, "error": res.error, "key": key})
             self._roots[(node.name, None)] = f"{node.name}: {res.error}"
@@ -574,6 +620,11 @@ class Runner:
                     rep.computed += 1
                     rep.computed_keys.append(res.key)
                     log.info("%s: batch %d/%d computed in %.2f s", node.name, res.batch + 1, len(batches), res.elapsed_s)
+                elif res.status == "loaded":
+                    keys[res.batch] = res.key
+                    rep.cached += 1
+                    log.info("%s: batch %d/%d committed by another run meanwhile (waited %.2f s): loaded, not "
+                             "recomputed", node.name, res.batch + 1, len(batches), res.elapsed_s)
                 else:
                     rep.failed.append({"batch": res.batch, "status": res.failure_status, "error": res.error,
                                        "key": res.key})
@@ -583,6 +634,20 @@ class Runner:
             bar.close()
 
     def _execute(self, tasks: list[Task], pool) -> Iterator[TaskResult]:
+        """Results of ``tasks`` as they finish. Tasks whose entry another run is computing right now are put off
+        until the others are done (this run computes what nobody else does first), then waited for."""
+        later = {}
+        for res in self._execute_pass([dataclasses.replace(t, defer_if_busy=True) for t in tasks], pool):
+            if res.status == "busy":
+                later[res.key] = res
+            else:
+                yield res
+        if later:
+            todo = [t for t in tasks if t.key in later]
+            log.info("%s: %d batch(es) being computed by another run: waiting for them", todo[0].node, len(todo))
+            yield from self._execute_pass(todo, pool)
+
+    def _execute_pass(self, tasks: list[Task], pool) -> Iterator[TaskResult]:
         if pool is None:
             for t in tasks:
                 yield execute_task(t)
