@@ -229,3 +229,20 @@ def test_two_overlapping_sweeps_compute_each_entry_once(tmp_path):
     entries = Cache(tmp_path / "cache").entries()
     assert len(entries) == 1 + 4 + 3 * (4 + 1)
     assert sorted(computed) == sorted(e.key for e in entries)
+
+
+def test_a_benchmark_refuses_a_folder_another_benchmark_is_writing(tmp_path):
+    out = tmp_path / "bench"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from eventcap.rundir import claim; claim(sys.argv[1], what='benchmark');"
+        "print('held', flush=True); time.sleep(60)"), str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "benchmark", "benchmark=quick", f"out={out}"],
+                           cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert p.returncode == 2, p.stdout[-2000:] + p.stderr[-2000:]
+    assert f"the benchmark folder {out} is in use by another eventcap process (pid {holder.pid} " in p.stderr
+    assert not (out / "runs").exists()
