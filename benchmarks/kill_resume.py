@@ -33,9 +33,13 @@ def env() -> dict[str, str]:
     return e
 
 
+SLEEP_S = 0.08  # pretend work per batch and stage (--sleep)
+
+
 def command(run_dir: str, executor: str) -> list[str]:
     return [sys.executable, "-m", "eventcap.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
-            "experiment=toy", "stages.signal.n_batches=6", "stages.smooth.sleep_s=0.08", "stages.scale.sleep_s=0.08",
+            "experiment=toy", "stages.signal.n_batches=6", f"stages.smooth.sleep_s={SLEEP_S}",
+            f"stages.scale.sleep_s={SLEEP_S}",
             f"executor={executor}", f"hydra.run.dir={run_dir}", "log_level=WARNING"]
 
 
@@ -110,7 +114,11 @@ def main(argv=None) -> int:
     ap.add_argument("--kill", default="group", choices=["group", "driver"],
                     help="SIGKILL the run's whole process group, or the driver alone (its workers must follow)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sleep", type=float, default=0.08, help="pretend work per batch of smooth and scale (s): "
+                                                               "longer runs put more kills in the middle of the work")
     args = ap.parse_args(argv)
+    global SLEEP_S
+    SLEEP_S = args.sleep
     cycle = {"mixed": ("serial", "processes"), "all": ("serial", "processes", "dask")}.get(args.executor,
                                                                                           (args.executor,))
     rng = random.Random(args.seed)

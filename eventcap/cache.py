@@ -195,7 +195,9 @@ class Cache:
             except OSError as exc:
                 if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY):
                     raise
-                log.debug("entry %s/%s was committed concurrently; keeping the existing one", stage, key)
+                # the entry locks prevent this; seen only where flock does not work across writers
+                log.warning("cache: entry %s/%s was computed twice (another writer committed it first; keeping "
+                            "theirs)", stage, key[:12])
                 shutil.rmtree(tmp, ignore_errors=True)
             _fsync_dir(final.parent)
         except BaseException:

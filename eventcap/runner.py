@@ -126,8 +126,11 @@ def execute_task(task: Task) -> TaskResult:
         log.info("%s: waiting for another run computing entry %s/%s (%s; %.0f s so far)", what, task.stage,
                  task.key[:12], holder, waited_s)
 
-    if not lock.acquire(blocking=not task.defer_if_busy, owner=f"node {what}", on_wait=waiting):
-        return TaskResult(task.node, task.key, bidx, "busy")
+    try:
+        if not lock.acquire(blocking=not task.defer_if_busy, owner=f"node {what}", on_wait=waiting):
+            return TaskResult(task.node, task.key, bidx, "busy")
+    except OSError as exc:  # no lock here (e.g. a read-only cache): computing still reports the real problem
+        log.warning("%s: cannot lock cache entry %s (%s); computing it without the lock", what, task.key[:12], exc)
     try:
         if _committed_meanwhile(task):
             return TaskResult(task.node, task.key, bidx, "loaded", time.perf_counter() - t0)
