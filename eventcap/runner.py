@@ -17,6 +17,7 @@ import time
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -259,6 +260,24 @@ class _DaskPool:
             fut.release()  # results are small, but nothing stays held on the scheduler either
 
 
+class _ProcessPool:
+    """A local process pool that is started again when a worker dies (``kill -9``, the OOM killer): the batches it
+    was running are submitted again, at most ``MAX_RESTARTS`` times per run (a worker dying every time is a bug)."""
+
+    MAX_RESTARTS = 3
+
+    def __init__(self, make):
+        self._make, self.pool, self.restarts = make, make(), 0
+
+    def submit(self, fn, *args):
+        return self.pool.submit(fn, *args)
+
+    def restart(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+        self.pool = self._make()
+        self.restarts += 1
+
+
 def _init_worker(level: int, parent_pid: int | None = None) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     if parent_pid is not None:  # a worker never outlives its driver, even a driver killed by kill -9
@@ -281,10 +300,13 @@ def _executor(cfg: ExecutorConfig) -> Iterator[Any]:
     try:
         if cfg.kind == "processes":
             # spawn, not fork: zarr and tqdm run background threads, and forking a threaded process can deadlock.
-            with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("spawn"),
-                                     initializer=_init_worker,
-                                     initargs=(logging.getLogger().level, os.getpid())) as pool:
+            pool = _ProcessPool(lambda: ProcessPoolExecutor(
+                max_workers=cfg.workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                initargs=(logging.getLogger().level, os.getpid())))
+            try:
                 yield pool
+            finally:
+                pool.pool.shutdown()
         else:
             yield from _dask(cfg)
     finally:
@@ -658,11 +680,28 @@ class Runner:
         if isinstance(pool, _DaskPool):
             yield from pool.map_unordered(execute_task, tasks)
             return
-        pending = {pool.submit(execute_task, t) for t in tasks}
+        pending = {pool.submit(execute_task, t): t for t in tasks}
         while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            lost = []
             for fut in done:
-                yield fut.result()
+                task = pending.pop(fut)
+                try:
+                    yield fut.result()
+                except BrokenProcessPool:
+                    lost.append(task)
+            if not lost:
+                continue
+            for fut in [f for f in pending if f.done() and not f.cancelled() and f.exception() is None]:  # finished before the break
+                yield pending.pop(fut).result()
+            lost += list(pending.values())
+            if pool.restarts >= pool.MAX_RESTARTS:
+                raise BrokenProcessPool(f"a worker process died {pool.restarts + 1} times in this run (killed, or out "
+                                        f"of memory?); giving up")
+            log.warning("a worker process died (killed, or out of memory?): starting the pool again and resubmitting "
+                        "%d task(s) of %s", len(lost), lost[0].node)
+            pool.restart()
+            pending = {pool.submit(execute_task, t): t for t in lost}
 
     # -- outputs --------------------------------------------------------------------------------------------------
     def _collect_metrics(self, reports, node_keys) -> dict[str, Any]:

@@ -246,3 +246,43 @@ def test_a_benchmark_refuses_a_folder_another_benchmark_is_writing(tmp_path):
     assert p.returncode == 2, p.stdout[-2000:] + p.stderr[-2000:]
     assert f"the benchmark folder {out} is in use by another eventcap process (pid {holder.pid} " in p.stderr
     assert not (out / "runs").exists()
+
+
+def test_a_pool_worker_killed_mid_run_is_replaced_and_the_result_unchanged(toy_cfg, tmp_path):
+    import threading
+
+    import psutil
+
+    from eventcap.runner import Runner
+
+    def run(name, executor):
+        cfg = toy_cfg(signal={"n_batches": 6}, smooth={"sleep_s": 0.3})
+        cfg["cache_dir"], cfg["executor"] = str(tmp_path / name), executor
+        return Runner(cfg).run(), Cache(cfg["cache_dir"])
+
+    reference, ref_cache = run("ref", {"kind": "serial"})
+    killed = []
+
+    def kill_one_worker():
+        me = psutil.Process()
+        locks = tmp_path / "pool" / "locks"
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not killed:
+            time.sleep(0.05)
+            if not (locks.is_dir() and list(locks.glob("*.lock"))):
+                continue  # a worker is computing a batch once its entry lock exists
+            workers = [p for p in me.children(recursive=True) if "spawn_main" in " ".join(p.cmdline())
+                       and "resource_tracker" not in " ".join(p.cmdline())]
+            if workers:
+                workers[0].kill()
+                killed.append(workers[0].pid)
+
+    t = threading.Thread(target=kill_one_worker)
+    t.start()
+    result, cache = run("pool", {"kind": "processes", "workers": 2})
+    t.join()
+    assert killed, "no worker was killed"
+    assert result.ok and result.metrics == reference.metrics
+    assert {e.key: e.manifest["files"] for e in cache.entries()} == {e.key: e.manifest["files"]
+                                                                     for e in ref_cache.entries()}
+    assert list((tmp_path / "pool" / "tmp").iterdir()) == []
