@@ -328,8 +328,16 @@ def _dask(cfg: ExecutorConfig) -> Iterator[_DaskPool]:
             yield _DaskPool(client, cfg.retries)
         return
     log.info("dask: starting a LocalCluster with %d workers x %d thread", cfg.workers, 1)
-    with LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=logging.WARNING) as cluster, Client(cluster) as client:
+    for attempt in range(1, cfg.retries + 2):  # a worker killed while the cluster starts fails the whole start
+        try:
+            cluster = LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.WARNING)
+            break
+        except RuntimeError as exc:
+            if attempt > cfg.retries:
+                raise ValueError(f"executor=dask: the LocalCluster did not start ({attempt} attempts): {exc}") from exc
+            log.warning("dask: the LocalCluster did not start (%s); trying again", exc)
+    with cluster, Client(cluster) as client:
         yield _DaskPool(client, cfg.retries)
 
 
