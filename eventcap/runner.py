@@ -253,8 +253,10 @@ class _DaskPool:
     def map_unordered(self, fn, tasks: list[Task]) -> Iterator[TaskResult]:
         from distributed import as_completed
 
-        futures = [self.client.submit(fn, t, key=f"{t.node}-b{t.batch.index if t.batch else 'all'}-{t.key[:12]}",
-                                      retries=self.retries, pure=False) for t in tasks]
+        # the waiting pass gets keys of its own: the scheduler would hand back the first pass's "busy" result
+        futures = [self.client.submit(fn, t, key=f"{t.node}-b{t.batch.index if t.batch else 'all'}-{t.key[:12]}"
+                                      f"{'' if t.defer_if_busy else '-wait'}", retries=self.retries, pure=False)
+                   for t in tasks]
         for fut in as_completed(futures):
             yield fut.result()
             fut.release()  # results are small, but nothing stays held on the scheduler either

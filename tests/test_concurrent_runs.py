@@ -193,12 +193,13 @@ def test_entry_lock_is_exclusive_and_a_killed_holder_leaves_nothing_stuck(tmp_pa
     assert clean_stale_locks(tmp_path) == 1 and not stale.path.exists()
 
 
-def test_two_identical_runs_compute_each_entry_once(tmp_path):
+@pytest.mark.parametrize("executor", ["processes", pytest.param("dask", marks=pytest.mark.slow)])
+def test_two_identical_runs_compute_each_entry_once(tmp_path, executor):
     args = [f"cache_dir={tmp_path / 'cache'}", "stages.signal.n_batches=6", "stages.signal.sleep_s=0.5",
             "stages.smooth.sleep_s=0.1", "log_level=INFO"]
     procs = [subprocess.Popen(TOY + args + [f"hydra.run.dir=runs/{n}", f"executor={ex}"], cwd=tmp_path, env=toy_env(),
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for n, ex in (("a", "serial"), ("b", "processes"))]
+             for n, ex in (("a", "serial"), ("b", executor))]
     outs = [p.communicate(timeout=300) for p in procs]
     assert all(p.returncode == 0 for p in procs), outs
     computed = _computed(tmp_path / "runs" / "a" / "run.json") + _computed(tmp_path / "runs" / "b" / "run.json")
@@ -217,14 +218,18 @@ def test_two_identical_runs_compute_each_entry_once(tmp_path):
 def test_two_overlapping_sweeps_compute_each_entry_once(tmp_path):
     base = TOY[:4] + ["-m"] + TOY[4:] + [f"cache_dir={tmp_path / 'cache'}", "stages.smooth.sleep_s=0.05",
                                          "stages.signal.sleep_s=0.3", "log_level=WARNING"]
-    a = subprocess.Popen(base + ["stages.scale.factor=1,2,3", "name=a"], cwd=tmp_path, env=toy_env(),
+    # the same name: both sweeps would have had runs/s/multirun_<second> before
+    a = subprocess.Popen(base + ["stages.scale.factor=1,2,3", "name=s"], cwd=tmp_path, env=toy_env(),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    b = subprocess.Popen(base + ["stages.scale.factor=3,2,1", "name=b"], cwd=tmp_path, env=toy_env(),
+    b = subprocess.Popen(base + ["stages.scale.factor=3,2,1", "name=s"], cwd=tmp_path, env=toy_env(),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     outs = [p.communicate(timeout=300) for p in (a, b)]
     assert a.returncode == 0 and b.returncode == 0, outs
+    sweeps = sorted((tmp_path / "runs" / "s").glob("multirun_*"))
+    assert len(sweeps) == 2 and all(len(list(s.glob("[0-9]"))) == 3 for s in sweeps), sweeps
     jobs = sorted((tmp_path / "runs").glob("*/multirun_*/[0-9]"))
-    assert len(jobs) == 6
+    for j in jobs:
+        assert _factor((j / "config.yaml").read_text()) == _factor((j / ".hydra" / "config.yaml").read_text())
     computed = [k for j in jobs for k in _computed(j / "run.json")]
     entries = Cache(tmp_path / "cache").entries()
     assert len(entries) == 1 + 4 + 3 * (4 + 1)
@@ -286,3 +291,36 @@ def test_a_pool_worker_killed_mid_run_is_replaced_and_the_result_unchanged(toy_c
     assert {e.key: e.manifest["files"] for e in cache.entries()} == {e.key: e.manifest["files"]
                                                                      for e in ref_cache.entries()}
     assert list((tmp_path / "pool" / "tmp").iterdir()) == []
+
+
+@pytest.mark.parametrize("kind", ["serial", "processes", pytest.param("dask", marks=pytest.mark.slow)])
+def test_an_entry_another_process_holds_is_put_off_then_waited_for(toy_cfg, tmp_path, kind, caplog):
+    import threading
+
+    from eventcap.runner import Runner
+
+    def run(name, executor):
+        cfg = toy_cfg(signal={"n_batches": 4})
+        cfg["cache_dir"], cfg["executor"] = str(tmp_path / name), executor
+        return Runner(cfg).run()
+
+    reference = run("ref", {"kind": "serial"})
+    held_key = reference.batch_keys["smooth"][0]
+    lock = EntryLock(tmp_path / "held", held_key)  # as another run computing smooth batch 0 would
+    assert lock.acquire(owner="node smooth batch 0")
+
+    def release_when_the_others_are_done():  # ... and then dying without committing it
+        deadline = time.monotonic() + 120
+        while len(list((tmp_path / "held" / "entries").glob("toy_smooth/*"))) < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        lock.release()
+
+    timer = threading.Thread(target=release_when_the_others_are_done)
+    timer.start()
+    with caplog.at_level("INFO", logger="eventcap.runner"):
+        result = run("held", {"kind": kind, "workers": 2})
+    timer.join()
+    assert result.ok and result.metrics == reference.metrics
+    assert sorted(k for r in result.nodes.values() for k in r.computed_keys) == sorted(
+        k for r in reference.nodes.values() for k in r.computed_keys)  # batch 0 too, once the holder was gone
+    assert "smooth: 1 batch(es) being computed by another run: waiting for them" in caplog.text
