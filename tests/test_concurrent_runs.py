@@ -324,3 +324,31 @@ def test_an_entry_another_process_holds_is_put_off_then_waited_for(toy_cfg, tmp_
     assert sorted(k for r in result.nodes.values() for k in r.computed_keys) == sorted(
         k for r in reference.nodes.values() for k in r.computed_keys)  # batch 0 too, once the holder was gone
     assert "smooth: 1 batch(es) being computed by another run: waiting for them" in caplog.text
+
+
+@pytest.mark.slow
+def test_the_issues_two_real_runs_at_once_keep_their_own_folders(tmp_path):
+    # issue 19's report: a default run and a stages.refine.lambda_sil=2 run started in the same second shared one
+    # folder, ending with .hydra/config.yaml from one and config.yaml / metrics.json from the other
+    tiny = ["experiment=quick", "source.duration_s=0.09", "template.target_faces=2000", "source.n_track_points=20",
+            "outputs.video=false", f"cache_dir={tmp_path / 'cache'}"]
+    procs = [subprocess.Popen([sys.executable, "-m", "eventcap.cli", "run", *tiny, *extra], cwd=tmp_path,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for extra in ([], ["stages.refine.lambda_sil=2"])]
+    outs = [p.communicate(timeout=900) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
+    folders = sorted((tmp_path / "runs" / "quick").iterdir())
+    assert len(folders) == 2
+    import yaml
+
+    seen = set()
+    for d in folders:
+        ours = yaml.safe_load((d / "config.yaml").read_text())["stages"]["refine"]["lambda_sil"]
+        hydras = yaml.safe_load((d / ".hydra" / "config.yaml").read_text())["stages"]["refine"]["lambda_sil"]
+        assert ours == hydras
+        seen.add(float(ours))
+        assert (d / "motion.npz").exists() and "evaluate.metrics" in json.loads((d / "metrics.json").read_text())
+        assert (d / "eventcap.log").read_text().count("run folder: ") == 1
+    assert seen == {1.0, 2.0}
+    computed = [k for d in folders for k in _computed(d / "run.json")]
+    assert len(computed) == len(set(computed)) == len(Cache(tmp_path / "cache").entries())
