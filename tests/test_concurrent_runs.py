@@ -293,7 +293,8 @@ def test_a_pool_worker_killed_mid_run_is_replaced_and_the_result_unchanged(toy_c
     assert list((tmp_path / "pool" / "tmp").iterdir()) == []
 
 
-@pytest.mark.parametrize("kind", ["serial", "processes", pytest.param("dask", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("kind", ["serial", pytest.param("processes", marks=pytest.mark.slow),
+                                  pytest.param("dask", marks=pytest.mark.slow)])
 def test_an_entry_another_process_holds_is_put_off_then_waited_for(toy_cfg, tmp_path, kind, caplog):
     import threading
 
