@@ -1,11 +1,12 @@
 """Kill a multi-batch run with SIGKILL at random moments, resume it, and check the result (DESIGN §8).
 
 For each trial: start `eventcap run` on the toy pipeline (tests/toy_stages.py) in a fresh cache, SIGKILL its whole
-process group at a random time, note which entries were committed, run the same command again, and check that
-(1) the final metrics and every cache entry's files equal an uninterrupted run, and (2) the resumed run computed
-none of the entries committed before the kill.
+process group (``--kill group``) or the driver alone (``--kill driver``: its pool / Dask workers must then die on their
+own) at a random time, note which entries were committed, run the same command again, and check that (1) the final
+metrics and every cache entry's files equal an uninterrupted run, (2) the resumed run computed none of the entries
+committed before the kill, and (3) with ``--kill driver``, no process of the killed run is left 10 s after the kill.
 
-    python benchmarks/kill_resume.py --trials 20 [--executor processes]
+    python benchmarks/kill_resume.py --trials 20 [--executor serial|processes|dask|mixed|all] [--kill driver]
 """
 
 from __future__ import annotations
@@ -32,9 +33,13 @@ def env() -> dict[str, str]:
     return e
 
 
+SLEEP_S = 0.08  # pretend work per batch and stage (--sleep)
+
+
 def command(run_dir: str, executor: str) -> list[str]:
     return [sys.executable, "-m", "eventcap.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
-            "experiment=toy", "stages.signal.n_batches=6", "stages.smooth.sleep_s=0.08", "stages.scale.sleep_s=0.08",
+            "experiment=toy", "stages.signal.n_batches=6", f"stages.smooth.sleep_s={SLEEP_S}",
+            f"stages.scale.sleep_s={SLEEP_S}",
             f"executor={executor}", f"hydra.run.dir={run_dir}", "log_level=WARNING"]
 
 
@@ -47,12 +52,45 @@ def committed(cache: Path) -> dict[str, dict]:
     return out
 
 
-def run_trial(workdir: Path, executor: str, kill_after: float) -> dict:
+def _survivors(procs, timeout_s: float) -> list:
+    """Those of ``procs`` still running (zombies count as gone) after waiting up to ``timeout_s``."""
+    import psutil
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        alive = []
+        for p in procs:
+            try:
+                if p.status() != psutil.STATUS_ZOMBIE:
+                    alive.append(p)
+            except psutil.NoSuchProcess:
+                pass
+        if not alive or time.monotonic() > deadline:
+            return alive
+        time.sleep(0.1)
+
+
+def run_trial(workdir: Path, executor: str, kill_after: float, kill: str = "group") -> dict:
+    import psutil
+
     proc = subprocess.Popen(command("runs/killed", executor), cwd=workdir, env=env(), start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     time.sleep(kill_after)
     killed = proc.poll() is None
-    if killed:
+    orphans, n_children = 0, 0
+    if killed and kill == "driver":
+        try:
+            children = psutil.Process(proc.pid).children(recursive=True)
+        except psutil.NoSuchProcess:
+            children = []
+        n_children = len(children)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        left = _survivors(children, 10.0)
+        orphans = len(left)
+        for p in left:  # counted; removed so that they cannot touch the resumed run
+            p.kill()
+    elif killed:
         os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     before = committed(workdir / "runs" / "cache")
@@ -64,15 +102,25 @@ def run_trial(workdir: Path, executor: str, kill_after: float) -> dict:
     metrics = json.loads((workdir / "runs" / "resumed" / "metrics.json").read_text())
     leftovers = list((workdir / "runs" / "cache" / "tmp").iterdir())
     return {"killed": killed, "committed_before": len(before), "recomputed_committed": len(recomputed),
-            "metrics": metrics, "entries": committed(workdir / "runs" / "cache"), "tmp_leftovers": len(leftovers)}
+            "metrics": metrics, "entries": committed(workdir / "runs" / "cache"), "tmp_leftovers": len(leftovers),
+            "children": n_children, "orphans": orphans}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--trials", type=int, default=20)
-    ap.add_argument("--executor", default="serial", choices=["serial", "processes", "mixed"])
+    ap.add_argument("--executor", default="serial", choices=["serial", "processes", "dask", "mixed", "all"],
+                    help="mixed: serial and processes by turns; all: serial, processes and dask by turns")
+    ap.add_argument("--kill", default="group", choices=["group", "driver"],
+                    help="SIGKILL the run's whole process group, or the driver alone (its workers must follow)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sleep", type=float, default=0.08, help="pretend work per batch of smooth and scale (s): "
+                                                               "longer runs put more kills in the middle of the work")
     args = ap.parse_args(argv)
+    global SLEEP_S
+    SLEEP_S = args.sleep
+    cycle = {"mixed": ("serial", "processes"), "all": ("serial", "processes", "dask")}.get(args.executor,
+                                                                                          (args.executor,))
     rng = random.Random(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
         ref_dir = Path(tmp) / "reference"
@@ -83,21 +131,35 @@ def main(argv=None) -> int:
         ref_metrics = json.loads((ref_dir / "runs" / "ref" / "metrics.json").read_text())
         ref_entries = committed(ref_dir / "runs" / "cache")
         print(f"uninterrupted run: {full_s:.2f} s, {len(ref_entries)} entries, metrics {ref_metrics}")
-        bad = 0
+        durations = {"serial": full_s}
+        for ex in cycle:  # the kill window of each executor is its own run time (a Dask cluster takes a while)
+            if ex not in durations:
+                wd = Path(tmp) / f"uninterrupted-{ex}"
+                wd.mkdir()
+                t0 = time.perf_counter()
+                subprocess.run(command("runs/ref", ex), cwd=wd, env=env(), check=True, capture_output=True)
+                durations[ex] = time.perf_counter() - t0
+                same = committed(wd / "runs" / "cache") == ref_entries
+                print(f"uninterrupted run, executor={ex}: {durations[ex]:.2f} s, entries identical to serial={same}")
+        bad = killed_n = orphans = 0
         for i in range(args.trials):
-            ex = args.executor if args.executor != "mixed" else ("serial", "processes")[i % 2]
+            ex = cycle[i % len(cycle)]
             wd = Path(tmp) / f"trial{i}"
             wd.mkdir()
-            kill_after = rng.uniform(0.3, full_s * 1.1)
-            r = run_trial(wd, ex, kill_after)
+            kill_after = rng.uniform(0.3, durations[ex] * 1.1)
+            r = run_trial(wd, ex, kill_after, args.kill)
             same = r["metrics"] == ref_metrics and r["entries"] == ref_entries
-            ok = same and r["recomputed_committed"] == 0
+            ok = same and r["recomputed_committed"] == 0 and r["orphans"] == 0
             bad += not ok
-            print(f"trial {i:2d} [{ex:9s}] kill at {kill_after:5.2f} s (killed={r['killed']!s:5}): "
+            killed_n += r["killed"]
+            orphans += r["orphans"]
+            procs = f", {r['orphans']} of its {r['children']} processes left 10 s after" if args.kill == "driver" else ""
+            print(f"trial {i:2d} [{ex:9s}] kill {args.kill} at {kill_after:5.2f} s (killed={r['killed']!s:5}{procs}): "
                   f"{r['committed_before']:2d}/{len(ref_entries)} committed before, "
                   f"{r['recomputed_committed']} of them recomputed, outputs identical={same}, "
-                  f"orphans left after resume={r['tmp_leftovers']} -> {'OK' if ok else 'FAIL'}")
-        print(f"{args.trials - bad} passed, {bad} failed")
+                  f"tmp leftovers after resume={r['tmp_leftovers']} -> {'OK' if ok else 'FAIL'}")
+        print(f"{args.trials - bad} passed, {bad} failed ({killed_n} killed mid-run, kill={args.kill}, "
+              f"orphaned processes: {orphans})")
     return 1 if bad else 0
 
 

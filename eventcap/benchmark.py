@@ -595,6 +595,12 @@ def main(argv: Sequence[str], config_dir: Path) -> int:
             raise ValueError(f"{exc}\n(arguments that are not benchmark keys are overrides of every run; the "
                              f"benchmark keys: {', '.join(sorted(probe))}, benchmark=PRESET)") from exc
         raise
+    from .rundir import RunFolderBusy, claim
+
+    try:  # held until this process ends: two benchmarks writing into one folder would mix their runs and tables
+        claim(bench.out, what="benchmark")
+    except RunFolderBusy as exc:
+        raise ValueError(f"{exc} (a benchmark's folder is out=..., runs/benchmark/<name> by default)") from None
     results = bench.run(echo=lambda s: print(s, flush=True))
     files = write_results(bench.out, results, plot=bool(cfg.get("plot", True)))
     seq = (f"{len(bench.motions)} motion(s) x {len(bench.seeds)} seed(s) x {cfg['duration_s']} s; AE after "

@@ -6,17 +6,24 @@ Layout under the cache root::
     entries/<stage>/<key>/data/           zarr v3 group, one sub-group per output port
     tmp/<key>.<host>.<pid>.<nonce>/       an entry being written; renamed into entries/ when complete
     failures/<key>.json                   a failed computation (never a hit; removed when it later succeeds)
+    locks/<key>.lock                      held (flock) by the one process computing the entry right now
 
 A key is the sha256 of the canonical JSON of its key document (stage, version, result-affecting config, file
 digests, input keys, batch). An entry exists for readers only once its directory has been renamed into place with its
 manifest inside; a killed writer leaves only a ``tmp/`` orphan, removed by :meth:`Cache.clean_orphans`. Reading checks
 every file against the manifest, so a missing or damaged chunk raises instead of reading back as fill values.
+
+Concurrent runs on one cache compute each entry once: the task computing an entry holds its :class:`EntryLock` (an
+exclusive ``flock``, dropped by the kernel when the holder dies, even by ``kill -9``); another run wanting the same
+entry waits for it and then loads the committed entry. No deadlock is possible: a task holds one entry lock at a time
+and never waits for another lock while holding it (its inputs are committed before it is started).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import errno
+import fcntl
 import hashlib
 import json
 import logging
@@ -188,7 +195,9 @@ class Cache:
             except OSError as exc:
                 if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY):
                     raise
-                log.debug("entry %s/%s was committed concurrently; keeping the existing one", stage, key)
+                # the entry locks prevent this; seen only where flock does not work across writers
+                log.warning("cache: entry %s/%s was computed twice (another writer committed it first; keeping "
+                            "theirs)", stage, key[:12])
                 shutil.rmtree(tmp, ignore_errors=True)
             _fsync_dir(final.parent)
         except BaseException:
@@ -250,6 +259,7 @@ class Cache:
                 removed.append(d)
         if removed:
             log.info("cache: removed %d orphaned temporary entr%s", len(removed), "y" if len(removed) == 1 else "ies")
+        clean_stale_locks(self.root)
         return removed
 
     def entries(self) -> list[Entry]:
@@ -348,6 +358,76 @@ def _check_atomic_rename(root: Path) -> None:
         shutil.rmtree(probe, ignore_errors=True)
         shutil.rmtree(probe.with_name(probe.name + ".done"), ignore_errors=True)
     _RENAME_CHECKED.add(root)
+
+
+class EntryLock:
+    """The lock of one cache entry, ``<cache>/locks/<key>.lock``, held while the entry is computed.
+
+    An exclusive ``flock``: the kernel releases it when its holder exits or is killed, so a dead holder can never leave
+    an entry stuck. The holder writes its pid/host/node into the file (for the "waiting for ..." message) and unlinks
+    it on release; an acquirer that finds it locked a file already unlinked starts again on the new one.
+    """
+
+    def __init__(self, root: str | Path, key: str):
+        self.path = Path(root) / "locks" / f"{key}.lock"
+        self._fd: int | None = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def acquire(self, blocking: bool = True, owner: str = "", on_wait=None, poll_s: float = 0.1) -> bool:
+        """Take the lock; ``blocking=False``: return False at once when another process holds it. While waiting,
+        ``on_wait(holder_text, waited_s)`` is called first after ``poll_s``, then every 30 s."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        t0, told = time.monotonic(), None
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 1024, 0).decode(errors="replace").strip()
+                os.close(fd)
+                if not blocking:
+                    return False
+                waited = time.monotonic() - t0
+                if on_wait is not None and (told is None or waited - told >= 30.0):
+                    on_wait(holder or "holder unknown", waited)
+                    told = waited
+                time.sleep(min(0.5, poll_s * (1 + waited)))
+                continue
+            try:
+                current = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                current = False
+            if not current:  # its holder released and unlinked it between our open and flock
+                os.close(fd)
+                continue
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"pid {os.getpid()} on host {_HOST}{', ' + owner if owner else ''}".encode(), 0)
+            self._fd = fd
+            return True
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        self.path.unlink(missing_ok=True)  # while still holding it: nobody can take a file that is going away
+        os.close(self._fd)
+        self._fd = None
+
+
+def clean_stale_locks(root: str | Path) -> int:
+    """Remove lock files nobody holds (left by killed holders); return how many."""
+    n = 0
+    locks = Path(root) / "locks"
+    if not locks.is_dir():
+        return 0
+    for f in locks.glob("*.lock"):
+        lock = EntryLock(root, f.stem)
+        if lock.acquire(blocking=False):
+            lock.release()
+            n += 1
+    return n
 
 
 def pid_alive(pid: int) -> bool:

@@ -17,13 +17,14 @@ import time
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
-from .cache import Cache, CacheCorruptError, Entry, explain_difference, make_key
+from .cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
 from .config import build_config, config_to_dict, file_digests, result_config
 from .pipeline import Node, build_pipeline
 from .registry import Registry, load_registry
@@ -61,6 +62,9 @@ class Task:
     doc: dict[str, Any]
     batch: Batch | None = None
     n_batches: int = 0
+    #: another run is computing this entry: return "busy" at once instead of waiting for it (the driver runs the
+    #: task again later, after the others)
+    defer_if_busy: bool = False
 
 
 @dataclass
@@ -68,7 +72,7 @@ class TaskResult:
     node: str
     key: str
     batch: int | None
-    status: str  # "computed" | "failed"
+    status: str  # "computed" | "failed" | "loaded" (committed by another run meanwhile) | "busy" (see Task)
     elapsed_s: float = 0.0
     error: str = ""
     failure_status: str = ""
@@ -110,9 +114,51 @@ def _registry() -> Registry:
 
 
 def execute_task(task: Task) -> TaskResult:
-    """Load inputs, run the stage, commit or record the failure. Never raises for a stage's own error."""
+    """Load inputs, run the stage, commit or record the failure. Never raises for a stage's own error.
+
+    The entry's lock is held while computing: when another run (or worker) is computing the same entry, this waits
+    for it (or, with ``task.defer_if_busy``, returns "busy") and then returns "loaded" if it was committed."""
     t0 = time.perf_counter()
     bidx = task.batch.index if task.batch is not None else None
+    what = f"{task.node}" + (f" batch {bidx}" if bidx is not None else "")
+    lock = EntryLock(task.cache_root, task.key)
+
+    def waiting(holder: str, waited_s: float) -> None:
+        log.info("%s: waiting for another run computing entry %s/%s (%s; %.0f s so far)", what, task.stage,
+                 task.key[:12], holder, waited_s)
+
+    try:
+        if not lock.acquire(blocking=not task.defer_if_busy, owner=f"node {what}", on_wait=waiting):
+            return TaskResult(task.node, task.key, bidx, "busy")
+    except OSError as exc:  # no lock here (e.g. a read-only cache): computing still reports the real problem
+        log.warning("%s: cannot lock cache entry %s (%s); computing it without the lock", what, task.key[:12], exc)
+    try:
+        if _committed_meanwhile(task):
+            return TaskResult(task.node, task.key, bidx, "loaded", time.perf_counter() - t0)
+        return _compute(task, t0, bidx)
+    finally:
+        lock.release()
+
+
+def _committed_meanwhile(task: Task) -> bool:
+    """Whether a good entry for the task's key exists now (committed by another run while this one waited)."""
+    cache = _cache_at(task.cache_root)
+    entry = cache.lookup(task.stage, task.key)
+    if entry is None:
+        return False
+    try:
+        spec = _registry().get(task.stage)
+        want = {p: port.type.schema_signature() for p, port in spec.outputs.items()}
+        if want != {p: o.get("schema") for p, o in entry.manifest["outputs"].items()}:
+            return False  # written by other code; the driver's next lookup quarantines it
+        cache.verify(entry)
+    except CacheCorruptError as exc:
+        cache.quarantine(entry.path, str(exc))
+        return False
+    return True
+
+
+def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
     cache = _cache_at(task.cache_root)
     try:
         spec = _registry().get(task.stage)
@@ -207,15 +253,39 @@ class _DaskPool:
     def map_unordered(self, fn, tasks: list[Task]) -> Iterator[TaskResult]:
         from distributed import as_completed
 
-        futures = [self.client.submit(fn, t, key=f"{t.node}-b{t.batch.index if t.batch else 'all'}-{t.key[:12]}",
-                                      retries=self.retries, pure=False) for t in tasks]
+        # the waiting pass gets keys of its own: the scheduler would hand back the first pass's "busy" result
+        futures = [self.client.submit(fn, t, key=f"{t.node}-b{t.batch.index if t.batch else 'all'}-{t.key[:12]}"
+                                      f"{'' if t.defer_if_busy else '-wait'}", retries=self.retries, pure=False)
+                   for t in tasks]
         for fut in as_completed(futures):
             yield fut.result()
             fut.release()  # results are small, but nothing stays held on the scheduler either
 
 
-def _init_worker(level: int) -> None:
+class _ProcessPool:
+    """A local process pool that is started again when a worker dies (``kill -9``, the OOM killer): the batches it
+    was running are submitted again, at most ``MAX_RESTARTS`` times per run (a worker dying every time is a bug)."""
+
+    MAX_RESTARTS = 3
+
+    def __init__(self, make):
+        self._make, self.pool, self.restarts = make, make(), 0
+
+    def submit(self, fn, *args):
+        return self.pool.submit(fn, *args)
+
+    def restart(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+        self.pool = self._make()
+        self.restarts += 1
+
+
+def _init_worker(level: int, parent_pid: int | None = None) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if parent_pid is not None:  # a worker never outlives its driver, even a driver killed by kill -9
+        from .lifeline import die_with_parent
+
+        die_with_parent(parent_pid)
 
 
 @contextmanager
@@ -232,9 +302,13 @@ def _executor(cfg: ExecutorConfig) -> Iterator[Any]:
     try:
         if cfg.kind == "processes":
             # spawn, not fork: zarr and tqdm run background threads, and forking a threaded process can deadlock.
-            with ProcessPoolExecutor(max_workers=cfg.workers, mp_context=mp.get_context("spawn"),
-                                     initializer=_init_worker, initargs=(logging.getLogger().level,)) as pool:
+            pool = _ProcessPool(lambda: ProcessPoolExecutor(
+                max_workers=cfg.workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                initargs=(logging.getLogger().level, os.getpid())))
+            try:
                 yield pool
+            finally:
+                pool.pool.shutdown()
         else:
             yield from _dask(cfg)
     finally:
@@ -256,8 +330,16 @@ def _dask(cfg: ExecutorConfig) -> Iterator[_DaskPool]:
             yield _DaskPool(client, cfg.retries)
         return
     log.info("dask: starting a LocalCluster with %d workers x %d thread", cfg.workers, 1)
-    with LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=logging.WARNING) as cluster, Client(cluster) as client:
+    for attempt in range(1, cfg.retries + 2):  # a worker killed while the cluster starts fails the whole start
+        try:
+            cluster = LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.WARNING)
+            break
+        except RuntimeError as exc:
+            if attempt > cfg.retries:
+                raise ValueError(f"executor=dask: the LocalCluster did not start ({attempt} attempts): {exc}") from exc
+            log.warning("dask: the LocalCluster did not start (%s); trying again", exc)
+    with cluster, Client(cluster) as client:
         yield _DaskPool(client, cfg.retries)
 
 
@@ -475,6 +557,10 @@ class Runner:
             rep.computed = 1
             rep.computed_keys.append(key)
             log.info("%s: computed in %.2f s", label, res.elapsed_s)
+        elif res.status == "loaded":
+            rep.cached = 1
+            log.info("%s: committed by another run meanwhile (waited %.2f s): loaded, not recomputed", label,
+                     res.elapsed_s)
         else:
             rep.failed.append({"batch": None, "status": res.failure_status, "error": res.error, "key": key})
             self._roots[(node.name, None)] = f"{node.name}: {res.error}"
@@ -569,6 +655,11 @@ class Runner:
                     rep.computed += 1
                     rep.computed_keys.append(res.key)
                     log.info("%s: batch %d/%d computed in %.2f s", node.name, res.batch + 1, len(batches), res.elapsed_s)
+                elif res.status == "loaded":
+                    keys[res.batch] = res.key
+                    rep.cached += 1
+                    log.info("%s: batch %d/%d committed by another run meanwhile (waited %.2f s): loaded, not "
+                             "recomputed", node.name, res.batch + 1, len(batches), res.elapsed_s)
                 else:
                     rep.failed.append({"batch": res.batch, "status": res.failure_status, "error": res.error,
                                        "key": res.key})
@@ -578,6 +669,20 @@ class Runner:
             bar.close()
 
     def _execute(self, tasks: list[Task], pool) -> Iterator[TaskResult]:
+        """Results of ``tasks`` as they finish. Tasks whose entry another run is computing right now are put off
+        until the others are done (this run computes what nobody else does first), then waited for."""
+        later = {}
+        for res in self._execute_pass([dataclasses.replace(t, defer_if_busy=True) for t in tasks], pool):
+            if res.status == "busy":
+                later[res.key] = res
+            else:
+                yield res
+        if later:
+            todo = [t for t in tasks if t.key in later]
+            log.info("%s: %d batch(es) being computed by another run: waiting for them", todo[0].node, len(todo))
+            yield from self._execute_pass(todo, pool)
+
+    def _execute_pass(self, tasks: list[Task], pool) -> Iterator[TaskResult]:
         if pool is None:
             for t in tasks:
                 yield execute_task(t)
@@ -585,11 +690,28 @@ class Runner:
         if isinstance(pool, _DaskPool):
             yield from pool.map_unordered(execute_task, tasks)
             return
-        pending = {pool.submit(execute_task, t) for t in tasks}
+        pending = {pool.submit(execute_task, t): t for t in tasks}
         while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            lost = []
             for fut in done:
-                yield fut.result()
+                task = pending.pop(fut)
+                try:
+                    yield fut.result()
+                except BrokenProcessPool:
+                    lost.append(task)
+            if not lost:
+                continue
+            for fut in [f for f in pending if f.done() and not f.cancelled() and f.exception() is None]:  # finished before the break
+                yield pending.pop(fut).result()
+            lost += list(pending.values())
+            if pool.restarts >= pool.MAX_RESTARTS:
+                raise BrokenProcessPool(f"a worker process died {pool.restarts + 1} times in this run (killed, or out "
+                                        f"of memory?); giving up")
+            log.warning("a worker process died (killed, or out of memory?): starting the pool again and resubmitting "
+                        "%d task(s) of %s", len(lost), lost[0].node)
+            pool.restart()
+            pending = {pool.submit(execute_task, t): t for t in lost}
 
     # -- outputs --------------------------------------------------------------------------------------------------
     def _collect_metrics(self, reports, node_keys) -> dict[str, Any]:

@@ -22,3 +22,11 @@ def test_kill_resume_quick(capsys):
 def test_kill_resume_soak(capsys):
     assert kill_resume.main(["--trials", "20", "--executor", "mixed", "--seed", "7"]) == 0
     assert "20 passed, 0 failed" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_kill_the_driver_alone_every_executor(capsys):
+    # the pool / Dask workers of a driver killed by SIGKILL must exit by themselves, and the resume is still exact
+    assert kill_resume.main(["--trials", "6", "--executor", "all", "--kill", "driver", "--seed", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "6 passed, 0 failed" in out and "orphaned processes: 0" in out
