@@ -234,8 +234,8 @@ def cmd_stages(args) -> int:
 def cmd_cache(args) -> int:
     from .cache import Cache, CacheError
 
-    cache = Cache(args.cache_dir)
     try:
+        cache = Cache(args.cache_dir, create=False)  # a missing directory is said so, not created
         if args.action == "ls":
             entries = cache.entries()
             total = 0
