@@ -282,6 +282,8 @@ class Artifact:
             return cls(**kwargs)
         except TypeError as exc:
             raise ArtifactError(f"{where}: cannot build {cls.type_name()}: {exc}") from exc
+        except ArtifactError as exc:  # a value check: say which group on disk holds the bad value
+            raise ArtifactError(f"{where}: {exc}") from exc
 
     # -- comparison helpers -------------------------------------------------------------------------------------
     def equals(self, other: Artifact) -> bool:
