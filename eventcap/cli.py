@@ -91,12 +91,17 @@ def cmd_run(argv: list[str]) -> int:
         if msg is not None:
             print(f"eventcap run: {msg}", file=sys.stderr)
             return 1
-        if full_error is None and type(exc).__module__.startswith(("hydra", "omegaconf")):
+        if full_error is not None:
+            raise
+        if type(exc).__module__.startswith(("hydra", "omegaconf")):
             print(f"eventcap run: {exc}", file=sys.stderr)  # as Hydra reports its own errors: message and cause
             if exc.__cause__ is not None:
                 print(str(exc.__cause__), file=sys.stderr)
-            return 1
-        raise
+        else:  # a crash inside a job: its traceback, and the exit code Hydra gave it
+            import traceback
+
+            traceback.print_exc()
+        return 1
     finally:
         if full_error is None:
             os.environ.pop("HYDRA_FULL_ERROR", None)
