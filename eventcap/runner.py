@@ -339,7 +339,8 @@ class Runner:
         self._roots: dict[tuple[str, int | None], str] = {}
         t_run = time.perf_counter()
         # batches= is checked against each batch plan as soon as the plan exists, before the nodes after it run
-        plan_ports = {n.plan_node: n.plan_port for n in self.nodes if n.spec.per_batch and n.plan_node}
+        plan_ports = {n.plan_node: n.plan_port for n in self.nodes if n.spec.per_batch and n.plan_node
+                      and not self.by_name[n.plan_node].spec.per_batch}
         not_run: str | None = None  # why the nodes after a refused batch selection do not run
         with _executor(self.executor) as pool:
             for i, node in enumerate(self.nodes, 1):
