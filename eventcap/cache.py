@@ -90,16 +90,20 @@ class Entry:
 
 
 class Cache:
-    """The cache rooted at ``root`` (a local directory; created on first use)."""
+    """The cache rooted at ``root`` (a local directory; created on first use). ``create=False`` (inspecting
+    commands) refuses a root that does not exist instead of creating it, and writes nothing."""
 
-    def __init__(self, root: str | Path):
+    def __init__(self, root: str | Path, create: bool = True):
         self.root = _local_root(root)
         self._verified: set[Path] = set()
+        _check_root(root, self.root, must_exist=not create)
+        if not create:
+            return
         try:
             for sub in ("entries", "tmp", "failures", "trash"):
                 (self.root / sub).mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise CacheError(f"cache_dir {root}: cannot create the cache there: {exc}") from None
+            raise CacheError(_unusable_message(root, exc, "cannot create the cache there")) from None
         _check_atomic_rename(self.root)
 
     # -- paths ----------------------------------------------------------------------------------------------------
@@ -242,7 +246,8 @@ class Cache:
         """Remove temporary directories of writers that are gone (dead pid on this host, or older than max_age_s)."""
         removed = []
         now = time.time()
-        for d in list((self.root / "tmp").iterdir()) + list((self.root / "trash").iterdir()):
+        subs = [self.root / "tmp", self.root / "trash"]
+        for d in [d for sub in subs if sub.is_dir() for d in sub.iterdir()]:
             parts = d.name.split(".")
             dead = False
             if d.parent.name == "trash":
@@ -341,6 +346,30 @@ def _local_root(root: str | Path) -> Path:
 _RENAME_CHECKED: set[Path] = set()
 
 
+#: errors that mean "you may not write here", not "this filesystem cannot do it"
+_NOT_WRITABLE = (errno.EACCES, errno.EPERM, errno.EROFS)
+
+
+def _check_root(given, root: Path, must_exist: bool) -> None:
+    """A root that is a file, or (``must_exist``) missing, is refused with a message saying so."""
+    if root.exists() and not root.is_dir():
+        raise CacheError(f"cache_dir {given}: {root} is a file, not a directory; give the cache's directory")
+    if must_exist and not root.exists():
+        raise CacheError(f"cache_dir {given}: {root} does not exist (no cache there: a run creates it; "
+                         f"the default is runs/cache relative to where you run, or $EVENTCAP_CACHE_DIR)")
+
+
+def _unusable_message(given, exc: OSError, what: str) -> str:
+    """The real cause of an OSError on the cache directory: not writable, a file in the way, or else as is."""
+    if exc.errno in _NOT_WRITABLE:
+        why = "the filesystem is mounted read-only" if exc.errno == errno.EROFS else "permission denied"
+        return (f"cache_dir {given}: not writable ({why}: {exc.filename}); the cache writes its entries there. "
+                f"Give a directory you can write to (cache_dir=... or $EVENTCAP_CACHE_DIR) or change its permissions")
+    if exc.errno in (errno.ENOTDIR, errno.EEXIST):
+        return f"cache_dir {given}: {exc.filename} is a file, not a directory ({exc.strerror}); {what}"
+    return f"cache_dir {given}: {what}: {exc}"
+
+
 def _check_atomic_rename(root: Path) -> None:
     """Refuse a filesystem that cannot rename a directory (some FUSE mounts), once per process and root."""
     if root in _RENAME_CHECKED:
@@ -350,6 +379,8 @@ def _check_atomic_rename(root: Path) -> None:
         (probe / "x").mkdir(parents=True)
         os.rename(probe, probe.with_name(probe.name + ".done"))
     except OSError as exc:
+        if exc.errno in _NOT_WRITABLE or exc.errno in (errno.ENOTDIR, errno.EEXIST):
+            raise CacheError(_unusable_message(root, exc, "cannot write the cache there")) from None
         raise CacheError(
             f"cache_dir {root}: this filesystem cannot rename a directory ({exc}); the cache needs atomic renames "
             f"to commit entries. Use a local disk or a POSIX shared filesystem."

@@ -77,12 +77,118 @@ def cmd_run(argv: list[str]) -> int:
         _run_job(cfg)
 
     sys.argv = ["eventcap run", *argv]
+    # Hydra's own errors reach us as exceptions (not only as its printed report) so that a mistyped key is answered
+    # with the project's message instead of Hydra's advice to append it with '+'.
+    full_error = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
         _main()
     except SystemExit as exc:  # hydra exits for --help, --cfg, and its own config errors
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         return code
+    except Exception as exc:
+        msg = unknown_override_message(exc, argv, cdir)
+        if msg is not None:
+            print(f"eventcap run: {msg}", file=sys.stderr)
+            return 1
+        if full_error is not None:
+            raise
+        if type(exc).__module__.startswith(("hydra", "omegaconf")):
+            print(f"eventcap run: {exc}", file=sys.stderr)  # as Hydra reports its own errors: message and cause
+            if exc.__cause__ is not None:
+                print(str(exc.__cause__), file=sys.stderr)
+        else:  # a crash inside a job: its traceback, and the exit code Hydra gave it
+            import traceback
+
+            traceback.print_exc()
+        return 1
+    finally:
+        if full_error is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = full_error
     return 1 if _RUN_FAILURES else 0
+
+
+def unknown_override_message(exc: BaseException, argv: list[str], cdir: str | Path) -> str | None:
+    """Hydra's "Could not override 'a.b.c' ... Key 'c' is not in struct" as the project's message, or None for any
+    other error: the key, where it lives (the config group's choice and its file) and the closest known keys.
+
+    A stage node's keys are those of its YAML file and of the stage's config dataclass (fields the file does not
+    list are still parameters: those are given with '+')."""
+    import difflib
+
+    from omegaconf.errors import OmegaConfBaseException
+
+    cause = exc.__cause__
+    if not (type(exc).__name__ == "ConfigCompositionException" and str(exc).startswith("Could not override")
+            and isinstance(cause, OmegaConfBaseException) and "is not in struct" in str(cause)):
+        return None
+    key = str(getattr(cause, "key", "") or "")
+    full_key = str(getattr(cause, "full_key", "") or key)
+    if not key:
+        return None
+    parent = full_key.rpartition(".")[0]
+    override_key = str(exc).split("'")[1] if str(exc).count("'") >= 2 else full_key
+    known, stage_fields, stage_name, where_file = _known_keys(parent, override_key, argv, cdir)
+    from .registry import unknown_name_message
+
+    where = (parent or "the top-level config") + (f" ({where_file})" if where_file else "")
+    if key in stage_fields:
+        value = next((a.partition("=")[2] for a in argv if a.partition("=")[0].lstrip("+") == override_key), "...")
+        return (f"{full_key}: a parameter of stage {stage_name!r} that {where_file or parent} does not list; give it "
+                f"with a '+': +{override_key}={value}")
+    available = sorted(set(known) | set(stage_fields))
+    msg = f"{full_key}: " + unknown_name_message("config key", key, available, where)
+    if not difflib.get_close_matches(key, available, n=1, cutoff=0.6) and parent:
+        msg += f". To add a new key anyway: +{override_key}=..."
+    return msg
+
+
+def _known_keys(parent: str, override_key: str, argv: list[str], cdir) -> tuple[list[str], list[str], str, str]:
+    """Keys at ``parent`` of the config composed without the failing override, the stage's config fields when
+    ``parent`` is a stage node's config, that stage's name, and the file (config group choice) ``parent`` comes
+    from. Best effort: whatever cannot be composed is left empty."""
+    import dataclasses
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    rest = [a for a in argv if "=" in a and not a.startswith("-") and a.partition("=")[0].lstrip("+~") != override_key]
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()  # a failed hydra.main may leave it initialised
+    cfg = None
+    for overrides in (rest, [a for a in rest if not a.startswith("hydra.") or a.startswith("hydra.searchpath")], []):
+        try:
+            with initialize_config_dir(config_dir=str(cdir), version_base="1.3"):
+                cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
+            break
+        except Exception:  # noqa: BLE001 - e.g. sweep values (a=1,2): fall back to the defaults
+            continue
+    if cfg is None:
+        return [], [], "", ""
+    node = OmegaConf.select(cfg, parent) if parent else cfg
+    known = [str(k) for k in node.keys() if str(k) != "hydra"] if OmegaConf.is_dict(node) else []
+    choices = dict(cfg.hydra.runtime.choices)
+    where_file = str(Path(cdir) / "config.yaml")
+    parts = parent.split(".") if parent else []
+    for n in range(len(parts), 0, -1):
+        group = "/".join(parts[:n])
+        if choices.get(group):
+            where_file = f"config group {group}={choices[group]}: {Path(cdir) / group / choices[group]}.yaml"
+            break
+    stage_fields: list[str] = []
+    stage_name = ""
+    if OmegaConf.is_dict(node) and "stage" in node:
+        try:
+            from .registry import load_registry
+
+            spec = load_registry().get(str(node["stage"]))
+            stage_fields, stage_name = [f.name for f in dataclasses.fields(spec.config)], spec.name
+        except Exception:  # noqa: BLE001 - an unknown stage is reported by the run itself
+            pass
+    return known, stage_fields, stage_name, where_file
 
 
 _TOP_LEVEL = {"name", "cache_dir", "batches", "log_level", "export", "outputs", "pipeline", "source", "executor",
@@ -133,8 +239,8 @@ def cmd_stages(args) -> int:
 def cmd_cache(args) -> int:
     from .cache import Cache, CacheError
 
-    cache = Cache(args.cache_dir)
     try:
+        cache = Cache(args.cache_dir, create=False)  # a missing directory is said so, not created
         if args.action == "ls":
             entries = cache.entries()
             total = 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import hashlib
 from collections.abc import Mapping
 from pathlib import Path
@@ -37,6 +38,14 @@ def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
     missing = [f.name for f in dataclasses.fields(obj) if getattr(obj, f.name) is dataclasses.MISSING]
     if missing:
         raise ConfigError(f"{where}.{missing[0]}: required by stage {spec.name!r} but not set")
+    for f in dataclasses.fields(obj):
+        choices = f.metadata.get("choices")
+        value = getattr(obj, f.name)
+        if choices is not None and value not in choices:
+            close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1, cutoff=0.5)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise ConfigError(f"{where}.{f.name}: expected one of {' | '.join(str(c) for c in choices)}, got "
+                              f"{value!r} (stage {spec.name!r}){hint}")
     return obj
 
 

@@ -25,7 +25,7 @@ from typing import Any
 
 from .artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
 from .cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
-from .config import build_config, config_to_dict, file_digests, result_config
+from .config import ConfigError, build_config, config_to_dict, file_digests, result_config
 from .pipeline import Node, build_pipeline
 from .registry import Registry, load_registry
 from .stage import StageContext, StageFailed, StageSpec
@@ -420,12 +420,24 @@ class Runner:
         # (node, batch index or None) -> the failure a failed or skipped unit goes back to: "<node>[batch k]: <cause>"
         self._roots: dict[tuple[str, int | None], str] = {}
         t_run = time.perf_counter()
+        # batches= is checked against each batch plan as soon as the plan exists, before the nodes after it run
+        plan_ports = {n.plan_node: n.plan_port for n in self.nodes if n.spec.per_batch and n.plan_node
+                      and not self.by_name[n.plan_node].spec.per_batch}
+        not_run: str | None = None  # why the nodes after a refused batch selection do not run
         with _executor(self.executor) as pool:
             for i, node in enumerate(self.nodes, 1):
                 t0 = time.perf_counter()
                 rep = NodeReport(node.name, node.spec.name, node.spec.per_batch)
                 reports[node.name] = rep
                 label = f"[{i}/{len(self.nodes)}] {node.name} ({node.spec.name} v{node.spec.version})"
+                if not_run is not None:
+                    rep.skipped = 1
+                    rep.skip_causes.append({"batch": None, "cause": not_run})
+                    self._roots[(node.name, None)] = not_run
+                    plans.setdefault(node.name, [])
+                    batch_keys.setdefault(node.name, {})
+                    log.error("%s: skipped, %s", label, not_run)
+                    continue
                 try:
                     if not node.spec.per_batch:
                         root = self._upstream_root(node, None)
@@ -435,6 +447,10 @@ class Runner:
                         self._run_whole(node, self._base_doc(node), node_keys, batch_keys, plans, rep, label)
                     else:
                         self._run_batches(node, node_keys, batch_keys, plans, rep, label, pool)
+                    if node.name in plan_ports and self.selection is not None and not rep.failed and not rep.skipped:
+                        not_run = self._check_selection(node, plan_ports[node.name], node_keys)
+                        if not_run is not None:
+                            log.error("%s", not_run)
                 except Exception as exc:  # noqa: BLE001 - the driver's own failure for this node (a config that
                     # cannot be keyed, a missing file, an unreadable plan): recorded, and the run goes on
                     self._fail_node(node, rep, label, exc)
@@ -459,6 +475,24 @@ class Runner:
         return result
 
     # -- failures and skips ---------------------------------------------------------------------------------------
+    def _check_selection(self, plan_node: Node, port: str, node_keys) -> str | None:
+        """Why ``batches=`` cannot be cut from the batch plan ``plan_node.port`` (None when it can). 'N' asks for at
+        most the first N batches; 'start:stop' must lie within the plan."""
+        plan = _load(str(self.cache.root), plan_node.spec.name, node_keys[plan_node.name], port, BatchPlan)
+        n = len(plan)
+        start, stop = self.selection
+        first_n = start == 0 and stop is not None and not str(self.cfg.get("batches")).count(":")
+        if n == 0:
+            return None  # an empty plan is reported by each per-batch node
+        if (start or 0) >= n or (not first_n and stop is not None and stop > n):
+            return (f"batches={self.cfg.get('batches')!r} is out of range: the batch plan {plan_node.name}.{port} has "
+                    f"{n} batch{'es' if n != 1 else ''} (0..{n - 1}); give N <= {n} (the first N) or 'start:stop' "
+                    f"within 0:{n}")
+        if first_n and stop > n:
+            log.warning("batches=%s: the batch plan %s.%s has only %d batches; running all of them", stop,
+                        plan_node.name, port, n)
+        return None
+
     def _upstream_root(self, node: Node, batch: int | None) -> str | None:
         """The failure a unit of ``node`` (a whole node: ``batch`` None) cannot run without, or ``None``.
 
@@ -770,21 +804,33 @@ class Runner:
 
 
 def _parse_selection(value) -> tuple[int | None, int | None] | None:
-    """``batches=`` config: null (all), ``N`` (first N) or ``start:stop``."""
+    """``batches=`` config: null (all), ``N`` (first N) or ``start:stop``. A selection that is empty whatever the
+    plan (N=0, stop <= start) or negative is refused here, before anything runs; one beyond the plan is refused
+    once the plan exists (:meth:`Runner._check_selection`)."""
     if value in (None, "", "all"):
         return None
-    if isinstance(value, int):
-        return (0, value)
-    text = str(value)
-    if ":" in text:
-        a, _, b = text.partition(":")
+    expected = "expected null (every batch), N (the first N batches) or 'start:stop' with 0 <= start < stop"
+    sel = None
+    if isinstance(value, int) and not isinstance(value, bool):
+        sel = (0, value)
+    elif isinstance(value, str) and ":" in value:
+        a, _, b = value.partition(":")
         try:
-            return (int(a) if a else None, int(b) if b else None)
+            sel = (int(a) if a.strip() else None, int(b) if b.strip() else None)
         except ValueError:
             pass
-    elif text.isdigit():
-        return (0, int(text))
-    raise ValueError(f"batches: expected null, N or 'start:stop', got {value!r}")
+    elif isinstance(value, str) and value.strip().lstrip("-").isdigit():
+        sel = (0, int(value))
+    if sel is None:
+        raise ConfigError(f"batches={value!r}: {expected}")
+    start, stop = sel
+    if (start is not None and start < 0) or (stop is not None and stop < 0):
+        raise ConfigError(f"batches={value!r}: batch indices count from 0 (no negative indices); {expected}")
+    if stop is not None and stop <= (start or 0):
+        what = f"N={stop} selects no batch" if ":" not in str(value) else \
+            f"an empty slice (stop {stop} is not after start {start or 0})"
+        raise ConfigError(f"batches={value!r}: {what}; {expected}")
+    return sel
 
 
 def reset_process_caches() -> None:

@@ -29,12 +29,16 @@ from .artifacts import Artifact, Batch
 
 
 def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True, file: bool = False,
-          default_factory: Any = dataclasses.MISSING):
+          default_factory: Any = dataclasses.MISSING, choices: tuple[Any, ...] | None = None):
     """A config field. ``affects_result=False`` keeps it out of the cache key (e.g. logging, sleeps, workers).
 
     ``file=True`` marks a path whose *content digest* enters the cache key (input recordings, templates).
+    ``choices`` lists the only values the field takes: any other value is refused when the pipeline is built,
+    before anything runs (not once per batch by the stage).
     """
     meta = {"help": help, "affects_result": affects_result, "file": file}
+    if choices is not None:
+        meta["choices"] = tuple(choices)
     if default_factory is not dataclasses.MISSING:
         return field(default_factory=default_factory, metadata=meta)
     return field(default=default, metadata=meta)
@@ -84,6 +88,10 @@ class StageSpec:
         for f in dataclasses.fields(self.config):
             if "help" not in f.metadata:
                 raise StageSpecError(f"{where}: config field {f.name!r} must be declared with eventcap.stage.param()")
+            choices = f.metadata.get("choices")
+            if choices is not None and f.default is not dataclasses.MISSING and f.default not in choices:
+                raise StageSpecError(f"{where}: config field {f.name!r}: default {f.default!r} is not one of its "
+                                     f"choices {choices}")
         if ":" not in self.run:
             raise StageSpecError(f"{where}: run must be 'module:function', got {self.run!r}")
         for direction, ports in (("input", self.inputs), ("output", self.outputs)):

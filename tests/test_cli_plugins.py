@@ -46,7 +46,9 @@ def test_run_reports_failures_and_exits_nonzero(tmp_path):
 
 def test_bad_override_and_bad_stage_are_clear(tmp_path):
     p = run_cli(["run", *TOY, "stages.smooth.windw=3"], tmp_path, check=False)
-    assert p.returncode == 1 and "Key 'windw' is not in struct" in p.stderr
+    # Hydra's "Key 'windw' is not in struct" becomes the project's message, without asking for a '+'
+    assert p.returncode == 1 and "stages.smooth.windw: no config key named 'windw' in stages.smooth" in p.stderr
+    assert "did you mean 'window'?" in p.stderr and "+stages" not in p.stderr
     p = run_cli(["run", *TOY, "stages.scale.stage=toy_scal"], tmp_path, check=False)
     assert p.returncode == 1 and "did you mean 'toy_scale'" in p.stdout + p.stderr
 

@@ -434,4 +434,4 @@ def test_file_errors(tmp_path):
     fails(r"mapping\['Nose'\]: unknown landmark 'nose_tip'", path=good, mapping={"Nose": "nose_tip"})
     fails(r"mapping: landmark 'neck' is given by two keypoints of layout body25: Nose \(0\) and Neck \(1\)",
           path=good, mapping={"Nose": "neck"})
-    fails(r"format: expected one of openpose, npz, csv, auto, got 'xml'", path=good, format="xml")
+    fails(r"stages.detect.format: expected one of openpose \| npz \| csv \| auto, got 'xml'", path=good, format="xml")

@@ -68,10 +68,11 @@ def test_failed_source_still_writes_run_json(toy, tmp_path, caplog):
 
 
 def test_zero_batches_is_a_named_skip_not_a_crash(toy, tmp_path, caplog):
-    # Before: the whole consumer ran on 0 batches (evaluate: IndexError: tuple index out of range).
-    code, s, log_text = run_cli(tmp_path, "d", "batches=2:2", caplog=caplog)
+    # Before: the whole consumer ran on 0 batches (evaluate: IndexError: tuple index out of range). An empty plan
+    # (batches=2:2 was one before it was refused up front) skips every per-batch node with the cause.
+    code, s, log_text = run_cli(tmp_path, "d", "stages.signal.n_batches=0", caplog=caplog)
     assert code == 1
-    why = "no batches to run: batches='2:2' selects none of the 4 batches of signal"
+    why = "no batches to run: the batch plan of signal is empty"
     assert s["nodes"]["smooth"]["skip_causes"] == [{"batch": None, "cause": why}]
     assert s["nodes"]["total"]["skip_causes"] == [{"batch": None, "cause": f"upstream failed: smooth: {why}"}]
     assert s["nodes"]["total"]["computed"] == 0

@@ -294,7 +294,8 @@ def test_bad_config_and_missing_detections_are_named():
     b = inputs["batches"].batch(0)
     with pytest.raises(StageFailed, match="stages.spline.knot_ms"):
         _run_stage(inputs, b, knot_ms=0.0)
-    with pytest.raises(StageFailed, match="stages.spline.prior"):
+    # an unknown prior is refused when the config is built, before anything runs
+    with pytest.raises(ValueError, match=r"\.prior: expected one of acceleration \| jerk, got 'snap'"):
         _run_stage(inputs, b, prior="snap")
     few = dict(inputs, batches=BatchPlan(t0_us=np.array([5_000, 47_000]), t1_us=np.array([47_000, 85_000]),
                                          frame0=np.array([0, 1])))

@@ -265,14 +265,14 @@ class Artifact:
                 for col in spec.dtype.names:
                     if col not in sub:
                         raise ArtifactError(f"{where}/{fname}: column '{col}' missing")
-                    cols[col] = sub[col][...]
+                    cols[col] = read_array(sub[col], f"{where}/{fname}/{col}")
                     n = cols[col].shape[0]
                 out = np.empty(n or 0, dtype=spec.dtype)
                 for col, values in cols.items():
                     out[col] = values
                 kwargs[fname] = out
             else:
-                kwargs[fname] = np.asarray(group[fname][...])
+                kwargs[fname] = read_array(group[fname], f"{where}/{fname}")
         for fname, (ctype, _optional) in cls.child_fields().items():
             kwargs[fname] = ctype.from_zarr(group[fname], f"{where}/{fname}") if fname in members else None
         for fname, value in list(kwargs.items()):
@@ -282,6 +282,8 @@ class Artifact:
             return cls(**kwargs)
         except TypeError as exc:
             raise ArtifactError(f"{where}: cannot build {cls.type_name()}: {exc}") from exc
+        except ArtifactError as exc:  # a value check: say which group on disk holds the bad value
+            raise ArtifactError(f"{where}: {exc}") from exc
 
     # -- comparison helpers -------------------------------------------------------------------------------------
     def equals(self, other: Artifact) -> bool:
@@ -327,6 +329,54 @@ def _jsonable(v):
 
 #: Target size of one chunk; small enough that a batch's arrays are a handful of files.
 _CHUNK_BYTES = 4 << 20
+
+
+def read_array(arr, where: str) -> np.ndarray:
+    """All of zarr array ``arr`` (``where`` names it in messages). A chunk that cannot be decoded (damaged
+    compressed data) or whose file is missing raises an ArtifactError naming the chunk's file, the array and the
+    rows it holds, instead of the codec's bare message or, for a missing chunk, fill values read back silently
+    (:meth:`Artifact.to_zarr` writes every chunk, so a missing one is damage)."""
+    try:
+        values = np.asarray(arr[...])
+    except Exception as exc:  # noqa: BLE001 - numcodecs raises RuntimeError/ValueError/...; named below
+        raise ArtifactError(_bad_chunk_message(arr, where, exc)) from exc
+    if arr.nchunks_initialized < arr.nchunks:
+        raise ArtifactError(_bad_chunk_message(arr, where, None))
+    return values
+
+
+def _chunk_file(arr, coords: tuple[int, ...], where: str) -> str:
+    key = arr.metadata.encode_chunk_key(coords)
+    root = getattr(arr.store_path.store, "root", None)
+    return f"{root}/{arr.store_path.path}/{key}" if root is not None else f"{where}/{key}"
+
+
+def _bad_chunk_message(arr, where: str, exc: BaseException | None) -> str:
+    """Find the first chunk of ``arr`` that is missing (``exc`` None) or cannot be read, and say where it is."""
+    import itertools
+
+    grid = [range(math.ceil(n / c)) for n, c in zip(arr.shape, arr.chunks)]
+    rows_total = arr.shape[0] if arr.shape else 1
+    for coords in itertools.product(*grid):
+        sel = tuple(slice(i * c, min((i + 1) * c, n)) for i, c, n in zip(coords, arr.chunks, arr.shape))
+        rows = f"rows {sel[0].start}..{sel[0].stop - 1} of {rows_total}" if sel else "the only chunk"
+        path = _chunk_file(arr, coords, where)
+        if exc is None:
+            import os
+
+            if not os.path.exists(path) and "://" not in path:
+                return (f"{path}: chunk file missing: array {where} ({arr.dtype}, shape {arr.shape}), chunk "
+                        f"{coords} holding {rows}; the recording or entry is incomplete (copied in part?)")
+            continue
+        try:
+            arr[sel]
+        except Exception as chunk_exc:  # noqa: BLE001
+            return (f"{path}: cannot decode chunk {coords} of array {where} ({arr.dtype}, shape {arr.shape}), "
+                    f"{rows}: {type(chunk_exc).__name__}: {chunk_exc}; the file is damaged (copy or convert it "
+                    f"again)")
+    if exc is None:
+        return f"{where}: {arr.nchunks - arr.nchunks_initialized} of {arr.nchunks} chunk files are missing"
+    return f"{where}: cannot read array ({arr.dtype}, shape {arr.shape}): {type(exc).__name__}: {exc}"
 
 
 def _chunks_for(shape: tuple[int, ...], itemsize: int) -> tuple[int, ...]:

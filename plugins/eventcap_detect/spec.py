@@ -26,7 +26,7 @@ class SimulatedDetectorConfig:
                                            "factor)")
     at: str = param("frames", help="frames: at the intensity frames (the method) | tracking: at every tracking "
                                    "frame, as if detected on sharp latent images (for the *_all baseline, "
-                                   "stages/solve=all)")
+                                   "stages/solve=all)", choices=("frames", "tracking"))
     tracking_step_us: int = param(1000, help="with at=tracking: the tracking frame step, us")
     occlusion: bool = param(True, help="keypoints hidden by the body (z-buffer of the recording's template) get "
                                        "confidence 0")
@@ -38,30 +38,35 @@ class SimulatedDetectorConfig:
 class DetectionsFileConfig:
     path: str = param("", help="detections: a folder of OpenPose JSON files (one per frame), a .json, .npz or "
                                ".csv file", file=True)
-    format: str = param("auto", help="openpose | npz | csv | auto (folder or .json = openpose, else by extension)")
+    format: str = param("auto", help="openpose | npz | csv | auto (folder or .json = openpose, else by extension)",
+                        choices=("openpose", "npz", "csv", "auto"))
     layout: str = param("body25", help="keypoint layout of the file: body25 (OpenPose BODY_25, 25 points) | "
-                                       "coco18 (OpenPose COCO, 18 points)")
+                                       "coco18 (OpenPose COCO, 18 points)", choices=("body25", "coco18"))
     mapping: dict[str, str] = param(default_factory=dict,
                                     help="overrides of the layout's keypoint -> landmark mapping: file keypoint "
                                          "(index '4' or layout name 'RWrist') -> landmark name or '' (ignore it)")
     match: str = param("order", help="OpenPose folders: order (n-th file in natural order = n-th frame) | number "
-                                     "(the last number in the file name is the frame number)")
+                                     "(the last number in the file name is the frame number)",
+                       choices=("order", "number"))
     first_frame: int = param(0, help="frame number (file names, 'frame' arrays/columns) of the recording's first "
                                      "intensity frame")
     time_tolerance_us: int = param(500, help="rows with t_us are matched to the frame within this distance")
     path_3d: str = param("", help="optional npz/csv whose 3D joints replace those of `path` (e.g. VNect output "
                                    "next to OpenPose JSON)", file=True)
     frame_3d: str = param("world", help="axes of the root-relative 3D joints in the files: world | camera "
-                                        "(rotated into world axes with the recording's camera)")
-    unit_3d: str = param("m", help="unit of the 3D joints in the files: m | mm")
+                                        "(rotated into world axes with the recording's camera)",
+                          choices=("world", "camera"))
+    unit_3d: str = param("m", help="unit of the 3D joints in the files: m | mm", choices=("m", "mm"))
 
 
 @dataclass
 class BlazePoseConfig:
-    model: str = param("full", help="landmark network: full (15 ms per image here) | lite (faster, less exact)")
+    model: str = param("full", help="landmark network: full (15 ms per image here) | lite (faster, less exact)",
+                       choices=("full", "lite"))
     at: str = param("latent", help="images it looks at: frames (the raw, blurred intensity frames: the paper's "
                                    "*_linear) | latent (EDI latent images at the frame times: the method) | "
-                                   "tracking (EDI latent images every tracking_step_us: the paper's *_all)")
+                                   "tracking (EDI latent images every tracking_step_us: the paper's *_all)",
+                   choices=("frames", "latent", "tracking"))
     tracking_step_us: int = param(1000, help="with at=tracking: the step between images, us")
     track: bool = param(True, help="take each image's crop from the previous pose (the model's own auxiliary "
                                    "points); false: find the person anew in every image")

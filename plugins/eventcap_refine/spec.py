@@ -24,7 +24,8 @@ class SilhouetteRefineConfig:
     denoise_us: int = param(5000, help="drop events without another event in their 3x3 pixel neighbourhood within "
                                        "this many microseconds before searching (background-activity filter, not "
                                        "in the paper; 0 = search all events)")
-    loss: str = param("l2", help="loss on the point-to-line residuals: l2 (the paper) | huber")
+    loss: str = param("l2", help="loss on the point-to-line residuals: l2 (the paper) | huber",
+                     choices=("l2", "huber"))
     huber_px: float = param(1.0, help="Huber threshold in pixels (loss=huber): beyond it residuals count linearly")
     limits: dict[str, list[float]] = param(
         default_factory=dict, help="joint-limit overrides {parameter name: [min, max]} in radians (metres for "

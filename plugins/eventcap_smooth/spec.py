@@ -11,11 +11,12 @@ from eventcap.stage import Port, StageSpec, param
 @dataclass
 class SmoothConfig:
     pool: str = param("group", help="one smoothing parameter per group of pose parameters (group: all angles, "
-                                    "root translation) | per parameter (parameter)")
+                                    "root translation) | per parameter (parameter)", choices=("group", "parameter"))
     lam: float = param(0.0, help="smoothing parameter in s³ for every group (0 = chosen from the fits alone by "
                                  "the criterion)")
     criterion: str = param("reml", help="how lam is chosen from the fits alone: reml (restricted likelihood) | gcv "
-                                        "(generalised cross-validation; undersmooths when the fits are few)")
+                                        "(generalised cross-validation; undersmooths when the fits are few)",
+                           choices=("reml", "gcv"))
 
 
 SMOOTH = StageSpec(

@@ -15,7 +15,8 @@ from eventcap.stage import Port, StageSpec, param
 class BatchSolveConfig:
     mode: str = param("batch", help="batch (the method) | per_frame (w/o_batch) | linear (*_linear: fits at the two "
                                     "intensity frames, interpolated) | all (*_all: detections at every frame) | "
-                                    "odometry (events only from S_0's fit, for the fuse stage; not in the paper)")
+                                    "odometry (events only from S_0's fit, for the fuse stage; not in the paper)",
+                     choices=("batch", "per_frame", "linear", "all", "odometry"))
     icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
     lambda_cor: float = param(50.0, help="weight of E_cor, the event correspondences (paper's λ_adj)")
     lambda_2d: float = param(200.0, help="weight of E_2D (image residuals in focal-normalised units)")
@@ -24,7 +25,8 @@ class BatchSolveConfig:
     lambda_3d: float = param(1.0, help="weight of E_3D (metres)")
     lambda_temp: float = param(80.0, help="weight of E_temp, holding joints of parts without correspondences")
     lambda_damp: float = param(1e-3, help="weight of the proximal term towards each solve's start (not in the paper)")
-    phi_scope: str = param("batch", help="E_temp indicator: batch (paper: per batch) | pair (per frame pair)")
+    phi_scope: str = param("batch", help="E_temp indicator: batch (paper: per batch) | pair (per frame pair)",
+                          choices=("batch", "pair"))
     max_tracks: int = param(0, help="use at most this many tracks per batch, the longest (0 = all)")
     edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette/self-occlusion edge of the "
                                             "current estimate give no correspondence (0 = keep all)")

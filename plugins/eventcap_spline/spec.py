@@ -17,7 +17,8 @@ class SplineSolveConfig:
     half_window: int = param(2, help="batches on each side of the batch being solved: the window spans "
                                      "2·half_window + 1 batches (shifted inwards at the ends of the recording)")
     knot_ms: float = param(10.0, help="knot spacing of the cubic B-spline, ms (control points every knot_ms)")
-    prior: str = param("acceleration", help="motion prior: acceleration | jerk (∫‖S''‖² or ∫‖S'''‖² dt)")
+    prior: str = param("acceleration", help="motion prior: acceleration | jerk (∫‖S''‖² or ∫‖S'''‖² dt)",
+                       choices=("acceleration", "jerk"))
     lambda_prior: float = param(5e-4, help="weight of the motion prior, the integral of the squared acceleration "
                                           "(or jerk) of the poses (rad and m, time in s); measured (EKLT, MPJVE in "
                                           "mm/s) 1e-4 -> 5e-4: karate_kick 25 fps 354 -> 302, 10 fps 309 -> 263, "

@@ -62,6 +62,8 @@ def run_synthetic(inputs, config, ctx):
     names = [m.strip() for m in config.motion.split(",") if m.strip()]
     if not names:
         raise ValueError("source.motion: give at least one motion name")
+    if not config.duration_s * 1e6 >= 1:  # also NaN
+        raise ValueError(f"source.duration_s: expected the capture's length in seconds, > 0, got {config.duration_s}")
     cam = camera_for(config)
     sensor = SensorConfig(threshold_pos=config.contrast_threshold, threshold_neg=config.contrast_threshold,
                           threshold_sigma=config.threshold_sigma, refractory_us=config.refractory_us,

@@ -35,14 +35,16 @@ class EkltStageConfig(FeatureRegionConfig):
     max_features: int = param(100, help="Shi-Tomasi corners detected per start image")
     min_distance_px: float = param(10.0, help="minimum distance between corners")
     quality_level: float = param(0.01, help="relative corner quality threshold")
-    warp: str = param("rotation", help="patch warp: translation | rotation | affine")
+    warp: str = param("rotation", help="patch warp: translation | rotation | affine",
+                     choices=("translation", "rotation", "affine"))
     update_every: int = param(60, help="events in a patch between two updates")
     max_cost: float = param(0.8, help="drop a track when 1 - cos(predicted, measured increments) exceeds this")
     lag_gain: float = param(0.45, help="compensation of the DVS threshold lag (0 = off)")
     stitch_px: float = param(4.0, help="forward/backward tracks are stitched at mid-batch within this distance")
     relocate_radius_px: int = param(6, help="half-side of the patch that finds forward points on the end image "
                                     "(backward starts); keep it inside a limb")
-    direction: str = param("both", help="both (forward + backward, stitched) | forward | backward")
+    direction: str = param("both", help="both (forward + backward, stitched) | forward | backward",
+                          choices=("both", "forward", "backward"))
 
 
 @dataclass
