@@ -212,7 +212,10 @@ def test_frames_smooth_pipeline_composes_and_validates():
     assert nodes["smooth"].spec.name == "smooth" and nodes["solve"].spec.name == "split"
     assert nodes["evaluate"].inputs["poses"].node == "solve"
     assert data["outputs"]["poses"] == "solve.poses"
-    # pipeline=paper is today's default DAG
+    # the default DAG is the spline solve's (pipeline=spline); pipeline=paper keeps the paper's solve + refine
     paper, _ = compose_run(config_dir(), ["pipeline=paper"])
     default, _ = compose_run(config_dir(), [])
-    assert paper["pipeline"] == default["pipeline"]
+    spline, _ = compose_run(config_dir(), ["pipeline=spline"])
+    assert default["pipeline"] == spline["pipeline"] and default["outputs"]["poses"] == "cut.poses"
+    assert {"solve", "refine"} <= set(paper["pipeline"]["nodes"]) and "refine" not in default["pipeline"]["nodes"]
+    assert paper["outputs"]["poses"] == "refine.poses"

@@ -280,8 +280,9 @@ def test_failed_batches_are_recorded_and_only_they_are_recomputed(tmp_path):
     import sys
 
     def run(name, *overrides):
-        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "experiment=quick", "source.duration_s=0.09",
-                            "template=procedural", "template.target_faces=3000", "source.n_track_points=60", f"hydra.run.dir=runs/{name}",
+        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "pipeline=paper", "experiment=quick",
+                            "source.duration_s=0.09", "template=procedural", "template.target_faces=3000",
+                            "source.n_track_points=60", f"hydra.run.dir=runs/{name}",
                             *overrides], cwd=tmp_path, capture_output=True, text=True, timeout=600)
         return p, json.loads((tmp_path / "runs" / name / "run.json").read_text())["nodes"]["solve"]
 
