@@ -25,8 +25,9 @@ from eventcap.cli import main
 
 TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy", "outputs.poses=null"]
 #: the real pipeline on a tiny capture with a light template (see conftest.small_capture_config)
-SMALL = ["experiment=quick", "source.duration_s=0.09", "template.target_faces=2000", "source.n_track_points=20",
-         "outputs.video=false"]
+#: (the paper's pipeline: DOWNSTREAM names its nodes)
+SMALL = ["pipeline=paper", "experiment=quick", "source.duration_s=0.09", "template=procedural",
+         "template.target_faces=2000", "source.n_track_points=20", "outputs.video=false"]
 DOWNSTREAM = ("detect", "sharpen", "track", "slice", "solve", "refine", "evaluate")
 
 
@@ -95,8 +96,8 @@ def test_corrupt_chunk_of_a_recording_names_file_array_and_rows(tmp_path, shared
     chunk = rec / "events" / "events" / "x" / "c" / "0"
     _damage(chunk)
     run_dir = tmp_path / "bad"
-    code, log_text = run_main(run_dir, "source=recording", f"source.path={rec}", "template.target_faces=2000",
-                              "outputs.video=false", f"cache_dir={shared_cache}", caplog=caplog)
+    code, log_text = run_main(run_dir, "pipeline=paper", "source=recording", f"source.path={rec}", "template=procedural",
+                              "template.target_faces=2000", "outputs.video=false", f"cache_dir={shared_cache}", caplog=caplog)
     assert code == 1 and (run_dir / "config.yaml").is_file()
     s = summary(run_dir)
     [fail] = s["nodes"]["source"]["failed"]
