@@ -35,12 +35,13 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 TESTS = ROOT / "tests"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from kill_resume import env as toy_env  # noqa: E402
 
 
 def env() -> dict[str, str]:
-    e = dict(os.environ)
-    e["PYTHONPATH"] = os.pathsep.join([str(TESTS), e.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    e["EVENTCAP_STAGES"] = "toy_stages:SPECS"
+    """The toy stages' environment (as kill_resume's), BLAS/OpenMP pinned to one thread."""
+    e = toy_env()
     e.setdefault("OMP_NUM_THREADS", "1")
     return e
 
