@@ -273,6 +273,7 @@ def test_stage_records_solver_statistics():
 
 
 # ------------------------------------------------------------------------------------------------ in the pipeline
+@pytest.mark.slow  # about a minute; the default pipeline's (spline) is tests/test_spline_resume.py, in the default run
 def test_failed_batches_are_recorded_and_only_they_are_recomputed(tmp_path):
     """An iteration cap of 2 fails the solve with IPOPT's status; raising it recomputes only the failed batch."""
     import json
