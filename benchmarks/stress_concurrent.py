@@ -36,7 +36,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 TESTS = ROOT / "tests"
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from kill_resume import env as toy_env  # noqa: E402
+from kill_resume import committed, env as toy_env  # noqa: E402
 
 
 def env() -> dict[str, str]:
@@ -52,18 +52,10 @@ PIPELINES = {
                      "stages.signal.n_batches=8", "stages.signal.sleep_s=0.5", "stages.smooth.sleep_s=0.3",
                      "stages.scale.sleep_s=0.3"],
             "key": "stages.scale.factor", "values": ["1", "2", "3"], "name": "toy"},
-    "tiny": {"base": ["experiment=quick", "source.duration_s=0.09", "template.target_faces=2000",
+    "tiny": {"base": ["experiment=quick", "source.duration_s=0.09", "template=procedural", "template.target_faces=2000",
                       "source.n_track_points=20", "outputs.video=false"],
              "key": "stages.evaluate.every", "values": ["10", "5"], "name": "quick"},
 }
-
-
-def committed(cache: Path) -> dict[str, dict]:
-    out = {}
-    for mf in cache.glob("entries/*/*/manifest.json"):
-        m = json.loads(mf.read_text())
-        out[m["key"]] = {f: v[1] for f, v in m["files"].items()}
-    return out
 
 
 class Job:

@@ -331,8 +331,9 @@ def test_an_entry_another_process_holds_is_put_off_then_waited_for(toy_cfg, tmp_
 def test_the_issues_two_real_runs_at_once_keep_their_own_folders(tmp_path):
     # issue 19's report: a default run and a stages.refine.lambda_sil=2 run started in the same second shared one
     # folder, ending with .hydra/config.yaml from one and config.yaml / metrics.json from the other
-    tiny = ["experiment=quick", "source.duration_s=0.09", "template.target_faces=2000", "source.n_track_points=20",
-            "outputs.video=false", f"cache_dir={tmp_path / 'cache'}"]
+    tiny = ["pipeline=paper", "experiment=quick", "source.duration_s=0.09", "template=procedural",
+            "template.target_faces=2000", "source.n_track_points=20", "outputs.video=false",
+            f"cache_dir={tmp_path / 'cache'}"]  # the issue's runs: the paper's pipeline, whose refine node it varies
     procs = [subprocess.Popen([sys.executable, "-m", "eventcap.cli", "run", *tiny, *extra], cwd=tmp_path,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for extra in ([], ["stages.refine.lambda_sil=2"])]
