@@ -26,17 +26,13 @@ import numpy as np  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from eventcap.body.skeleton import JOINT_INDEX  # noqa: E402
-from eventcap.metrics import truth_at  # noqa: E402
+from eventcap.metrics import central_derivative, root_relative, truth_at  # noqa: E402
 from eventcap.runner import Runner  # noqa: E402
 
 
-def central_speed(t_us: np.ndarray, x: np.ndarray, half_us: int) -> np.ndarray:
-    """|x(t + h) - x(t - h)| / 2h on the 1 ms grid (NaN where the window leaves the motion), m/s."""
-    step = int(np.median(np.diff(t_us)))
-    k = max(1, half_us // step)
-    v = np.full(len(t_us), np.nan)
-    v[k:-k] = np.linalg.norm(x[2 * k:] - x[:-2 * k], axis=1) / ((t_us[2 * k:] - t_us[:-2 * k]) * 1e-6)
-    return v
+def speed(t_us: np.ndarray, x: np.ndarray, window_us: float) -> np.ndarray:
+    """|dx/dt| by the evaluate stage's central differences (NaN where the window leaves the motion), m/s."""
+    return np.linalg.norm(central_derivative(x, t_us, window_us)[0], axis=-1)
 
 
 def main() -> None:
@@ -64,10 +60,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         result = runner.run(Path(tmp))
         gt = runner.load_output(result, "source.recording")[None].ground_truth
-    pelvis, half_us = 0, int(args.window_ms * 500)
+    window_us = args.window_ms * 1000.0
     if args.joint == "auto":
-        rel = gt.joints - gt.joints[:, pelvis:pelvis + 1]
-        fastest = {w: np.nanmax(central_speed(gt.t_us, rel[:, JOINT_INDEX[w]], half_us)) for w in ("l_wrist", "r_wrist")}
+        rel = root_relative(gt.joints)
+        fastest = {w: np.nanmax(speed(gt.t_us, rel[:, JOINT_INDEX[w]], window_us)) for w in ("l_wrist", "r_wrist")}
         args.joint = max(fastest, key=fastest.get)
     j = JOINT_INDEX[args.joint]
     curves = {}
@@ -75,8 +71,8 @@ def main() -> None:
         with np.load(seq / m.replace("/", "_") / "motion.npz") as z:
             t_us, joints = np.asarray(z["t_us"], np.int64), np.asarray(z["joints"], np.float64)
         true, inside = truth_at(gt.t_us, gt.joints, t_us)
-        t, est, tru = t_us[inside], joints[inside][:, j] - joints[inside][:, pelvis], true[:, j] - true[:, pelvis]
-        curves[m] = (t, est, tru, central_speed(t, est, half_us), central_speed(t, tru, half_us))
+        t, est, tru = t_us[inside], root_relative(joints[inside])[:, j], root_relative(true)[:, j]
+        curves[m] = (t, est, tru, speed(t, est, window_us), speed(t, tru, window_us))
     t, _, tru, _, v_true = curves[methods[0]]
     axis = int(np.argmax(np.ptp(tru, axis=0)))
     peak = int(np.nanargmax(v_true))
