@@ -130,13 +130,24 @@ class SplineProblem:
         z = ca.vertcat(S, tp)
         e = lam[0] * e2 + lam[1] * e3
         H, g = ca.hessian(e, z)
-        fn = ca.Function("E_det", [z, *det, lam], [e, g, ca.densify(H), e2, e3])
-        self._det = Buffered(fn.map(self.n_det))
+        # Three mapped functions, so a line search's values and IPOPT's gradients do not pay for the Hessian
+        # (measured: the Hessian is most of the cost of one frame's terms).
+        args = [z, *det, lam]
+        self._det_value = Buffered(ca.Function("E_det", args, [e, e2, e3]).map(self.n_det))
+        self._det_grad = Buffered(ca.Function("E_det_grad", args, [e, g, e2, e3]).map(self.n_det))
+        self._det_hess = Buffered(ca.Function("E_det_hess", args, [ca.densify(H)]).map(self.n_det))
         # --- E_cor at n_cor frames
         self.cor = CorrespondenceEnergy(camera, SkinningKernels(template.rest_joints, self.n_cor),
                                         template.rest_joints)
         # --- the NLP: x = [C (n_ctrl × 33, row-major); t' (n_det × 3)], data through set_window
-        self._sp, self._hr, self._hc = _banded_triu(self.n_ctrl, self.nT)
+        self._sp, hr, hc = _banded_triu(self.n_ctrl, self.nT)
+        # where each nonzero sits in [Hcc (n, n, 33, 33), Hct (nC, nT), Htt (nT, nT)] raveled one after another
+        nC, nT, n = self.nC, self.nT, self.n_ctrl
+        cc, ct = (hr < nC) & (hc < nC), (hr < nC) & (hc >= nC)
+        self._gather = np.where(
+            cc, ((hr // _NP) * n + hc // _NP) * _NP * _NP + (hr % _NP) * _NP + hc % _NP,
+            np.where(ct, n * n * _NP * _NP + hr * nT + (hc - nC),
+                     n * n * _NP * _NP + nC * nT + (hr - nC) * nT + (hc - nC)))
         self._cache: dict = {}
         self._data = None
         nx = self.nx
@@ -144,7 +155,7 @@ class SplineProblem:
             NumpyCallback("E_spline", nx, [ca.Sparsity.dense(1, 1)], lambda v: [self._eval(v, 0)["value"]]),
             NumpyCallback("E_spline_grad", nx, [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(nx, 1)],
                           lambda v: [self._eval(v, 1)["value"], self._eval(v, 1)["grad"]]),
-            NumpyCallback("E_spline_hess", nx, [self._sp], lambda v: [self._hessian(v)[self._hr, self._hc]]),
+            NumpyCallback("E_spline_hess", nx, [self._sp], lambda v: [self._hessian_values(v)]),
         ]
         cb_f, cb_g, cb_h = self._callbacks
         X, P = ca.MX.sym("x", nx), ca.MX.sym("p", 0)
@@ -204,11 +215,15 @@ class SplineProblem:
         w: SplineWeights = D["w"]
         C, T = self._split(x)
         Sd, Se = D["Bd"] @ C, D["Be"] @ C
-        e, g, H, e2, e3 = self._det(np.concatenate([Sd, T], axis=1), *D["det"], D["lam_det"])
+        z = np.concatenate([Sd, T], axis=1)
+        if order == 0:
+            e, e2, e3 = self._det_value(z, *D["det"], D["lam_det"])
+        else:
+            e, g, e2, e3 = self._det_grad(z, *D["det"], D["lam_det"])
         QC = D["Q"] @ C
         dx = x - D["x_ref"]
         e_prior = float(np.sum(C * QC))
-        out = {"key": key, "order": order, "Sd": Sd, "Se": Se,
+        out = {"key": key, "order": order, "z": z, "Se": Se,
                "det": float(e.sum()), "2d": float(e2.sum()), "3d": float(e3.sum()), "prior": e_prior,
                "damp": float(dx @ dx)}
         if order == 0:
@@ -218,40 +233,61 @@ class SplineProblem:
             gz = g.reshape(self.n_det, _NP + 3)
             gC = D["Bd"].T @ gz[:, :_NP] + D["Be"].T @ gS + (2.0 * w.prior) * QC
             grad = np.concatenate([gC.ravel(), gz[:, _NP:].ravel()]) + (2.0 * w.damp) * dx
-            out.update(grad=grad, Hdet=H.reshape(self.n_det, _NP + 3, _NP + 3))
+            out["grad"] = grad
         out["value"] = out["det"] + out["cor_w"] + w.prior * e_prior + w.damp * out["damp"]
         self._cache = out
         return out
 
-    def _hessian(self, x) -> np.ndarray:
-        """The full (symmetric, dense) Hessian of the energy at x."""
+    def _hessian_parts(self, x) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The Hessian of the energy at x in three parts: control-point blocks (n_ctrl, n_ctrl, 33, 33) for every
+        pair (i, j), the (C, t') block (nC, nT) and the t' block (nT, nT)."""
         c = self._eval(x, 1)
         D = self._data
-        n, nC = self.n_ctrl, self.nC
-        Hx = np.zeros((self.nx, self.nx))
+        n = self.n_ctrl
+        nn = n * n
         # detections: S_d = b_dᵀ C
-        Bd, Hd = D["Bd"], c["Hdet"]
-        Wd = (Bd[:, :, None] * Bd[:, None, :]).reshape(self.n_det, n * n)
-        Hcc = (Wd.T @ Hd[:, :_NP, :_NP].reshape(self.n_det, -1)).reshape(n, n, _NP, _NP)
-        Hx[:nC, :nC] = Hcc.transpose(0, 2, 1, 3).reshape(nC, nC)
-        Hct = np.einsum("di,dab->iadb", Bd, Hd[:, :_NP, _NP:]).reshape(nC, self.nT)
-        Hx[:nC, nC:] = Hct
-        Hx[nC:, :nC] = Hct.T
-        for d in range(self.n_det):
-            Hx[nC + 3 * d:nC + 3 * d + 3, nC + 3 * d:nC + 3 * d + 3] = Hd[d, _NP:, _NP:]
-        # correspondences: S_f = b_fᵀ C, block-tridiagonal in f
+        Bd = D["Bd"]
+        Hd = self._det_hess(c["z"], *D["det"], D["lam_det"])[0].reshape(self.n_det, _NP + 3, _NP + 3)
+        Wd = (Bd[:, :, None] * Bd[:, None, :]).reshape(self.n_det, nn)
+        Hcc = Wd.T @ Hd[:, :_NP, :_NP].reshape(self.n_det, -1)
+        # correspondences: S_f = b_fᵀ C, block-tridiagonal in f (upper block u_f couples f and f+1)
         diag, upper = self.cor.hessian(c["Se"], D["phi"], D["lam_cor"])
         Be = D["Be"]
-        Wdg = (Be[:, :, None] * Be[:, None, :]).reshape(self.n_cor, n * n)
-        Wup = (Be[:-1, :, None] * Be[1:, None, :]).reshape(self.n_cor - 1, n * n)
-        Hd4 = (Wdg.T @ diag.reshape(self.n_cor, -1)).reshape(n, n, _NP, _NP).transpose(0, 2, 1, 3).reshape(nC, nC)
-        Hu4 = (Wup.T @ upper.reshape(self.n_cor - 1, -1)).reshape(n, n, _NP, _NP).transpose(0, 2, 1, 3)
-        Hu4 = Hu4.reshape(nC, nC)
-        Hx[:nC, :nC] += Hd4 + Hu4 + Hu4.T
-        # prior and proximal term
-        Hx[:nC, :nC] += D["Hprior"]
-        Hx[np.diag_indices(self.nx)] += 2.0 * D["w"].damp
+        Hcc += ((Be[:, :, None] * Be[:, None, :]).reshape(self.n_cor, nn).T @ diag.reshape(self.n_cor, -1))
+        Hcc += ((Be[:-1, :, None] * Be[1:, None, :]).reshape(self.n_cor - 1, nn).T
+                @ upper.reshape(self.n_cor - 1, -1))
+        Hcc += ((Be[1:, :, None] * Be[:-1, None, :]).reshape(self.n_cor - 1, nn).T
+                @ upper.transpose(0, 2, 1).reshape(self.n_cor - 1, -1))
+        Hcc = Hcc.reshape(n, n, _NP, _NP)
+        # prior (2 λ Q ⊗ I) and proximal term on the diagonal
+        w = D["w"]
+        diag_idx = np.arange(_NP)
+        Hcc[:, :, diag_idx, diag_idx] += (2.0 * w.prior) * D["Q"][:, :, None]
+        ii = np.arange(n)
+        Hcc[ii[:, None], ii[:, None], diag_idx[None, :], diag_idx[None, :]] += 2.0 * w.damp
+        Hct = np.einsum("di,dab->iadb", Bd, Hd[:, :_NP, _NP:]).reshape(self.nC, self.nT)
+        Htt = np.zeros((self.nT, self.nT))
+        for d in range(self.n_det):
+            Htt[3 * d:3 * d + 3, 3 * d:3 * d + 3] = Hd[d, _NP:, _NP:]
+        Htt[np.diag_indices(self.nT)] += 2.0 * w.damp
+        return Hcc, Hct, Htt
+
+    def _hessian(self, x) -> np.ndarray:
+        """The full (symmetric, dense) Hessian of the energy at x, every block included (for checks: IPOPT gets
+        :meth:`_hessian_values`)."""
+        Hcc, Hct, Htt = self._hessian_parts(x)
+        nC = self.nC
+        Hx = np.zeros((self.nx, self.nx))
+        Hx[:nC, :nC] = Hcc.transpose(0, 2, 1, 3).reshape(nC, nC)
+        Hx[:nC, nC:] = Hct
+        Hx[nC:, :nC] = Hct.T
+        Hx[nC:, nC:] = Htt
         return Hx
+
+    def _hessian_values(self, x) -> np.ndarray:
+        """The Hessian's nonzeros in the declared sparsity's order, gathered from its parts (no dense matrix)."""
+        Hcc, Hct, Htt = self._hessian_parts(x)
+        return np.concatenate([Hcc.ravel(), Hct.ravel(), Htt.ravel()])[self._gather]
 
     # ------------------------------------------------------------------ solving
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
