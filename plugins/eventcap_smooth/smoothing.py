@@ -22,9 +22,10 @@ estimate sum |(I - H) y|^2 / (n - tr H) per column tells the fits' noise.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
+
+from eventcap.smoothing import MIN_KNOTS, GcvChoice, GcvCurve, penalty_matrix  # noqa: F401 (re-exported)
 
 #: The parameter groups sharing one smoothing parameter with ``pool=group`` (skeleton layout S = [theta (27), root
 #: rotation (3), root translation (3)]): all angles (joint angles and root rotation, radians) and the root
@@ -33,86 +34,6 @@ import numpy as np
 GROUPS: dict[str, slice] = {"angles": slice(0, 30), "root_translation": slice(30, 33)}
 ROOT_ROTATION = slice(27, 30)
 POOLS = ("group", "parameter")
-MIN_KNOTS = 5  # make_smoothing_spline needs at least 5 points
-
-
-@dataclass(frozen=True)
-class GcvChoice:
-    lam: float          # the smoothing parameter (s³)
-    dof: float          # tr H: effective number of parameters (2: a straight line .. n: interpolation)
-    sigma: np.ndarray   # residual standard deviation per column, sqrt(RSS / (n - tr H))
-    gcv: float
-
-
-def penalty_matrix(x: np.ndarray) -> np.ndarray:
-    """K (n, n) with integral f''² = y^T K y for the natural cubic spline interpolating y at knots x (Green &
-    Silverman 1994, Sec. 2.1: K = Q R^-1 Q^T). The smoothing spline's values at the knots are (I + lam K)^-1 y."""
-    x = np.asarray(x, dtype=np.float64)
-    n = x.size
-    h = np.diff(x)
-    Q = np.zeros((n, n - 2))
-    j = np.arange(n - 2)
-    Q[j, j] = 1.0 / h[:-1]
-    Q[j + 1, j] = -1.0 / h[:-1] - 1.0 / h[1:]
-    Q[j + 2, j] = 1.0 / h[1:]
-    R = np.diag((h[:-1] + h[1:]) / 3.0) + np.diag(h[1:-1] / 6.0, 1) + np.diag(h[1:-1] / 6.0, -1)
-    return Q @ np.linalg.solve(R, Q.T)
-
-
-class GcvCurve:
-    """GCV of every lam for the columns of some Y at fixed knots, from one eigendecomposition K = U diag(d) U^T:
-    H(lam) = U diag(1 / (1 + lam d)) U^T, so tr H and the residuals cost O(n·C) per lam."""
-
-    def __init__(self, x: np.ndarray):
-        self.x = np.asarray(x, dtype=np.float64)
-        if self.x.size < MIN_KNOTS:
-            raise ValueError(f"a smoothing spline needs at least {MIN_KNOTS} knots, got {self.x.size}")
-        d, self.U = np.linalg.eigh(penalty_matrix(self.x))
-        self.d = np.maximum(d, 0.0)  # two zero eigenvalues (straight lines), the rest positive
-
-    def score(self, Y: np.ndarray, lam: float) -> tuple[float, float, np.ndarray]:
-        """(GCV, tr H, RSS per column) for the columns of Y (n, C)."""
-        n = self.x.size
-        z = self.U.T @ np.asarray(Y, dtype=np.float64).reshape(n, -1)
-        shrink = lam * self.d / (1.0 + lam * self.d)  # eigenvalues of I - H
-        rss = np.sum((shrink[:, None] * z) ** 2, axis=0)
-        tr = float(np.sum(1.0 / (1.0 + lam * self.d)))
-        return float(n * rss.sum() / max(n - tr, 1e-9) ** 2), tr, rss
-
-    def choose(self, Y: np.ndarray, decades: tuple[float, float] = (-4.0, 10.0), per_decade: int = 20) -> GcvChoice:
-        """The lam minimising GCV for the columns of Y, over lam = h³ · 10^k, k in ``decades`` (h the median knot
-        spacing: from near interpolation to near a straight line), ``per_decade`` points per decade."""
-        h3 = float(np.median(np.diff(self.x))) ** 3
-        ks = np.linspace(decades[0], decades[1], int(round((decades[1] - decades[0]) * per_decade)) + 1)
-        scores = [self.score(Y, h3 * 10.0**k)[0] for k in ks]
-        lam = h3 * 10.0 ** ks[int(np.argmin(scores))]
-        g, tr, rss = self.score(Y, lam)
-        return GcvChoice(lam=lam, dof=tr, sigma=np.sqrt(rss / max(self.x.size - tr, 1e-9)), gcv=g)
-
-
-    def reml(self, Y: np.ndarray, lam: float) -> float:
-        """-2 log restricted (marginal) likelihood of the columns of Y (n, C) for one lam, up to a constant, with
-        the noise variance profiled out (one per call: the columns share it). In the eigenbasis z = U^T y the
-        penalised components are independent with variance sigma² (1 + lam d_i) / (lam d_i); the two unpenalised
-        ones (straight lines) carry no information on lam and are left out (restricted likelihood)."""
-        pen = self.d > 1e-9 * self.d.max()
-        z = (self.U.T @ np.asarray(Y, dtype=np.float64).reshape(self.x.size, -1))[pen]
-        m, C = z.shape
-        w = lam * self.d[pen] / (1.0 + lam * self.d[pen])  # 1 / variance factor
-        q = float(np.sum(w[:, None] * z * z))
-        return m * C * np.log(max(q, 1e-300) / (m * C)) - C * float(np.sum(np.log(w)))
-
-    def choose_reml(self, Y: np.ndarray, decades: tuple[float, float] = (-4.0, 10.0),
-                    per_decade: int = 20) -> GcvChoice:
-        """The lam maximising the restricted likelihood (REML) on the same grid as :meth:`choose`. With few fits
-        GCV often picks near-interpolation (measured: 10 of 11 degrees of freedom on dance_spin's 0.4 s, MPJVE
-        1768 mm/s), REML does not (2.2, MPJVE 366 mm/s) and agrees with GCV where GCV is sound."""
-        h3 = float(np.median(np.diff(self.x))) ** 3
-        ks = np.linspace(decades[0], decades[1], int(round((decades[1] - decades[0]) * per_decade)) + 1)
-        scores = [self.reml(Y, h3 * 10.0**k) for k in ks]
-        lam = h3 * 10.0 ** ks[int(np.argmin(scores))]
-        g, tr, rss = self.score(Y, lam)
-        return GcvChoice(lam=lam, dof=tr, sigma=np.sqrt(rss / max(self.x.size - tr, 1e-9)), gcv=g)
 
 
 CRITERIA = ("reml", "gcv")
