@@ -22,7 +22,7 @@ from eventcap.sim.capture import _pick_track_points, _track_points
 from eventcap.stage import StageContext, StageFailed
 from eventcap.testing import StageConformance
 from eventcap_spline._impl import cor_frames, window_of
-from eventcap_spline.solve import SplineProblem, SplineWeights, solve_window
+from eventcap_spline.solve import SplineProblem, SplineWeights, gains_from_fits, solve_window
 
 H_US = 10_000  # knot spacing of the test splines
 EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
@@ -70,6 +70,40 @@ def test_fit_reproduces_a_cubic_and_smoothing_keeps_a_straight_line():
     line = 0.3 + 5.0 * ts
     C = spl.fit(t, line[:, None], smooth=1.0, deriv=2, ridge=0.0)  # zero acceleration: not penalised at all
     np.testing.assert_allclose(spl.evaluate(C, tq)[:, 0], 0.3 + 5.0 * tqs, atol=1e-9)
+
+
+def test_fit_with_a_smoothing_per_column_equals_the_columns_fitted_one_by_one():
+    spl = UniformCubicBSpline(0, H_US, 8)
+    t = np.linspace(0, spl.t1_us, 9)
+    Y = np.random.default_rng(3).normal(size=(9, 3))
+    sm = np.array([1e-6, 1e-3, 1.0])
+    C = spl.fit(t, Y, smooth=sm)
+    for c in range(3):
+        np.testing.assert_allclose(C[:, c], spl.fit(t, Y[:, c], smooth=sm[c]), atol=1e-10)
+    # a stiffer column is smoother: its acceleration integral is smaller
+    acc = np.einsum("ic,ij,jc->c", C, spl.gram(2), C)
+    assert acc[2] < 1e-3 * acc[0]
+    with pytest.raises(ValueError, match="2 smoothing values for 3 columns"):
+        spl.fit(t, Y, smooth=sm[:2])
+
+
+def test_prior_gain_is_large_for_a_parameter_at_rest_and_one_for_a_moving_one():
+    """20 fits at 10 fps: a parameter at rest (only noise of 0.2 rad), one moving 1 rad at 1 Hz with little noise,
+    one moving with the same noise. REML smooths the resting one most (its fits are all noise), the clean mover
+    least; with the detections' curvature 1 per rad² and λ_prior 5e-4 the resting one's prior gets ~36x stiffer,
+    the movers keep λ_prior (the gain never goes below 1)."""
+    rng = np.random.default_rng(0)
+    t = np.arange(20) * 100_000
+    ts = t * 1e-6
+    fits = np.stack([0.3 + rng.normal(0, 0.2, 20), np.sin(2 * np.pi * ts) + rng.normal(0, 0.02, 20),
+                     np.sin(2 * np.pi * ts) + rng.normal(0, 0.2, 20)], axis=1)
+    gain, lam = gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 100.0)
+    assert lam[0] > 100 * lam[2] > 100 * lam[1]
+    assert gain[0] > 20 and gain[1] == gain[2] == 1.0
+    np.testing.assert_allclose(gain[0], lam[0] / 5e-4)
+    # detections that weigh 10x less need 10x less prior; the clip holds
+    assert gains_from_fits(t, fits, np.full(3, 0.1), 5e-4, 100.0)[0][0] == pytest.approx(gain[0] / 10)
+    assert gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 10.0)[0][0] == 10.0
 
 
 def test_windows_cover_the_batch_and_shift_inwards_at_the_ends():
@@ -129,7 +163,8 @@ def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
     tp = rng.normal(0, 0.05, (t_det.size, 3))
     x = np.concatenate([C.ravel(), tp.ravel()])
     w = SplineWeights(**{n: (1.0 if n == term else 0.0) for n in ("d2", "d3", "cor", "prior", "damp")})
-    prob.set_window(spl, t_det, det, t_us, corr, w, x + rng.normal(0, 0.01, x.shape))
+    gain = rng.uniform(1.0, 50.0, 33)  # the prior's gain per parameter (prior_gain_max > 1)
+    prob.set_window(spl, t_det, det, t_us, corr, w, x + rng.normal(0, 0.01, x.shape), gain)
     f = lambda v: float(prob.objective(v))
     grad = lambda v: np.asarray(prob.gradient(v)[1]).ravel()
     g = grad(x)

@@ -96,10 +96,18 @@ class UniformCubicBSpline:
             Q[s:s + 4, s:s + 4] += M
         return Q
 
-    def fit(self, t_us, values: np.ndarray, smooth: float, deriv: int = 2, ridge: float = 1e-9) -> np.ndarray:
+    def fit(self, t_us, values: np.ndarray, smooth, deriv: int = 2, ridge: float = 1e-9) -> np.ndarray:
         """Control points (n_ctrl, ...) of the penalised least-squares fit
-        min Σ_k ‖S(t_k) - values_k‖² + smooth · ∫ ‖S^(deriv)‖² dt (+ ridge ‖C‖² so that it is always unique)."""
+        min Σ_k ‖S(t_k) - values_k‖² + smooth · ∫ ‖S^(deriv)‖² dt (+ ridge ‖C‖² so that it is always unique).
+        smooth: one number, or one per column of values (K, C) (each column then has its own)."""
         B = self.basis(t_us)
-        A = B.T @ B + smooth * self.gram(deriv) + ridge * np.eye(self.n_ctrl)
+        G, I = self.gram(deriv), ridge * np.eye(self.n_ctrl)
         v = np.asarray(values, dtype=np.float64)
-        return np.linalg.solve(A, B.T @ v.reshape(v.shape[0], -1)).reshape((self.n_ctrl,) + v.shape[1:])
+        V = B.T @ v.reshape(v.shape[0], -1)
+        if np.ndim(smooth) == 0:
+            return np.linalg.solve(B.T @ B + float(smooth) * G + I, V).reshape((self.n_ctrl,) + v.shape[1:])
+        sm = np.asarray(smooth, dtype=np.float64).ravel()
+        if sm.size != V.shape[1]:
+            raise ValueError(f"fit: {sm.size} smoothing values for {V.shape[1]} columns")
+        A = (B.T @ B + I)[None] + sm[:, None, None] * G[None]
+        return np.linalg.solve(A, V.T[:, :, None])[:, :, 0].T.reshape((self.n_ctrl,) + v.shape[1:])

@@ -106,9 +106,22 @@ def run_spline(inputs, config, ctx):
                      "%.2f s (once per process)", spline.n_ctrl, t_det.size, idx.size, prob.build_seconds)
         ctx.stats["build_s"] = prob.build_seconds
     what = f"{where} (window of batches {a}..{z})"
+    gain_max, ctx_s = float(config.prior_gain_max), float(config.prior_context_s)
+    if not (math.isfinite(gain_max) and gain_max >= 1 and math.isfinite(ctx_s) and ctx_s >= 0):
+        raise StageFailed(f"stages.spline.prior_gain_max / prior_context_s: expected a number >= 1 and seconds >= 0, "
+                          f"got {config.prior_gain_max!r} / {config.prior_context_s!r}", status="invalid_config")
+    context = None
+    if gain_max > 1:
+        frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+        reach = int(round(ctx_s * 1e6))
+        t_ctx = frames[(frames >= t_det[0] - reach) & (frames <= t_det[-1] + reach)]
+        try:
+            context = (t_ctx, select_detections(detections, t_ctx))
+        except ValueError as exc:
+            raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
     try:
         res = solve_window(prob, spline, t_det, det, t_us[idx], xy, valid, weights, int(config.icp_rounds),
-                           config.edge_margin_px, what=what)
+                           config.edge_margin_px, what=what, context=context, gain_max=gain_max)
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
         if what in str(exc):
             raise
@@ -127,6 +140,12 @@ def run_spline(inputs, config, ctx):
     ctx.log.info("%s: window of batches %d..%d (%d frames of detections, %d fitted here, %d control points), %d "
                  "correspondences, %d IPOPT iterations, %.2f s (%s)", where, a, z, t_det.size, res.fits_computed,
                  spline.n_ctrl, res.energies["n_correspondences"], iters, secs, res.solves[-1].status)
+    if res.prior_gain is not None:
+        g = res.prior_gain
+        ctx.log.info("%s: motion prior gains from %d frames around the window: median %.3g, %d of 33 parameters at "
+                     "the largest (%g)", where, context[0].size, float(np.median(g)),
+                     int(np.sum(g >= gain_max * (1 - 1e-9))), gain_max)
+        ctx.stats["prior_gain"] = [float(v) for v in g]
     ctx.stats.update({"solve_s": secs, "phases_s": res.seconds, "iterations": iters, "window": [a, z],
                       "fits_computed": res.fits_computed,
                       "solves": [[s.status, s.iterations, s.seconds] for s in res.solves],

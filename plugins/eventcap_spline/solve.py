@@ -53,6 +53,7 @@ from eventcap.energy.detections import (
 from eventcap.energy.ipopt import IpoptSettings, NumpyCallback, SolveStats, checked_bounds, run_ipopt
 from eventcap.energy.kernels import Buffered, SkinningKernels
 from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
+from eventcap.stage import StageFailed
 
 _NP = NUM_POSE_PARAMS
 #: Per-frame fits of this process, by (fitter, weights, detections of the frame): each frame is in several windows.
@@ -88,6 +89,7 @@ class WindowResult:
     solves: tuple[SolveStats, ...]  #: the spline solves (one per ICP round)
     seconds: dict
     fits_computed: int = 0  #: per-frame fits computed for this window (the others came from neighbouring windows)
+    prior_gain: np.ndarray | None = None  #: (33,) the prior's gain per parameter (None: 1)
 
 
 def _banded_triu(n_ctrl: int, n_t: int):
@@ -174,9 +176,11 @@ class SplineProblem:
 
     # ------------------------------------------------------------------ data of one window
     def set_window(self, spline: UniformCubicBSpline, t_det_us, det: FrameDetections, t_cor_us,
-                   corr: Correspondences, weights: SplineWeights, x_ref: np.ndarray) -> None:
+                   corr: Correspondences, weights: SplineWeights, x_ref: np.ndarray,
+                   prior_gain: np.ndarray | None = None) -> None:
         """Hand one window's data to the energy: the spline basis, detections at t_det_us (n_det rows),
-        correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x."""
+        correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x, and
+        the motion prior's gain per pose parameter (33,) (its weight is λ_prior · gain_p; default 1)."""
         if spline.n_seg != self.n_seg:
             raise ValueError(f"set_window: the problem was built for {self.n_seg} knot intervals, got {spline.n_seg}")
         if det.n != self.n_det or np.size(t_det_us) != self.n_det:
@@ -187,12 +191,15 @@ class SplineProblem:
         x_ref = np.asarray(x_ref, dtype=np.float64)
         if x_ref.shape != (self.nx,):
             raise ValueError(f"set_window: expected x_ref of shape ({self.nx},), got {x_ref.shape}")
+        gain = np.ones(_NP) if prior_gain is None else np.asarray(prior_gain, dtype=np.float64)
+        if gain.shape != (_NP,) or not np.all(np.isfinite(gain) & (gain > 0)):
+            raise ValueError(f"set_window: expected a positive prior gain per pose parameter ({_NP},), got "
+                             f"{np.shape(prior_gain)}")
         self.cor.set_correspondences(corr, relative=True)
         dv = [det_values(det, d) for d in range(self.n_det)]
-        Q = spline.gram(self.order)
         self._data = {
-            "Bd": spline.basis(t_det_us), "Be": spline.basis(t_cor_us), "Q": Q,
-            "Hprior": (2.0 * weights.prior) * np.kron(Q, np.eye(_NP)),
+            "Bd": spline.basis(t_det_us), "Be": spline.basis(t_cor_us), "Q": spline.gram(self.order),
+            "wp": weights.prior * gain,
             "det": [np.concatenate([v[k] for v in dv]) for k in range(4)],
             "lam_det": np.tile([weights.d2, weights.d3], self.n_det), "w": weights, "x_ref": x_ref,
             "phi": np.zeros((self.n_cor - 1, NUM_JOINTS)), "lam_cor": np.array([weights.cor, 0.0]),
@@ -220,9 +227,9 @@ class SplineProblem:
             e, e2, e3 = self._det_value(z, *D["det"], D["lam_det"])
         else:
             e, g, e2, e3 = self._det_grad(z, *D["det"], D["lam_det"])
-        QC = D["Q"] @ C
+        QC = D["Q"] @ C * D["wp"]  # λ_prior · gain_p · Q C_p per parameter p
         dx = x - D["x_ref"]
-        e_prior = float(np.sum(C * QC))
+        e_prior = float(np.sum(C * QC))  # the weighted prior
         out = {"key": key, "order": order, "z": z, "Se": Se,
                "det": float(e.sum()), "2d": float(e2.sum()), "3d": float(e3.sum()), "prior": e_prior,
                "damp": float(dx @ dx)}
@@ -231,10 +238,10 @@ class SplineProblem:
         else:
             out["cor_w"], gS = self.cor.gradient(Se, D["phi"], D["lam_cor"])
             gz = g.reshape(self.n_det, _NP + 3)
-            gC = D["Bd"].T @ gz[:, :_NP] + D["Be"].T @ gS + (2.0 * w.prior) * QC
+            gC = D["Bd"].T @ gz[:, :_NP] + D["Be"].T @ gS + 2.0 * QC
             grad = np.concatenate([gC.ravel(), gz[:, _NP:].ravel()]) + (2.0 * w.damp) * dx
             out["grad"] = grad
-        out["value"] = out["det"] + out["cor_w"] + w.prior * e_prior + w.damp * out["damp"]
+        out["value"] = out["det"] + out["cor_w"] + e_prior + w.damp * out["damp"]
         self._cache = out
         return out
 
@@ -259,10 +266,10 @@ class SplineProblem:
         Hcc += ((Be[1:, :, None] * Be[:-1, None, :]).reshape(self.n_cor - 1, nn).T
                 @ upper.transpose(0, 2, 1).reshape(self.n_cor - 1, -1))
         Hcc = Hcc.reshape(n, n, _NP, _NP)
-        # prior (2 λ Q ⊗ I) and proximal term on the diagonal
+        # prior (2 Q ⊗ diag(λ_prior · gain)) and proximal term on the diagonal
         w = D["w"]
         diag_idx = np.arange(_NP)
-        Hcc[:, :, diag_idx, diag_idx] += (2.0 * w.prior) * D["Q"][:, :, None]
+        Hcc[:, :, diag_idx, diag_idx] += 2.0 * D["Q"][:, :, None] * D["wp"][None, None, :]
         ii = np.arange(n)
         Hcc[ii[:, None], ii[:, None], diag_idx[None, :], diag_idx[None, :]] += 2.0 * w.damp
         Hct = np.einsum("di,dab->iadb", Bd, Hd[:, :_NP, _NP:]).reshape(self.nC, self.nT)
@@ -311,33 +318,109 @@ def fit_window(problem: SplineProblem, det: FrameDetections,
     stats = []
     computed = 0
     for d in range(det.n):
-        # A frame's fit is a deterministic function of its detections: neighbouring windows share it.
-        key = (id(problem.fitter), weights.d2, weights.d3, *(v.tobytes() for v in det_values(det, d)))
-        if key not in _FITS:
-            if len(_FITS) > 256:
-                _FITS.clear()
-            _FITS[key] = problem.fitter.fit(det, d, weights.d2, weights.d3, 1e-3)
-            computed += 1
-        s, t, st = _FITS[key]
+        (s, t, st), new = frame_fit(problem, det, d, weights)
+        computed += new
         S[d], T[d] = (unwrap_root(s, S[d - 1]) if d else s), t
         stats.append(st)
     return S, T, stats, computed
 
 
+def frame_fit(problem: SplineProblem, det: FrameDetections, d: int, weights: SplineWeights):
+    """The per-frame fit of detection frame d, ((S, t', stats), whether it was computed now). A frame's fit is a
+    deterministic function of its detections, so neighbouring windows of this process share it."""
+    key = (id(problem.fitter), weights.d2, weights.d3, *(v.tobytes() for v in det_values(det, d)))
+    if key in _FITS:
+        return _FITS[key], 0
+    if len(_FITS) > 512:
+        _FITS.clear()
+    _FITS[key] = problem.fitter.fit(det, d, weights.d2, weights.d3, 1e-3)
+    return _FITS[key], 1
+
+
+@dataclass(frozen=True)
+class PriorGain:
+    """The motion prior's gain per pose parameter of one window, chosen from the per-frame fits around it."""
+
+    gain: np.ndarray  #: (33,) in [1, gain_max]
+    lam: np.ndarray  #: (33,) REML smoothing parameter of each parameter's fits (s³)
+    curvature: np.ndarray  #: (33,) mean diagonal of the detection terms' Hessian at the window's fits / 2
+    n_fits: int  #: fits in the context
+    fits_computed: int
+
+
+def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetections, window_fits: np.ndarray,
+               window_tp: np.ndarray, det: FrameDetections, weights: SplineWeights, gain_max: float) -> PriorGain:
+    """How much stiffer than λ_prior the prior of each pose parameter should be, from the data alone.
+
+    The per-frame fits y_p(t_k) at the intensity frames around the window (t_ctx_us, their detections det_ctx)
+    are each parameter's samples of a smoothing-spline model, y = f + noise with ∫ f''² penalised by lam_p; lam_p
+    is chosen by REML (:mod:`eventcap.smoothing`): large where the fits vary no more than their noise (a limb at
+    rest, an angle the detections cannot tell), small where the parameter moves. In the window's energy a
+    parameter's detections weigh about a_p (the detection terms' curvature, mean diagonal of their Hessian at the
+    window's fits / 2) per rad², so the same trade-off there is a prior weight of a_p · lam_p; the gain is that over
+    λ_prior, clipped to [1, gain_max]: the prior never gets weaker than its default, and static parameters stop
+    wiggling with the detections' noise. Frames of the context whose fit fails are left out."""
+    from eventcap.smoothing import MIN_KNOTS
+
+    S, computed = [], 0
+    keep = []
+    for d in range(det_ctx.n):
+        try:
+            (s, _, _), new = frame_fit(problem, det_ctx, d, weights)
+        except StageFailed:
+            continue
+        computed += new
+        S.append(unwrap_root(s, S[-1]) if S else s)
+        keep.append(d)
+    z = np.concatenate([window_fits, window_tp], axis=1)
+    dv = [det_values(det, d) for d in range(det.n)]
+    H = problem._det_hess(z, *[np.concatenate([v[k] for v in dv]) for k in range(4)],
+                          np.tile([weights.d2, weights.d3], det.n))[0].reshape(det.n, _NP + 3, _NP + 3)
+    a = np.maximum(np.einsum("dpp->dp", H[:, :_NP, :_NP]).mean(0) / 2.0, 0.0)
+    if len(keep) < MIN_KNOTS or weights.prior <= 0 or gain_max <= 1:
+        return PriorGain(np.ones(_NP), np.full(_NP, np.nan), a, len(keep), computed)
+    gain, lam = gains_from_fits(np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S), a, weights.prior,
+                                gain_max)
+    return PriorGain(gain, lam, a, len(keep), computed)
+
+
+def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, lam_prior: float,
+                    gain_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """(gain (P,), lam (P,)): each column p of fits (K, P) at times t_us (K,) gets the REML smoothing parameter
+    lam_p (s³) of a cubic smoothing spline through it, and the gain clip(curvature_p · lam_p / lam_prior, 1,
+    gain_max) of :func:`prior_gain`."""
+    from eventcap.smoothing import GcvCurve
+
+    t = np.asarray(t_us, dtype=np.int64)
+    curve = GcvCurve((t - t[0]) * 1e-6)
+    Y = np.asarray(fits, dtype=np.float64)
+    lam = np.array([curve.choose_reml(Y[:, p:p + 1]).lam for p in range(Y.shape[1])])
+    return np.clip(np.asarray(curvature) * lam / lam_prior, 1.0, float(gain_max)), lam
+
+
 def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: np.ndarray, det: FrameDetections,
                  t_cor_us: np.ndarray, xy: np.ndarray, valid: np.ndarray, weights: SplineWeights = SplineWeights(),
-                 icp_rounds: int = 2, edge_margin_px: float = 1.0, what: str = "window") -> WindowResult:
+                 icp_rounds: int = 2, edge_margin_px: float = 1.0, what: str = "window",
+                 context: tuple[np.ndarray, FrameDetections] | None = None, gain_max: float = 1.0) -> WindowResult:
     """Solve one window: fits at its detection frames, a smoothing spline through them as the start, then
     ``icp_rounds`` alternations of correspondence search (at the current spline's poses at t_cor_us, with the
-    tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve."""
+    tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve.
+
+    context: (times, detections) of the intensity frames around the window from which the prior's gain per
+    parameter is chosen (:func:`prior_gain`, up to gain_max); None: the prior is λ_prior for every parameter."""
     if int(icp_rounds) != icp_rounds or icp_rounds < 0:
         raise ValueError(f"icp_rounds: expected an integer >= 0, got {icp_rounds!r}")
     seconds = {}
     t0 = time.perf_counter()
     fits, tps, _, n_fits = fit_window(problem, det, weights)
+    gain = None
+    if context is not None and gain_max > 1:
+        pg = prior_gain(problem, context[0], context[1], fits, tps, det, weights, gain_max)
+        gain, n_fits = pg.gain, n_fits + pg.fits_computed
     solves = []
     # Start: a penalised spline through the fits (the same prior; fits weighted as ~1 per rad² of error).
-    C = spline.fit(t_det_us, fits, smooth=max(weights.prior, 1e-12), deriv=problem.order)
+    smooth = max(weights.prior, 1e-12) if gain is None else max(weights.prior, 1e-12) * gain
+    C = spline.fit(t_det_us, fits, smooth=smooth, deriv=problem.order)
     C = np.clip(C, problem.lower, problem.upper)
     x = np.concatenate([C.ravel(), tps.ravel()])
     seconds["fit"] = time.perf_counter() - t0
@@ -348,21 +431,23 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         Se = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_cor_us)
         corr = find_correspondences(problem.template, problem.camera, Se, xy, valid, edge_margin_px)
         t2 = time.perf_counter()
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain)
         x, st = problem.solve(x, f"{what}: spline solve (ICP round {r + 1})")
         solves.append(SolveStats(st.status, st.iterations, st.seconds, corr.n))
         seconds["correspondences"] += t2 - t1
         seconds["solve"] += time.perf_counter() - t2
     if icp_rounds == 0:  # detections and prior only (no events)
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain)
         x, st = problem.solve(x, f"{what}: spline solve (no correspondences)")
         solves.append(st)
     c = problem._eval(x, 0)
     energies = {"2d": c["2d"], "3d": c["3d"], "cor": c["cor_w"] / weights.cor if weights.cor else 0.0,
-                "prior": c["prior"], "total": c["value"], "n_correspondences": corr.n}
+                "prior": c["prior"] / weights.prior if weights.prior else 0.0, "total": c["value"],
+                "n_correspondences": corr.n}
     C, T = problem._split(x)
     return WindowResult(spline=spline, control=C.copy(), t_prime=T.copy(), fits=fits, energies=energies,
-                        solves=tuple(solves), seconds=seconds, fits_computed=n_fits)
+                        solves=tuple(solves), seconds=seconds, fits_computed=n_fits, prior_gain=gain)
 
 
-__all__ = ["SplineProblem", "SplineWeights", "WindowResult", "fit_window", "solve_window"]
+__all__ = ["PriorGain", "SplineProblem", "SplineWeights", "WindowResult", "fit_window", "frame_fit", "gains_from_fits", "prior_gain",
+           "solve_window"]

@@ -23,6 +23,12 @@ class SplineSolveConfig:
                                           "(or jerk) of the poses (rad and m, time in s); measured (EKLT, MPJVE in "
                                           "mm/s) 1e-4 -> 5e-4: karate_kick 25 fps 354 -> 302, 10 fps 309 -> 263, "
                                           "boxing_combo 386 -> 332, AE within 0.2 mm")
+    prior_gain_max: float = param(1.0, help="largest gain of the motion prior per pose parameter, chosen per window "
+                                            "from the per-frame fits around it (REML of each parameter's fits, "
+                                            "scaled by the detections' curvature; see solve.prior_gain): static "
+                                            "parameters get up to this much more smoothing; 1 = λ_prior for all")
+    prior_context_s: float = param(1.0, help="seconds of intensity frames on each side of the window whose fits "
+                                             "choose the prior's gains (prior_gain_max > 1)")
     lambda_2d: float = param(200.0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
     robust_2d_px: float = param(2.0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
     lambda_3d: float = param(1.0, help="weight of E_3D at every intensity frame of the window (metres)")
