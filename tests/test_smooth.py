@@ -12,7 +12,9 @@ from eventcap.motion import wrap_angle
 from eventcap.stage import StageContext, StageFailed
 from eventcap.testing import StageConformance
 from eventcap_smooth._impl import frame_fits, run_smooth, run_split
-from eventcap_smooth.smoothing import GcvCurve, penalty_matrix, smooth_poses
+from eventcap_smooth.smoothing import smooth_poses
+
+from eventcap.smoothing import GcvCurve, penalty_matrix
 from eventcap_smooth.spec import SmoothConfig, SplitConfig
 
 FRAME_US = 40_000  # 25 fps

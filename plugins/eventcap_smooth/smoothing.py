@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eventcap.smoothing import MIN_KNOTS, GcvChoice, GcvCurve, penalty_matrix  # noqa: F401 (re-exported)
+from eventcap.smoothing import MIN_KNOTS, GcvChoice, GcvCurve
 
 #: The parameter groups sharing one smoothing parameter with ``pool=group`` (skeleton layout S = [theta (27), root
 #: rotation (3), root translation (3)]): all angles (joint angles and root rotation, radians) and the root
@@ -37,11 +37,6 @@ POOLS = ("group", "parameter")
 
 
 CRITERIA = ("reml", "gcv")
-
-
-def choose_lam(x: np.ndarray, Y: np.ndarray) -> GcvChoice:
-    """The GCV choice of one lam shared by the columns of Y (n, C) at knots x (n,) seconds."""
-    return GcvCurve(x).choose(Y)
 
 
 def unwrap_root_rotation(poses: np.ndarray) -> np.ndarray:

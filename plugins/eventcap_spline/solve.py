@@ -343,7 +343,8 @@ class PriorGain:
 
     gain: np.ndarray  #: (33,) in [1, gain_max]
     lam: np.ndarray  #: (33,) REML smoothing parameter of each parameter's fits (s³)
-    curvature: np.ndarray  #: (33,) mean diagonal of the detection terms' Hessian at the window's fits / 2
+    curvature: np.ndarray  #: (33,) mean diagonal of the detection terms' Hessian at the window's fits / 2 (NaN:
+    #: not needed, too few fits)
     n_fits: int  #: fits in the context
     fits_computed: int
 
@@ -372,13 +373,13 @@ def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetec
         computed += new
         S.append(unwrap_root(s, S[-1]) if S else s)
         keep.append(d)
+    if len(keep) < MIN_KNOTS or weights.prior <= 0 or gain_max <= 1:
+        return PriorGain(np.ones(_NP), np.full(_NP, np.nan), np.full(_NP, np.nan), len(keep), computed)
     z = np.concatenate([window_fits, window_tp], axis=1)
     dv = [det_values(det, d) for d in range(det.n)]
     H = problem._det_hess(z, *[np.concatenate([v[k] for v in dv]) for k in range(4)],
                           np.tile([weights.d2, weights.d3], det.n))[0].reshape(det.n, _NP + 3, _NP + 3)
     a = np.maximum(np.einsum("dpp->dp", H[:, :_NP, :_NP]).mean(0) / 2.0, 0.0)
-    if len(keep) < MIN_KNOTS or weights.prior <= 0 or gain_max <= 1:
-        return PriorGain(np.ones(_NP), np.full(_NP, np.nan), a, len(keep), computed)
     gain, lam = gains_from_fits(np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S), a, weights.prior,
                                 gain_max)
     return PriorGain(gain, lam, a, len(keep), computed)
@@ -419,7 +420,7 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         gain, n_fits = pg.gain, n_fits + pg.fits_computed
     solves = []
     # Start: a penalised spline through the fits (the same prior; fits weighted as ~1 per rad² of error).
-    smooth = max(weights.prior, 1e-12) if gain is None else max(weights.prior, 1e-12) * gain
+    smooth = max(weights.prior, 1e-12) * (1.0 if gain is None else gain)
     C = spline.fit(t_det_us, fits, smooth=smooth, deriv=problem.order)
     C = np.clip(C, problem.lower, problem.upper)
     x = np.concatenate([C.ravel(), tps.ravel()])
