@@ -52,7 +52,7 @@ def committed(cache: Path) -> dict[str, dict]:
     return out
 
 
-def _survivors(procs, timeout_s: float) -> list:
+def survivors(procs, timeout_s: float) -> list:
     """Those of ``procs`` still running (zombies count as gone) after waiting up to ``timeout_s``."""
     import psutil
 
@@ -86,7 +86,7 @@ def run_trial(workdir: Path, executor: str, kill_after: float, kill: str = "grou
         n_children = len(children)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
-        left = _survivors(children, 10.0)
+        left = survivors(children, 10.0)
         orphans = len(left)
         for p in left:  # counted; removed so that they cannot touch the resumed run
             p.kill()

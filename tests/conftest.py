@@ -42,6 +42,18 @@ def toy_env() -> dict[str, str]:
     return env
 
 
+def run_concurrently(cmds: list[list[str]], cwd) -> list[tuple[bytes, bytes]]:
+    """Start every command at once (the toy stages' environment, in cwd), wait for all; each must exit 0.
+    Returns their (stdout, stderr)."""
+    import subprocess
+
+    procs = [subprocess.Popen(c, cwd=cwd, env=toy_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+             for c in cmds]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs
+    return outs
+
+
 def _stages_in_process(monkeypatch, specs: str):
     """Register the test stages ``specs`` (EVENTCAP_STAGES syntax, modules in tests/) for one test."""
     from eventcap.runner import reset_process_caches

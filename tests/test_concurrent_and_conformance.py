@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 
 import numpy as np
@@ -12,18 +11,14 @@ from eventcap.artifacts import BatchPlan
 from eventcap.cache import Cache
 from eventcap.testing import StageConformance
 
-from conftest import TESTS, toy_env
+from conftest import TESTS, run_concurrently
 
 
 def test_two_sweeps_concurrently_on_one_cache(tmp_path):
     base = [sys.executable, "-m", "eventcap.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
             "experiment=toy", "stages.smooth.sleep_s=0.02", f"cache_dir={tmp_path / 'cache'}", "log_level=WARNING"]
-    a = subprocess.Popen(base + ["stages.scale.factor=1,2,3", "name=a"], cwd=tmp_path, env=toy_env(),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    b = subprocess.Popen(base + ["stages.scale.factor=3,2,1", "name=b"], cwd=tmp_path, env=toy_env(),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    outs = [p.communicate(timeout=300) for p in (a, b)]
-    assert a.returncode == 0 and b.returncode == 0, outs
+    run_concurrently([base + ["stages.scale.factor=1,2,3", "name=a"], base + ["stages.scale.factor=3,2,1", "name=b"]],
+                     tmp_path)
     cache = Cache(tmp_path / "cache")
     entries = cache.entries()
     assert len(entries) == 1 + 4 + 3 * 4 + 3

@@ -17,7 +17,10 @@ import pytest
 from eventcap.cache import Cache, EntryLock, clean_stale_locks
 from eventcap.rundir import LOCK_NAME, claim, release
 
-from conftest import TESTS, toy_env
+from conftest import TESTS, run_concurrently, toy_env
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from kill_resume import survivors  # noqa: E402
 
 TOY = [sys.executable, "-m", "eventcap.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy",
        "outputs.poses=null"]
@@ -128,17 +131,8 @@ def _kill_driver_and_check_workers(tmp_path, executor: str, n_workers: int) -> N
         os.kill(p.pid, signal.SIGKILL)
         p.wait(timeout=10)
 
-        def gone():
-            alive = []
-            for c in children:
-                try:
-                    if c.status() != psutil.STATUS_ZOMBIE:
-                        alive.append(c)
-                except psutil.NoSuchProcess:
-                    pass
-            return not alive
-
-        _wait_for(gone, 10, f"the workers and resource tracker of the killed driver to exit: {children}")
+        left = survivors(children, 10.0)
+        assert not left, f"the workers and resource tracker of the killed driver did not exit: {left}"
     finally:
         for c in [driver, *children]:  # nothing of this test may outlive it, whatever happened above
             try:
@@ -219,12 +213,8 @@ def test_two_overlapping_sweeps_compute_each_entry_once(tmp_path):
     base = TOY[:4] + ["-m"] + TOY[4:] + [f"cache_dir={tmp_path / 'cache'}", "stages.smooth.sleep_s=0.05",
                                          "stages.signal.sleep_s=0.3", "log_level=WARNING"]
     # the same name: both sweeps would have had runs/s/multirun_<second> before
-    a = subprocess.Popen(base + ["stages.scale.factor=1,2,3", "name=s"], cwd=tmp_path, env=toy_env(),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    b = subprocess.Popen(base + ["stages.scale.factor=3,2,1", "name=s"], cwd=tmp_path, env=toy_env(),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    outs = [p.communicate(timeout=300) for p in (a, b)]
-    assert a.returncode == 0 and b.returncode == 0, outs
+    run_concurrently([base + ["stages.scale.factor=1,2,3", "name=s"], base + ["stages.scale.factor=3,2,1", "name=s"]],
+                     tmp_path)
     sweeps = sorted((tmp_path / "runs" / "s").glob("multirun_*"))
     assert len(sweeps) == 2 and all(len(list(s.glob("[0-9]"))) == 3 for s in sweeps), sweeps
     jobs = sorted((tmp_path / "runs").glob("*/multirun_*/[0-9]"))
