@@ -12,6 +12,8 @@ differentiated by CasADi) or in numpy with exact derivatives (terms over thousan
 - :mod:`.cor` — E_cor and E_temp over consecutive frames (value, gradient, exact block-tridiagonal Hessian).
 - :mod:`.spline` — cubic B-splines in the 33 pose parameters: basis matrices and the exact acceleration / jerk
   integral (the motion prior of the spline solve).
+- :mod:`.silence` — the event-silence term's measurement: which joints made no more events than the background,
+  per time bin (a joint without events is at rest; not in the paper).
 - :mod:`.ipopt` — pinned IPOPT options, status checks, numpy callbacks, pose bounds.
 
 Submodules import CasADi; nothing here is imported by ``import eventcap``.

@@ -1,0 +1,145 @@
+"""The event-silence prior (not in the paper): a body part that makes no events is not moving.
+
+An edge of log contrast c that crosses a pixel makes about |c| / C events there (C the contrast threshold), so a
+limb moving at v px/s makes events along its outline and texture at a rate that grows with v; a limb at rest makes
+only the sensor's background activity. Per-frame detection fits cannot tell a resting limb from a slowly moving one
+(each fit is a few centimetres off, independently), and a spline through them wiggles; the events can.
+
+How it is measured, per time bin k (the spline's knot intervals) and joint j:
+
+- the bones are projected at the bin's middle from the current estimate (the smoothing spline through the
+  per-frame fits, a few pixels off), and sampled at a few points along each bone, away from its ends;
+- the events of the bin are counted in a (2r+1)² box around every sample; a bone's *activity* is their mean
+  density, in events per pixel per second; joint j's is that of the bone ending at j (the pelvis: the most active
+  of its bones to the hips and the spine), since a bone at rest holds both its ends;
+- the background rate is the same density over the pixels far from the actor (its projected joints' box plus a
+  margin), so flicker and sensor noise are not taken for motion;
+- the stillness is s = exp(-max(0, activity - background - 2σ) / rate_hz) in [0, 1], σ the standard deviation of
+  the background's density in one box over one bin (Poisson): a noisy sensor's fluctuations are not motion.
+
+The term (in the spline solve) is λ_still Σ_k Σ_j s_j(k) ∫_bin k ‖d/dt x_j(S(t))‖² dt: the velocity (m/s) of every
+joint the events call still, linearised at the solve's start (d/dt x_j = J_j(S) S'(t) with the Jacobian J_j held
+fixed through one solve, a Gauss-Newton form). It constrains joints, whatever combination of pose parameters moves
+them: a root rotation that shakes still legs is penalised, a shoulder twist that swings the forearm and not the
+upper arm is not. The velocity is 3D, not only in the image: the events see a silent joint's image at rest, and a
+joint moving exactly along the line of sight is rare, while the detections' depth noise is the largest (measured
+on fast_wave at 10 fps, MPJVE in mm/s: the projected velocity in px/s at its best weight 174, the 3D one 151). A
+body passing in front of a resting one makes events there: the resting one is then not called still, which only
+loses the help, never forces a moving part to rest. A moving part whose outline and texture cross no pixels looks
+still; the term is soft.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from eventcap.body.skeleton import NUM_JOINTS, PARENTS
+
+
+@dataclass(frozen=True)
+class SilenceSettings:
+    """How the event-silence term measures stillness (:func:`measure_silence`)."""
+
+    radius_px: int = 6  #: half side of the box of pixels counted around each sample along a bone
+    rate_hz: float = 2.0  #: activity above the background (events / px / s) at which the stillness is 1/e
+
+    def __post_init__(self) -> None:
+        if isinstance(self.radius_px, bool) or int(self.radius_px) != self.radius_px or self.radius_px < 0:
+            raise ValueError(f"SilenceSettings.radius_px: expected an integer >= 0, got {self.radius_px!r}")
+        v = self.rate_hz
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+            raise ValueError(f"SilenceSettings.rate_hz: expected a finite number > 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class Silence:
+    """Event activity and stillness of each joint per time bin (bins: [edges[k], edges[k+1]) µs)."""
+
+    edges_us: np.ndarray  #: (K+1,) int64 bin edges
+    activity_hz: np.ndarray  #: (K, 24) events per pixel per second around the bone ending at each joint (the
+    #: pelvis: its most active bone; inf: a bone not in view)
+    background_hz: float  #: events per pixel per second far from the actor
+    stillness: np.ndarray  #: (K, 24) in [0, 1]: 1 = no more events than the background
+
+
+def _box_counts(x: np.ndarray, y: np.ndarray, bins: np.ndarray, n_bins: int, height: int, width: int,
+                radius: int) -> np.ndarray:
+    """(n_bins, height, width) number of events of each bin within the (2r+1)² box around every pixel (summed-area
+    tables, exact at the image border)."""
+    flat = (bins * height + y) * width + x
+    img = np.bincount(flat, minlength=n_bins * height * width).reshape(n_bins, height, width).astype(np.float64)
+    sat = np.zeros((n_bins, height + 1, width + 1))
+    sat[:, 1:, 1:] = img.cumsum(1).cumsum(2)
+    ys, xs = np.arange(height), np.arange(width)
+    y0, y1 = np.clip(ys - radius, 0, height), np.clip(ys + radius + 1, 0, height)
+    x0, x1 = np.clip(xs - radius, 0, width), np.clip(xs + radius + 1, 0, width)
+    return (sat[:, y1][:, :, x1] - sat[:, y0][:, :, x1] - sat[:, y1][:, :, x0] + sat[:, y0][:, :, x0])
+
+
+def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndarray, height: int, width: int,
+                    radius_px: int = 6, rate_hz: float = 2.0, n_samples: int = 4, margin_px: float = 20.0) -> Silence:
+    """Stillness of every joint per bin (see the module doc).
+
+    events: structured events (t µs, x, y, p) of the bins' span (others are ignored); edges_us: (K+1,) increasing;
+    joints_px: (K, 24, 2) the 24 joints projected at each bin's middle (NaN: behind the camera, left out);
+    radius_px: half side of the box counted around each sample; rate_hz: activity above the background (events per
+    pixel per second) at which the stillness falls to 1/e; n_samples per bone between 20% and 80% of its length;
+    margin_px around the joints' box beyond which pixels are background."""
+    edges = np.asarray(edges_us, dtype=np.int64)
+    K = edges.size - 1
+    J = np.asarray(joints_px, dtype=np.float64)
+    if K < 1 or np.any(np.diff(edges) <= 0):
+        raise ValueError(f"measure_silence: expected >= 2 increasing bin edges, got {edges.size}")
+    if J.shape != (K, NUM_JOINTS, 2):
+        raise ValueError(f"measure_silence: joints_px: expected shape ({K}, {NUM_JOINTS}, 2), got {J.shape}")
+    if not (rate_hz > 0 and radius_px >= 0 and n_samples >= 1):
+        raise ValueError(f"measure_silence: expected rate_hz > 0, radius_px >= 0, n_samples >= 1, got {rate_hz!r}, "
+                         f"{radius_px!r}, {n_samples!r}")
+    r = int(radius_px)
+    t = events["t"]
+    keep = (t >= edges[0]) & (t < edges[-1])
+    ev = events[keep]
+    b = np.searchsorted(edges, ev["t"], side="right") - 1
+    D = _box_counts(ev["x"].astype(np.int64), ev["y"].astype(np.int64), b, K, height, width, r)
+    dur_s = np.diff(edges) * 1e-6
+    # background: pixels outside the joints' box (over all bins) + margin, per pixel per second
+    fin = J[np.isfinite(J).all(-1)]
+    if fin.size:
+        lo, hi = fin.min(0) - margin_px, fin.max(0) + margin_px
+        xx, yy = np.meshgrid(np.arange(width), np.arange(height))
+        bg = (xx < lo[0]) | (xx > hi[0]) | (yy < lo[1]) | (yy > hi[1])
+    else:
+        bg = np.ones((height, width), dtype=bool)
+    counts = np.bincount(ev["y"].astype(np.int64) * width + ev["x"].astype(np.int64),
+                         minlength=height * width).reshape(height, width)
+    background = float(counts[bg].sum() / (bg.sum() * dur_s.sum())) if bg.any() else 0.0
+    # the mean box density at samples along every bone, per bin: (K, 24) (bone by child joint; 0 is no bone)
+    f = 0.2 + 0.6 * (np.arange(n_samples) + 0.5) / n_samples
+    child = np.arange(1, NUM_JOINTS)
+    P = J[:, PARENTS[child]][:, :, None] * (1 - f)[None, None, :, None] + J[:, child][:, :, None] * f[None, None, :, None]
+    ok = np.isfinite(P).all(-1)
+    xi = np.clip(np.rint(np.where(ok, P[..., 0], 0)), 0, width - 1).astype(np.int64)
+    yi = np.clip(np.rint(np.where(ok, P[..., 1], 0)), 0, height - 1).astype(np.int64)
+    kk = np.broadcast_to(np.arange(K)[:, None, None], xi.shape)
+    dens = np.where(ok, D[kk, yi, xi], 0.0)
+    # the box's area (clipped at the border) turns counts into density
+    area = ((np.minimum(yi + r + 1, height) - np.maximum(yi - r, 0)) *
+            (np.minimum(xi + r + 1, width) - np.maximum(xi - r, 0)))
+    bone_sum = np.zeros((K, NUM_JOINTS))
+    bone_n = np.zeros((K, NUM_JOINTS))
+    bone_sum[:, 1:] = np.sum(np.where(ok, dens / area, 0.0), axis=2)
+    bone_n[:, 1:] = ok.sum(2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        activity = np.where(bone_n > 0, bone_sum / np.maximum(bone_n, 1), np.inf) / dur_s[:, None]
+    activity[:, 0] = activity[:, np.flatnonzero(PARENTS == 0)].max(1)  # the pelvis: its bones to hips and spine
+    # Poisson noise of the background's count in one box over one bin, as a density: activity within 2 of its
+    # standard deviations of the background is not motion
+    sd = np.sqrt(background / ((2 * r + 1) ** 2 * dur_s))[:, None]
+    excess = np.maximum(activity - background - 2.0 * sd, 0.0)
+    return Silence(edges_us=edges, activity_hz=activity, background_hz=background,
+                   stillness=np.exp(-excess / float(rate_hz)))
+
+
+__all__ = ["Silence", "SilenceSettings", "measure_silence"]
