@@ -147,7 +147,7 @@ def ca_dense(m) -> np.ndarray:
     return np.asarray(ca.DM(m).full())
 
 
-@pytest.mark.parametrize("term", ["d2", "d3", "cor", "prior", "damp"])
+@pytest.mark.parametrize("term", ["d2", "d3", "cor", "prior", "damp", "still"])
 def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
     rec, det, t_det, t_us, S, xy, valid = scene()
     prob = problem()
@@ -164,7 +164,10 @@ def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
     x = np.concatenate([C.ravel(), tp.ravel()])
     w = SplineWeights(**{n: (1.0 if n == term else 0.0) for n in ("d2", "d3", "cor", "prior", "damp")})
     gain = rng.uniform(1.0, 50.0, 33)  # the prior's gain per parameter (prior_gain_max > 1)
-    prob.set_window(spl, t_det, det, t_us, corr, w, x + rng.normal(0, 0.01, x.shape), gain)
+    # the event silence: a weight per knot interval and joint (zero for half of them)
+    still = rng.uniform(0, 2, (prob.n_seg, 24)) * (rng.random((prob.n_seg, 24)) < 0.5)
+    prob.set_window(spl, t_det, det, t_us, corr, w, x + rng.normal(0, 0.01, x.shape), gain,
+                    still if term == "still" else None)
     f = lambda v: float(prob.objective(v))
     grad = lambda v: np.asarray(prob.gradient(v)[1]).ravel()
     g = grad(x)
@@ -178,6 +181,35 @@ def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
     # Nothing outside the declared sparsity (blocks of control points more than 3 apart never interact).
     full = prob._hessian(x)
     assert np.abs(full - H).max() <= 1e-12 * max(1.0, np.abs(full).max())
+
+
+def test_event_silence_term_is_the_image_velocity_of_the_still_joints():
+    """E_still at its linearisation point = Σ_s Σ_j w[s, j] ∫_s ‖d/dt x_j(S(t))‖² dt, the joints' velocities (m/s)
+    by central differences of the joints in time."""
+    from eventcap.energy.correspondences import Correspondences
+
+    rec, det, t_det, t_us = scene()[:4]
+    prob = problem()
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
+    gt = rec.ground_truth
+    tk = np.arange(t_det[0], t_det[-1] + 1, 5_000)
+    C = spl.fit(tk, gt.poses[np.searchsorted(gt.t_us, tk)], smooth=1e-6)
+    x = np.concatenate([C.ravel(), np.zeros(prob.nT)])
+    still = np.zeros((prob.n_seg, 24))
+    still[2:5, 4] = 1.0  # the left knee over three knot intervals
+    still[7, 21] = 3.0  # the right wrist over one
+    w = SplineWeights(d2=0.0, d3=0.0, cor=0.0, prior=0.0, damp=0.0)
+    prob.set_window(spl, t_det, det, t_us, Correspondences.empty(), w, x, None, still)
+    e = float(prob.objective(x))
+    t = np.arange(spl.t0_us, spl.t1_us, 10, dtype=np.float64) + 5.0  # 10 µs steps, interval midpoints
+    rest = rec.template.rest_joints
+    v = (joint_positions(spl.evaluate(C, t + 1.0), rest) - joint_positions(spl.evaluate(C, t - 1.0), rest)) / 2e-6
+    seg = np.minimum(((t - spl.t0_us) // H_US).astype(int), prob.n_seg - 1)
+    numeric = float(np.sum(still[seg] * np.sum(v ** 2, axis=-1)) * 10e-6)
+    assert numeric > 1e-3  # the knee and the wrist move in this scene
+    assert e == pytest.approx(numeric, rel=0.02)
+    with pytest.raises(ValueError, match=r"event-silence weights >= 0 of shape \(\d+, 24\)"):
+        prob.set_window(spl, t_det, det, t_us, Correspondences.empty(), w, x, None, still[:, :23])
 
 
 def test_spline_through_noisy_detections_beats_the_per_frame_fits():

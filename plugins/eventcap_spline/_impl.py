@@ -51,6 +51,8 @@ def run_spline(inputs, config, ctx):
     from eventcap.energy.ipopt import IpoptSettings
     from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
 
+    from eventcap.energy.silence import SilenceSettings
+
     from .solve import SplineWeights, solve_window
 
     rec, sliced, detections, plan, b = (inputs["recording"], inputs["sliced"], inputs["detections"],
@@ -75,7 +77,8 @@ def run_spline(inputs, config, ctx):
                           f"{config.knot_ms!r}", status="invalid_config")
     try:
         weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor,
-                                prior=config.lambda_prior, damp=config.lambda_damp)
+                                prior=config.lambda_prior, damp=config.lambda_damp, still=config.lambda_still)
+        silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz)
         settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
     except ValueError as exc:
         raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
@@ -121,7 +124,9 @@ def run_spline(inputs, config, ctx):
             raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
     try:
         res = solve_window(prob, spline, t_det, det, t_us[idx], xy, valid, weights, int(config.icp_rounds),
-                           config.edge_margin_px, what=what, context=context, gain_max=gain_max)
+                           config.edge_margin_px, what=what, context=context, gain_max=gain_max,
+                           events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1) if weights.still > 0 else None,
+                           silence=silence)
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
         if what in str(exc):
             raise
@@ -146,6 +151,12 @@ def run_spline(inputs, config, ctx):
                      "the largest (%g)", where, context[0].size, float(np.median(g)),
                      int(np.sum(g >= gain_max * (1 - 1e-9))), gain_max)
         ctx.stats["prior_gain"] = [float(v) for v in g]
+    if res.silence is not None:
+        st = res.silence.stillness
+        ctx.log.info("%s: event silence: background %.2f events/px/s; %.0f%% of (knot interval, joint) pairs still "
+                     "(stillness > 0.5)", where, res.silence.background_hz, 100.0 * float(np.mean(st > 0.5)))
+        ctx.stats["stillness_mean"] = [float(v) for v in st.mean(0)]
+        ctx.stats["background_hz"] = res.silence.background_hz
     ctx.stats.update({"solve_s": secs, "phases_s": res.seconds, "iterations": iters, "window": [a, z],
                       "fits_computed": res.fits_computed,
                       "solves": [[s.status, s.iterations, s.seconds] for s in res.solves],

@@ -3,6 +3,7 @@
     min_C,t'  Σ_d λ_2D E_2D(S(t_d)) + λ_3D E_3D(S(t_d), t'_d)          every intensity frame d of the window
               + λ_cor E_cor(S(t_0), S(t_s), S(t_2s), ...)               the batch's event tracks (ICP)
               + λ_prior Σ_p ∫ (S_p^(k)(t))² dt                           motion prior, k = 2 or 3, exact
+              + λ_still Σ_j ∫ s_j(t) ‖d/dt x_j(S(t))‖² dt               event silence: joints without events rest
               + λ_damp ‖x - x_start‖²
     s.t.      θ_min <= C_i <= θ_max  for every control point i           (exact joint limits on S(t))
 
@@ -18,7 +19,9 @@ several frames is where the accuracy comes from.
 Terms (all from :mod:`eventcap.energy`): E_2D (Cauchy-robust) and E_3D of one frame are CasADi SX expressions of
 (S, t') whose value, gradient and 36×36 Hessian are one mapped CasADi function; E_cor is the numpy energy of the
 batch solve (:class:`eventcap.energy.cor.CorrespondenceEnergy`, relative form, exact block-tridiagonal Hessian) at
-the spline's poses at the correspondence frames; the prior is a fixed quadratic form. Every term is a function of
+the spline's poses at the correspondence frames; the prior is a fixed quadratic form; E_still
+(:mod:`eventcap.energy.silence`: s_j(t) is joint j's stillness measured from the events around its bones) is the
+joints' velocity linearised at each solve's start, a fixed quadratic form too (Gauss-Newton). Every term is a function of
 poses S = B C, linear in C, so the chain rule is a product with the (sparse) basis: g_C = Bᵀ g_S and
 H_C = Bᵀ H_S B. IPOPT sees the sum through numpy callbacks (value, gradient, exact Hessian with a banded sparsity:
 control points i and j interact only when |i - j| <= 3, plus the t' of each detection frame).
@@ -37,6 +40,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
@@ -52,6 +56,7 @@ from eventcap.energy.detections import (
 )
 from eventcap.energy.ipopt import IpoptSettings, NumpyCallback, SolveStats, checked_bounds, run_ipopt
 from eventcap.energy.kernels import Buffered, SkinningKernels
+from eventcap.energy.silence import Silence, SilenceSettings, measure_silence
 from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
 from eventcap.stage import StageFailed
 
@@ -69,9 +74,10 @@ class SplineWeights:
     cor: float = 500.0
     prior: float = 5e-4
     damp: float = 1e-4
+    still: float = 0.0  #: event silence: per (m/s)²·s of the velocity of a joint the events call still (0: off)
 
     def __post_init__(self) -> None:
-        for name in ("d2", "d3", "cor", "prior", "damp"):
+        for name in ("d2", "d3", "cor", "prior", "damp", "still"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"SplineWeights.{name}: expected a finite number >= 0, got {v!r}")
@@ -90,6 +96,7 @@ class WindowResult:
     seconds: dict
     fits_computed: int = 0  #: per-frame fits computed for this window (the others came from neighbouring windows)
     prior_gain: np.ndarray | None = None  #: (33,) the prior's gain per parameter (None: 1)
+    silence: Silence | None = None  #: the events' stillness per knot interval and joint (None: term off)
 
 
 def _banded_triu(n_ctrl: int, n_t: int):
@@ -138,6 +145,10 @@ class SplineProblem:
         self._det_value = Buffered(ca.Function("E_det", args, [e, e2, e3]).map(self.n_det))
         self._det_grad = Buffered(ca.Function("E_det_grad", args, [e, g, e2, e3]).map(self.n_det))
         self._det_hess = Buffered(ca.Function("E_det_hess", args, [ca.densify(H)]).map(self.n_det))
+        # --- E_still: the Jacobian of the 24 joints, mapped over the 3 Gauss points of every knot interval
+        jpos = joint_positions(S, template.rest_joints)  # (24, 3)
+        self._joint_jac = Buffered(ca.Function("joint_jac", [S], [ca.densify(ca.jacobian(
+            ca.reshape(jpos.T, 3 * NUM_JOINTS, 1), S))]).map(3 * self.n_seg))
         # --- E_cor at n_cor frames
         self.cor = CorrespondenceEnergy(camera, SkinningKernels(template.rest_joints, self.n_cor),
                                         template.rest_joints)
@@ -177,10 +188,13 @@ class SplineProblem:
     # ------------------------------------------------------------------ data of one window
     def set_window(self, spline: UniformCubicBSpline, t_det_us, det: FrameDetections, t_cor_us,
                    corr: Correspondences, weights: SplineWeights, x_ref: np.ndarray,
-                   prior_gain: np.ndarray | None = None) -> None:
+                   prior_gain: np.ndarray | None = None, still: np.ndarray | None = None) -> None:
         """Hand one window's data to the energy: the spline basis, detections at t_det_us (n_det rows),
-        correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x, and
-        the motion prior's gain per pose parameter (33,) (its weight is λ_prior · gain_p; default 1)."""
+        correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x, the
+        motion prior's gain per pose parameter (33,) (its weight is λ_prior · gain_p; default 1), and the
+        event-silence weights still (n_seg, 24): λ_still times each joint's stillness per knot interval
+        (E_still = Σ_s Σ_j still[s, j] ∫_s ‖J_j(S_ref(t)) S'(t)‖² dt, the velocity of joint j in m/s linearised
+        at x_ref; :mod:`eventcap.energy.silence`; None: no such term)."""
         if spline.n_seg != self.n_seg:
             raise ValueError(f"set_window: the problem was built for {self.n_seg} knot intervals, got {spline.n_seg}")
         if det.n != self.n_det or np.size(t_det_us) != self.n_det:
@@ -195,16 +209,46 @@ class SplineProblem:
         if gain.shape != (_NP,) or not np.all(np.isfinite(gain) & (gain > 0)):
             raise ValueError(f"set_window: expected a positive prior gain per pose parameter ({_NP},), got "
                              f"{np.shape(prior_gain)}")
+        form = None
+        if still is not None:
+            still = np.asarray(still, dtype=np.float64)
+            if still.shape != (self.n_seg, NUM_JOINTS) or not np.all(np.isfinite(still) & (still >= 0)):
+                raise ValueError(f"set_window: expected event-silence weights >= 0 of shape ({self.n_seg}, "
+                                 f"{NUM_JOINTS}), got {still.shape}")
+            form = self._still_form(spline, x_ref[:self.nC].reshape(self.n_ctrl, _NP), still)
         self.cor.set_correspondences(corr, relative=True)
         dv = [det_values(det, d) for d in range(self.n_det)]
         self._data = {
             "Bd": spline.basis(t_det_us), "Be": spline.basis(t_cor_us), "Q": spline.gram(self.order),
-            "wp": weights.prior * gain,
+            "wp": weights.prior * gain, "still": form,
             "det": [np.concatenate([v[k] for v in dv]) for k in range(4)],
             "lam_det": np.tile([weights.d2, weights.d3], self.n_det), "w": weights, "x_ref": x_ref,
             "phi": np.zeros((self.n_cor - 1, NUM_JOINTS)), "lam_cor": np.array([weights.cor, 0.0]),
         }
         self._cache = {}
+
+    def _still_form(self, spline: UniformCubicBSpline, C_ref: np.ndarray, still: np.ndarray) -> dict:
+        """E_still as a fixed quadratic form in C: at the 3 Gauss points q of every knot interval s,
+        M_q = h w_q Σ_j still[s, j] J_jᵀ J_j (33×33, J_j the 3×33 Jacobian of joint j's position at S_ref(t_q)), so
+        E = Σ_q (B'_q C)ᵀ M_q (B'_q C); its Hessian blocks (n_ctrl, n_ctrl, 33, 33) are summed per interval."""
+        g = 0.5 + 0.5 * np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
+        wq = np.array([5.0, 8.0, 5.0]) / 18.0 * spline.h_s
+        seg = np.repeat(np.arange(self.n_seg), 3)
+        t_q = spline.t0_us + spline.h_us * (seg + np.tile(g, self.n_seg))
+        Sq = spline.evaluate(C_ref, t_q)
+        Jq = self._joint_jac(Sq)[0].reshape(3 * self.n_seg, _NP, NUM_JOINTS, 3)  # (72, 33·Q) column-major
+        wjq = still[seg] * np.tile(wq, self.n_seg)[:, None]  # (Q, 24)
+        M = np.einsum("qajx,qj,qbjx->qab", Jq, wjq, Jq)
+        B1 = spline.basis(t_q, 1)
+        # Hessian: 2 Σ_q b_q b_qᵀ ⊗ M_q, with each interval's 4 control points (local basis values)
+        loc = B1[np.arange(seg.size)[:, None], seg[:, None] + np.arange(4)[None, :]]  # (Q, 4)
+        blocks = 2.0 * np.einsum("qa,qb,qxy->qabxy", loc, loc, M).reshape(self.n_seg, 3, 4, 4, _NP, _NP).sum(1)
+        H = np.zeros((self.n_ctrl, self.n_ctrl, _NP, _NP))
+        s_idx = np.arange(self.n_seg)
+        for a in range(4):
+            for b in range(4):
+                H[s_idx + a, s_idx + b] += blocks[:, a, b]
+        return {"B1": B1, "M": M, "H": H}
 
     def _split(self, x):
         return x[:self.nC].reshape(self.n_ctrl, _NP), x[self.nC:].reshape(self.n_det, 3)
@@ -228,20 +272,29 @@ class SplineProblem:
         else:
             e, g, e2, e3 = self._det_grad(z, *D["det"], D["lam_det"])
         QC = D["Q"] @ C * D["wp"]  # λ_prior · gain_p · Q C_p per parameter p
-        dx = x - D["x_ref"]
         e_prior = float(np.sum(C * QC))  # the weighted prior
+        e_still, g_still = 0.0, None
+        if D["still"] is not None:
+            B1, M = D["still"]["B1"], D["still"]["M"]
+            V = B1 @ C  # (Q, 33) velocities at the Gauss points
+            MV = np.einsum("qab,qb->qa", M, V)
+            e_still = float(np.sum(V * MV))
+            g_still = 2.0 * (B1.T @ MV)
+        dx = x - D["x_ref"]
         out = {"key": key, "order": order, "z": z, "Se": Se,
                "det": float(e.sum()), "2d": float(e2.sum()), "3d": float(e3.sum()), "prior": e_prior,
-               "damp": float(dx @ dx)}
+               "still": e_still, "damp": float(dx @ dx)}
         if order == 0:
             out["cor_w"] = self.cor.value(Se, D["phi"], D["lam_cor"])
         else:
             out["cor_w"], gS = self.cor.gradient(Se, D["phi"], D["lam_cor"])
             gz = g.reshape(self.n_det, _NP + 3)
             gC = D["Bd"].T @ gz[:, :_NP] + D["Be"].T @ gS + 2.0 * QC
+            if g_still is not None:
+                gC += g_still
             grad = np.concatenate([gC.ravel(), gz[:, _NP:].ravel()]) + (2.0 * w.damp) * dx
             out["grad"] = grad
-        out["value"] = out["det"] + out["cor_w"] + e_prior + w.damp * out["damp"]
+        out["value"] = out["det"] + out["cor_w"] + e_prior + e_still + w.damp * out["damp"]
         self._cache = out
         return out
 
@@ -266,10 +319,12 @@ class SplineProblem:
         Hcc += ((Be[1:, :, None] * Be[:-1, None, :]).reshape(self.n_cor - 1, nn).T
                 @ upper.transpose(0, 2, 1).reshape(self.n_cor - 1, -1))
         Hcc = Hcc.reshape(n, n, _NP, _NP)
-        # prior (2 Q ⊗ diag(λ_prior · gain)) and proximal term on the diagonal
+        # prior (2 Q ⊗ diag(λ_prior · gain)) and proximal term on the diagonal; event silence (its fixed blocks)
         w = D["w"]
         diag_idx = np.arange(_NP)
         Hcc[:, :, diag_idx, diag_idx] += 2.0 * D["Q"][:, :, None] * D["wp"][None, None, :]
+        if D["still"] is not None:
+            Hcc += D["still"]["H"]
         ii = np.arange(n)
         Hcc[ii[:, None], ii[:, None], diag_idx[None, :], diag_idx[None, :]] += 2.0 * w.damp
         Hct = np.einsum("di,dab->iadb", Bd, Hd[:, :_NP, _NP:]).reshape(self.nC, self.nT)
@@ -402,13 +457,18 @@ def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, l
 def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: np.ndarray, det: FrameDetections,
                  t_cor_us: np.ndarray, xy: np.ndarray, valid: np.ndarray, weights: SplineWeights = SplineWeights(),
                  icp_rounds: int = 2, edge_margin_px: float = 1.0, what: str = "window",
-                 context: tuple[np.ndarray, FrameDetections] | None = None, gain_max: float = 1.0) -> WindowResult:
+                 context: tuple[np.ndarray, FrameDetections] | None = None, gain_max: float = 1.0,
+                 events: np.ndarray | None = None, silence: SilenceSettings = SilenceSettings()) -> WindowResult:
     """Solve one window: fits at its detection frames, a smoothing spline through them as the start, then
     ``icp_rounds`` alternations of correspondence search (at the current spline's poses at t_cor_us, with the
     tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve.
 
     context: (times, detections) of the intensity frames around the window from which the prior's gain per
-    parameter is chosen (:func:`prior_gain`, up to gain_max); None: the prior is λ_prior for every parameter."""
+    parameter is chosen (:func:`prior_gain`, up to gain_max); None: the prior is λ_prior for every parameter.
+
+    events: the recording's events over the window, for the event-silence term (weights.still > 0): the stillness
+    of each parameter's rigid body per knot interval, measured around the start spline's projected bones
+    (:func:`window_silence`)."""
     if int(icp_rounds) != icp_rounds or icp_rounds < 0:
         raise ValueError(f"icp_rounds: expected an integer >= 0, got {icp_rounds!r}")
     seconds = {}
@@ -425,6 +485,11 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     C = np.clip(C, problem.lower, problem.upper)
     x = np.concatenate([C.ravel(), tps.ravel()])
     seconds["fit"] = time.perf_counter() - t0
+    sil, still_Q = None, None
+    if weights.still > 0 and events is not None:
+        t1 = time.perf_counter()
+        sil, still_Q = window_silence(problem, spline, C, events, weights.still, silence)
+        seconds["silence"] = time.perf_counter() - t1
     seconds["correspondences"] = seconds["solve"] = 0.0
     corr = Correspondences.empty()
     for r in range(int(icp_rounds)):
@@ -432,23 +497,39 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         Se = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_cor_us)
         corr = find_correspondences(problem.template, problem.camera, Se, xy, valid, edge_margin_px)
         t2 = time.perf_counter()
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_Q)
         x, st = problem.solve(x, f"{what}: spline solve (ICP round {r + 1})")
         solves.append(SolveStats(st.status, st.iterations, st.seconds, corr.n))
         seconds["correspondences"] += t2 - t1
         seconds["solve"] += time.perf_counter() - t2
     if icp_rounds == 0:  # detections and prior only (no events)
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_Q)
         x, st = problem.solve(x, f"{what}: spline solve (no correspondences)")
         solves.append(st)
     c = problem._eval(x, 0)
     energies = {"2d": c["2d"], "3d": c["3d"], "cor": c["cor_w"] / weights.cor if weights.cor else 0.0,
-                "prior": c["prior"] / weights.prior if weights.prior else 0.0, "total": c["value"],
+                "prior": c["prior"] / weights.prior if weights.prior else 0.0,
+                "still": c["still"] / weights.still if weights.still else 0.0, "total": c["value"],
                 "n_correspondences": corr.n}
     C, T = problem._split(x)
     return WindowResult(spline=spline, control=C.copy(), t_prime=T.copy(), fits=fits, energies=energies,
-                        solves=tuple(solves), seconds=seconds, fits_computed=n_fits, prior_gain=gain)
+                        solves=tuple(solves), seconds=seconds, fits_computed=n_fits, prior_gain=gain,
+                        silence=sil)
 
 
-__all__ = ["PriorGain", "SplineProblem", "SplineWeights", "WindowResult", "fit_window", "frame_fit", "gains_from_fits", "prior_gain",
-           "solve_window"]
+def window_silence(problem: SplineProblem, spline: UniformCubicBSpline, C: np.ndarray, events: np.ndarray,
+                   weight: float, settings: SilenceSettings = SilenceSettings()) -> tuple[Silence, np.ndarray]:
+    """The event-silence term of one window: (the joints' stillness per knot interval, its weights (n_seg, 24) =
+    weight · stillness). The bones are projected at each interval's middle from the spline with control points C
+    (:mod:`eventcap.energy.silence`)."""
+    edges = spline.t0_us + spline.h_us * np.arange(spline.n_seg + 1, dtype=np.int64)
+    mids = (edges[:-1] + edges[1:]) // 2
+    joints = joint_positions(spline.evaluate(C, mids), problem.template.rest_joints)
+    cam = problem.camera
+    sil = measure_silence(events, edges, cam.project(joints), cam.height, cam.width, settings.radius_px,
+                          settings.rate_hz)
+    return sil, float(weight) * sil.stillness
+
+
+__all__ = ["PriorGain", "SplineProblem", "SplineWeights", "WindowResult", "fit_window", "frame_fit", "gains_from_fits",
+           "prior_gain", "solve_window", "window_silence"]
