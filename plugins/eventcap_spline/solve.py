@@ -3,7 +3,7 @@
     min_C,t'  Σ_d λ_2D E_2D(S(t_d)) + λ_3D E_3D(S(t_d), t'_d)          every intensity frame d of the window
               + λ_cor E_cor(S(t_0), S(t_s), S(t_2s), ...)               the batch's event tracks (ICP)
               + λ_prior Σ_p ∫ (S_p^(k)(t))² dt                           motion prior, k = 2 or 3, exact
-              + λ_still Σ_j ∫ s_j(t) ‖d/dt x_j(S(t))‖² dt               event silence: joints without events rest
+              + λ_still Σ_j ∫ s_j(t) ‖d/dt π(x_j(S(t)))‖² dt            event silence: joints without events rest
               + λ_damp ‖x - x_start‖²
     s.t.      θ_min <= C_i <= θ_max  for every control point i           (exact joint limits on S(t))
 
@@ -21,7 +21,7 @@ Terms (all from :mod:`eventcap.energy`): E_2D (Cauchy-robust) and E_3D of one fr
 batch solve (:class:`eventcap.energy.cor.CorrespondenceEnergy`, relative form, exact block-tridiagonal Hessian) at
 the spline's poses at the correspondence frames; the prior is a fixed quadratic form; E_still
 (:mod:`eventcap.energy.silence`: s_j(t) is joint j's stillness measured from the events around its bones) is the
-joints' velocity linearised at each solve's start, a fixed quadratic form too (Gauss-Newton). Every term is a function of
+joints' image velocity linearised at each solve's start, a fixed quadratic form too (Gauss-Newton). Every term is a function of
 poses S = B C, linear in C, so the chain rule is a product with the (sparse) basis: g_C = Bᵀ g_S and
 H_C = Bᵀ H_S B. IPOPT sees the sum through numpy callbacks (value, gradient, exact Hessian with a banded sparsity:
 control points i and j interact only when |i - j| <= 3, plus the t' of each detection frame).
@@ -74,7 +74,7 @@ class SplineWeights:
     cor: float = 500.0
     prior: float = 5e-4
     damp: float = 1e-4
-    still: float = 0.0  #: event silence: per (m/s)²·s of the velocity of a joint the events call still (0: off)
+    still: float = 0.0  #: event silence: per (px/s)²·s of the image velocity of a joint the events call still (0: off)
 
     def __post_init__(self) -> None:
         for name in ("d2", "d3", "cor", "prior", "damp", "still"):
@@ -145,10 +145,10 @@ class SplineProblem:
         self._det_value = Buffered(ca.Function("E_det", args, [e, e2, e3]).map(self.n_det))
         self._det_grad = Buffered(ca.Function("E_det_grad", args, [e, g, e2, e3]).map(self.n_det))
         self._det_hess = Buffered(ca.Function("E_det_hess", args, [ca.densify(H)]).map(self.n_det))
-        # --- E_still: the Jacobian of the 24 joints, mapped over the 3 Gauss points of every knot interval
-        jpos = joint_positions(S, template.rest_joints)  # (24, 3)
-        self._joint_jac = Buffered(ca.Function("joint_jac", [S], [ca.densify(ca.jacobian(
-            ca.reshape(jpos.T, 3 * NUM_JOINTS, 1), S))]).map(3 * self.n_seg))
+        # --- E_still: the Jacobian of the 24 projected joints, mapped over the 3 Gauss points of every knot interval
+        px = camera.project_sym(joint_positions(S, template.rest_joints).T)  # (2, 24)
+        self._joint_px_jac = Buffered(ca.Function("joint_px_jac", [S], [ca.densify(ca.jacobian(
+            ca.reshape(px, 2 * NUM_JOINTS, 1), S))]).map(3 * self.n_seg))
         # --- E_cor at n_cor frames
         self.cor = CorrespondenceEnergy(camera, SkinningKernels(template.rest_joints, self.n_cor),
                                         template.rest_joints)
@@ -193,8 +193,8 @@ class SplineProblem:
         correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x, the
         motion prior's gain per pose parameter (33,) (its weight is λ_prior · gain_p; default 1), and the
         event-silence weights still (n_seg, 24): λ_still times each joint's stillness per knot interval
-        (E_still = Σ_s Σ_j still[s, j] ∫_s ‖J_j(S_ref(t)) S'(t)‖² dt, the velocity of joint j in m/s linearised
-        at x_ref; :mod:`eventcap.energy.silence`; None: no such term)."""
+        (E_still = Σ_s Σ_j still[s, j] ∫_s ‖J_j(S_ref(t)) S'(t)‖² dt, the image velocity of joint j in px/s
+        linearised at x_ref; :mod:`eventcap.energy.silence`; None: no such term)."""
         if spline.n_seg != self.n_seg:
             raise ValueError(f"set_window: the problem was built for {self.n_seg} knot intervals, got {spline.n_seg}")
         if det.n != self.n_det or np.size(t_det_us) != self.n_det:
@@ -229,14 +229,14 @@ class SplineProblem:
 
     def _still_form(self, spline: UniformCubicBSpline, C_ref: np.ndarray, still: np.ndarray) -> dict:
         """E_still as a fixed quadratic form in C: at the 3 Gauss points q of every knot interval s,
-        M_q = h w_q Σ_j still[s, j] J_jᵀ J_j (33×33, J_j the 3×33 Jacobian of joint j's position at S_ref(t_q)), so
+        M_q = h w_q Σ_j still[s, j] J_jᵀ J_j (33×33, J_j the 2×33 Jacobian of joint j's pixel at S_ref(t_q)), so
         E = Σ_q (B'_q C)ᵀ M_q (B'_q C); its Hessian blocks (n_ctrl, n_ctrl, 33, 33) are summed per interval."""
         g = 0.5 + 0.5 * np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
         wq = np.array([5.0, 8.0, 5.0]) / 18.0 * spline.h_s
         seg = np.repeat(np.arange(self.n_seg), 3)
         t_q = spline.t0_us + spline.h_us * (seg + np.tile(g, self.n_seg))
         Sq = spline.evaluate(C_ref, t_q)
-        Jq = self._joint_jac(Sq)[0].reshape(3 * self.n_seg, _NP, NUM_JOINTS, 3)  # (72, 33·Q) column-major
+        Jq = self._joint_px_jac(Sq)[0].reshape(3 * self.n_seg, _NP, NUM_JOINTS, 2)  # (48, 33·Q) column-major
         wjq = still[seg] * np.tile(wq, self.n_seg)[:, None]  # (Q, 24)
         M = np.einsum("qajx,qj,qbjx->qab", Jq, wjq, Jq)
         B1 = spline.basis(t_q, 1)

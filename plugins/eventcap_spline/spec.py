@@ -29,11 +29,9 @@ class SplineSolveConfig:
                                             "parameters get up to this much more smoothing; 1 = λ_prior for all")
     prior_context_s: float = param(1.0, help="seconds of intensity frames on each side of the window whose fits "
                                              "choose the prior's gains (prior_gain_max > 1)")
-    lambda_still: float = param(10.0, help="weight of the event-silence term: the squared velocity (m/s) of every "
-                                          "joint whose bone made no more events than the background, per knot "
-                                          "interval, weighted by that stillness (eventcap.energy.silence); 0 = off. "
-                                          "Measured on fast_wave at 10 fps (MPJVE mm/s): 0 -> 261, 1 -> 177, "
-                                          "10 -> 151")
+    lambda_still: float = param(0.1, help="weight of the event-silence term: the squared image velocity (px/s) of "
+                                         "every joint whose bone made no more events than the background, per knot "
+                                         "interval, weighted by that stillness (eventcap.energy.silence); 0 = off")
     still_radius_px: int = param(6, help="half side of the box of pixels whose events are counted around each "
                                          "sample along a bone (event silence)")
     still_rate_hz: float = param(2.0, help="events per pixel per second above the background at which a body's "
@@ -59,7 +57,7 @@ class SplineSolveConfig:
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=5,
+    name="spline", kind="solve", version=6,
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), this batch's "
                 "event correspondences and a motion prior, joint limits on the control points (CasADi + IPOPT); "
