@@ -19,10 +19,10 @@ class SplineSolveConfig:
     knot_ms: float = param(10.0, help="knot spacing of the cubic B-spline, ms (control points every knot_ms)")
     prior: str = param("acceleration", help="motion prior: acceleration | jerk (∫‖S''‖² or ∫‖S'''‖² dt)",
                        choices=("acceleration", "jerk"))
-    lambda_prior: float = param(5e-4, help="weight of the motion prior, the integral of the squared acceleration "
-                                          "(or jerk) of the poses (rad and m, time in s); measured (EKLT, MPJVE in "
-                                          "mm/s) 1e-4 -> 5e-4: karate_kick 25 fps 354 -> 302, 10 fps 309 -> 263, "
-                                          "boxing_combo 386 -> 332, AE within 0.2 mm")
+    lambda_prior: float = param(1e-4, help="weight of the motion prior, the integral of the squared acceleration "
+                                          "(or jerk) of the poses (rad and m, time in s); 5e-4 until the event-"
+                                          "silence term held the resting joints, 1e-4 measured better with it "
+                                          "(README: 'A continuous-time solve')")
     prior_gain_max: float = param(1.0, help="largest gain of the motion prior per pose parameter, chosen per window "
                                             "from the per-frame fits around it (REML of each parameter's fits, "
                                             "scaled by the detections' curvature; see solve.prior_gain): static "
