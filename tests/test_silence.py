@@ -70,6 +70,10 @@ def test_a_moving_forearm_leaves_the_legs_and_the_other_arm_still():
     assert s[[0, 3, 4]].min() > 0.5 and np.median(s[[0, 3, 4]]) > 0.9
     # the forearm's activity: 3 events per px of its length every 1 ms, in 13 px boxes -> ~ 3 * 13 / 169 / 1 ms
     assert 100 < sil.activity_hz[1, wrist] < 400
+    # holding: still only as much as in the least still bin within ± 1 bin; the bins next to the motion lose it
+    held = measure_silence(ev, EDGES, J, H, W, radius_px=6, rate_hz=2.0, hold_bins=1).stillness
+    assert held[[0, 1, 2, 3], wrist].max() < 0.01 and held[4, wrist] == s[4, wrist] > 0.5
+    np.testing.assert_array_equal(held, np.array([s[max(k - 1, 0):k + 2].min(axis=0) for k in range(5)]))
 
 
 def test_background_rate_is_subtracted_and_a_bone_out_of_view_counts_as_moving():
@@ -104,5 +108,7 @@ def test_bad_input_is_named():
         measure_silence(noise(0.1), EDGES, J, H, W, rate_hz=0.0)
     with pytest.raises(ValueError, match="SilenceSettings.radius_px"):
         SilenceSettings(radius_px=2.5)
+    with pytest.raises(ValueError, match="SilenceSettings.hold_bins"):
+        SilenceSettings(hold_bins=-1)
     with pytest.raises(ValueError, match="SilenceSettings.rate_hz"):
         SilenceSettings(rate_hz=float("nan"))

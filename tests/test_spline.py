@@ -363,6 +363,14 @@ def test_bad_config_and_missing_detections_are_named():
     b = inputs["batches"].batch(0)
     with pytest.raises(StageFailed, match="stages.spline.knot_ms"):
         _run_stage(inputs, b, knot_ms=0.0)
+    with pytest.raises(StageFailed, match=r"stages.spline.still_hold_ms: expected milliseconds >= 0, got nan"):
+        _run_stage(inputs, b, still_hold_ms=float("nan"))
+    with pytest.raises(StageFailed, match=r"stages.spline.still_rate_hz: expected a number > 0, got 0.0"):
+        _run_stage(inputs, b, still_rate_hz=0.0)
+    with pytest.raises(StageFailed, match=r"stages.spline.still_radius_px: expected an integer >= 0, got -1"):
+        _run_stage(inputs, b, still_radius_px=-1)
+    with pytest.raises(ValueError, match=r"still_radius_px: Value '2.5' of type 'float' could not be converted"):
+        _run_stage(inputs, b, still_radius_px=2.5)  # refused when the config is built
     # an unknown prior is refused when the config is built, before anything runs
     with pytest.raises(ValueError, match=r"\.prior: expected one of acceleration \| jerk, got 'snap'"):
         _run_stage(inputs, b, prior="snap")

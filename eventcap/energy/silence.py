@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.ndimage import minimum_filter1d
 
 from eventcap.body.skeleton import NUM_JOINTS, PARENTS
 
@@ -44,10 +45,13 @@ class SilenceSettings:
 
     radius_px: int = 6  #: half side of the box of pixels counted around each sample along a bone
     rate_hz: float = 2.0  #: activity above the background (events / px / s) at which the stillness is 1/e
+    hold_bins: int = 0  #: a joint's stillness in a bin is its least within ± this many bins
 
     def __post_init__(self) -> None:
         if isinstance(self.radius_px, bool) or int(self.radius_px) != self.radius_px or self.radius_px < 0:
             raise ValueError(f"SilenceSettings.radius_px: expected an integer >= 0, got {self.radius_px!r}")
+        if isinstance(self.hold_bins, bool) or int(self.hold_bins) != self.hold_bins or self.hold_bins < 0:
+            raise ValueError(f"SilenceSettings.hold_bins: expected an integer >= 0, got {self.hold_bins!r}")
         v = self.rate_hz
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
             raise ValueError(f"SilenceSettings.rate_hz: expected a finite number > 0, got {v!r}")
@@ -65,14 +69,18 @@ class Silence:
 
 
 def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndarray, height: int, width: int,
-                    radius_px: int = 6, rate_hz: float = 2.0, n_samples: int = 4, margin_px: float = 20.0) -> Silence:
+                    radius_px: int = 6, rate_hz: float = 2.0, n_samples: int = 4, margin_px: float = 20.0,
+                    hold_bins: int = 0) -> Silence:
     """Stillness of every joint per bin (see the module doc).
 
     events: structured events (t µs, x, y, p) of the bins' span (others are ignored); edges_us: (K+1,) increasing;
     joints_px: (K, 24, 2) the 24 joints projected at each bin's middle (NaN: behind the camera, left out);
     radius_px: half side of the box counted around each sample; rate_hz: activity above the background (events per
     pixel per second) at which the stillness falls to 1/e; n_samples per bone between 20% and 80% of its length;
-    margin_px around the joints' box beyond which pixels are background."""
+    margin_px around the joints' box beyond which pixels are background; hold_bins: a joint is only as still in
+    bin k as in its least still bin within k ± hold_bins (a joint must be silent for a while: a limb that the
+    estimate places a few pixels off its true path, e.g. a fast oscillation the frames cannot follow, is silent
+    in its band only in moments, and a motion's onset is not held back)."""
     edges = np.asarray(edges_us, dtype=np.int64)
     K = edges.size - 1
     J = np.asarray(joints_px, dtype=np.float64)
@@ -128,8 +136,10 @@ def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndar
     # standard deviations of the background is not motion
     sd = np.sqrt(background / ((2 * r + 1) ** 2 * dur_s))[:, None]
     excess = np.maximum(activity - background - 2.0 * sd, 0.0)
-    return Silence(edges_us=edges, activity_hz=activity, background_hz=background,
-                   stillness=np.exp(-excess / float(rate_hz)))
+    still = np.exp(-excess / float(rate_hz))
+    if hold_bins > 0:
+        still = minimum_filter1d(still, size=2 * int(hold_bins) + 1, axis=0, mode="nearest")
+    return Silence(edges_us=edges, activity_hz=activity, background_hz=background, stillness=still)
 
 
 __all__ = ["Silence", "SilenceSettings", "measure_silence"]

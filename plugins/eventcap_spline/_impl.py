@@ -75,10 +75,18 @@ def run_spline(inputs, config, ctx):
     if not (math.isfinite(config.knot_ms) and h_us >= 1):
         raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
                           f"{config.knot_ms!r}", status="invalid_config")
+    for name, what in (("still_hold_ms", "milliseconds >= 0"), ("still_rate_hz", "a number > 0"),
+                       ("still_radius_px", "an integer >= 0")):
+        v = getattr(config, name)
+        ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v >= 0
+        ok = ok and (v > 0 if name == "still_rate_hz" else True) and (int(v) == v if name == "still_radius_px" else True)
+        if not ok:
+            raise StageFailed(f"stages.spline.{name}: expected {what}, got {v!r}", status="invalid_config")
     try:
         weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor,
                                 prior=config.lambda_prior, damp=config.lambda_damp, still=config.lambda_still)
-        silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz)
+        silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz,
+                                  hold_bins=int(round(config.still_hold_ms / config.knot_ms)))
         settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
     except ValueError as exc:
         raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc

@@ -527,7 +527,7 @@ def window_silence(problem: SplineProblem, spline: UniformCubicBSpline, C: np.nd
     joints = joint_positions(spline.evaluate(C, mids), problem.template.rest_joints)
     cam = problem.camera
     sil = measure_silence(events, edges, cam.project(joints), cam.height, cam.width, settings.radius_px,
-                          settings.rate_hz)
+                          settings.rate_hz, hold_bins=settings.hold_bins)
     return sil, float(weight) * sil.stillness
 
 

@@ -36,6 +36,9 @@ class SplineSolveConfig:
                                          "sample along a bone (event silence)")
     still_rate_hz: float = param(2.0, help="events per pixel per second above the background at which a body's "
                                            "stillness falls to 1/e (event silence)")
+    still_hold_ms: float = param(20.0, help="a joint counts as still only as much as in its least still moment "
+                                           "within ± this many ms (rounded to knot intervals): brief silences of a "
+                                           "moving limb the estimate misplaces do not hold it (event silence)")
     lambda_2d: float = param(200.0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
     robust_2d_px: float = param(2.0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
     lambda_3d: float = param(1.0, help="weight of E_3D at every intensity frame of the window (metres)")
