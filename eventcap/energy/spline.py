@@ -23,6 +23,8 @@ import numpy as np
 
 #: Derivative orders the motion prior supports.
 PRIOR_ORDERS = {"acceleration": 2, "jerk": 3}
+#: 3-point Gauss-Legendre rule on [0, 1] (nodes, weights): exact for polynomials up to degree 5.
+GAUSS3 = (0.5 + 0.5 * np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)]), np.array([5.0, 8.0, 5.0]) / 18.0)
 
 
 def _local_basis(tau: np.ndarray, deriv: int) -> np.ndarray:
@@ -86,9 +88,7 @@ class UniformCubicBSpline:
         """Q (n_ctrl, n_ctrl) with ∫ (d^deriv S/dt^deriv)² dt = Cᵀ Q C over the spline's span (exact)."""
         if deriv not in (1, 2, 3):
             raise ValueError(f"B-spline prior: derivative order must be 1, 2 or 3, got {deriv!r}")
-        # 3-point Gauss-Legendre on [0, 1]: exact for the products (degree <= 4) of these derivatives
-        g = 0.5 + 0.5 * np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
-        wq = np.array([5.0, 8.0, 5.0]) / 18.0
+        g, wq = GAUSS3  # exact for the products (degree <= 4) of these derivatives
         b = _local_basis(g, deriv)  # (3, 4)
         M = (b.T * wq) @ b / self.h_s ** (2 * deriv - 1)  # ∫_0^1 ... dτ, times h for dt, h^-2k for d/dt
         Q = np.zeros((self.n_ctrl, self.n_ctrl))

@@ -21,8 +21,8 @@ Terms (all from :mod:`eventcap.energy`): E_2D (Cauchy-robust) and E_3D of one fr
 batch solve (:class:`eventcap.energy.cor.CorrespondenceEnergy`, relative form, exact block-tridiagonal Hessian) at
 the spline's poses at the correspondence frames; the prior is a fixed quadratic form; E_still
 (:mod:`eventcap.energy.silence`: s_j(t) is joint j's stillness measured from the events around its bones) is the
-joints' image velocity linearised at each solve's start, a fixed quadratic form too (Gauss-Newton). Every term is a function of
-poses S = B C, linear in C, so the chain rule is a product with the (sparse) basis: g_C = Bᵀ g_S and
+joints' image velocity linearised at each solve's start, a fixed quadratic form too (Gauss-Newton). Every term is a
+function of poses S = B C, linear in C, so the chain rule is a product with the (sparse) basis: g_C = Bᵀ g_S and
 H_C = Bᵀ H_S B. IPOPT sees the sum through numpy callbacks (value, gradient, exact Hessian with a banded sparsity:
 control points i and j interact only when |i - j| <= 3, plus the t' of each detection frame).
 
@@ -57,7 +57,7 @@ from eventcap.energy.detections import (
 from eventcap.energy.ipopt import IpoptSettings, NumpyCallback, SolveStats, checked_bounds, run_ipopt
 from eventcap.energy.kernels import Buffered, SkinningKernels
 from eventcap.energy.silence import Silence, SilenceSettings, measure_silence
-from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
+from eventcap.energy.spline import GAUSS3, PRIOR_ORDERS, UniformCubicBSpline
 from eventcap.stage import StageFailed
 
 _NP = NUM_POSE_PARAMS
@@ -231,8 +231,7 @@ class SplineProblem:
         """E_still as a fixed quadratic form in C: at the 3 Gauss points q of every knot interval s,
         M_q = h w_q Σ_j still[s, j] J_jᵀ J_j (33×33, J_j the 2×33 Jacobian of joint j's pixel at S_ref(t_q)), so
         E = Σ_q (B'_q C)ᵀ M_q (B'_q C); its Hessian blocks (n_ctrl, n_ctrl, 33, 33) are summed per interval."""
-        g = 0.5 + 0.5 * np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
-        wq = np.array([5.0, 8.0, 5.0]) / 18.0 * spline.h_s
+        g, wq = GAUSS3[0], GAUSS3[1] * spline.h_s
         seg = np.repeat(np.arange(self.n_seg), 3)
         t_q = spline.t0_us + spline.h_us * (seg + np.tile(g, self.n_seg))
         Sq = spline.evaluate(C_ref, t_q)
