@@ -49,9 +49,8 @@ def problem_for(template, camera, n_seg, n_det, n_cor, settings, limits, robust_
 def run_spline(inputs, config, ctx):
     from eventcap.energy.detections import select_detections
     from eventcap.energy.ipopt import IpoptSettings
-    from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
-
     from eventcap.energy.silence import SilenceSettings
+    from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
 
     from .solve import SplineWeights, solve_window
 
@@ -75,12 +74,12 @@ def run_spline(inputs, config, ctx):
     if not (math.isfinite(config.knot_ms) and h_us >= 1):
         raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
                           f"{config.knot_ms!r}", status="invalid_config")
-    for name, what in (("still_hold_ms", "milliseconds >= 0"), ("still_rate_hz", "a number > 0"),
-                       ("still_radius_px", "an integer >= 0")):
+    still_checks = {"still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
+                    "still_rate_hz": ("a number > 0", lambda v: v > 0),
+                    "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v)}
+    for name, (what, good) in still_checks.items():
         v = getattr(config, name)
-        ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v >= 0
-        ok = ok and (v > 0 if name == "still_rate_hz" else True) and (int(v) == v if name == "still_radius_px" else True)
-        if not ok:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not good(v):
             raise StageFailed(f"stages.spline.{name}: expected {what}, got {v!r}", status="invalid_config")
     try:
         weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor,
@@ -133,8 +132,7 @@ def run_spline(inputs, config, ctx):
     try:
         res = solve_window(prob, spline, t_det, det, t_us[idx], xy, valid, weights, int(config.icp_rounds),
                            config.edge_margin_px, what=what, context=context, gain_max=gain_max,
-                           events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1) if weights.still > 0 else None,
-                           silence=silence)
+                           events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence)
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
         if what in str(exc):
             raise

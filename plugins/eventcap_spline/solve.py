@@ -465,9 +465,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     context: (times, detections) of the intensity frames around the window from which the prior's gain per
     parameter is chosen (:func:`prior_gain`, up to gain_max); None: the prior is λ_prior for every parameter.
 
-    events: the recording's events over the window, for the event-silence term (weights.still > 0): the stillness
-    of each parameter's rigid body per knot interval, measured around the start spline's projected bones
-    (:func:`window_silence`)."""
+    events: the recording's events over the window, for the event-silence term (used when weights.still > 0): each
+    joint's stillness per knot interval, measured around the start spline's projected bones (:func:`window_silence`)."""
     if int(icp_rounds) != icp_rounds or icp_rounds < 0:
         raise ValueError(f"icp_rounds: expected an integer >= 0, got {icp_rounds!r}")
     seconds = {}
@@ -484,10 +483,10 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     C = np.clip(C, problem.lower, problem.upper)
     x = np.concatenate([C.ravel(), tps.ravel()])
     seconds["fit"] = time.perf_counter() - t0
-    sil, still_Q = None, None
+    sil, still_w = None, None
     if weights.still > 0 and events is not None:
         t1 = time.perf_counter()
-        sil, still_Q = window_silence(problem, spline, C, events, weights.still, silence)
+        sil, still_w = window_silence(problem, spline, C, events, weights.still, silence)
         seconds["silence"] = time.perf_counter() - t1
     seconds["correspondences"] = seconds["solve"] = 0.0
     corr = Correspondences.empty()
@@ -496,13 +495,13 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         Se = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_cor_us)
         corr = find_correspondences(problem.template, problem.camera, Se, xy, valid, edge_margin_px)
         t2 = time.perf_counter()
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_Q)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w)
         x, st = problem.solve(x, f"{what}: spline solve (ICP round {r + 1})")
         solves.append(SolveStats(st.status, st.iterations, st.seconds, corr.n))
         seconds["correspondences"] += t2 - t1
         seconds["solve"] += time.perf_counter() - t2
     if icp_rounds == 0:  # detections and prior only (no events)
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_Q)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w)
         x, st = problem.solve(x, f"{what}: spline solve (no correspondences)")
         solves.append(st)
     c = problem._eval(x, 0)

@@ -34,7 +34,7 @@ class SplineSolveConfig:
                                          "interval, weighted by that stillness (eventcap.energy.silence); 0 = off")
     still_radius_px: int = param(6, help="half side of the box of pixels whose events are counted around each "
                                          "sample along a bone (event silence)")
-    still_rate_hz: float = param(2.0, help="events per pixel per second above the background at which a body's "
+    still_rate_hz: float = param(2.0, help="events per pixel per second above the background at which a joint's "
                                            "stillness falls to 1/e (event silence)")
     still_hold_ms: float = param(20.0, help="a joint counts as still only as much as in its least still moment "
                                            "within ± this many ms (rounded to knot intervals): brief silences of a "
