@@ -141,10 +141,10 @@ def build_pipeline(cfg: Mapping[str, Any], registry: Registry) -> list[Node]:
                     f"whole recording and its port is not declared all_batches=True"
                 )
                 continue
-            if want.all_batches and not (up_spec.per_batch and not spec.per_batch):
+            if want.all_batches and not up_spec.per_batch:
                 problems.append(
-                    f"node {name!r}: input {port!r} is declared all_batches, so it must come from a per-batch node "
-                    f"into a whole-recording stage; {src} is {'per batch' if up_spec.per_batch else 'whole-recording'}"
+                    f"node {name!r}: input {port!r} is declared all_batches, so it must come from a per-batch node; "
+                    f"{src} is whole-recording"
                 )
                 continue
             refs[name][port] = InputRef(up, up_port)

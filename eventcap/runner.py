@@ -498,17 +498,18 @@ class Runner:
 
         A whole upstream node, or a per-batch upstream node as a whole (no plan, no batches), counts for every
         unit; a per-batch upstream's batch counts for the same batch of a per-batch node, and any of its batches for
-        a whole node (which reads all of them)."""
-        for ref in node.inputs.values():
+        a whole node or an ``all_batches`` input (which read all of them)."""
+        for port, ref in node.inputs.items():
             up = ref.node
             if (up, None) in self._roots:
                 return self._roots[(up, None)]
             if not self.by_name[up].spec.per_batch:
                 continue
-            if batch is not None and node.spec.per_batch:
+            every = node.spec.inputs[port].all_batches
+            if batch is not None and node.spec.per_batch and not every:
                 if (up, batch) in self._roots:
                     return self._roots[(up, batch)]
-            elif batch is None and not node.spec.per_batch:
+            elif every or (batch is None and not node.spec.per_batch):
                 bad = sorted(k for (n, k) in self._roots if n == up and k is not None)
                 if bad:
                     more = f" (and {len(bad) - 1} more failed or skipped batch(es) of {up})" if len(bad) > 1 else ""
@@ -548,7 +549,7 @@ class Runner:
         refs, keydoc = {}, {}
         for port, ref in node.inputs.items():
             up = self.by_name[ref.node]
-            if up.spec.per_batch and node.spec.per_batch:
+            if up.spec.per_batch and node.spec.per_batch and not node.spec.inputs[port].all_batches:
                 k = batch_keys[ref.node][batch.index]
                 refs[port] = InputRefSpec(up.spec.name, ref.port, (k,))
                 keydoc[port] = k
@@ -655,11 +656,11 @@ class Runner:
         todo: list[Task] = []
         for b in batches:
             root = self._upstream_root(node, b.index)
-            if root is None and any(self.by_name[r.node].spec.per_batch and b.index not in batch_keys.get(r.node, {})
-                                    for r in node.inputs.values()):
+            same = [r for p, r in node.inputs.items()
+                    if self.by_name[r.node].spec.per_batch and not node.spec.inputs[p].all_batches]
+            if root is None and any(b.index not in batch_keys.get(r.node, {}) for r in same):
                 root = next(f"{r.node}[batch {b.index}]: not in the upstream node's batch plan"
-                            for r in node.inputs.values() if self.by_name[r.node].spec.per_batch
-                            and b.index not in batch_keys.get(r.node, {}))
+                            for r in same if b.index not in batch_keys.get(r.node, {}))
             if root is not None:
                 self._skip(rep, b.index, root, None)
                 log.warning("%s: batch %d skipped, upstream failed: %s", node.name, b.index, root)

@@ -48,8 +48,10 @@ def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool
 class Port:
     """A typed input or output of a stage.
 
-    ``all_batches=True`` on an input of a whole-recording stage means: all batches of a per-batch upstream output,
-    delivered as a lazy sequence (see runner.BatchSequence).
+    ``all_batches=True`` on an input means: all batches of a per-batch upstream output, delivered as a lazy
+    sequence (see runner.BatchSequence). A whole-recording stage needs it to read a per-batch output; a per-batch
+    stage may ask for it to see its neighbours' batches too (each of its batches then depends on all of them, and a
+    failed upstream batch skips every one of its batches).
     """
 
     type: type[Artifact]

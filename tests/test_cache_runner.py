@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 
+import numpy as np
 import pytest
 
 from eventcap.artifacts import Metrics
@@ -71,6 +72,42 @@ def test_failed_batch_recorded_not_cached_and_fix_recomputes_only_it(toy_cfg, tm
     assert fixed.ok
     assert counts(fixed) == {"signal": (1, 0), "smooth": (3, 1), "scale": (3, 1), "total": (0, 1)}
     assert cache.failure(fail["key"]) is None
+
+
+def _with_neighbours(cfg):
+    cfg["pipeline"]["nodes"]["near"] = {"inputs": {"chunks": "scale.chunk"}}
+    cfg["pipeline"]["nodes"]["total"]["inputs"] = {"chunks": "near.chunk"}
+    cfg["stages"]["near"] = {"stage": "toy_neighbours", "reach": 1}
+    return cfg
+
+
+def test_a_per_batch_stage_reads_its_neighbours_batches(toy_cfg, tmp_path):
+    """A per-batch node whose input is all_batches: each batch sees every batch of the upstream node; a failed
+    upstream batch skips all of its batches (each depends on all), and the fix recomputes them."""
+    bad = Runner(_with_neighbours(toy_cfg(smooth={"fail_batches": [2]}))).run()
+    assert bad.nodes["scale"].skipped == 1 and bad.nodes["near"].skipped == 1 and bad.nodes["near"].computed == 0
+    [cause] = bad.nodes["near"].skip_causes
+    assert cause["batch"] is None and "smooth[batch 2]: " in cause["cause"] and "injected failure" in cause["cause"]
+    assert bad.nodes["total"].skipped == 1
+    runner = Runner(_with_neighbours(toy_cfg()))
+    r = runner.run(tmp_path / "r")  # fixed: batch 2 of smooth and scale, and every batch of near
+    assert r.ok and r.nodes["smooth"].computed == 1 and r.nodes["near"].computed == 4
+    scaled, near = runner.load_output(r, "scale.chunk"), runner.load_output(r, "near.chunk")
+    means = [scaled[k].values.mean() for k in range(4)]
+    for k in range(4):
+        np.testing.assert_allclose(near[k].values - scaled[k].values, np.mean(means[max(k - 1, 0):k + 2]))
+    assert [near[k].label[-2:] for k in range(4)] == ["+2", "+3", "+3", "+2"]
+    again = Runner(_with_neighbours(toy_cfg())).run()
+    assert again.ok and again.nodes["near"].cached == 4 and again.nodes["near"].computed == 0
+
+
+def test_a_per_batch_stage_sees_only_the_selected_batches(toy_cfg):
+    cfg = _with_neighbours(toy_cfg())
+    cfg["batches"] = "1:3"
+    runner = Runner(cfg)
+    r = runner.run()
+    near = runner.load_output(r, "near.chunk")
+    assert r.ok and sorted(near) == [1, 2] and near[1].label.endswith("+2") and near[2].label.endswith("+2")
 
 
 def test_batch_selection(toy_cfg):

@@ -80,6 +80,22 @@ def run_scale(inputs, config: ScaleConfig, ctx):
     return {"chunk": Series(t_us=c.t_us.copy(), values=c.values * config.factor, label=c.label)}
 
 
+@dataclass
+class NeighboursConfig:
+    reach: int = param(1, help="batches on each side whose chunks are averaged in")
+
+
+def run_neighbours(inputs, config: NeighboursConfig, ctx):
+    """Per batch: the batch's chunk plus the mean value of the chunks of the batches within ``reach`` (those of
+    the plan given: a batch selection leaves the others out)."""
+    chunks, k = inputs["chunks"], ctx.batch.index
+    where = {b.index: i for i, b in enumerate(chunks.batches)}
+    near = [chunks[where[j]].values.mean() for j in range(k - config.reach, k + config.reach + 1) if j in where]
+    own = chunks[where[k]]
+    return {"chunk": Series(t_us=own.t_us.copy(), values=own.values + float(np.mean(near)),
+                            label=f"{own.label}+{len(near)}")}
+
+
 def run_sum(inputs, config: SumConfig, ctx):
     chunks = inputs["chunks"]
     total = float(sum(np.sum(chunks[i].values ** config.power) for i in range(len(chunks))))
@@ -96,6 +112,10 @@ SPECS = [
     StageSpec(name="toy_scale", kind="toy_filter", version=1, description="per-batch scaling",
               config=ScaleConfig, inputs={"chunk": Port(Series)}, outputs={"chunk": Port(Series)},
               run="toy_stages:run_scale", per_batch=True),
+    StageSpec(name="toy_neighbours", kind="toy_filter", version=1,
+              description="per batch, plus the mean of its neighbouring batches' chunks",
+              config=NeighboursConfig, inputs={"chunks": Port(Series, all_batches=True)},
+              outputs={"chunk": Port(Series)}, run="toy_stages:run_neighbours", per_batch=True),
     StageSpec(name="toy_sum", kind="toy_reduce", version=1, description="sum over all batches",
               config=SumConfig, inputs={"chunks": Port(Series, all_batches=True)},
               outputs={"metrics": Port(Metrics)}, run="toy_stages:run_sum"),
