@@ -112,3 +112,26 @@ def test_bad_input_is_named():
         SilenceSettings(hold_bins=-1)
     with pytest.raises(ValueError, match="SilenceSettings.rate_hz"):
         SilenceSettings(rate_hz=float("nan"))
+
+
+def test_sweep_finds_a_limb_the_estimate_has_at_the_right_place_at_the_wrong_time():
+    """The right forearm moves along its resting line during bin 1 only, but the estimate has it there only in bin
+    3 (in bins 0-2 it puts the forearm 40 px lower, where nothing happens). Without a sweep bin 1 calls the wrist
+    still; with a sweep of 2 bins the wrist's bones of bin 3 are looked at with bin 1's events and it is not; the
+    other arm stays still either way, and the activity is the largest over the places looked at."""
+    J = np.broadcast_to(skeleton_px(), (5, NUM_JOINTS, 2)).copy()
+    arm = [JOINT_INDEX[n] for n in ("r_elbow", "r_wrist", "r_hand")]
+    J[:3, arm, 1] += 40.0
+    ev = np.concatenate([noise(0.5), edge_sweep(J[3, JOINT_INDEX["r_elbow"]], J[3, JOINT_INDEX["r_wrist"]],
+                                                10_000, 20_000)])
+    ev = ev[np.argsort(ev["t"], kind="stable")]
+    wrist, other = JOINT_INDEX["r_wrist"], JOINT_INDEX["l_wrist"]
+    plain = measure_silence(ev, EDGES, J, H, W)
+    swept = measure_silence(ev, EDGES, J, H, W, sweep_bins=2)
+    assert plain.stillness[1, wrist] > 0.9 and swept.stillness[1, wrist] < 0.01
+    assert swept.stillness[:, other].min() > 0.5
+    assert np.all(swept.activity_hz >= plain.activity_hz - 1e-9)
+    one = measure_silence(ev, EDGES, J, H, W, sweep_bins=1)  # bin 3 is 2 bins from bin 1: not reached
+    assert one.stillness[1, wrist] > 0.9
+    with pytest.raises(ValueError, match=r"SilenceSettings.sweep_bins: expected an integer >= 0, got -1"):
+        SilenceSettings(sweep_bins=-1)

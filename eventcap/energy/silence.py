@@ -49,12 +49,16 @@ class SilenceSettings:
     radius_px: int = 6  #: half side of the box of pixels counted around each sample along a bone
     rate_hz: float = 2.0  #: activity above the background (events / px / s) at which the stillness is 1/e
     hold_bins: int = 0  #: a joint's stillness in a bin is its least within ± this many bins
+    sweep_bins: int = 0  #: a bin's events are counted around the bones where the estimate puts them in every bin
+    #: within ± this many (the most active place counts)
 
     def __post_init__(self) -> None:
         if isinstance(self.radius_px, bool) or int(self.radius_px) != self.radius_px or self.radius_px < 0:
             raise ValueError(f"SilenceSettings.radius_px: expected an integer >= 0, got {self.radius_px!r}")
-        if isinstance(self.hold_bins, bool) or int(self.hold_bins) != self.hold_bins or self.hold_bins < 0:
-            raise ValueError(f"SilenceSettings.hold_bins: expected an integer >= 0, got {self.hold_bins!r}")
+        for name in ("hold_bins", "sweep_bins"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < 0:
+                raise ValueError(f"SilenceSettings.{name}: expected an integer >= 0, got {v!r}")
         v = self.rate_hz
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
             raise ValueError(f"SilenceSettings.rate_hz: expected a finite number > 0, got {v!r}")
@@ -73,7 +77,7 @@ class Silence:
 
 def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndarray, height: int, width: int,
                     radius_px: int = 6, rate_hz: float = 2.0, n_samples: int = 4, margin_px: float = 20.0,
-                    hold_bins: int = 0) -> Silence:
+                    hold_bins: int = 0, sweep_bins: int = 0) -> Silence:
     """Stillness of every joint per bin (see the module doc).
 
     events: structured events (t µs, x, y, p) of the bins' span (others are ignored); edges_us: (K+1,) increasing;
@@ -83,7 +87,10 @@ def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndar
     margin_px around the joints' box beyond which pixels are background; hold_bins: a joint is only as still in
     bin k as in its least still bin within k ± hold_bins (a joint must be silent for a while: a limb that the
     estimate places a few pixels off its true path, e.g. a fast oscillation the frames cannot follow, is silent
-    in its band only in moments, and a motion's onset is not held back)."""
+    in its band only in moments, and a motion's onset is not held back); sweep_bins: bin k's events are counted
+    around the bones as projected in each bin k' within k ± sweep_bins and a bone's activity is the largest of
+    those (the estimate's path around the moment, not only its place at it: a limb the estimate gets at the right
+    place at the wrong time is not called still)."""
     edges = np.asarray(edges_us, dtype=np.int64)
     K = edges.size - 1
     J = np.asarray(joints_px, dtype=np.float64)
@@ -118,22 +125,27 @@ def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndar
     ok = np.isfinite(P).all(-1)
     xi = np.clip(np.rint(np.where(ok, P[..., 0], 0)), 0, width - 1).astype(np.int64)
     yi = np.clip(np.rint(np.where(ok, P[..., 1], 0)), 0, height - 1).astype(np.int64)
-    dens = np.zeros(xi.shape)
+    # the box's area (clipped at the border) turns counts into density
+    area = ((np.minimum(yi + r + 1, height) - np.maximum(yi - r, 0)) *
+            (np.minimum(xi + r + 1, width) - np.maximum(xi - r, 0)))
+    # bin k's events are looked up at the bones of bins k + o, o in -sweep..sweep (clipped to the bins)
+    offsets = np.arange(-int(sweep_bins), int(sweep_bins) + 1)
+    dens = np.zeros((K, offsets.size) + xi.shape[1:])
     box = (2 * r + 1, 2 * r + 1)
     for k in range(K):  # the events of bin k within the box around every pixel (zero outside the image)
         a, z = cut[k], cut[k + 1]
         img = np.bincount(ey[a:z] * width + ex[a:z], minlength=height * width).reshape(height, width)
         D = cv2.boxFilter(img.astype(np.float32), -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
-        dens[k] = np.where(ok[k], D[yi[k], xi[k]], 0.0)
-    # the box's area (clipped at the border) turns counts into density
-    area = ((np.minimum(yi + r + 1, height) - np.maximum(yi - r, 0)) *
-            (np.minimum(xi + r + 1, width) - np.maximum(xi - r, 0)))
-    bone_sum = np.zeros((K, NUM_JOINTS))
-    bone_n = np.zeros((K, NUM_JOINTS))
-    bone_sum[:, 1:] = np.sum(np.where(ok, dens / area, 0.0), axis=2)
-    bone_n[:, 1:] = ok.sum(2)
+        kk = np.clip(k + offsets, 0, K - 1)
+        dens[k] = np.where(ok[kk], D[yi[kk], xi[kk]] / area[kk], 0.0)
+    kk = np.clip(np.arange(K)[:, None] + offsets[None, :], 0, K - 1)  # (K, O)
+    bone_n = np.zeros((K, offsets.size, NUM_JOINTS))
+    bone_sum = np.zeros((K, offsets.size, NUM_JOINTS))
+    bone_sum[..., 1:] = dens.sum(-1)
+    bone_n[..., 1:] = ok[kk].sum(-1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        activity = np.where(bone_n > 0, bone_sum / np.maximum(bone_n, 1), np.inf) / dur_s[:, None]
+        per_place = np.where(bone_n > 0, bone_sum / np.maximum(bone_n, 1), np.inf) / dur_s[:, None, None]
+    activity = per_place.max(1)
     activity[:, 0] = activity[:, np.flatnonzero(PARENTS == 0)].max(1)  # the pelvis: its bones to hips and spine
     # Poisson noise of the background's count in one box over one bin, as a density: activity within 2 of its
     # standard deviations of the background is not motion
