@@ -4,13 +4,14 @@ every term of the spline energy against finite differences, accuracy against gro
 from __future__ import annotations
 
 import functools
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from conftest import assert_derivatives_match_fd
 from test_detect import detect, posed_recording
 
-from eventcap.artifacts import Batch, BatchPlan
+from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.tracking import SlicedTracks
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import pose_bounds
@@ -233,18 +234,36 @@ def test_spline_through_noisy_detections_beats_the_per_frame_fits():
 
 
 # ------------------------------------------------------------------------------------------------ the stage
-def stage_inputs(batch: int = 0):
+class _Seq(list):
+    """Stands in for the runner's lazy BatchSequence (a list with .batches)."""
+
+    def __init__(self, items, batches):
+        super().__init__(items)
+        self.batches = batches
+
+
+@functools.lru_cache(maxsize=1)
+def _stage_data():
     rec, det_rows, t_det = scene()[:3]
     det = detect("simulated", rec)
-    t_us = t_det[batch] + 1_000 * np.arange(41, dtype=np.int64)
     gt = rec.ground_truth
-    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-    tri, bary = _pick_track_points(rec.template, rec.camera, lambda t: S[np.searchsorted(t_us, np.rint(t * 1e6))],
-                                   t_us[[0, 20, 40]], 60, seed=1)
-    xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
-    sliced = SlicedTracks(t_us=t_us, xy=np.where(valid[..., None], xy, np.nan).astype(np.float32), valid=valid,
-                          track_id=np.arange(xy.shape[1], dtype=np.int32))
     plan = BatchPlan.between_frames(t_det)
+    sliced = []
+    for k in range(len(plan)):  # exact surface tracks of every batch, each batch its own points
+        t_us = t_det[k] + 1_000 * np.arange(41, dtype=np.int64)
+        S = gt.poses[np.searchsorted(gt.t_us, t_us)]
+        tri, bary = _pick_track_points(rec.template, rec.camera,
+                                       lambda t, S=S, t_us=t_us: S[np.searchsorted(t_us, np.rint(t * 1e6))],
+                                       t_us[[0, 20, 40]], 60, seed=1 + k)
+        xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
+        sliced.append(SlicedTracks(t_us=t_us, xy=np.where(valid[..., None], xy, np.nan).astype(np.float32),
+                                   valid=valid, track_id=np.arange(xy.shape[1], dtype=np.int32)))
+    return rec, det, plan, _Seq(sliced, plan.batches())
+
+
+def stage_inputs():
+    """The stage's inputs on the scene: 3 batches of 40 ms, every batch's tracks (as the runner hands them)."""
+    rec, det, plan, sliced = _stage_data()
     return {"recording": rec, "sliced": sliced, "detections": det, "batches": plan}
 
 
@@ -268,14 +287,6 @@ def _run_stage(inputs, batch, **changes):
     spec = load_registry().get("spline")
     ctx = StageContext(node="solve", stage="spline", batch=batch)
     return spec.load_run()(inputs, build_config(spec, {**FAST, **changes}, "stages.solve"), ctx), ctx
-
-
-class _Seq(list):
-    """Stands in for the runner's lazy BatchSequence (a list with .batches)."""
-
-    def __init__(self, items, batches):
-        super().__init__(items)
-        self.batches = batches
 
 
 def _stitch(poses, plan, **changes):
@@ -331,13 +342,13 @@ def test_stitch_blends_overlapping_windows_without_a_seam():
 
 
 def test_stitched_stage_output_is_smooth_where_batches_meet():
-    """The three batches of the scene, each solved in its own window task (each task sees only its own batch's
-    tracks, so the windows differ): after stitch + cut, the largest 1 ms joint step is no larger than inside the
-    windows, and batch 0's last frame is batch 1's first."""
+    """The three batches of the scene, each solved in its own window task with only its own batch's tracks
+    (tracks=own, the default, so the windows differ): after stitch + cut, the largest 1 ms joint step is no larger than inside
+    the windows, and batch 0's last frame is batch 1's first."""
     rec = scene()[0]
     outs = []
     for k in (0, 1, 2):
-        inputs = stage_inputs(k)
+        inputs = stage_inputs()
         out, ctx = _run_stage(inputs, inputs["batches"].batch(k), half_window=1)
         outs.append(out["poses"])
         assert ctx.stats["window"] == [0, 2] and out["poses"].status == "Solve_Succeeded"
@@ -351,10 +362,50 @@ def test_stitched_stage_output_is_smooth_where_batches_meet():
     assert ctx.stats["seam_rad_max"] > 0  # the windows did differ
 
 
+def test_a_window_uses_the_tracks_of_all_its_batches():
+    """tracks=window: batch 0's and batch 2's tasks of the same window (batches 0..2) see the same tracks, so they
+    solve the same problem to the same curve, with the correspondences of all three batches (about 3x those of one
+    batch); with tracks=own (the default) each sees only its own batch's."""
+    inputs = stage_inputs()
+    plan = inputs["batches"]
+    out0, ctx0 = _run_stage(inputs, plan.batch(0), half_window=1, tracks="window")
+    out2, ctx2 = _run_stage(inputs, plan.batch(2), half_window=1, tracks="window")
+    np.testing.assert_array_equal(out0["poses"].poses, out2["poses"].poses)
+    own = [_run_stage(inputs, plan.batch(k), half_window=1, tracks="own")[1].stats["n_correspondences"]
+           for k in (0, 1, 2)]
+    assert ctx0.stats["n_correspondences"] == pytest.approx(sum(own), rel=0.1), (ctx0.stats, own)
+    assert min(own) > 0 and ctx0.stats["n_correspondences"] > 2.5 * max(own)
+
+
+def test_window_tracks_stacks_each_batch_in_its_own_columns():
+    from eventcap_spline._impl import window_tracks
+
+    sliced = stage_inputs()["sliced"]
+    t, xy, valid = window_tracks(list(sliced), 4, "batch 1")
+    H = [s.xy.shape[1] for s in sliced]
+    assert t.tolist() == list(range(5_000, 125_001, 4_000)) and xy.shape == (31, sum(H), 2)
+    # batch 1's columns: valid only at its own frames 45..85 ms, where they are its tracks at every 4th frame
+    cols = slice(H[0], H[0] + H[1])
+    rows = np.flatnonzero(valid[:, cols].any(1))
+    assert t[rows].tolist() == list(range(45_000, 85_001, 4_000))
+    np.testing.assert_array_equal(valid[rows, cols], sliced[1].valid[::4])
+    np.testing.assert_array_equal(xy[rows, cols][valid[rows, cols]], sliced[1].xy[::4][sliced[1].valid[::4]])
+    assert np.isnan(xy[~valid]).all()
+    # the boundary frame at 45 ms holds batch 0's last and batch 1's first positions
+    r = np.searchsorted(t, 45_000)
+    assert valid[r, :H[0]].any() and valid[r, cols].any()
+    bad = sliced[1].xy.copy()
+    bad[3, np.flatnonzero(sliced[1].valid[4])[0]] = np.nan
+    bad[4, np.flatnonzero(sliced[1].valid[4])[0]] = np.nan
+    with pytest.raises(StageFailed, match="batch 1: a track has a non-finite position where it is marked valid"):
+        window_tracks([sliced[0], SimpleNamespace(t_us=sliced[1].t_us, xy=bad, valid=sliced[1].valid)], 4,
+                      "batch 1")  # (an artifact would refuse it itself)
+
+
 def test_a_failed_window_raises_with_the_solver_status():
     inputs = stage_inputs()
     with pytest.raises(StageFailed) as err:
-        _run_stage(inputs, Batch(0, int(inputs["sliced"].t_us[0]), int(inputs["sliced"].t_us[-1]), 0), max_iter=1)
+        _run_stage(inputs, inputs["batches"].batch(0), max_iter=1)
     assert err.value.status == "Maximum_Iterations_Exceeded" and "window of batches 0..2" in str(err.value)
 
 

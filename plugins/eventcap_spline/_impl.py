@@ -10,6 +10,8 @@ from eventcap.artifacts.pose import PoseSequence
 from eventcap.energy.ipopt import bounds_with
 from eventcap.stage import StageFailed
 
+#: Whose tracks a window's E_cor uses: those of every batch of the window, or only of the batch it is solved for.
+TRACK_SCOPES = ("window", "own")
 #: Built problems of this process, keyed by template, camera, sizes and solver settings: built once per run.
 _PROBLEMS: dict = {}
 
@@ -27,6 +29,37 @@ def cor_frames(n_frames: int, step: int) -> np.ndarray:
     """Indices of the tracking frames whose poses E_cor compares: every ``step``-th, always with the last."""
     idx = np.arange(0, n_frames, step)
     return idx if idx[-1] == n_frames - 1 else np.append(idx, n_frames - 1)
+
+
+def window_tracks(parts, step: int, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tracks of several consecutive batches as one set for E_cor: (t_us (n_cor,), xy (n_cor, H, 2), valid
+    (n_cor, H)). Each batch contributes its correspondence frames (every ``step``-th tracking frame and its last,
+    :func:`cor_frames`) and its own columns of tracks, valid only within its own frames; neighbouring batches share
+    their boundary frame."""
+    times, cols = [], []
+    for part in parts:
+        t = np.asarray(part.t_us, dtype=np.int64)
+        if t.size < 2:
+            raise StageFailed(f"{where}: {t.size} tracking frame(s) in a batch of the window; need at least 2",
+                              status="invalid_input")
+        idx = cor_frames(t.size, step)
+        times.append(t[idx])
+        cols.append((idx, np.asarray(part.xy, dtype=np.float64), np.asarray(part.valid)))
+    t_cor = np.unique(np.concatenate(times))
+    H = sum(xy.shape[1] for _, xy, _ in cols)
+    xy_all = np.full((t_cor.size, H, 2), np.nan)
+    valid_all = np.zeros((t_cor.size, H), dtype=bool)
+    o = 0
+    for t_p, (idx, xy, valid) in zip(times, cols):
+        rows = np.searchsorted(t_cor, t_p)
+        h = xy.shape[1]
+        xy_all[rows, o:o + h] = xy[idx]
+        valid_all[rows, o:o + h] = valid[idx]
+        o += h
+    bad = valid_all & ~np.all(np.isfinite(xy_all), axis=-1)
+    if bad.any():
+        raise StageFailed(f"{where}: a track has a non-finite position where it is marked valid", status="invalid_input")
+    return t_cor, xy_all, valid_all
 
 
 def problem_for(template, camera, n_seg, n_det, n_cor, settings, limits, robust_px, prior):
@@ -75,6 +108,7 @@ def run_spline(inputs, config, ctx):
         raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
                           f"{config.knot_ms!r}", status="invalid_config")
     still_checks = {"still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
+                    "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
                     "still_rate_hz": ("a number > 0", lambda v: v > 0),
                     "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v)}
     for name, (what, good) in still_checks.items():
@@ -85,14 +119,25 @@ def run_spline(inputs, config, ctx):
         weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor,
                                 prior=config.lambda_prior, damp=config.lambda_damp, still=config.lambda_still)
         silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz,
-                                  hold_bins=int(round(config.still_hold_ms / config.knot_ms)))
+                                  hold_bins=int(round(config.still_hold_ms / config.knot_ms)),
+                                  sweep_bins=int(round(config.still_sweep_ms / config.knot_ms)))
         settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
     except ValueError as exc:
         raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
-    t_us = np.asarray(sliced.t_us, dtype=np.int64)
+    if config.tracks not in TRACK_SCOPES:
+        raise StageFailed(f"stages.spline.tracks: expected one of {list(TRACK_SCOPES)}, got {config.tracks!r}",
+                          status="invalid_config")
+    a, z = window_of(len(plan), b.index, int(config.half_window))
+    # every batch's tracks come as a sequence (runner.BatchSequence: .batches names them); a plain list is taken as
+    # indexed by batch
+    index = {bb.index: i for i, bb in enumerate(getattr(sliced, "batches", ()))} or dict(enumerate(range(len(sliced))))
+    if b.index not in index:
+        raise StageFailed(f"{where}: no tracks of this batch among the {len(sliced)} given", status="invalid_input")
+    own = sliced[index[b.index]]
+    t_us = np.asarray(own.t_us, dtype=np.int64)
     if t_us.size < 2:
         raise StageFailed(f"{where}: {t_us.size} tracking frame(s); need at least 2", status="invalid_input")
-    a, z = window_of(len(plan), b.index, int(config.half_window))
+    scope = [b.index] if config.tracks == "own" else [k for k in range(a, z + 1) if k in index]
     t_det = np.unique(np.concatenate([plan.t0_us[a:z + 1], plan.t1_us[a:z + 1]]))
     try:
         det = select_detections(detections, t_det)
@@ -103,17 +148,13 @@ def run_spline(inputs, config, ctx):
         raise StageFailed(f"{where}: detections unusable: " + "; ".join(problems), status="invalid_input")
     n_seg = int(math.ceil((t_det[-1] - t_det[0]) / h_us))
     spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
-    idx = cor_frames(t_us.size, int(config.cor_step))
-    xy = np.asarray(sliced.xy, dtype=np.float64)[idx]
-    valid = np.asarray(sliced.valid)[idx]
-    bad = valid & ~np.all(np.isfinite(xy), axis=-1)
-    if bad.any():
-        raise StageFailed(f"{where}: a track has a non-finite position where it is marked valid", status="invalid_input")
-    prob, built = problem_for(rec.template, rec.camera, n_seg, t_det.size, idx.size, settings, config.limits,
+    t_cor, xy, valid = window_tracks([own if k == b.index else sliced[index[k]] for k in scope],
+                                     int(config.cor_step), where)
+    prob, built = problem_for(rec.template, rec.camera, n_seg, t_det.size, t_cor.size, settings, config.limits,
                               config.robust_2d_px, config.prior)
     if built:
         ctx.log.info("built the spline NLP (%d control points, %d detection frames, %d correspondence frames) in "
-                     "%.2f s (once per process)", spline.n_ctrl, t_det.size, idx.size, prob.build_seconds)
+                     "%.2f s (once per process)", spline.n_ctrl, t_det.size, t_cor.size, prob.build_seconds)
         ctx.stats["build_s"] = prob.build_seconds
     what = f"{where} (window of batches {a}..{z})"
     gain_max, ctx_s = float(config.prior_gain_max), float(config.prior_context_s)
@@ -130,7 +171,7 @@ def run_spline(inputs, config, ctx):
         except ValueError as exc:
             raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
     try:
-        res = solve_window(prob, spline, t_det, det, t_us[idx], xy, valid, weights, int(config.icp_rounds),
+        res = solve_window(prob, spline, t_det, det, t_cor, xy, valid, weights, int(config.icp_rounds),
                            config.edge_margin_px, what=what, context=context, gain_max=gain_max,
                            events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence)
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
@@ -149,8 +190,13 @@ def run_spline(inputs, config, ctx):
     iters = int(sum(s.iterations for s in res.solves))
     secs = sum(res.seconds.values())
     ctx.log.info("%s: window of batches %d..%d (%d frames of detections, %d fitted here, %d control points), %d "
-                 "correspondences, %d IPOPT iterations, %.2f s (%s)", where, a, z, t_det.size, res.fits_computed,
-                 spline.n_ctrl, res.energies["n_correspondences"], iters, secs, res.solves[-1].status)
+                 "correspondences from the tracks of %s, %d IPOPT iterations, %.2f s (%s)", where, a, z, t_det.size,
+                 res.fits_computed, spline.n_ctrl, res.energies["n_correspondences"],
+                 f"batch {b.index}" if scope == [b.index] else f"{len(scope)} batches", iters, secs,
+                 res.solves[-1].status)
+    if config.tracks == "window" and len(scope) < z - a + 1:
+        ctx.log.warning("%s: only %d of the window's %d batches have tracks (batches= selects part of the plan)",
+                        where, len(scope), z - a + 1)
     if res.prior_gain is not None:
         g = res.prior_gain
         ctx.log.info("%s: motion prior gains from %d frames around the window: median %.3g, %d of 33 parameters at "

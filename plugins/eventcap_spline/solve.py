@@ -1,7 +1,7 @@
 """The spline solve (not in the paper): one continuous-time pose trajectory over a window of several batches.
 
     min_C,t'  Σ_d λ_2D E_2D(S(t_d)) + λ_3D E_3D(S(t_d), t'_d)          every intensity frame d of the window
-              + λ_cor E_cor(S(t_0), S(t_s), S(t_2s), ...)               the batch's event tracks (ICP)
+              + λ_cor E_cor(S(t_0), S(t_s), S(t_2s), ...)               the batch's (or window's) tracks (ICP)
               + λ_prior Σ_p ∫ (S_p^(k)(t))² dt                           motion prior, k = 2 or 3, exact
               + λ_still Σ_j ∫ s_j(t) ‖d/dt π(x_j(S(t)))‖² dt            event silence: joints without events rest
               + λ_damp ‖x - x_start‖²
@@ -525,7 +525,7 @@ def window_silence(problem: SplineProblem, spline: UniformCubicBSpline, C: np.nd
     joints = joint_positions(spline.evaluate(C, mids), problem.template.rest_joints)
     cam = problem.camera
     sil = measure_silence(events, edges, cam.project(joints), cam.height, cam.width, settings.radius_px,
-                          settings.rate_hz, hold_bins=settings.hold_bins)
+                          settings.rate_hz, hold_bins=settings.hold_bins, sweep_bins=settings.sweep_bins)
     return sil, float(weight) * sil.stillness
 
 

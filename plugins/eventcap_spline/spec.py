@@ -39,6 +39,11 @@ class SplineSolveConfig:
     still_hold_ms: float = param(20.0, help="a joint counts as still only as much as in its least still moment "
                                            "within ± this many ms (rounded to knot intervals): brief silences of a "
                                            "moving limb the estimate misplaces do not hold it (event silence)")
+    still_sweep_ms: float = param(50.0, help="a knot interval's events are counted around the bones wherever the "
+                                             "estimate puts them within ± this many ms (rounded to knot intervals), "
+                                             "the most active place counting: a limb the estimate has at the right "
+                                             "place at the wrong time is not called still (event silence; 0 = only "
+                                             "the interval's own place)")
     lambda_2d: float = param(200.0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
     robust_2d_px: float = param(2.0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
     lambda_3d: float = param(1.0, help="weight of E_3D at every intensity frame of the window (metres)")
@@ -48,6 +53,12 @@ class SplineSolveConfig:
     cor_step: int = param(5, help="tracking frames between the two frames of a correspondence (1 = adjacent "
                                   "frames, as the batch solve; 5 measured better and 5x cheaper: larger "
                                   "displacements against the same pixel noise)")
+    tracks: str = param("own", choices=("window", "own"),
+                        help="whose event tracks E_cor uses: only the batch the window is solved for (own), or every "
+                             "batch of the window (window; about twice the solve time). Measured on the full suite "
+                             "at 10 fps: with EKLT tracks window is no better (lambda_cor 100: a wash; 500: worse), "
+                             "with exact tracks (stages/track=oracle) it cut MPJVE 210 -> 184 mm/s and the median "
+                             "peak-speed error 16% -> 12% (README: 'A continuous-time solve')")
     icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
     edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette edge give no correspondence")
     lambda_damp: float = param(1e-4, help="proximal pull of the control points towards each solve's start")
@@ -60,13 +71,16 @@ class SplineSolveConfig:
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=6,
+    name="spline", kind="solve", version=7,
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
-                "window of batches, fitted to the detections at every intensity frame (robust, soft), this batch's "
-                "event correspondences and a motion prior, joint limits on the control points (CasADi + IPOPT); "
+                "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
+                "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, joint limits on the control points (CasADi + IPOPT); "
                 "the output is the window's whole curve at the tracking rate (the stitch stage blends the windows)",
     config=SplineSolveConfig,
-    inputs={"recording": Port(Recording), "sliced": Port(SlicedTracks), "detections": Port(Detections),
+    inputs={"recording": Port(Recording),
+            "sliced": Port(SlicedTracks, "every batch's tracks (a window reads those of its batches)",
+                           all_batches=True),
+            "detections": Port(Detections),
             "batches": Port(BatchPlan)},
     outputs={"poses": Port(PoseSequence)}, per_batch=True,
     run="eventcap_spline._impl:run_spline",
