@@ -654,10 +654,10 @@ class Runner:
         keys: dict[int, str] = {}
         batch_keys[node.name] = keys
         todo: list[Task] = []
+        same = [r for p, r in node.inputs.items()  # per-batch inputs read batch by batch
+                if self.by_name[r.node].spec.per_batch and not node.spec.inputs[p].all_batches]
         for b in batches:
             root = self._upstream_root(node, b.index)
-            same = [r for p, r in node.inputs.items()
-                    if self.by_name[r.node].spec.per_batch and not node.spec.inputs[p].all_batches]
             if root is None and any(b.index not in batch_keys.get(r.node, {}) for r in same):
                 root = next(f"{r.node}[batch {b.index}]: not in the upstream node's batch plan"
                             for r in same if b.index not in batch_keys.get(r.node, {}))

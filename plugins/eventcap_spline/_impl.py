@@ -10,8 +10,6 @@ from eventcap.artifacts.pose import PoseSequence
 from eventcap.energy.ipopt import bounds_with
 from eventcap.stage import StageFailed
 
-#: Whose tracks a window's E_cor uses: those of every batch of the window, or only of the batch it is solved for.
-TRACK_SCOPES = ("window", "own")
 #: Built problems of this process, keyed by template, camera, sizes and solver settings: built once per run.
 _PROBLEMS: dict = {}
 
@@ -124,13 +122,9 @@ def run_spline(inputs, config, ctx):
         settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
     except ValueError as exc:
         raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
-    if config.tracks not in TRACK_SCOPES:
-        raise StageFailed(f"stages.spline.tracks: expected one of {list(TRACK_SCOPES)}, got {config.tracks!r}",
-                          status="invalid_config")
     a, z = window_of(len(plan), b.index, int(config.half_window))
-    # every batch's tracks come as a sequence (runner.BatchSequence: .batches names them); a plain list is taken as
-    # indexed by batch
-    index = {bb.index: i for i, bb in enumerate(getattr(sliced, "batches", ()))} or dict(enumerate(range(len(sliced))))
+    # every batch's tracks, as the runner hands them (runner.BatchSequence: .batches names them, loaded on access)
+    index = {bb.index: i for i, bb in enumerate(sliced.batches)}
     if b.index not in index:
         raise StageFailed(f"{where}: no tracks of this batch among the {len(sliced)} given", status="invalid_input")
     own = sliced[index[b.index]]

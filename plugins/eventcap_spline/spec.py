@@ -74,7 +74,8 @@ SPLINE = StageSpec(
     name="spline", kind="solve", version=7,
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
-                "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, joint limits on the control points (CasADi + IPOPT); "
+                "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
+                "joint limits on the control points (CasADi + IPOPT); "
                 "the output is the window's whole curve at the tracking rate (the stitch stage blends the windows)",
     config=SplineSolveConfig,
     inputs={"recording": Port(Recording),
