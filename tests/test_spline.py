@@ -233,6 +233,49 @@ def test_spline_through_noisy_detections_beats_the_per_frame_fits():
     assert np.all(dense[:, :27] >= lo[:27] - 1e-7) and np.all(dense[:, :27] <= hi[:27] + 1e-7)
 
 
+def test_cor_residuals_are_zero_on_exact_tracks_at_the_true_poses_and_shift_with_a_track():
+    rec, det, t_det, t_us, S, xy, valid = scene()
+    prob = problem()
+    corr = find_correspondences(rec.template, rec.camera, S, xy, valid)
+    prob.cor.set_correspondences(corr, relative=True)
+    r = prob.cor.residuals_px(S)
+    assert r.shape == (corr.n, 2) and corr.n > 500
+    assert np.percentile(np.linalg.norm(r, axis=1), 95) < 0.05  # only the rounding of the tracks' sub-pixel pick
+    moved = xy.copy()
+    moved[:, 7] += np.array([3.0, -4.0])[None] * ((t_us - t_us[0]) / 1000.0)[:, None] / 40.0  # 5 px by the end
+    corr2 = find_correspondences(rec.template, rec.camera, S, moved, valid)
+    prob.cor.set_correspondences(corr2, relative=True)
+    r2 = prob.cor.residuals_px(S)
+    mine = corr2.track == 7
+    step = (corr2.frame[mine] - corr2.source[mine]) / 40.0  # the drift over each correspondence's frames
+    assert mine.any()
+    assert np.allclose(r2[mine], -np.array([3.0, -4.0])[None] * step[:, None], atol=0.1)
+
+
+def test_robust_cor_weights_keep_drifting_tracks_from_pulling_the_motion():
+    """One track in four drifts off its surface point at 0.5 px/ms: least squares follows them, the Cauchy
+    reweighting (robust_cor_px) much less: the middle batch stays nearer the truth and the clean tracks' solution."""
+    rec, det, t_det, t_us, S, xy, valid = scene(exact=True)
+    prob = problem()
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
+    bad = xy.copy()
+    drift = (0.5 * (t_us - t_us[0]) / 1000.0)[:, None]
+    bad[:, ::4, 0] += drift
+    bad[:, ::4, 1] -= drift
+    poses = {}
+    for name, tracks, sigma in (("clean", xy, 0.0), ("least squares", bad, 0.0), ("robust", bad, 0.5)):
+        res = solve_window(prob, spl, t_det, det, t_us, tracks, valid, SplineWeights(d2=20.0, cor=2000.0),
+                           icp_rounds=3, robust_cor_px=sigma)
+        assert res.solves[-1].status == "Solve_Succeeded"
+        poses[name] = spl.evaluate(res.control, t_us)
+    truth = {k: joint_error_mm(rec, v, S) for k, v in poses.items()}
+    to_clean = {k: joint_error_mm(rec, v, poses["clean"]) for k, v in poses.items()}
+    assert truth["robust"] < 0.75 * truth["least squares"], truth
+    assert to_clean["robust"] < 0.5 * to_clean["least squares"], to_clean
+    with pytest.raises(ValueError, match=r"robust_cor_px: expected a Cauchy scale in pixels >= 0, got -1"):
+        solve_window(prob, spl, t_det, det, t_us, bad, valid, robust_cor_px=-1)
+
+
 # ------------------------------------------------------------------------------------------------ the stage
 class _Seq(list):
     """Stands in for the runner's lazy BatchSequence (a list with .batches)."""

@@ -108,6 +108,12 @@ class CorrespondenceEnergy:
         e_temp = float(np.sum(phi * np.sum(d * d, axis=2)))
         return e_cor, e_temp, r, d, pts
 
+    def residuals_px(self, S: np.ndarray) -> np.ndarray:
+        """Each correspondence's image residual (P, 2) in pixels at the poses S (F, 33), unweighted: where the model
+        moves its point minus where the track moved (relative form), or minus where the track is (fixed source)."""
+        r = self._values(S, np.zeros((self.F - 1, NUM_JOINTS)), self.kernels.transforms(S))[2]
+        return r / self.scale
+
     def terms(self, S: np.ndarray, phi: np.ndarray) -> tuple[float, float]:
         """Unweighted (E_cor, E_temp)."""
         return self._values(S, phi, self.kernels.transforms(S))[:2]

@@ -105,7 +105,8 @@ def run_spline(inputs, config, ctx):
     if not (math.isfinite(config.knot_ms) and h_us >= 1):
         raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
                           f"{config.knot_ms!r}", status="invalid_config")
-    still_checks = {"still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
+    still_checks = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
+                    "still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
                     "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
                     "still_rate_hz": ("a number > 0", lambda v: v > 0),
                     "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v)}
@@ -167,7 +168,8 @@ def run_spline(inputs, config, ctx):
     try:
         res = solve_window(prob, spline, t_det, det, t_cor, xy, valid, weights, int(config.icp_rounds),
                            config.edge_margin_px, what=what, context=context, gain_max=gain_max,
-                           events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence)
+                           events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence,
+                           robust_cor_px=float(config.robust_cor_px))
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
         if what in str(exc):
             raise

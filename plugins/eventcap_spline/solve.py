@@ -188,13 +188,15 @@ class SplineProblem:
     # ------------------------------------------------------------------ data of one window
     def set_window(self, spline: UniformCubicBSpline, t_det_us, det: FrameDetections, t_cor_us,
                    corr: Correspondences, weights: SplineWeights, x_ref: np.ndarray,
-                   prior_gain: np.ndarray | None = None, still: np.ndarray | None = None) -> None:
+                   prior_gain: np.ndarray | None = None, still: np.ndarray | None = None,
+                   cor_weight: np.ndarray | None = None) -> None:
         """Hand one window's data to the energy: the spline basis, detections at t_det_us (n_det rows),
         correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x, the
         motion prior's gain per pose parameter (33,) (its weight is λ_prior · gain_p; default 1), and the
         event-silence weights still (n_seg, 24): λ_still times each joint's stillness per knot interval
         (E_still = Σ_s Σ_j still[s, j] ∫_s ‖J_j(S_ref(t)) S'(t)‖² dt, the image velocity of joint j in px/s
-        linearised at x_ref; :mod:`eventcap.energy.silence`; None: no such term)."""
+        linearised at x_ref; :mod:`eventcap.energy.silence`; None: no such term), and a weight in [0, 1] per
+        correspondence (corr.n,) (None: 1 each)."""
         if spline.n_seg != self.n_seg:
             raise ValueError(f"set_window: the problem was built for {self.n_seg} knot intervals, got {spline.n_seg}")
         if det.n != self.n_det or np.size(t_det_us) != self.n_det:
@@ -216,7 +218,12 @@ class SplineProblem:
                 raise ValueError(f"set_window: expected event-silence weights >= 0 of shape ({self.n_seg}, "
                                  f"{NUM_JOINTS}), got {still.shape}")
             form = self._still_form(spline, x_ref[:self.nC].reshape(self.n_ctrl, _NP), still)
-        self.cor.set_correspondences(corr, relative=True)
+        if cor_weight is not None:
+            cor_weight = np.asarray(cor_weight, dtype=np.float64)
+            if cor_weight.shape != (corr.n,) or not np.all((cor_weight >= 0) & (cor_weight <= 1)):
+                raise ValueError(f"set_window: expected a weight in [0, 1] per correspondence ({corr.n},), got "
+                                 f"shape {cor_weight.shape}")
+        self.cor.set_correspondences(corr, relative=True, point_weight=cor_weight)
         dv = [det_values(det, d) for d in range(self.n_det)]
         self._data = {
             "Bd": spline.basis(t_det_us), "Be": spline.basis(t_cor_us), "Q": spline.gram(self.order),
@@ -457,7 +464,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
                  t_cor_us: np.ndarray, xy: np.ndarray, valid: np.ndarray, weights: SplineWeights = SplineWeights(),
                  icp_rounds: int = 2, edge_margin_px: float = 1.0, what: str = "window",
                  context: tuple[np.ndarray, FrameDetections] | None = None, gain_max: float = 1.0,
-                 events: np.ndarray | None = None, silence: SilenceSettings = SilenceSettings()) -> WindowResult:
+                 events: np.ndarray | None = None, silence: SilenceSettings = SilenceSettings(),
+                 robust_cor_px: float = 0.0) -> WindowResult:
     """Solve one window: fits at its detection frames, a smoothing spline through them as the start, then
     ``icp_rounds`` alternations of correspondence search (at the current spline's poses at t_cor_us, with the
     tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve.
@@ -466,7 +474,13 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     parameter is chosen (:func:`prior_gain`, up to gain_max); None: the prior is λ_prior for every parameter.
 
     events: the recording's events over the window, for the event-silence term (used when weights.still > 0): each
-    joint's stillness per knot interval, measured around the start spline's projected bones (:func:`window_silence`)."""
+    joint's stillness per knot interval, measured around the start spline's projected bones (:func:`window_silence`).
+
+    robust_cor_px > 0: from the second ICP round on, each correspondence is weighted by the Cauchy weight
+    1 / (1 + (e/σ)²) of its image residual e (px) at the previous round's solution, σ = robust_cor_px (iteratively
+    reweighted least squares: a track the others and the detections disagree with pulls less)."""
+    if not (math.isfinite(robust_cor_px) and robust_cor_px >= 0):
+        raise ValueError(f"robust_cor_px: expected a Cauchy scale in pixels >= 0, got {robust_cor_px!r}")
     if int(icp_rounds) != icp_rounds or icp_rounds < 0:
         raise ValueError(f"icp_rounds: expected an integer >= 0, got {icp_rounds!r}")
     seconds = {}
@@ -494,8 +508,13 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         t1 = time.perf_counter()
         Se = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_cor_us)
         corr = find_correspondences(problem.template, problem.camera, Se, xy, valid, edge_margin_px)
+        cor_w = None
+        if robust_cor_px > 0 and r > 0 and corr.n:
+            problem.cor.set_correspondences(corr, relative=True)
+            e2 = np.sum(problem.cor.residuals_px(Se) ** 2, axis=1)
+            cor_w = 1.0 / (1.0 + e2 / float(robust_cor_px) ** 2)
         t2 = time.perf_counter()
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w, cor_w)
         x, st = problem.solve(x, f"{what}: spline solve (ICP round {r + 1})")
         solves.append(SolveStats(st.status, st.iterations, st.seconds, corr.n))
         seconds["correspondences"] += t2 - t1

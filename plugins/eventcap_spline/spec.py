@@ -59,6 +59,9 @@ class SplineSolveConfig:
                              "at 10 fps: with EKLT tracks window is no better (lambda_cor 100: a wash; 500: worse), "
                              "with exact tracks (stages/track=oracle) it cut MPJVE 210 -> 184 mm/s and the median "
                              "peak-speed error 16% -> 12% (README: 'A continuous-time solve')")
+    robust_cor_px: float = param(0.0, help="Cauchy scale (px) of E_cor's residuals: from the second ICP round on, "
+                                           "each correspondence is weighted 1 / (1 + (e/σ)²) by its residual e at the "
+                                           "previous round's solution (0 = least squares)")
     icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
     edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette edge give no correspondence")
     lambda_damp: float = param(1e-4, help="proximal pull of the control points towards each solve's start")
