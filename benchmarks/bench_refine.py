@@ -50,7 +50,7 @@ from eventcap.config import build_config  # noqa: E402
 from eventcap.metrics import mean_joint_error  # noqa: E402
 from eventcap.registry import load_registry  # noqa: E402
 from eventcap.stage import StageContext  # noqa: E402
-from eventcap_refine.boundary import silhouette_iou, silhouettes  # noqa: E402
+from eventcap.energy.boundary import silhouette_iou, silhouettes  # noqa: E402
 from eventcap_refine.spec import SILHOUETTE  # noqa: E402
 
 N = 40  # tracking frames per batch - 1 (25 fps, 1 ms)

@@ -37,22 +37,16 @@ try:
 except ImportError:  # not installed yet: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))
 
-from eventcap_refine.boundary import (
+from eventcap.energy.boundary import (
     boundary_pixels,
     boundary_samples,
     rasterize_frames,
     silhouette_iou,
     silhouettes,
 )
-from eventcap_refine.refine import (
-    TOL,
-    Correspondences,
-    RefineProblem,
-    RefineWeights,
-    find_correspondences,
-    refine_batch,
-)
-from eventcap_refine.search import EventIndex
+from eventcap.energy.event_search import EventIndex
+from eventcap.energy.sil import SilhouetteCorrespondences, SilhouetteWeights, find_silhouette_correspondences
+from eventcap_refine.refine import TOL, RefineProblem, refine_batch
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE = "eventcap_refine.spec:SILHOUETTE"
@@ -125,7 +119,7 @@ def iou(rec, poses, masks) -> float:
 
 # ------------------------------------------------------------------------------------------------ derivatives
 def test_residual_kernel_matches_the_projection_derivatives():
-    from eventcap_refine._kernels import camera_params, residual_derivatives
+    from eventcap.energy._sil_kernels import camera_params, residual_derivatives
     from eventcap_solve.batch import project_derivatives
 
     rec = scene()[0]
@@ -144,8 +138,8 @@ def test_residual_kernel_matches_the_projection_derivatives():
     np.testing.assert_allclose(hr, s * np.einsum("pa,pabc->pbc", normal, H), rtol=1e-9, atol=1e-10)
 
 
-def _subset(corr: Correspondences, keep: np.ndarray) -> Correspondences:
-    return Correspondences(corr.frame[keep], corr.rest_points[keep], corr.weights[keep], corr.normal[keep],
+def _subset(corr: SilhouetteCorrespondences, keep: np.ndarray) -> SilhouetteCorrespondences:
+    return SilhouetteCorrespondences(corr.frame[keep], corr.rest_points[keep], corr.weights[keep], corr.normal[keep],
                            corr.target_px[keep])
 
 
@@ -159,10 +153,10 @@ def test_refine_energy_gradient_and_hessian_match_finite_differences(loss):
     prob = problem()
     start = perturbed(S, seed=1)
     index = EventIndex(rec.events.events, rec.camera.width, rec.camera.height, t_us, N * 1000)
-    corr = find_correspondences(rec.template, rec.camera, start, index, RefineWeights(), 8)[0]
+    corr = find_silhouette_correspondences(rec.template, rec.camera, start, index, SilhouetteWeights(), 8)[0]
     assert corr.n > 5000
     x = (start + np.random.default_rng(2).normal(0, 0.01, start.shape)).ravel()
-    weights = RefineWeights(loss=loss, stab=5.0)
+    weights = SilhouetteWeights(loss=loss, stab=5.0)
     if loss == "huber":
         # ~300 points, and δ in the widest gap between residuals: no residual crosses the kink within the steps.
         corr = _subset(corr, np.arange(0, corr.n, corr.n // 300))
@@ -345,7 +339,7 @@ def test_refinement_lowers_joint_error_and_raises_silhouette_iou(seed):
     assert res.energies["sil"] < res.energies["sil_start"]
     assert np.all(res.poses >= lo - 1e-9) and np.all(res.poses <= hi + 1e-9)
     assert res.status == "Solve_Succeeded" and len(res.icp) == 4
-    weak = refine_batch(problem(), t_us, start, rec.events.events, RefineWeights(stab=0.5))
+    weak = refine_batch(problem(), t_us, start, rec.events.events, SilhouetteWeights(stab=0.5))
     err2, iou2 = joint_error_mm(rec, weak.poses, S, align=False), iou(rec, weak.poses, masks)
     assert err2 < 0.9 * err0 and iou2 > iou0 + 0.06, (err0, err2, iou0, iou2)  # measured: -20%, +0.09..0.17
 
@@ -358,7 +352,7 @@ def test_refinement_of_articulation_errors_lowers_the_aligned_error():
     res = refine_batch(problem(), t_us, start, rec.events.events)
     err1, iou1 = joint_error_mm(rec, res.poses, S), iou(rec, res.poses, masks)
     assert err1 < err0 - 0.2 and iou1 > iou0 + 0.015, (err0, err1, iou0, iou1)  # measured: 19.3 -> 18.9 mm
-    weak = refine_batch(problem(), t_us, start, rec.events.events, RefineWeights(stab=0.5))
+    weak = refine_batch(problem(), t_us, start, rec.events.events, SilhouetteWeights(stab=0.5))
     assert joint_error_mm(rec, weak.poses, S) < 0.93 * err0  # measured: 17.0 mm
 
 

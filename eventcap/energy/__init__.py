@@ -14,6 +14,9 @@ differentiated by CasADi) or in numpy with exact derivatives (terms over thousan
   integral (the motion prior of the spline solve).
 - :mod:`.silence` — the event-silence term's measurement: which joints made no more events than the background,
   per time bin (a joint without events is at rest; not in the paper).
+- :mod:`.sil` — E_sil (paper Sec. 3.3): the posed template's silhouette boundary (:mod:`.boundary`) against its
+  closest events (:mod:`.event_search`), point-to-line, value, gradient and exact block-diagonal Hessian (the
+  refinement stage's energy, and a term of the spline solve); compiled loops in :mod:`._sil_kernels`.
 - :mod:`.ipopt` — pinned IPOPT options, status checks, numpy callbacks, pose bounds.
 
 Submodules import CasADi; nothing here is imported by ``import eventcap``.

@@ -1,4 +1,4 @@
-"""Compiled inner loops of the refinement (numba): camera projection and residual derivatives, the sparse
+"""Compiled inner loops of E_sil (numba; the refinement and the spline solve): camera projection and residual derivatives, the sparse
 skinning products of the energy, the silhouette boundary scan, the rest-point solve and the event search.
 
 Each is checked in tests/test_refine.py against a plain reference: ``eventcap.energy.kernels.project_derivatives``

@@ -17,7 +17,7 @@ Per tracking frame the template is posed with the current estimate S_f (linear b
   dominant joint where the blended rotation is nearly singular), so π(v_b(S_f)) is s_b's pixel centre at the pose
   it was found with.
 
-The boundary scan and the rest-point solves are compiled loops (:mod:`._kernels`).
+The boundary scan and the rest-point solves are compiled loops (:mod:`._sil_kernels`).
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def rasterize_frames(camera: Camera, verts: np.ndarray, faces: np.ndarray, near_
     as long as the z-buffer itself); the tests check it against ``rasterize``."""
     from eventcap.render import _rasterize
 
-    from ._kernels import camera_params, project_points
+    from ._sil_kernels import camera_params, project_points
 
     F, V = verts.shape[:2]
     flat = np.ascontiguousarray(verts, dtype=np.float64).reshape(-1, 3)
@@ -96,7 +96,7 @@ def boundary_pixels(mask: np.ndarray, sigma_px: float = NORMAL_SIGMA_PX):
     Returns (pixels (B, 2) int64 (x, y) row-major, normals (B, 2)) for one mask; for a stack also the frame of
     each pixel first: (frame (B,), pixels, normals), ordered by frame. Pixels without a normal are left out.
     """
-    from ._kernels import boundary_scan
+    from ._sil_kernels import boundary_scan
 
     m = np.asarray(mask, dtype=bool)
     single = m.ndim == 2
@@ -116,7 +116,7 @@ def boundary_samples(template: Template, camera: Camera, poses: np.ndarray,
     """Boundary samples of the template posed with each row of ``poses`` (F, 33) (module doc)."""
     from eventcap.energy.correspondences import MIN_BLEND_DET
 
-    from ._kernels import rest_points
+    from ._sil_kernels import rest_points
 
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 2 or poses.shape[1] != 33:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._kernels import nearest_in_time, patch_search, supported_events
+from ._sil_kernels import nearest_in_time, patch_search, supported_events
 
 #: Marks "no event of this pixel within the frame's window" in the time-offset table.
 _NONE = np.iinfo(np.int32).min

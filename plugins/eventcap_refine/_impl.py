@@ -49,7 +49,9 @@ def problem_for(template, camera, frames: int, settings, limits=None):
 def run_refine(inputs, config, ctx):
     from eventcap.energy.ipopt import IpoptSettings
 
-    from .refine import RefineWeights, refine_batch
+    from eventcap.energy.sil import SilhouetteWeights
+
+    from .refine import refine_batch
 
     rec, est, b = inputs["recording"], inputs["poses"], ctx.batch
     where = f"batch {b.index}" if b is not None else "batch ?"
@@ -63,7 +65,7 @@ def run_refine(inputs, config, ctx):
         raise StageFailed(f"{where}: poses at [{t_us[0]}, {t_us[-1]}] us lie outside the batch [{b.t0_us}, "
                           f"{b.t1_us}] us: are they the solve output of this batch?", status="invalid_input")
     try:
-        weights = RefineWeights(sil=config.lambda_sil, stab=config.lambda_stab, dist=config.lambda_dist,
+        weights = SilhouetteWeights(sil=config.lambda_sil, stab=config.lambda_stab, dist=config.lambda_dist,
                                 loss=config.loss, huber_px=config.huber_px)
         settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol,
                                  mumps_pivot_order=config.mumps_pivot_order)

@@ -7,7 +7,8 @@ For each tracking frame f of a batch, starting from the batch solve's pose Ŝ_f 
 minimised subject to the joint bounds θ_min <= θ_f <= θ_max (skeleton.pose_bounds, or the config's overrides),
 alternating with the correspondence search as in ICP (``icp_iterations``, 4 by default): pose the template with
 the current S_f, find its silhouette boundary pixels s_b, their outward normals n_b and surface points v_b
-(:mod:`.boundary`), the closest event u_b of each s_b (Eq. 12-13, :mod:`.search`), then solve with those fixed.
+(:mod:`eventcap.energy.boundary`), the closest event u_b of each s_b (Eq. 12-13, :mod:`eventcap.energy.event_search`),
+then solve with those fixed. The energy is :class:`eventcap.energy.sil.SilhouetteEnergy` (shared with the spline solve).
 Boundary pixels without any event in their patch and window are left out (counted in the diagnostics).
 
 - E_sil (Eq. 11): the point-to-line (2D "point-to-plane") distance of the projected surface point to its event,
@@ -33,7 +34,7 @@ skinning transforms G(S) (96×3), their Jacobian and the contraction of their se
 solver's CasADi kernels (:class:`eventcap.energy.kernels.SkinningKernels`); each surface point is v = WX·G
 (premultiplied weights, kept sparse: a point is weighted to 2-9 of the 24 joints), its Jacobian WX·∂G; the
 residuals' derivatives w.r.t. the point (camera model of :meth:`Camera.project`, closed form) and the per-point
-products are compiled loops (:mod:`._kernels`, checked against ``eventcap.energy.kernels.project_derivatives`` and
+products are compiled loops (:mod:`eventcap.energy._sil_kernels`, checked against ``eventcap.energy.kernels.project_derivatives`` and
 finite differences in the tests). IPOPT sees the energy through CasADi callbacks plugged in as ``grad_f`` /
 ``hess_lag``; the correspondences are handed to the energy object per solve, never rebuilt into the NLP. Every
 solve's status is checked: anything but success raises :class:`eventcap.stage.StageFailed` with IPOPT's status.
@@ -45,7 +46,6 @@ that are already better than that — there it adds up to a pixel's worth of noi
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -53,16 +53,20 @@ import casadi as ca
 import numpy as np
 
 from eventcap.body.kinematics import joint_positions
-from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
+from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.stage import StageFailed
 
-from .boundary import NORMAL_SIGMA_PX, boundary_samples
-from .search import EventIndex
+from eventcap.energy.event_search import EventIndex
+from eventcap.energy.sil import (
+    SilhouetteCorrespondences,
+    SilhouetteEnergy,
+    SilhouetteWeights,
+    find_silhouette_correspondences,
+)
 
 _NP = NUM_POSE_PARAMS
-LOSSES = ("l2", "huber")
 #: Default of the event support filter (µs): see :mod:`.search`.
 DENOISE_US = 5000
 #: IPOPT's convergence tolerance for the refinement (scaled NLP error). Measured on synthetic batches: 1e-4 and
@@ -75,191 +79,6 @@ def default_settings():
     from eventcap.energy.ipopt import IpoptSettings
 
     return IpoptSettings(tol=TOL)
-
-
-@dataclass(frozen=True)
-class RefineWeights:
-    """λ of Eq. 9 and Eq. 12 and the loss of E_sil (units: module doc)."""
-
-    sil: float = 1.0
-    stab: float = 5.0
-    dist: float = 4.0  # λ_dist of the closest event search (Eq. 12)
-    loss: str = "l2"
-    huber_px: float = 1.0  # δ of the Huber loss, pixels
-
-    def __post_init__(self) -> None:
-        for name in ("sil", "stab", "dist", "huber_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"RefineWeights.{name}: expected a finite number >= 0, got {v!r}")
-        if self.loss not in LOSSES:
-            raise ValueError(f"loss: expected one of {LOSSES}, got {self.loss!r}")
-        if self.loss == "huber" and not self.huber_px > 0:
-            raise ValueError(f"huber_px: the Huber loss needs a threshold > 0 pixels, got {self.huber_px!r}")
-
-
-@dataclass(frozen=True)
-class Correspondences:
-    """E_sil data of a batch: one row per matched boundary pixel b. P rows, sorted by frame."""
-
-    frame: np.ndarray  #: (P,) int64
-    rest_points: np.ndarray  #: (P, 3) rest-space v_b, metres
-    weights: np.ndarray  #: (P, 24) skinning weights
-    normal: np.ndarray  #: (P, 2) n_b, unit
-    target_px: np.ndarray  #: (P, 2) u_b, pixels
-
-    @property
-    def n(self) -> int:
-        return int(self.frame.shape[0])
-
-    @classmethod
-    def empty(cls) -> Correspondences:
-        return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, NUM_JOINTS)), np.zeros((0, 2)),
-                   np.zeros((0, 2)))
-
-
-def robust_loss(r: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ρ(r), ρ'(r), ρ''(r) elementwise for ``l2`` (r²) or ``huber`` (r² inside |r| <= δ, 2δ|r| - δ² outside)."""
-    if loss == "l2":
-        return r * r, 2.0 * r, np.full_like(r, 2.0)
-    if loss == "huber":
-        a = np.abs(r)
-        inside = a <= delta
-        return (np.where(inside, r * r, 2.0 * delta * a - delta * delta),
-                np.where(inside, 2.0 * r, 2.0 * delta * np.sign(r)), np.where(inside, 2.0, 0.0))
-    raise ValueError(f"loss: expected one of {LOSSES}, got {loss!r}")
-
-
-# --------------------------------------------------------------------------------------------- the energy (numpy)
-class RefineEnergy:
-    """E_refine of all F frames as a function of the poses S (F, 33): value, gradient and exact Hessian blocks.
-
-    Data (:meth:`set_data`): the correspondences, the reference joints J(Ŝ) (F, 24, 3) and the weights.
-    """
-
-    def __init__(self, camera: Camera, kernels, rest_joints: np.ndarray):
-        from eventcap.energy.kernels import premultiplied_weights
-
-        from ._kernels import camera_params
-
-        self.camera, self.kernels, self.F = camera, kernels, kernels.F
-        self.cam = camera_params(camera)
-        self.scale = 1.0 / math.sqrt(camera.fx * camera.fy)
-        self.WXJ = premultiplied_weights(rest_joints, np.eye(NUM_JOINTS))  # (24, 96): J_l = WXJ_l · G
-        self.set_data(Correspondences.empty(), np.zeros((self.F, NUM_JOINTS, 3)), RefineWeights())
-
-    def set_data(self, corr: Correspondences, ref_joints: np.ndarray, weights: RefineWeights) -> None:
-        ref_joints = np.asarray(ref_joints, dtype=np.float64)
-        if ref_joints.shape != (self.F, NUM_JOINTS, 3):
-            raise ValueError(f"reference joints: expected shape ({self.F}, 24, 3), got {ref_joints.shape}")
-        if corr.n and (corr.frame.min() < 0 or corr.frame.max() >= self.F or np.any(np.diff(corr.frame) < 0)):
-            raise ValueError(f"correspondences: frames must be sorted and lie in [0, {self.F})")
-        self.corr, self.ref, self.w = corr, ref_joints, weights
-        from ._kernels import sparse_premultiplied
-
-        # Premultiplied weights WX (P, 96), point = WX · G, kept as their nonzeros (~15%: 2-9 joints per point).
-        self.nz_idx, self.nz_val = sparse_premultiplied(corr.rest_points, corr.weights)
-        self.frame = np.ascontiguousarray(corr.frame, dtype=np.int64)
-        self.normal = np.ascontiguousarray(corr.normal, dtype=np.float64)
-        self.target = np.ascontiguousarray(corr.target_px, dtype=np.float64)
-        self.delta = weights.huber_px * self.scale
-        bounds = np.searchsorted(corr.frame, np.arange(self.F + 1))
-        self.slices = [(f, slice(bounds[f], bounds[f + 1])) for f in range(self.F) if bounds[f + 1] > bounds[f]]
-        most = int(np.diff(bounds).max()) if self.F else 0
-        self._buffers = (np.empty((most, 3 * _NP)), np.empty((most, 3 * _NP)))  # J3 and B·J3 of one frame
-        self._cache: dict = {}
-
-    # -------------------------------------------------------------- pieces
-    def _points(self, G: np.ndarray) -> np.ndarray:
-        from ._kernels import sparse_points
-
-        pts = np.empty((self.corr.n, 3))
-        sparse_points(self.nz_idx, self.nz_val, self.frame, np.ascontiguousarray(G), pts)
-        return pts
-
-    def residuals(self, pts: np.ndarray, order: int = 0):
-        """Normalised point-to-line residuals r (P,) of the surface points pts (P, 3), and with order >= 1 their
-        gradient (P, 3), with order 2 their Hessian (P, 3, 3) w.r.t. the points."""
-        from ._kernels import residual_derivatives
-
-        P = pts.shape[0]
-        r, gr = np.empty(P), np.empty((P, 3) if order >= 1 else (0, 3))
-        hr = np.empty((P, 3, 3) if order >= 2 else (0, 3, 3))
-        residual_derivatives(np.ascontiguousarray(pts), self.normal, self.target, self.cam, self.scale, int(order),
-                             r, gr, hr)
-        return r, gr, hr
-
-    def terms(self, S: np.ndarray) -> dict:
-        """Unweighted E_sil (with the loss) and E_stab, per frame: {'sil': (F,), 'stab': (F,)}."""
-        S = np.asarray(S, dtype=np.float64).reshape(self.F, _NP)
-        G = self.kernels.transforms(S)
-        sil = np.zeros(self.F)
-        if self.corr.n:
-            rho = robust_loss(self.residuals(self._points(G))[0], self.w.loss, self.delta)[0]
-            np.add.at(sil, self.corr.frame, rho)
-        d = self.WXJ @ G - self.ref
-        return {"sil": sil, "stab": np.sum(d * d, axis=(1, 2))}
-
-    def value(self, S: np.ndarray) -> float:
-        t = self.terms(S)
-        return float(self.w.sil * t["sil"].sum() + self.w.stab * t["stab"].sum())
-
-    def _first_order(self, S: np.ndarray) -> dict:
-        from ._kernels import sparse_accumulate
-
-        key = S.tobytes()
-        if self._cache.get("key") == key:
-            return self._cache
-        G, dG = self.kernels.transforms_jac(S)
-        lamG = np.zeros((self.F, 4 * NUM_JOINTS, 3))  # ∂E/∂G per frame
-        value = 0.0
-        c = {"key": key, "dG": dG}
-        if self.corr.n:
-            pts = self._points(G)
-            r, gr, hr = self.residuals(pts, 2)
-            rho, d1, d2 = robust_loss(r, self.w.loss, self.delta)
-            a = (self.w.sil * d1)[:, None] * gr  # ∂E/∂point
-            sparse_accumulate(self.nz_idx, self.nz_val, self.frame, a, lamG)
-            value += self.w.sil * float(rho.sum())
-            c.update(d1=d1, d2=d2, gr=gr, hr=hr)
-        J = self.WXJ @ G
-        dJ = J - self.ref
-        value += self.w.stab * float(np.sum(dJ * dJ))
-        lamG += self.WXJ.T @ ((2.0 * self.w.stab) * dJ)  # ∂E/∂J (F, 24, 3) carried to G
-        # ∂E/∂S_f = Σ_{a,c} ∂E/∂G[f,a,c] · ∂G[f,a,c]/∂S_f: points and joints are linear in G.
-        g = np.matmul(lamG.reshape(self.F, 1, -1), dG.reshape(self.F, -1, _NP))[:, 0, :]
-        c.update(value=value, g=g, lamG=lamG)
-        self._cache = c
-        return c
-
-    # -------------------------------------------------------------- what IPOPT calls
-    def gradient(self, S: np.ndarray) -> tuple[float, np.ndarray]:
-        c = self._first_order(np.asarray(S, dtype=np.float64).reshape(self.F, _NP))
-        return c["value"], c["g"]
-
-    def hessian(self, S: np.ndarray) -> np.ndarray:
-        """Exact Hessian as diagonal blocks (F, 33, 33) (frames do not interact)."""
-        from ._kernels import point_jacobians
-
-        S = np.asarray(S, dtype=np.float64).reshape(self.F, _NP)
-        c = self._first_order(S)
-        dGm = c["dG"].reshape(self.F, 4 * NUM_JOINTS, 3 * _NP)
-        diag = np.zeros((self.F, _NP, _NP))
-        if self.corr.n:
-            # Σ_p J3_pᵀ B_p J3_p per frame, with J3_p = ∂point/∂S = WX_p · ∂G and the point-space Hessian of
-            # λ ρ(r): B_p = λ (ρ'' ∇r ∇rᵀ + ρ' ∇²r). Frame by frame, so that J3 and B·J3 stay in cache.
-            c2, c1 = self.w.sil * c["d2"], self.w.sil * c["d1"]
-            gr, hr = c["gr"], c["hr"]
-            J3, BJ = self._buffers
-            for f, sl in self.slices:
-                n = sl.stop - sl.start
-                point_jacobians(self.nz_idx[sl], self.nz_val[sl], f, dGm, c2[sl], gr[sl], c1[sl], hr[sl], J3[:n],
-                                BJ[:n])
-                diag[f] = J3[:n].reshape(-1, _NP).T @ BJ[:n].reshape(-1, _NP)
-        JJ = (self.WXJ @ dGm).reshape(self.F, -1, _NP)  # ∂J/∂S per frame (F, 72, 33)
-        diag += (2.0 * self.w.stab) * np.matmul(np.swapaxes(JJ, 1, 2), JJ)
-        diag += self.kernels.contracted_hessian(S, c["lamG"])
-        return diag
 
 
 def _block_diagonal_triu(n_blocks: int, size: int):
@@ -312,7 +131,7 @@ class RefineProblem:
         self.kernels = kernels if kernels is not None else SkinningKernels(template.rest_joints, self.F)
         if self.kernels.F != self.F:
             raise ValueError(f"RefineProblem: kernels for {self.kernels.F} frames, problem for {self.F}")
-        self.energy = ne = RefineEnergy(camera, self.kernels, template.rest_joints)
+        self.energy = ne = SilhouetteEnergy(camera, self.kernels, template.rest_joints)
         nx = _NP * self.F
         sp_h, r_in, c_in = _block_diagonal_triu(self.F, _NP)
 
@@ -344,7 +163,7 @@ class RefineProblem:
         self._solver = ca.nlpsol("refine", "ipopt", {"x": X, "p": P, "f": f_mx}, opts)
         self.build_seconds = time.perf_counter() - t0
 
-    def set_data(self, corr: Correspondences, ref_joints: np.ndarray, weights: RefineWeights) -> None:
+    def set_data(self, corr: SilhouetteCorrespondences, ref_joints: np.ndarray, weights: SilhouetteWeights) -> None:
         self.energy.set_data(corr, ref_joints, weights)
 
     def solve(self, start: np.ndarray, what: str = "refinement") -> tuple[np.ndarray, SolveStats]:
@@ -397,25 +216,8 @@ class RefineResult:
     events_dropped: int = 0  #: of which were dropped as unsupported noise (denoise_us)
 
 
-def find_correspondences(template: Template, camera: Camera, poses: np.ndarray, index: EventIndex,
-                         weights: RefineWeights, patch_px: int,
-                         sigma_px: float = NORMAL_SIGMA_PX) -> tuple[Correspondences, int, dict]:
-    """One correspondence search: boundary samples of ``poses`` (F, 33) and their closest events.
-
-    Returns (matched correspondences, number of boundary samples, seconds per phase).
-    """
-    t0 = time.perf_counter()
-    samples = boundary_samples(template, camera, poses, sigma_px)
-    t1 = time.perf_counter()
-    m = index.closest(samples.frame, samples.pixel, weights.dist, patch_px)
-    corr = Correspondences(frame=samples.frame[m.found], rest_points=samples.rest_points[m.found],
-                           weights=samples.weights[m.found], normal=samples.normal[m.found],
-                           target_px=m.target_px[m.found])
-    return corr, samples.n, {"boundary": t1 - t0, "search": time.perf_counter() - t1}
-
-
 def refine_batch(problem: RefineProblem, t_us: np.ndarray, poses: np.ndarray, events: np.ndarray,
-                 weights: RefineWeights = RefineWeights(), icp_iterations: int = 4, patch_px: int = 8,
+                 weights: SilhouetteWeights = SilhouetteWeights(), icp_iterations: int = 4, patch_px: int = 8,
                  window_us: int | None = None, denoise_us: int = DENOISE_US) -> RefineResult:
     """Refine the poses (F, 33) of one batch at tracking frame times t_us (F,) against the recording's events.
 
@@ -450,9 +252,9 @@ def refine_batch(problem: RefineProblem, t_us: np.ndarray, poses: np.ndarray, ev
     S = np.clip(poses, problem.lower, problem.upper)
     icp: list[IcpStats] = []
     before = None
-    corr = Correspondences.empty()
+    corr = SilhouetteCorrespondences.empty()
     for it in range(int(icp_iterations)):
-        corr, n_boundary, secs = find_correspondences(problem.template, problem.camera, S, index, weights, patch_px)
+        corr, n_boundary, secs = find_silhouette_correspondences(problem.template, problem.camera, S, index, weights, patch_px)
         problem.set_data(corr, ref, weights)
         if before is None:
             before = _energies(problem, S, weights)
@@ -468,11 +270,10 @@ def refine_batch(problem: RefineProblem, t_us: np.ndarray, poses: np.ndarray, ev
                         icp=tuple(icp), seconds=seconds, events=index.n_events, events_dropped=index.n_unsupported)
 
 
-def _energies(problem: RefineProblem, S: np.ndarray, weights: RefineWeights) -> dict:
+def _energies(problem: RefineProblem, S: np.ndarray, weights: SilhouetteWeights) -> dict:
     t = problem.energy.terms(S)
     sil, stab = float(t["sil"].sum()), float(t["stab"].sum())
     return {"sil": sil, "stab": stab, "total": weights.sil * sil + weights.stab * stab}
 
 
-__all__ = ["LOSSES", "Correspondences", "RefineEnergy", "RefineProblem", "RefineResult", "RefineWeights",
-           "find_correspondences", "refine_batch", "robust_loss"]
+__all__ = ["RefineProblem", "RefineResult", "refine_batch"]
