@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from conftest import assert_derivatives_match_fd
 from test_detect import detect, posed_recording
+from test_refine import boundary_events
 
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.tracking import SlicedTracks
@@ -17,13 +18,15 @@ from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import pose_bounds
 from eventcap.energy.correspondences import find_correspondences
 from eventcap.energy.detections import select_detections
+from eventcap.energy.event_search import EventIndex
+from eventcap.energy.sil import find_silhouette_correspondences
 from eventcap.energy.spline import UniformCubicBSpline
 from eventcap.metrics import mean_joint_error
 from eventcap.sim.capture import _pick_track_points, _track_points
 from eventcap.stage import StageContext, StageFailed
 from eventcap.testing import StageConformance
 from eventcap_spline._impl import cor_frames, window_of
-from eventcap_spline.solve import SplineProblem, SplineWeights, gains_from_fits, solve_window
+from eventcap_spline.solve import SilhouetteSettings, SplineProblem, SplineWeights, gains_from_fits, solve_window
 
 H_US = 10_000  # knot spacing of the test splines
 EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
@@ -131,10 +134,22 @@ def scene(exact: bool = False):
     return rec, det, t_det, t_us, S, xy, valid
 
 
+T_SIL = slice(None, None, 5)  # E_sil at every 5th tracking frame of the scene: 9 frames
+
+
 @functools.lru_cache(maxsize=1)
 def problem() -> SplineProblem:
     rec, det, t_det = scene()[:3]
-    return SplineProblem(rec.template, rec.camera, int((t_det[-1] - t_det[0]) // H_US), t_det.size, 41)
+    return SplineProblem(rec.template, rec.camera, int((t_det[-1] - t_det[0]) // H_US), t_det.size, 41, n_sil=9)
+
+
+@functools.lru_cache(maxsize=1)
+def silhouette_events() -> np.ndarray:
+    """One event on every pixel of the true silhouette's boundary every millisecond of the scene (its 3 batches)."""
+    rec, _, t_det = scene()[:3]
+    gt = rec.ground_truth
+    t = np.arange(t_det[0], t_det[-1] + 1, 1000)
+    return boundary_events(rec.template, rec.camera, gt.poses[np.searchsorted(gt.t_us, t)], t)
 
 
 def joint_error_mm(rec, poses, truth) -> float:
@@ -148,7 +163,7 @@ def ca_dense(m) -> np.ndarray:
     return np.asarray(ca.DM(m).full())
 
 
-@pytest.mark.parametrize("term", ["d2", "d3", "cor", "prior", "damp", "still"])
+@pytest.mark.parametrize("term", ["d2", "d3", "cor", "prior", "damp", "still", "sil"])
 def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
     rec, det, t_det, t_us, S, xy, valid = scene()
     prob = problem()
@@ -163,12 +178,20 @@ def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
     assert corr.n > 500
     tp = rng.normal(0, 0.05, (t_det.size, 3))
     x = np.concatenate([C.ravel(), tp.ravel()])
-    w = SplineWeights(**{n: (1.0 if n == term else 0.0) for n in ("d2", "d3", "cor", "prior", "damp")})
+    w = SplineWeights(**{n: (1.0 if n == term else 0.0) for n in ("d2", "d3", "cor", "prior", "damp", "sil")})
+    sil, t_sil = None, t_us[T_SIL]
+    if term == "sil":  # the silhouette at 9 frames against exact boundary events, with the Huber loss
+        settings = SilhouetteSettings(loss="huber", huber_px=1.0)
+        index = EventIndex(silhouette_events(), rec.camera.width, rec.camera.height, t_sil, 10_000, 0)
+        sc = find_silhouette_correspondences(rec.template, rec.camera, spl.evaluate(C, t_sil), index,
+                                             settings.weights(1.0), 8)[0]
+        assert sc.n > 1000
+        sil = (sc, settings)
     gain = rng.uniform(1.0, 50.0, 33)  # the prior's gain per parameter (prior_gain_max > 1)
     # the event silence: a weight per knot interval and joint (zero for half of them)
     still = rng.uniform(0, 2, (prob.n_seg, 24)) * (rng.random((prob.n_seg, 24)) < 0.5)
     prob.set_window(spl, t_det, det, t_us, corr, w, x + rng.normal(0, 0.01, x.shape), gain,
-                    still if term == "still" else None)
+                    still if term == "still" else None, t_sil_us=t_sil, sil=sil)
     f = lambda v: float(prob.objective(v))
     grad = lambda v: np.asarray(prob.gradient(v)[1]).ravel()
     g = grad(x)
@@ -250,6 +273,25 @@ def test_cor_residuals_are_zero_on_exact_tracks_at_the_true_poses_and_shift_with
     step = (corr2.frame[mine] - corr2.source[mine]) / 40.0  # the drift over each correspondence's frames
     assert mine.any()
     assert np.allclose(r2[mine], -np.array([3.0, -4.0])[None] * step[:, None], atol=0.1)
+
+
+def test_silhouette_events_pull_the_spline_onto_the_true_outline():
+    """E_sil against exact boundary events (no tracks): the projected joints of the middle batch move nearer the
+    truth's (noisy detections leave them ~1 px off); a much larger weight is not needed to get there."""
+    rec, det, t_det, t_us, S, xy, valid = scene()
+    prob = problem()
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
+    rest, cam = rec.template.rest_joints, rec.camera
+    truth_px = cam.project(joint_positions(S, rest))
+    err = {}
+    for lam in (0.0, 50.0):
+        res = solve_window(prob, spl, t_det, det, t_us, xy[:, :0], valid[:, :0], SplineWeights(sil=lam),
+                           icp_rounds=3, events=silhouette_events(), t_sil_us=t_us[T_SIL])
+        assert res.solves[-1].status == "Solve_Succeeded"
+        assert (res.energies["n_silhouette"] > 2000) == (lam > 0)
+        px = cam.project(joint_positions(spl.evaluate(res.control, t_us), rest))
+        err[lam] = float(np.mean(np.linalg.norm(px - truth_px, axis=-1)))
+    assert err[0.0] > 0.9 and err[50.0] < 0.7 * err[0.0], err
 
 
 def test_robust_cor_weights_keep_drifting_tracks_from_pulling_the_motion():
@@ -445,6 +487,25 @@ def test_window_tracks_stacks_each_batch_in_its_own_columns():
                       "batch 1")  # (an artifact would refuse it itself)
 
 
+def test_the_stage_fits_the_silhouette_at_every_sil_step_of_its_batch(caplog):
+    import dataclasses
+
+    from eventcap.artifacts.recording import EventStream
+
+    inputs = stage_inputs()
+    rec = inputs["recording"]
+    events = EventStream(events=silhouette_events(), width=rec.camera.width, height=rec.camera.height)
+    inputs = dict(inputs, recording=dataclasses.replace(rec, events=events))
+    b = inputs["batches"].batch(1)
+    with caplog.at_level("INFO"):
+        out, ctx = _run_stage(inputs, b, lambda_sil=50.0, sil_step_ms=5.0)
+    e = out["poses"].energies
+    assert e["n_silhouette"] > 2000 and e["n_boundary"] >= e["n_silhouette"] and e["sil"] > 0
+    assert "E_sil at 9 frames" in caplog.text
+    off, _ = _run_stage(inputs, b)
+    assert off["poses"].energies["n_silhouette"] == 0
+
+
 def test_a_failed_window_raises_with_the_solver_status():
     inputs = stage_inputs()
     with pytest.raises(StageFailed) as err:
@@ -459,6 +520,12 @@ def test_bad_config_and_missing_detections_are_named():
         _run_stage(inputs, b, knot_ms=0.0)
     with pytest.raises(StageFailed, match=r"stages.spline.still_hold_ms: expected milliseconds >= 0, got nan"):
         _run_stage(inputs, b, still_hold_ms=float("nan"))
+    with pytest.raises(StageFailed, match=r"stages.spline.lambda_sil: expected a number >= 0, got -1.0"):
+        _run_stage(inputs, b, lambda_sil=-1.0)
+    with pytest.raises(StageFailed, match=r"stages.spline.sil_step_ms: expected milliseconds > 0, got 0.0"):
+        _run_stage(inputs, b, sil_step_ms=0.0)
+    with pytest.raises(StageFailed, match=r"stages.spline.robust_cor_px: expected pixels >= 0, got -0.5"):
+        _run_stage(inputs, b, robust_cor_px=-0.5)
     with pytest.raises(StageFailed, match=r"stages.spline.still_rate_hz: expected a number > 0, got 0.0"):
         _run_stage(inputs, b, still_rate_hz=0.0)
     with pytest.raises(StageFailed, match=r"stages.spline.still_radius_px: expected an integer >= 0, got -1"):

@@ -60,17 +60,17 @@ def window_tracks(parts, step: int, where: str) -> tuple[np.ndarray, np.ndarray,
     return t_cor, xy_all, valid_all
 
 
-def problem_for(template, camera, n_seg, n_det, n_cor, settings, limits, robust_px, prior):
+def problem_for(template, camera, n_seg, n_det, n_cor, settings, limits, robust_px, prior, n_sil=0):
     from .solve import SplineProblem
 
     lo, hi = bounds_with(limits, "stages.spline.limits")
     key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), n_seg, n_det, n_cor, settings,
-           lo.tobytes(), hi.tobytes(), float(robust_px), prior)
+           lo.tobytes(), hi.tobytes(), float(robust_px), prior, int(n_sil))
     prob = _PROBLEMS.get(key)
     built = prob is None
     if built:
         try:
-            prob = SplineProblem(template, camera, n_seg, n_det, n_cor, settings, lo, hi, robust_px, prior)
+            prob = SplineProblem(template, camera, n_seg, n_det, n_cor, settings, lo, hi, robust_px, prior, n_sil)
         except ValueError as exc:
             raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
         _PROBLEMS[key] = prob
@@ -83,7 +83,7 @@ def run_spline(inputs, config, ctx):
     from eventcap.energy.silence import SilenceSettings
     from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
 
-    from .solve import SplineWeights, solve_window
+    from .solve import SilhouetteSettings, SplineWeights, solve_window
 
     rec, sliced, detections, plan, b = (inputs["recording"], inputs["sliced"], inputs["detections"],
                                         inputs["batches"], ctx.batch)
@@ -106,6 +106,11 @@ def run_spline(inputs, config, ctx):
         raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
                           f"{config.knot_ms!r}", status="invalid_config")
     still_checks = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
+                    "lambda_sil": ("a number >= 0", lambda v: v >= 0),
+                    "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
+                    "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
+                    "sil_patch_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
+                    "sil_huber_px": ("pixels > 0", lambda v: v > 0),
                     "still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
                     "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
                     "still_rate_hz": ("a number > 0", lambda v: v > 0),
@@ -116,7 +121,10 @@ def run_spline(inputs, config, ctx):
             raise StageFailed(f"stages.spline.{name}: expected {what}, got {v!r}", status="invalid_config")
     try:
         weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor,
-                                prior=config.lambda_prior, damp=config.lambda_damp, still=config.lambda_still)
+                                prior=config.lambda_prior, damp=config.lambda_damp, still=config.lambda_still,
+                                sil=config.lambda_sil)
+        silhouette = SilhouetteSettings(window_us=int(round(config.sil_window_ms * 1000)), patch_px=int(config.sil_patch_px),
+                                 huber_px=float(config.sil_huber_px))
         silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz,
                                   hold_bins=int(round(config.still_hold_ms / config.knot_ms)),
                                   sweep_bins=int(round(config.still_sweep_ms / config.knot_ms)))
@@ -145,8 +153,13 @@ def run_spline(inputs, config, ctx):
     spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
     t_cor, xy, valid = window_tracks([own if k == b.index else sliced[index[k]] for k in scope],
                                      int(config.cor_step), where)
+    # E_sil at the batch's own tracking frames every sil_step_ms (its first and last included)
+    t_sil = None
+    if weights.sil > 0:
+        k = max(1, int(round(config.sil_step_ms * 1000 / max(1, int(np.median(np.diff(t_us)))))))
+        t_sil = np.unique(np.append(t_us[::k], t_us[-1]))
     prob, built = problem_for(rec.template, rec.camera, n_seg, t_det.size, t_cor.size, settings, config.limits,
-                              config.robust_2d_px, config.prior)
+                              config.robust_2d_px, config.prior, 0 if t_sil is None else t_sil.size)
     if built:
         ctx.log.info("built the spline NLP (%d control points, %d detection frames, %d correspondence frames) in "
                      "%.2f s (once per process)", spline.n_ctrl, t_det.size, t_cor.size, prob.build_seconds)
@@ -169,7 +182,7 @@ def run_spline(inputs, config, ctx):
         res = solve_window(prob, spline, t_det, det, t_cor, xy, valid, weights, int(config.icp_rounds),
                            config.edge_margin_px, what=what, context=context, gain_max=gain_max,
                            events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence,
-                           robust_cor_px=float(config.robust_cor_px))
+                           robust_cor_px=float(config.robust_cor_px), t_sil_us=t_sil, silhouette=silhouette)
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
         if what in str(exc):
             raise
@@ -190,6 +203,9 @@ def run_spline(inputs, config, ctx):
                  res.fits_computed, spline.n_ctrl, res.energies["n_correspondences"],
                  f"batch {b.index}" if scope == [b.index] else f"{len(scope)} batches", iters, secs,
                  res.solves[-1].status)
+    if t_sil is not None:
+        ctx.log.info("%s: E_sil at %d frames: %d of %d silhouette boundary pixels matched to an event (last round)",
+                     where, t_sil.size, res.energies["n_silhouette"], res.energies["n_boundary"])
     if config.tracks == "window" and len(scope) < z - a + 1:
         ctx.log.warning("%s: only %d of the window's %d batches have tracks (batches= selects part of the plan)",
                         where, len(scope), z - a + 1)
@@ -209,6 +225,6 @@ def run_spline(inputs, config, ctx):
                       "fits_computed": res.fits_computed,
                       "solves": [[s.status, s.iterations, s.seconds] for s in res.solves],
                       "n_correspondences": int(res.energies["n_correspondences"])})
-    energies = {k: (int(v) if k == "n_correspondences" else float(v)) for k, v in res.energies.items()}
+    energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
     return {"poses": PoseSequence(t_us=t_win, poses=poses, status=res.solves[-1].status, iterations=iters,
                                   energies=energies)}

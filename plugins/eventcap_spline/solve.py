@@ -45,6 +45,13 @@ from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.energy.cor import CorrespondenceEnergy
+from eventcap.energy.event_search import EventIndex
+from eventcap.energy.sil import (
+    SilhouetteCorrespondences,
+    SilhouetteEnergy,
+    SilhouetteWeights,
+    find_silhouette_correspondences,
+)
 from eventcap.energy.correspondences import Correspondences, find_correspondences
 from eventcap.energy.detections import (
     FrameDetections,
@@ -75,12 +82,30 @@ class SplineWeights:
     prior: float = 5e-4
     damp: float = 1e-4
     still: float = 0.0  #: event silence: per (px/s)²·s of the image velocity of a joint the events call still (0: off)
+    sil: float = 0.0  #: E_sil: per boundary pixel, focal-normalised point-to-line distance to its closest event (0: off)
 
     def __post_init__(self) -> None:
-        for name in ("d2", "d3", "cor", "prior", "damp", "still"):
+        for name in ("d2", "d3", "cor", "prior", "damp", "still", "sil"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"SplineWeights.{name}: expected a finite number >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class SilhouetteSettings:
+    """How E_sil's data are found (:mod:`eventcap.energy.sil`): the closest event (Eq. 12-13) of each boundary pixel
+    of the estimate's silhouette within ``patch_px`` and within ± window_us / 2 of the frame, λ_dist weighing time
+    against distance, events without a neighbour within ± denoise_us dropped as noise; the loss and its δ (px)."""
+
+    window_us: int = 10_000
+    patch_px: int = 8
+    dist: float = 4.0
+    denoise_us: int = 5_000
+    loss: str = "huber"
+    huber_px: float = 1.0
+
+    def weights(self, sil: float) -> SilhouetteWeights:
+        return SilhouetteWeights(sil=sil, stab=0.0, dist=self.dist, loss=self.loss, huber_px=self.huber_px)
 
 
 @dataclass(frozen=True)
@@ -117,15 +142,15 @@ class SplineProblem:
 
     def __init__(self, template: Template, camera: Camera, n_seg: int, n_det: int, n_cor: int,
                  settings: IpoptSettings = IpoptSettings(), lower=None, upper=None, robust_px: float = 2.0,
-                 prior: str = "acceleration"):
+                 prior: str = "acceleration", n_sil: int = 0):
         if prior not in PRIOR_ORDERS:
             raise ValueError(f"prior: expected one of {sorted(PRIOR_ORDERS)}, got {prior!r}")
-        for name, v, least in (("n_seg", n_seg, 1), ("n_det", n_det, 1), ("n_cor", n_cor, 2)):
+        for name, v, least in (("n_seg", n_seg, 1), ("n_det", n_det, 1), ("n_cor", n_cor, 2), ("n_sil", n_sil, 0)):
             if isinstance(v, bool) or int(v) != v or v < least:
                 raise ValueError(f"SplineProblem: {name} must be an integer >= {least}, got {v!r}")
         t0 = time.perf_counter()
         self.template, self.camera, self.settings = template, camera, settings
-        self.n_seg, self.n_det, self.n_cor = int(n_seg), int(n_det), int(n_cor)
+        self.n_seg, self.n_det, self.n_cor, self.n_sil = int(n_seg), int(n_det), int(n_cor), int(n_sil)
         self.n_ctrl = self.n_seg + 3
         self.order = PRIOR_ORDERS[prior]
         self.lower, self.upper = checked_bounds(lower, upper, "SplineProblem")
@@ -152,6 +177,9 @@ class SplineProblem:
         # --- E_cor at n_cor frames
         self.cor = CorrespondenceEnergy(camera, SkinningKernels(template.rest_joints, self.n_cor),
                                         template.rest_joints)
+        # --- E_sil at n_sil frames (none: no silhouette term)
+        self.sil = (SilhouetteEnergy(camera, SkinningKernels(template.rest_joints, self.n_sil), template.rest_joints)
+                    if self.n_sil else None)
         # --- the NLP: x = [C (n_ctrl × 33, row-major); t' (n_det × 3)], data through set_window
         self._sp, hr, hc = _banded_triu(self.n_ctrl, self.nT)
         # where each nonzero sits in [Hcc (n, n, 33, 33), Hct (nC, nT), Htt (nT, nT)] raveled one after another
@@ -189,14 +217,16 @@ class SplineProblem:
     def set_window(self, spline: UniformCubicBSpline, t_det_us, det: FrameDetections, t_cor_us,
                    corr: Correspondences, weights: SplineWeights, x_ref: np.ndarray,
                    prior_gain: np.ndarray | None = None, still: np.ndarray | None = None,
-                   cor_weight: np.ndarray | None = None) -> None:
+                   cor_weight: np.ndarray | None = None, t_sil_us=None,
+                   sil: tuple[SilhouetteCorrespondences, SilhouetteSettings] | None = None) -> None:
         """Hand one window's data to the energy: the spline basis, detections at t_det_us (n_det rows),
         correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x, the
         motion prior's gain per pose parameter (33,) (its weight is λ_prior · gain_p; default 1), and the
         event-silence weights still (n_seg, 24): λ_still times each joint's stillness per knot interval
         (E_still = Σ_s Σ_j still[s, j] ∫_s ‖J_j(S_ref(t)) S'(t)‖² dt, the image velocity of joint j in px/s
         linearised at x_ref; :mod:`eventcap.energy.silence`; None: no such term), and a weight in [0, 1] per
-        correspondence (corr.n,) (None: 1 each)."""
+        correspondence (corr.n,) (None: 1 each). E_sil (weights.sil > 0): its data at the n_sil frames t_sil_us,
+        (silhouette correspondences, settings); None: no such term."""
         if spline.n_seg != self.n_seg:
             raise ValueError(f"set_window: the problem was built for {self.n_seg} knot intervals, got {spline.n_seg}")
         if det.n != self.n_det or np.size(t_det_us) != self.n_det:
@@ -224,13 +254,20 @@ class SplineProblem:
                 raise ValueError(f"set_window: expected a weight in [0, 1] per correspondence ({corr.n},), got "
                                  f"shape {cor_weight.shape}")
         self.cor.set_correspondences(corr, relative=True, point_weight=cor_weight)
+        Bs = None
+        if sil is not None and weights.sil > 0:
+            if self.sil is None or np.size(t_sil_us) != self.n_sil:
+                raise ValueError(f"set_window: the problem was built for {self.n_sil} silhouette frames, got "
+                                 f"{np.size(t_sil_us)}")
+            self.sil.set_data(sil[0], np.zeros((self.n_sil, NUM_JOINTS, 3)), sil[1].weights(weights.sil))
+            Bs = spline.basis(t_sil_us)
         dv = [det_values(det, d) for d in range(self.n_det)]
         self._data = {
             "Bd": spline.basis(t_det_us), "Be": spline.basis(t_cor_us), "Q": spline.gram(self.order),
             "wp": weights.prior * gain, "still": form,
             "det": [np.concatenate([v[k] for v in dv]) for k in range(4)],
             "lam_det": np.tile([weights.d2, weights.d3], self.n_det), "w": weights, "x_ref": x_ref,
-            "phi": np.zeros((self.n_cor - 1, NUM_JOINTS)), "lam_cor": np.array([weights.cor, 0.0]),
+            "phi": np.zeros((self.n_cor - 1, NUM_JOINTS)), "lam_cor": np.array([weights.cor, 0.0]), "Bs": Bs,
         }
         self._cache = {}
 
@@ -287,20 +324,26 @@ class SplineProblem:
             e_still = float(np.sum(V * MV))
             g_still = 2.0 * (B1.T @ MV)
         dx = x - D["x_ref"]
-        out = {"key": key, "order": order, "z": z, "Se": Se,
+        Ss = None if D["Bs"] is None else D["Bs"] @ C
+        out = {"key": key, "order": order, "z": z, "Se": Se, "Ss": Ss, "sil_w": 0.0,
                "det": float(e.sum()), "2d": float(e2.sum()), "3d": float(e3.sum()), "prior": e_prior,
                "still": e_still, "damp": float(dx @ dx)}
         if order == 0:
             out["cor_w"] = self.cor.value(Se, D["phi"], D["lam_cor"])
+            if Ss is not None:
+                out["sil_w"] = self.sil.value(Ss)
         else:
             out["cor_w"], gS = self.cor.gradient(Se, D["phi"], D["lam_cor"])
             gz = g.reshape(self.n_det, _NP + 3)
             gC = D["Bd"].T @ gz[:, :_NP] + D["Be"].T @ gS + 2.0 * QC
             if g_still is not None:
                 gC += g_still
+            if Ss is not None:
+                out["sil_w"], gSs = self.sil.gradient(Ss)
+                gC += D["Bs"].T @ gSs
             grad = np.concatenate([gC.ravel(), gz[:, _NP:].ravel()]) + (2.0 * w.damp) * dx
             out["grad"] = grad
-        out["value"] = out["det"] + out["cor_w"] + e_prior + e_still + w.damp * out["damp"]
+        out["value"] = out["det"] + out["cor_w"] + out["sil_w"] + e_prior + e_still + w.damp * out["damp"]
         self._cache = out
         return out
 
@@ -324,6 +367,10 @@ class SplineProblem:
                 @ upper.reshape(self.n_cor - 1, -1))
         Hcc += ((Be[1:, :, None] * Be[:-1, None, :]).reshape(self.n_cor - 1, nn).T
                 @ upper.transpose(0, 2, 1).reshape(self.n_cor - 1, -1))
+        if c["Ss"] is not None:  # silhouette: S_s = b_sᵀ C, block-diagonal in s
+            Bs = D["Bs"]
+            Hcc += (Bs[:, :, None] * Bs[:, None, :]).reshape(self.n_sil, nn).T @ self.sil.hessian(c["Ss"]).reshape(
+                self.n_sil, -1)
         Hcc = Hcc.reshape(n, n, _NP, _NP)
         # prior (2 Q ⊗ diag(λ_prior · gain)) and proximal term on the diagonal; event silence (its fixed blocks)
         w = D["w"]
@@ -465,7 +512,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
                  icp_rounds: int = 2, edge_margin_px: float = 1.0, what: str = "window",
                  context: tuple[np.ndarray, FrameDetections] | None = None, gain_max: float = 1.0,
                  events: np.ndarray | None = None, silence: SilenceSettings = SilenceSettings(),
-                 robust_cor_px: float = 0.0) -> WindowResult:
+                 robust_cor_px: float = 0.0, t_sil_us: np.ndarray | None = None,
+                 silhouette: SilhouetteSettings = SilhouetteSettings()) -> WindowResult:
     """Solve one window: fits at its detection frames, a smoothing spline through them as the start, then
     ``icp_rounds`` alternations of correspondence search (at the current spline's poses at t_cor_us, with the
     tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve.
@@ -478,7 +526,10 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
 
     robust_cor_px > 0: from the second ICP round on, each correspondence is weighted by the Cauchy weight
     1 / (1 + (e/σ)²) of its image residual e (px) at the previous round's solution, σ = robust_cor_px (iteratively
-    reweighted least squares: a track the others and the detections disagree with pulls less)."""
+    reweighted least squares: a track the others and the detections disagree with pulls less).
+
+    E_sil (weights.sil > 0, with events and the problem's n_sil frames t_sil_us): every ICP round also matches the
+    silhouette boundary of the current spline at t_sil_us to its closest events (settings ``silhouette``)."""
     if not (math.isfinite(robust_cor_px) and robust_cor_px >= 0):
         raise ValueError(f"robust_cor_px: expected a Cauchy scale in pixels >= 0, got {robust_cor_px!r}")
     if int(icp_rounds) != icp_rounds or icp_rounds < 0:
@@ -504,17 +555,32 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         seconds["silence"] = time.perf_counter() - t1
     seconds["correspondences"] = seconds["solve"] = 0.0
     corr = Correspondences.empty()
+    index, sil_data, n_boundary = None, None, 0
+    if weights.sil > 0 and problem.n_sil and events is not None:
+        t1 = time.perf_counter()
+        t_sil_us = np.asarray(t_sil_us, dtype=np.int64)
+        cam = problem.camera
+        index = EventIndex(events, cam.width, cam.height, t_sil_us, int(silhouette.window_us),
+                           int(silhouette.denoise_us))
+        seconds["silhouette"] = time.perf_counter() - t1
     for r in range(int(icp_rounds)):
         t1 = time.perf_counter()
         Se = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_cor_us)
         corr = find_correspondences(problem.template, problem.camera, Se, xy, valid, edge_margin_px)
+        if index is not None:
+            t3 = time.perf_counter()
+            Ss = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_sil_us)
+            sc, n_boundary, _ = find_silhouette_correspondences(problem.template, problem.camera, Ss, index,
+                                                                silhouette.weights(weights.sil), int(silhouette.patch_px))
+            sil_data = (sc, silhouette)
+            seconds["silhouette"] += time.perf_counter() - t3
         cor_w = None
         if robust_cor_px > 0 and r > 0 and corr.n:
             problem.cor.set_correspondences(corr, relative=True)
             e2 = np.sum(problem.cor.residuals_px(Se) ** 2, axis=1)
             cor_w = 1.0 / (1.0 + e2 / float(robust_cor_px) ** 2)
         t2 = time.perf_counter()
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w, cor_w)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w, cor_w, t_sil_us, sil_data)
         x, st = problem.solve(x, f"{what}: spline solve (ICP round {r + 1})")
         solves.append(SolveStats(st.status, st.iterations, st.seconds, corr.n))
         seconds["correspondences"] += t2 - t1
@@ -526,8 +592,10 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     c = problem._eval(x, 0)
     energies = {"2d": c["2d"], "3d": c["3d"], "cor": c["cor_w"] / weights.cor if weights.cor else 0.0,
                 "prior": c["prior"] / weights.prior if weights.prior else 0.0,
-                "still": c["still"] / weights.still if weights.still else 0.0, "total": c["value"],
-                "n_correspondences": corr.n}
+                "still": c["still"] / weights.still if weights.still else 0.0,
+                "sil": c["sil_w"] / weights.sil if weights.sil else 0.0, "total": c["value"],
+                "n_correspondences": corr.n, "n_silhouette": sil_data[0].n if sil_data else 0,
+                "n_boundary": n_boundary}
     C, T = problem._split(x)
     return WindowResult(spline=spline, control=C.copy(), t_prime=T.copy(), fits=fits, energies=energies,
                         solves=tuple(solves), seconds=seconds, fits_computed=n_fits, prior_gain=gain,

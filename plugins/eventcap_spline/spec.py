@@ -62,6 +62,13 @@ class SplineSolveConfig:
     robust_cor_px: float = param(0.0, help="Cauchy scale (px) of E_cor's residuals: from the second ICP round on, "
                                            "each correspondence is weighted 1 / (1 + (e/σ)²) by its residual e at the "
                                            "previous round's solution (0 = least squares)")
+    lambda_sil: float = param(0.0, help="weight of E_sil (paper Sec. 3.3, not in its batch solve): the silhouette "
+                                        "boundary of the estimate at the batch's frames every sil_step_ms against "
+                                        "its closest events, point-to-line, focal-normalised (0 = off)")
+    sil_step_ms: float = param(5.0, help="E_sil at the batch's tracking frames this many ms apart (ends included)")
+    sil_window_ms: float = param(10.0, help="E_sil: a boundary pixel's closest event within ± half this of its frame")
+    sil_patch_px: int = param(8, help="E_sil: ... and within a square of this side around it (paper: 8)")
+    sil_huber_px: float = param(1.0, help="E_sil: Huber loss threshold, px")
     icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
     edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette edge give no correspondence")
     lambda_damp: float = param(1e-4, help="proximal pull of the control points towards each solve's start")
