@@ -166,7 +166,8 @@ def timing(args) -> None:
     from eventcap.energy.spline import UniformCubicBSpline
     from eventcap_spline._impl import cor_frames, window_of
     from eventcap_spline.spec import SplineSolveConfig
-    from eventcap_spline.solve import SplineProblem, SplineWeights, fit_window, solve_window
+    from eventcap.energy.silence import SilenceSettings
+    from eventcap_spline.solve import SilhouetteSettings, SplineProblem, SplineWeights, fit_window, solve_window
 
     motion, rate = args.motions.split(",")[0], args.rates.split(",")[0]
     rd = Path(args.out) / f"timing-{motion}-{rate}fps"
@@ -181,10 +182,17 @@ def timing(args) -> None:
               for f in sorted((rd / "slice.sliced").glob("batch*.zarr"))]
     k = min(args.timing_batch, len(sliced) - 1)
     frames = np.array([int(x.t_us[0]) for x in sliced] + [int(sliced[-1].t_us[-1])])
-    w = SplineWeights()
-    step = SplineSolveConfig().cor_step
+    cfg = SplineSolveConfig()  # the stage's defaults: every term of the default solve
+    w = SplineWeights(d2=cfg.lambda_2d, d3=cfg.lambda_3d, cor=cfg.lambda_cor, prior=cfg.lambda_prior,
+                      damp=cfg.lambda_damp, still=cfg.lambda_still, sil=cfg.lambda_sil)
+    silence = SilenceSettings(radius_px=cfg.still_radius_px, rate_hz=cfg.still_rate_hz,
+                              hold_bins=int(round(cfg.still_hold_ms / cfg.knot_ms)),
+                              sweep_bins=int(round(cfg.still_sweep_ms / cfg.knot_ms)))
+    sil = SilhouetteSettings(window_us=int(round(cfg.sil_window_ms * 1000)), patch_px=cfg.sil_patch_px,
+                             huber_px=cfg.sil_huber_px)
+    step = cfg.cor_step
     print(f"window solve of batch {k} ({motion}, {rate} fps, stage defaults: correspondences every {step} "
-          f"tracking frames), CPU seconds (fits excluded)")
+          f"tracking frames, event silence, E_sil every {cfg.sil_step_ms:g} ms), CPU seconds (fits excluded)")
     print(f"{'half_window':>11} {'batches':>7} {'ctrl':>5} {'build s':>8} {'solve s':>8} {'iters':>6} {'corr':>6}")
     for hw in range(0, 5):
         a, z = window_of(len(sliced), k, hw)
@@ -194,13 +202,18 @@ def timing(args) -> None:
         spl = UniformCubicBSpline(int(t_det[0]), 10_000, n_seg)
         s = sliced[k]
         idx = cor_frames(s.t_us.size, step)
+        t_us = np.asarray(s.t_us, dtype=np.int64)
+        every = max(1, int(round(cfg.sil_step_ms * 1000 / int(np.median(np.diff(t_us))))))
+        t_sil = np.unique(np.append(t_us[::every], t_us[-1])) if w.sil > 0 else None
         c0 = time.process_time()
-        prob = SplineProblem(rec.template, rec.camera, n_seg, t_det.size, idx.size, IpoptSettings(max_iter=200))
+        prob = SplineProblem(rec.template, rec.camera, n_seg, t_det.size, idx.size, IpoptSettings(max_iter=200),
+                             n_sil=0 if t_sil is None else t_sil.size)
         c1 = time.process_time()
         fit_window(prob, d, w)  # fills the per-process fit cache: not timed below
         c2 = time.process_time()
-        res = solve_window(prob, spl, t_det, d, np.asarray(s.t_us)[idx], np.asarray(s.xy, dtype=np.float64)[idx],
-                           np.asarray(s.valid)[idx], w)
+        res = solve_window(prob, spl, t_det, d, t_us[idx], np.asarray(s.xy, dtype=np.float64)[idx],
+                           np.asarray(s.valid)[idx], w, events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1),
+                           silence=silence, t_sil_us=t_sil, silhouette=sil)
         c3 = time.process_time()
         its = sum(x.iterations for x in res.solves)
         print(f"{hw:>11} {z - a + 1:>7} {spl.n_ctrl:>5} {c1 - c0:8.2f} {c3 - c2:8.2f} {its:>6} "
