@@ -164,10 +164,9 @@ def timing(args) -> None:
     from eventcap.energy.detections import select_detections
     from eventcap.energy.ipopt import IpoptSettings
     from eventcap.energy.spline import UniformCubicBSpline
-    from eventcap_spline._impl import cor_frames, window_of
+    from eventcap_spline._impl import cor_frames, sil_frames, solve_settings, window_of
     from eventcap_spline.spec import SplineSolveConfig
-    from eventcap.energy.silence import SilenceSettings
-    from eventcap_spline.solve import SilhouetteSettings, SplineProblem, SplineWeights, fit_window, solve_window
+    from eventcap_spline.solve import SplineProblem, fit_window, solve_window
 
     motion, rate = args.motions.split(",")[0], args.rates.split(",")[0]
     rd = Path(args.out) / f"timing-{motion}-{rate}fps"
@@ -183,13 +182,7 @@ def timing(args) -> None:
     k = min(args.timing_batch, len(sliced) - 1)
     frames = np.array([int(x.t_us[0]) for x in sliced] + [int(sliced[-1].t_us[-1])])
     cfg = SplineSolveConfig()  # the stage's defaults: every term of the default solve
-    w = SplineWeights(d2=cfg.lambda_2d, d3=cfg.lambda_3d, cor=cfg.lambda_cor, prior=cfg.lambda_prior,
-                      damp=cfg.lambda_damp, still=cfg.lambda_still, sil=cfg.lambda_sil)
-    silence = SilenceSettings(radius_px=cfg.still_radius_px, rate_hz=cfg.still_rate_hz,
-                              hold_bins=int(round(cfg.still_hold_ms / cfg.knot_ms)),
-                              sweep_bins=int(round(cfg.still_sweep_ms / cfg.knot_ms)))
-    sil = SilhouetteSettings(window_us=int(round(cfg.sil_window_ms * 1000)), patch_px=cfg.sil_patch_px,
-                             huber_px=cfg.sil_huber_px)
+    w, silence, sil = solve_settings(cfg)
     step = cfg.cor_step
     print(f"window solve of batch {k} ({motion}, {rate} fps, stage defaults: correspondences every {step} "
           f"tracking frames, event silence, E_sil every {cfg.sil_step_ms:g} ms), CPU seconds (fits excluded)")
@@ -203,8 +196,7 @@ def timing(args) -> None:
         s = sliced[k]
         idx = cor_frames(s.t_us.size, step)
         t_us = np.asarray(s.t_us, dtype=np.int64)
-        every = max(1, int(round(cfg.sil_step_ms * 1000 / int(np.median(np.diff(t_us))))))
-        t_sil = np.unique(np.append(t_us[::every], t_us[-1])) if w.sil > 0 else None
+        t_sil = sil_frames(t_us, cfg.sil_step_ms) if w.sil > 0 else None
         c0 = time.process_time()
         prob = SplineProblem(rec.template, rec.camera, n_seg, t_det.size, idx.size, IpoptSettings(max_iter=200),
                              n_sil=0 if t_sil is None else t_sil.size)

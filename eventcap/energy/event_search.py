@@ -40,6 +40,9 @@ import numpy as np
 
 from ._sil_kernels import nearest_in_time, patch_search, supported_events
 
+#: Default of the event support filter (µs; ``support_us``): events without another event in their 3×3 pixel
+#: neighbourhood within ± this are dropped as noise (module doc).
+DENOISE_US = 5000
 #: Marks "no event of this pixel within the frame's window" in the time-offset table.
 _NONE = np.iinfo(np.int32).min
 _TIME_BITS = 40  # key = pixel << 40 | (t - t_lo): windows up to 2^40 µs (12 days)

@@ -58,7 +58,7 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.stage import StageFailed
 
-from eventcap.energy.event_search import EventIndex
+from eventcap.energy.event_search import DENOISE_US, EventIndex
 from eventcap.energy.sil import (
     SilhouetteCorrespondences,
     SilhouetteEnergy,
@@ -67,8 +67,6 @@ from eventcap.energy.sil import (
 )
 
 _NP = NUM_POSE_PARAMS
-#: Default of the event support filter (µs): see :mod:`.search`.
-DENOISE_US = 5000
 #: IPOPT's convergence tolerance for the refinement (scaled NLP error). Measured on synthetic batches: 1e-4 and
 #: 1e-6 give the same poses to 0.01 mm, with 3-4 instead of 5-6 iterations per solve.
 TOL = 1e-4

@@ -60,6 +60,31 @@ def window_tracks(parts, step: int, where: str) -> tuple[np.ndarray, np.ndarray,
     return t_cor, xy_all, valid_all
 
 
+def solve_settings(config):
+    """The solve's weights, event-silence settings and E_sil settings from the stage's config (ValueError on a bad
+    value): (SplineWeights, SilenceSettings, SilhouetteSettings)."""
+    from eventcap.energy.silence import SilenceSettings
+
+    from .solve import SilhouetteSettings, SplineWeights
+
+    weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor, prior=config.lambda_prior,
+                            damp=config.lambda_damp, still=config.lambda_still, sil=config.lambda_sil)
+    silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz,
+                              hold_bins=int(round(config.still_hold_ms / config.knot_ms)),
+                              sweep_bins=int(round(config.still_sweep_ms / config.knot_ms)))
+    silhouette = SilhouetteSettings(window_us=int(round(config.sil_window_ms * 1000)),
+                                    patch_px=int(config.sil_patch_px), huber_px=float(config.sil_huber_px))
+    return weights, silence, silhouette
+
+
+def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
+    """E_sil's frames: a batch's tracking frames t_us every ``step_ms`` (rounded to frames), its first and last
+    included."""
+    t_us = np.asarray(t_us, dtype=np.int64)
+    k = max(1, int(round(step_ms * 1000 / max(1, int(np.median(np.diff(t_us)))))))
+    return np.unique(np.append(t_us[::k], t_us[-1]))
+
+
 def problem_for(template, camera, n_seg, n_det, n_cor, settings, limits, robust_px, prior, n_sil=0):
     from .solve import SplineProblem
 
@@ -80,10 +105,9 @@ def problem_for(template, camera, n_seg, n_det, n_cor, settings, limits, robust_
 def run_spline(inputs, config, ctx):
     from eventcap.energy.detections import select_detections
     from eventcap.energy.ipopt import IpoptSettings
-    from eventcap.energy.silence import SilenceSettings
     from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
 
-    from .solve import SilhouetteSettings, SplineWeights, solve_window
+    from .solve import solve_window
 
     rec, sliced, detections, plan, b = (inputs["recording"], inputs["sliced"], inputs["detections"],
                                         inputs["batches"], ctx.batch)
@@ -105,7 +129,7 @@ def run_spline(inputs, config, ctx):
     if not (math.isfinite(config.knot_ms) and h_us >= 1):
         raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
                           f"{config.knot_ms!r}", status="invalid_config")
-    still_checks = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
+    checks = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
                     "lambda_sil": ("a number >= 0", lambda v: v >= 0),
                     "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
                     "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
@@ -115,19 +139,12 @@ def run_spline(inputs, config, ctx):
                     "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
                     "still_rate_hz": ("a number > 0", lambda v: v > 0),
                     "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v)}
-    for name, (what, good) in still_checks.items():
+    for name, (what, good) in checks.items():
         v = getattr(config, name)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not good(v):
             raise StageFailed(f"stages.spline.{name}: expected {what}, got {v!r}", status="invalid_config")
     try:
-        weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor,
-                                prior=config.lambda_prior, damp=config.lambda_damp, still=config.lambda_still,
-                                sil=config.lambda_sil)
-        silhouette = SilhouetteSettings(window_us=int(round(config.sil_window_ms * 1000)), patch_px=int(config.sil_patch_px),
-                                 huber_px=float(config.sil_huber_px))
-        silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz,
-                                  hold_bins=int(round(config.still_hold_ms / config.knot_ms)),
-                                  sweep_bins=int(round(config.still_sweep_ms / config.knot_ms)))
+        weights, silence, silhouette = solve_settings(config)
         settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
     except ValueError as exc:
         raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
@@ -153,11 +170,7 @@ def run_spline(inputs, config, ctx):
     spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
     t_cor, xy, valid = window_tracks([own if k == b.index else sliced[index[k]] for k in scope],
                                      int(config.cor_step), where)
-    # E_sil at the batch's own tracking frames every sil_step_ms (its first and last included)
-    t_sil = None
-    if weights.sil > 0:
-        k = max(1, int(round(config.sil_step_ms * 1000 / max(1, int(np.median(np.diff(t_us)))))))
-        t_sil = np.unique(np.append(t_us[::k], t_us[-1]))
+    t_sil = sil_frames(t_us, config.sil_step_ms) if weights.sil > 0 else None
     prob, built = problem_for(rec.template, rec.camera, n_seg, t_det.size, t_cor.size, settings, config.limits,
                               config.robust_2d_px, config.prior, 0 if t_sil is None else t_sil.size)
     if built:

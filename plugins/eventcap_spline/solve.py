@@ -45,7 +45,7 @@ from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.energy.cor import CorrespondenceEnergy
-from eventcap.energy.event_search import EventIndex
+from eventcap.energy.event_search import DENOISE_US, EventIndex
 from eventcap.energy.sil import (
     SilhouetteCorrespondences,
     SilhouetteEnergy,
@@ -100,7 +100,7 @@ class SilhouetteSettings:
     window_us: int = 10_000
     patch_px: int = 8
     dist: float = 4.0
-    denoise_us: int = 5_000
+    denoise_us: int = DENOISE_US
     loss: str = "huber"
     huber_px: float = 1.0
 
@@ -565,12 +565,13 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         seconds["silhouette"] = time.perf_counter() - t1
     for r in range(int(icp_rounds)):
         t1 = time.perf_counter()
-        Se = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_cor_us)
+        C = x[:problem.nC].reshape(problem.n_ctrl, _NP)
+        Se = spline.evaluate(C, t_cor_us)
         corr = find_correspondences(problem.template, problem.camera, Se, xy, valid, edge_margin_px)
         if index is not None:
             t3 = time.perf_counter()
-            Ss = spline.evaluate(x[:problem.nC].reshape(problem.n_ctrl, _NP), t_sil_us)
-            sc, n_boundary, _ = find_silhouette_correspondences(problem.template, problem.camera, Ss, index,
+            sc, n_boundary, _ = find_silhouette_correspondences(problem.template, problem.camera,
+                                                                spline.evaluate(C, t_sil_us), index,
                                                                 silhouette.weights(weights.sil), int(silhouette.patch_px))
             sil_data = (sc, silhouette)
             seconds["silhouette"] += time.perf_counter() - t3
