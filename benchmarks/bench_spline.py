@@ -164,7 +164,7 @@ def timing(args) -> None:
     from eventcap.energy.detections import select_detections
     from eventcap.energy.ipopt import IpoptSettings
     from eventcap.energy.spline import UniformCubicBSpline
-    from eventcap_spline._impl import cor_frames, sil_frames, solve_settings, window_of
+    from eventcap_spline._impl import cor_frames, prior_base_gain, sil_frames, solve_settings, window_of
     from eventcap_spline.spec import SplineSolveConfig
     from eventcap_spline.solve import SplineProblem, fit_window, solve_window
 
@@ -185,7 +185,7 @@ def timing(args) -> None:
     w, silence, sil = solve_settings(cfg)
     step = cfg.cor_step
     print(f"window solve of batch {k} ({motion}, {rate} fps, stage defaults: correspondences every {step} "
-          f"tracking frames, event silence, E_sil every {cfg.sil_step_ms:g} ms), CPU seconds (fits excluded)")
+          f"tracking frames, event silence, E_sil every {cfg.sil_step_ms:g} ms, inertia-weighted prior), CPU seconds (fits excluded)")
     print(f"{'half_window':>11} {'batches':>7} {'ctrl':>5} {'build s':>8} {'solve s':>8} {'iters':>6} {'corr':>6}")
     for hw in range(0, 5):
         a, z = window_of(len(sliced), k, hw)
@@ -205,7 +205,8 @@ def timing(args) -> None:
         c2 = time.process_time()
         res = solve_window(prob, spl, t_det, d, t_us[idx], np.asarray(s.xy, dtype=np.float64)[idx],
                            np.asarray(s.valid)[idx], w, events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1),
-                           silence=silence, t_sil_us=t_sil, silhouette=sil)
+                           silence=silence, t_sil_us=t_sil, silhouette=sil,
+                           base_gain=prior_base_gain(cfg, rec.template.rest_joints))
         c3 = time.process_time()
         its = sum(x.iterations for x in res.solves)
         print(f"{hw:>11} {z - a + 1:>7} {spl.n_ctrl:>5} {c1 - c0:8.2f} {c3 - c2:8.2f} {its:>6} "

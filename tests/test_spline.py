@@ -15,7 +15,7 @@ from test_refine import boundary_events
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.tracking import SlicedTracks
 from eventcap.body.kinematics import joint_positions
-from eventcap.body.skeleton import pose_bounds
+from eventcap.body.skeleton import DOF_INDEX, pose_bounds
 from eventcap.energy.correspondences import find_correspondences
 from eventcap.energy.detections import select_detections
 from eventcap.energy.event_search import EventIndex
@@ -294,6 +294,30 @@ def test_silhouette_events_pull_the_spline_onto_the_true_outline():
     assert err[0.0] > 0.9 and err[50.0] < 0.7 * err[0.0], err
 
 
+def test_a_base_gain_scales_the_prior_per_parameter():
+    """base_gain multiplies λ_prior per pose parameter: a gain of 0.1 everywhere is λ_prior / 10; a gain on one
+    parameter changes only how that one is smoothed (the start spline's too)."""
+    rec, det, t_det, t_us, S, xy, valid = scene(exact=True)
+    prob = problem()
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
+
+    def solve(prior, gain=None):
+        res = solve_window(prob, spl, t_det, det, t_us, xy, valid, SplineWeights(prior=prior), icp_rounds=1,
+                           base_gain=gain)
+        assert res.solves[-1].status == "Solve_Succeeded"
+        return res
+
+    weak, tenth = solve(1e-5), solve(1e-4, np.full(33, 0.1))
+    np.testing.assert_allclose(tenth.control, weak.control, atol=1e-6)
+    assert tenth.prior_gain == pytest.approx(np.full(33, 0.1))
+    stiff_knee = np.ones(33)
+    stiff_knee[DOF_INDEX["l_knee_flex"]] = 1e4
+    plain, held = solve(1e-4), solve(1e-4, stiff_knee)
+    k = DOF_INDEX["l_knee_flex"]
+    acc = {name: np.abs(np.diff(r.control[:, k], 2)).max() for name, r in (("plain", plain), ("held", held))}
+    assert acc["held"] < 0.1 * acc["plain"], acc
+
+
 def test_robust_cor_weights_keep_drifting_tracks_from_pulling_the_motion():
     """One track in four drifts off its surface point at 0.5 px/ms: least squares follows them, the Cauchy
     reweighting (robust_cor_px) much less: the middle batch stays nearer the truth and the clean tracks' solution."""
@@ -506,6 +530,22 @@ def test_the_stage_fits_the_silhouette_at_every_sil_step_of_its_batch(caplog):
     assert off["poses"].energies["n_silhouette"] == 0
 
 
+def test_the_stage_holds_light_parts_less_with_prior_inertia():
+    """prior_inertia=1: the gains are the actor's inertias (the elbow's far below 1, the trunk's capped at 1), and
+    they change the solve; 0 (off): no gains."""
+    from eventcap.body.segments import inertia_prior_gain
+
+    inputs = stage_inputs()
+    b = inputs["batches"].batch(1)
+    on, ctx = _run_stage(inputs, b, prior_inertia=1.0)
+    g = np.array(ctx.stats["prior_inertia_gain"])
+    np.testing.assert_allclose(g, inertia_prior_gain(inputs["recording"].template.rest_joints, 1.0, 1.0))
+    assert g[DOF_INDEX["l_elbow_flex"]] < 0.3 and g[DOF_INDEX["spine_twist"]] == 1.0
+    off, ctx_off = _run_stage(inputs, b, prior_inertia=0.0)
+    assert "prior_inertia_gain" not in ctx_off.stats
+    assert np.abs(on["poses"].poses - off["poses"].poses).max() > 1e-4
+
+
 def test_a_failed_window_raises_with_the_solver_status():
     inputs = stage_inputs()
     with pytest.raises(StageFailed) as err:
@@ -526,6 +566,11 @@ def test_bad_config_and_missing_detections_are_named():
         _run_stage(inputs, b, sil_step_ms=0.0)
     with pytest.raises(StageFailed, match=r"stages.spline.robust_cor_px: expected pixels >= 0, got -0.5"):
         _run_stage(inputs, b, robust_cor_px=-0.5)
+    with pytest.raises(StageFailed, match=r"stages.spline.prior_inertia: expected an exponent >= 0, got -1.0"):
+        _run_stage(inputs, b, prior_inertia=-1.0)
+    with pytest.raises(StageFailed, match=r"stages.spline.prior_inertia_cap: expected a gain >= 1 \(or .inf\), "
+                                          r"got 0.5"):
+        _run_stage(inputs, b, prior_inertia=1.0, prior_inertia_cap=0.5)
     with pytest.raises(StageFailed, match=r"stages.spline.still_rate_hz: expected a number > 0, got 0.0"):
         _run_stage(inputs, b, still_rate_hz=0.0)
     with pytest.raises(StageFailed, match=r"stages.spline.still_radius_px: expected an integer >= 0, got -1"):

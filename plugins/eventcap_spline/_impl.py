@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
+from eventcap.body.segments import inertia_prior_gain
 from eventcap.energy.ipopt import bounds_with
 from eventcap.stage import StageFailed
 
@@ -77,6 +78,15 @@ def solve_settings(config):
     return weights, silence, silhouette
 
 
+def prior_base_gain(config, rest_joints: np.ndarray) -> np.ndarray | None:
+    """The motion prior's fixed gain per pose parameter (33,) from the stage's config: each rotation's inertia
+    (``prior_inertia``, ``prior_inertia_cap``; :func:`eventcap.body.segments.inertia_prior_gain`); None when off.
+    ValueError on a bad value."""
+    if config.prior_inertia == 0:
+        return None
+    return inertia_prior_gain(rest_joints, float(config.prior_inertia), float(config.prior_inertia_cap))
+
+
 def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
     """E_sil's frames: a batch's tracking frames t_us every ``step_ms`` (rounded to frames), its first and last
     included."""
@@ -130,6 +140,7 @@ def run_spline(inputs, config, ctx):
         raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
                           f"{config.knot_ms!r}", status="invalid_config")
     checks = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
+              "prior_inertia": ("an exponent >= 0", lambda v: v >= 0),
                     "lambda_sil": ("a number >= 0", lambda v: v >= 0),
                     "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
                     "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
@@ -191,11 +202,21 @@ def run_spline(inputs, config, ctx):
             context = (t_ctx, select_detections(detections, t_ctx))
         except ValueError as exc:
             raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
+    if not float(config.prior_inertia_cap) >= 1:
+        raise StageFailed(f"stages.spline.prior_inertia_cap: expected a gain >= 1 (or .inf), got "
+                          f"{config.prior_inertia_cap!r}", status="invalid_config")
+    try:
+        base_gain = prior_base_gain(config, rec.template.rest_joints)
+    except ValueError as exc:
+        raise StageFailed(f"stages.spline.prior_inertia: {exc}", status="invalid_input") from exc
+    if base_gain is not None:
+        ctx.stats["prior_inertia_gain"] = [float(v) for v in base_gain]
     try:
         res = solve_window(prob, spline, t_det, det, t_cor, xy, valid, weights, int(config.icp_rounds),
                            config.edge_margin_px, what=what, context=context, gain_max=gain_max,
                            events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence,
-                           robust_cor_px=float(config.robust_cor_px), t_sil_us=t_sil, silhouette=silhouette)
+                           robust_cor_px=float(config.robust_cor_px), t_sil_us=t_sil, silhouette=silhouette,
+                           base_gain=base_gain)
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
         if what in str(exc):
             raise
@@ -222,7 +243,7 @@ def run_spline(inputs, config, ctx):
     if config.tracks == "window" and len(scope) < z - a + 1:
         ctx.log.warning("%s: only %d of the window's %d batches have tracks (batches= selects part of the plan)",
                         where, len(scope), z - a + 1)
-    if res.prior_gain is not None:
+    if context is not None and res.prior_gain is not None:
         g = res.prior_gain
         ctx.log.info("%s: motion prior gains from %d frames around the window: median %.3g, %d of 33 parameters at "
                      "the largest (%g)", where, context[0].size, float(np.median(g)),

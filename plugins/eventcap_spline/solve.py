@@ -513,7 +513,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
                  context: tuple[np.ndarray, FrameDetections] | None = None, gain_max: float = 1.0,
                  events: np.ndarray | None = None, silence: SilenceSettings = SilenceSettings(),
                  robust_cor_px: float = 0.0, t_sil_us: np.ndarray | None = None,
-                 silhouette: SilhouetteSettings = SilhouetteSettings()) -> WindowResult:
+                 silhouette: SilhouetteSettings = SilhouetteSettings(),
+                 base_gain: np.ndarray | None = None) -> WindowResult:
     """Solve one window: fits at its detection frames, a smoothing spline through them as the start, then
     ``icp_rounds`` alternations of correspondence search (at the current spline's poses at t_cor_us, with the
     tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve.
@@ -529,7 +530,10 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     reweighted least squares: a track the others and the detections disagree with pulls less).
 
     E_sil (weights.sil > 0, with events and the problem's n_sil frames t_sil_us): every ICP round also matches the
-    silhouette boundary of the current spline at t_sil_us to its closest events (settings ``silhouette``)."""
+    silhouette boundary of the current spline at t_sil_us to its closest events (settings ``silhouette``).
+
+    base_gain: the motion prior's fixed gain per pose parameter (33,) (e.g. the inertia each turns,
+    :func:`eventcap.body.segments.inertia_prior_gain`), times the chosen gains of ``context``; None: 1."""
     if not (math.isfinite(robust_cor_px) and robust_cor_px >= 0):
         raise ValueError(f"robust_cor_px: expected a Cauchy scale in pixels >= 0, got {robust_cor_px!r}")
     if int(icp_rounds) != icp_rounds or icp_rounds < 0:
@@ -541,6 +545,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     if context is not None and gain_max > 1:
         pg = prior_gain(problem, context[0], context[1], fits, tps, det, weights, gain_max)
         gain, n_fits = pg.gain, n_fits + pg.fits_computed
+    if base_gain is not None:
+        gain = np.asarray(base_gain, dtype=np.float64) * (1.0 if gain is None else gain)
     solves = []
     # Start: a penalised spline through the fits (the same prior; fits weighted as ~1 per rad² of error).
     smooth = max(weights.prior, 1e-12) * (1.0 if gain is None else gain)

@@ -23,6 +23,12 @@ class SplineSolveConfig:
                                           "(or jerk) of the poses (rad and m, time in s); 5e-4 until the event-"
                                           "silence term held the resting joints, 1e-4 measured better with it "
                                           "(README: 'A continuous-time solve')")
+    prior_inertia: float = param(1.5, help="exponent of the motion prior's gain per rotation, (I_p / mean I)^x, "
+                                           "I_p the inertia of the body that pose parameter turns (de Leva's "
+                                           "segments on the actor's bones, eventcap.body.segments): light parts "
+                                           "(forearm, foot) may accelerate more than the trunk; 0 = λ_prior for all")
+    prior_inertia_cap: float = param(1.0, help="largest of those gains (1: parts lighter than the mean are held "
+                                               "less, none more; .inf: the gains' geometric mean is 1)")
     prior_gain_max: float = param(1.0, help="largest gain of the motion prior per pose parameter, chosen per window "
                                             "from the per-frame fits around it (REML of each parameter's fits, "
                                             "scaled by the detections' curvature; see solve.prior_gain): static "
