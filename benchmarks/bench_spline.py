@@ -185,7 +185,8 @@ def timing(args) -> None:
     w, silence, sil = solve_settings(cfg)
     step = cfg.cor_step
     print(f"window solve of batch {k} ({motion}, {rate} fps, stage defaults: correspondences every {step} "
-          f"tracking frames, event silence, E_sil every {cfg.sil_step_ms:g} ms, inertia-weighted prior), CPU seconds (fits excluded)")
+          f"tracking frames, event silence, E_sil every {cfg.sil_step_ms:g} ms, inertia-weighted prior), CPU "
+          "seconds (fits excluded)")
     print(f"{'half_window':>11} {'batches':>7} {'ctrl':>5} {'build s':>8} {'solve s':>8} {'iters':>6} {'corr':>6}")
     for hw in range(0, 5):
         a, z = window_of(len(sliced), k, hw)

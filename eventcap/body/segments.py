@@ -63,17 +63,20 @@ def _descendants() -> np.ndarray:
     return below
 
 
+_BELOW = _descendants()
+_BELOW.setflags(write=False)
+
+
 def joint_inertia(rest_joints: np.ndarray) -> np.ndarray:
     """(24,) the moment of inertia of the body below each joint about that joint, at the rest pose, in fractions
     of the body's mass times m²: Σ over the segments whose proximal joint is the joint or below it of
     m_s (|c_s - x_j|² + L_s² / 12) (a polar measure, the same for every axis through the joint)."""
     x = check_rest_joints(rest_joints)
-    below = _descendants()
     out = np.zeros(NUM_JOINTS)
     for _, p, d, m, c in SEGMENTS:
         centre = x[p] + c * (x[d] - x[p])
         length2 = float(np.sum((x[d] - x[p]) ** 2))
-        holders = below[:, p]  # joints that turn this segment
+        holders = _BELOW[:, p]  # joints that turn this segment
         out[holders] += m * (np.sum((centre - x[holders]) ** 2, axis=1) + length2 / 12.0)
     return out
 
@@ -90,12 +93,15 @@ def inertia_prior_gain(rest_joints: np.ndarray, exponent: float, cap: float = np
     :func:`dof_inertia`, Ī their geometric mean), 1 for the root's translation. exponent 0: every gain 1; cap 1:
     parts lighter than the mean are held less, none more (the spline solve's default); cap inf: the gains'
     geometric mean is 1."""
-    for name, v, ok in (("exponent", exponent, lambda v: v >= 0), ("cap", cap, lambda v: v >= 1)):
-        if isinstance(v, bool) or not (isinstance(v, (int, float)) and not np.isnan(v) and ok(v)):
-            raise ValueError(f"inertia {name}: expected a number {'>= 0' if name == 'exponent' else '>= 1'}, "
-                             f"got {v!r}")
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    if not (number(exponent) and exponent >= 0):  # NaN fails the comparison
+        raise ValueError(f"inertia exponent: expected a number >= 0, got {exponent!r}")
     if not np.isfinite(exponent):
         raise ValueError(f"inertia exponent: expected a finite number >= 0, got {exponent!r}")
+    if not (number(cap) and cap >= 1):
+        raise ValueError(f"inertia cap: expected a number >= 1, got {cap!r}")
     g = np.ones(NUM_POSE_PARAMS)
     if exponent == 0:
         return g
