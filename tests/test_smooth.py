@@ -60,7 +60,7 @@ def test_gcv_on_noise_of_known_variance():
     assert err(ch.lam) < 1.05 * best
     # more noise -> more smoothing
     assert GcvCurve(x).choose(truth(x)[:, None] + rng.normal(0.0, 4 * sigma, (51, 27))).lam > ch.lam
-    # the restricted likelihood (the stage's default criterion) on the same fits: sound too (here it smooths a little
+    # the restricted likelihood (stages.smooth.criterion=reml) on the same fits: sound too (here it smooths a little
     # less than GCV: 8% above the best error)
     re = GcvCurve(x).choose_reml(Y)
     assert re.sigma.mean() == pytest.approx(sigma, rel=0.15) and err(re.lam) < min(1.15 * best, 0.6 * sigma)
@@ -209,6 +209,7 @@ def test_frames_smooth_pipeline_composes_and_validates():
     data, _ = compose_run(config_dir(), ["pipeline=frames_smooth", "stages/solve=per_frame",
                                          "stages.smooth.pool=parameter"])
     assert data["stages"]["frame_fits"]["mode"] == "linear" and data["stages"]["smooth"]["pool"] == "parameter"
+    assert data["stages"]["smooth"]["criterion"] == "gcv"  # the stronger baseline on the 2 s suite
     nodes = {n.name: n for n in build_pipeline(data, load_registry())}
     assert nodes["fits"].spec.name == "batch" and nodes["fits"].config.mode == "linear"
     assert nodes["smooth"].spec.name == "smooth" and nodes["solve"].spec.name == "split"
