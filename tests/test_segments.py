@@ -56,6 +56,9 @@ def test_prior_gains_keep_the_mean_strength_and_weaken_the_light_parts():
     held = inertia_prior_gain(x, 1.0, cap=1.0)  # lighter than the mean: held less; heavier: as before
     assert np.all(held == np.minimum(g, 1.0)) and held[DOF_INDEX["spine_twist"]] == 1.0 and held[27] == 1.0
     assert held[DOF_INDEX["l_ankle_flex"]] == pytest.approx(0.01, abs=0.005)
+    floored = inertia_prior_gain(x, 1.0, cap=1.0, floor=0.05)  # nothing held less than 1/20 of the trunk
+    assert np.all(floored == np.clip(g, 0.05, 1.0)) and floored[DOF_INDEX["l_ankle_flex"]] == 0.05
+    assert floored[DOF_INDEX["r_elbow_flex"]] == held[DOF_INDEX["r_elbow_flex"]]  # above the floor: unchanged
 
 
 def test_bad_exponent_and_degenerate_joints_are_refused():
@@ -65,6 +68,8 @@ def test_bad_exponent_and_degenerate_joints_are_refused():
         inertia_prior_gain(DEFAULT_REST_JOINTS, float("nan"))
     with pytest.raises(ValueError, match=r"inertia cap: expected a number >= 1, got 0.5"):
         inertia_prior_gain(DEFAULT_REST_JOINTS, 1.0, cap=0.5)
+    with pytest.raises(ValueError, match=r"inertia floor: expected a number in \[0, 1\], got 1.5"):
+        inertia_prior_gain(DEFAULT_REST_JOINTS, 1.0, floor=1.5)
     flat = np.zeros((24, 3))
     with pytest.raises(ValueError):
         inertia_prior_gain(flat, 1.0)

@@ -539,8 +539,9 @@ def test_the_stage_holds_light_parts_less_with_prior_inertia():
     b = inputs["batches"].batch(1)
     on, ctx = _run_stage(inputs, b, prior_inertia=1.0)
     g = np.array(ctx.stats["prior_inertia_gain"])
-    np.testing.assert_allclose(g, inertia_prior_gain(inputs["recording"].template.rest_joints, 1.0, 1.0))
+    np.testing.assert_allclose(g, inertia_prior_gain(inputs["recording"].template.rest_joints, 1.0, 1.0, 0.04))
     assert g[DOF_INDEX["l_elbow_flex"]] < 0.3 and g[DOF_INDEX["spine_twist"]] == 1.0
+    assert g.min() == pytest.approx(0.04)  # the floor (the ankles)
     off, ctx_off = _run_stage(inputs, b, prior_inertia=0.0)
     assert "prior_inertia_gain" not in ctx_off.stats
     assert np.abs(on["poses"].poses - off["poses"].poses).max() > 1e-4
@@ -571,6 +572,8 @@ def test_bad_config_and_missing_detections_are_named():
     with pytest.raises(StageFailed, match=r"stages.spline.prior_inertia_cap: expected a gain >= 1 \(or .inf\), "
                                           r"got 0.5"):
         _run_stage(inputs, b, prior_inertia=1.0, prior_inertia_cap=0.5)
+    with pytest.raises(StageFailed, match=r"stages.spline.prior_inertia_floor: expected a gain in \[0, 1\], got 2.0"):
+        _run_stage(inputs, b, prior_inertia=1.0, prior_inertia_floor=2.0)
     with pytest.raises(StageFailed, match=r"stages.spline.still_rate_hz: expected a number > 0, got 0.0"):
         _run_stage(inputs, b, still_rate_hz=0.0)
     with pytest.raises(StageFailed, match=r"stages.spline.still_radius_px: expected an integer >= 0, got -1"):

@@ -88,11 +88,13 @@ def dof_inertia(rest_joints: np.ndarray) -> np.ndarray:
     return np.concatenate([I[DOF_JOINT], np.full(3, I[0])])
 
 
-def inertia_prior_gain(rest_joints: np.ndarray, exponent: float, cap: float = np.inf) -> np.ndarray:
-    """(33,) a motion prior's gain per pose parameter: min(cap, (I_p / Ī)^exponent) for the 30 rotations (I_p of
-    :func:`dof_inertia`, Ī their geometric mean), 1 for the root's translation. exponent 0: every gain 1; cap 1:
-    parts lighter than the mean are held less, none more (the spline solve's default); cap inf: the gains'
-    geometric mean is 1."""
+def inertia_prior_gain(rest_joints: np.ndarray, exponent: float, cap: float = np.inf,
+                       floor: float = 0.0) -> np.ndarray:
+    """(33,) a motion prior's gain per pose parameter: (I_p / Ī)^exponent clipped to [floor, cap] for the 30
+    rotations (I_p of :func:`dof_inertia`, Ī their geometric mean), 1 for the root's translation. exponent 0: every
+    gain 1; cap 1: parts lighter than the mean are held less, none more (the spline solve's default); cap inf: the
+    gains' geometric mean is 1 (with floor 0). floor > 0: no rotation is held less than that (the ankles turn so
+    little mass that they would be held ~500 times less than the trunk, and the feet jitter with the detections)."""
     def number(v) -> bool:
         return isinstance(v, (int, float)) and not isinstance(v, bool)
 
@@ -102,6 +104,8 @@ def inertia_prior_gain(rest_joints: np.ndarray, exponent: float, cap: float = np
         raise ValueError(f"inertia exponent: expected a finite number >= 0, got {exponent!r}")
     if not (number(cap) and cap >= 1):
         raise ValueError(f"inertia cap: expected a number >= 1, got {cap!r}")
+    if not (number(floor) and 0 <= floor <= 1):
+        raise ValueError(f"inertia floor: expected a number in [0, 1], got {floor!r}")
     g = np.ones(NUM_POSE_PARAMS)
     if exponent == 0:
         return g
@@ -110,7 +114,7 @@ def inertia_prior_gain(rest_joints: np.ndarray, exponent: float, cap: float = np
         raise ValueError("inertia_prior_gain: a pose parameter turns no mass (degenerate rest joints)")
     logs = np.log(I)
     rot = np.r_[0:NUM_DOFS, ROOT_ROTATION_SLICE.start:ROOT_ROTATION_SLICE.stop]
-    g[rot] = np.minimum(np.exp(exponent * (logs - logs.mean())), float(cap))
+    g[rot] = np.clip(np.exp(exponent * (logs - logs.mean())), float(floor), float(cap))
     return g
 
 

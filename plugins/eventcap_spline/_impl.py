@@ -80,11 +80,12 @@ def solve_settings(config):
 
 def prior_base_gain(config, rest_joints: np.ndarray) -> np.ndarray | None:
     """The motion prior's fixed gain per pose parameter (33,) from the stage's config: each rotation's inertia
-    (``prior_inertia``, ``prior_inertia_cap``; :func:`eventcap.body.segments.inertia_prior_gain`); None when off.
-    ValueError on a bad value."""
+    (``prior_inertia``, ``prior_inertia_cap``, ``prior_inertia_floor``;
+    :func:`eventcap.body.segments.inertia_prior_gain`); None when off. ValueError on a bad value."""
     if config.prior_inertia == 0:
         return None
-    return inertia_prior_gain(rest_joints, float(config.prior_inertia), float(config.prior_inertia_cap))
+    return inertia_prior_gain(rest_joints, float(config.prior_inertia), float(config.prior_inertia_cap),
+                              float(config.prior_inertia_floor))
 
 
 def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
@@ -205,6 +206,9 @@ def run_spline(inputs, config, ctx):
     if not float(config.prior_inertia_cap) >= 1:
         raise StageFailed(f"stages.spline.prior_inertia_cap: expected a gain >= 1 (or .inf), got "
                           f"{config.prior_inertia_cap!r}", status="invalid_config")
+    if not 0 <= float(config.prior_inertia_floor) <= 1:
+        raise StageFailed(f"stages.spline.prior_inertia_floor: expected a gain in [0, 1], got "
+                          f"{config.prior_inertia_floor!r}", status="invalid_config")
     try:
         base_gain = prior_base_gain(config, rec.template.rest_joints)
     except ValueError as exc:

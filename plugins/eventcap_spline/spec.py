@@ -29,6 +29,9 @@ class SplineSolveConfig:
                                            "(forearm, foot) may accelerate more than the trunk; 0 = λ_prior for all")
     prior_inertia_cap: float = param(1.0, help="largest of those gains (1: parts lighter than the mean are held "
                                                "less, none more; .inf: the gains' geometric mean is 1)")
+    prior_inertia_floor: float = param(0.04, help="smallest of those gains (0.04: the ankles, ~0.002 by their "
+                                                  "inertia, are held like the elbows; their jitter was most of the "
+                                                  "25 fps velocity error the lighter prior added)")
     prior_gain_max: float = param(1.0, help="largest gain of the motion prior per pose parameter, chosen per window "
                                             "from the per-frame fits around it (REML of each parameter's fits, "
                                             "scaled by the detections' curvature; see solve.prior_gain): static "
