@@ -142,15 +142,16 @@ def run_spline(inputs, config, ctx):
                           f"{config.knot_ms!r}", status="invalid_config")
     checks = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
               "prior_inertia": ("an exponent >= 0", lambda v: v >= 0),
-                    "lambda_sil": ("a number >= 0", lambda v: v >= 0),
-                    "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
-                    "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
-                    "sil_patch_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
-                    "sil_huber_px": ("pixels > 0", lambda v: v > 0),
-                    "still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
-                    "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
-                    "still_rate_hz": ("a number > 0", lambda v: v > 0),
-                    "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v)}
+              "prior_inertia_floor": ("a gain in [0, 1]", lambda v: 0 <= v <= 1),
+              "lambda_sil": ("a number >= 0", lambda v: v >= 0),
+              "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
+              "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
+              "sil_patch_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
+              "sil_huber_px": ("pixels > 0", lambda v: v > 0),
+              "still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
+              "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
+              "still_rate_hz": ("a number > 0", lambda v: v > 0),
+              "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v)}
     for name, (what, good) in checks.items():
         v = getattr(config, name)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not good(v):
@@ -206,9 +207,6 @@ def run_spline(inputs, config, ctx):
     if not float(config.prior_inertia_cap) >= 1:
         raise StageFailed(f"stages.spline.prior_inertia_cap: expected a gain >= 1 (or .inf), got "
                           f"{config.prior_inertia_cap!r}", status="invalid_config")
-    if not 0 <= float(config.prior_inertia_floor) <= 1:
-        raise StageFailed(f"stages.spline.prior_inertia_floor: expected a gain in [0, 1], got "
-                          f"{config.prior_inertia_floor!r}", status="invalid_config")
     try:
         base_gain = prior_base_gain(config, rec.template.rest_joints)
     except ValueError as exc:
