@@ -108,6 +108,23 @@ def test_prior_gain_is_large_for_a_parameter_at_rest_and_one_for_a_moving_one():
     # detections that weigh 10x less need 10x less prior; the clip holds
     assert gains_from_fits(t, fits, np.full(3, 0.1), 5e-4, 100.0)[0][0] == pytest.approx(gain[0] / 10)
     assert gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 10.0)[0][0] == 10.0
+    # GCV agrees on these 20 fits
+    gcv_gain, gcv_lam = gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 100.0, "gcv")
+    np.testing.assert_allclose(gcv_lam, lam)
+
+
+def test_prior_gain_criterion_gcv_may_interpolate_few_fits_where_reml_smooths():
+    """8 noisy fits of a parameter at rest (seed 0): REML smooths them (lam ~0.016 s³, gain ~32), GCV picks
+    near-interpolation (the grid's smallest lam, gain 1); an unknown criterion is named."""
+    rng = np.random.default_rng(0)
+    t = np.arange(8) * 100_000
+    fits = (0.3 + rng.normal(0, 0.2, 8))[:, None]
+    reml_gain, reml_lam = gains_from_fits(t, fits, np.ones(1), 5e-4, 100.0, "reml")
+    gcv_gain, gcv_lam = gains_from_fits(t, fits, np.ones(1), 5e-4, 100.0, "gcv")
+    assert reml_lam[0] > 1e-2 and 25 < reml_gain[0] < 40
+    assert gcv_lam[0] < 1e-6 and gcv_gain[0] == 1.0
+    with pytest.raises(ValueError, match="criterion: expected one of reml, gcv, got 'aic'"):
+        gains_from_fits(t, fits, np.ones(1), 5e-4, 100.0, "aic")
 
 
 def test_windows_cover_the_batch_and_shift_inwards_at_the_ends():

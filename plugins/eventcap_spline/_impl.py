@@ -218,7 +218,7 @@ def run_spline(inputs, config, ctx):
                            config.edge_margin_px, what=what, context=context, gain_max=gain_max,
                            events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence,
                            robust_cor_px=float(config.robust_cor_px), t_sil_us=t_sil, silhouette=silhouette,
-                           base_gain=base_gain)
+                           base_gain=base_gain, gain_criterion=str(config.prior_gain_criterion))
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
         if what in str(exc):
             raise

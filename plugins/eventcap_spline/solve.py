@@ -458,12 +458,13 @@ class PriorGain:
 
 
 def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetections, window_fits: np.ndarray,
-               window_tp: np.ndarray, det: FrameDetections, weights: SplineWeights, gain_max: float) -> PriorGain:
+               window_tp: np.ndarray, det: FrameDetections, weights: SplineWeights, gain_max: float,
+               criterion: str = "reml") -> PriorGain:
     """How much stiffer than λ_prior the prior of each pose parameter should be, from the data alone.
 
     The per-frame fits y_p(t_k) at the intensity frames around the window (t_ctx_us, their detections det_ctx)
     are each parameter's samples of a smoothing-spline model, y = f + noise with ∫ f''² penalised by lam_p; lam_p
-    is chosen by REML (:mod:`eventcap.smoothing`): large where the fits vary no more than their noise (a limb at
+    is chosen by REML or GCV (``criterion``, :mod:`eventcap.smoothing`): large where the fits vary no more than their noise (a limb at
     rest, an angle the detections cannot tell), small where the parameter moves. In the window's energy a
     parameter's detections weigh about a_p (the detection terms' curvature, mean diagonal of their Hessian at the
     window's fits / 2) per rad², so the same trade-off there is a prior weight of a_p · lam_p; the gain is that over
@@ -489,21 +490,28 @@ def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetec
                           np.tile([weights.d2, weights.d3], det.n))[0].reshape(det.n, _NP + 3, _NP + 3)
     a = np.maximum(np.einsum("dpp->dp", H[:, :_NP, :_NP]).mean(0) / 2.0, 0.0)
     gain, lam = gains_from_fits(np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S), a, weights.prior,
-                                gain_max)
+                                gain_max, criterion)
     return PriorGain(gain, lam, a, len(keep), computed)
 
 
+GAIN_CRITERIA = ("reml", "gcv")
+
+
 def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, lam_prior: float,
-                    gain_max: float) -> tuple[np.ndarray, np.ndarray]:
-    """(gain (P,), lam (P,)): each column p of fits (K, P) at times t_us (K,) gets the REML smoothing parameter
-    lam_p (s³) of a cubic smoothing spline through it, and the gain clip(curvature_p · lam_p / lam_prior, 1,
-    gain_max) of :func:`prior_gain`."""
+                    gain_max: float, criterion: str = "reml") -> tuple[np.ndarray, np.ndarray]:
+    """(gain (P,), lam (P,)): each column p of fits (K, P) at times t_us (K,) gets the smoothing parameter lam_p
+    (s³) of a cubic smoothing spline through it chosen by ``criterion`` (reml | gcv), and the gain
+    clip(curvature_p · lam_p / lam_prior, 1, gain_max) of :func:`prior_gain`."""
     from eventcap.smoothing import GcvCurve
+
+    if criterion not in GAIN_CRITERIA:
+        raise ValueError(f"criterion: expected one of {', '.join(GAIN_CRITERIA)}, got {criterion!r}")
 
     t = np.asarray(t_us, dtype=np.int64)
     curve = GcvCurve((t - t[0]) * 1e-6)
     Y = np.asarray(fits, dtype=np.float64)
-    lam = np.array([curve.choose_reml(Y[:, p:p + 1]).lam for p in range(Y.shape[1])])
+    choose = curve.choose_reml if criterion == "reml" else curve.choose
+    lam = np.array([choose(Y[:, p:p + 1]).lam for p in range(Y.shape[1])])
     return np.clip(np.asarray(curvature) * lam / lam_prior, 1.0, float(gain_max)), lam
 
 
@@ -514,13 +522,13 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
                  events: np.ndarray | None = None, silence: SilenceSettings = SilenceSettings(),
                  robust_cor_px: float = 0.0, t_sil_us: np.ndarray | None = None,
                  silhouette: SilhouetteSettings = SilhouetteSettings(),
-                 base_gain: np.ndarray | None = None) -> WindowResult:
+                 base_gain: np.ndarray | None = None, gain_criterion: str = "reml") -> WindowResult:
     """Solve one window: fits at its detection frames, a smoothing spline through them as the start, then
     ``icp_rounds`` alternations of correspondence search (at the current spline's poses at t_cor_us, with the
     tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve.
 
     context: (times, detections) of the intensity frames around the window from which the prior's gain per
-    parameter is chosen (:func:`prior_gain`, up to gain_max); None: the prior is λ_prior for every parameter.
+    parameter is chosen (:func:`prior_gain`, up to gain_max, by gain_criterion); None: the prior is λ_prior for every parameter.
 
     events: the recording's events over the window, for the event-silence term (used when weights.still > 0): each
     joint's stillness per knot interval, measured around the start spline's projected bones (:func:`window_silence`).
@@ -543,7 +551,7 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     fits, tps, _, n_fits = fit_window(problem, det, weights)
     gain = None
     if context is not None and gain_max > 1:
-        pg = prior_gain(problem, context[0], context[1], fits, tps, det, weights, gain_max)
+        pg = prior_gain(problem, context[0], context[1], fits, tps, det, weights, gain_max, gain_criterion)
         gain, n_fits = pg.gain, n_fits + pg.fits_computed
     if base_gain is not None:
         gain = np.asarray(base_gain, dtype=np.float64) * (1.0 if gain is None else gain)

@@ -36,6 +36,8 @@ class SplineSolveConfig:
                                             "from the per-frame fits around it (REML of each parameter's fits, "
                                             "scaled by the detections' curvature; see solve.prior_gain): static "
                                             "parameters get up to this much more smoothing; 1 = λ_prior for all")
+    prior_gain_criterion: str = param("reml", choices=("reml", "gcv"), help="how each parameter's fits choose its smoothing for those "
+                                                   "gains: reml | gcv (eventcap.smoothing)")
     prior_context_s: float = param(1.0, help="seconds of intensity frames on each side of the window whose fits "
                                              "choose the prior's gains (prior_gain_max > 1)")
     lambda_still: float = param(0.1, help="weight of the event-silence term: the squared image velocity (px/s) of "
