@@ -564,6 +564,23 @@ def test_the_stage_holds_light_parts_less_with_prior_inertia():
     assert np.abs(on["poses"].poses - off["poses"].poses).max() > 1e-4
 
 
+def test_the_prior_gains_are_chosen_only_at_frame_rates_that_sample_the_motion(caplog):
+    """The scene's intensity frames come at 25 fps: prior_gain_min_fps 20 chooses per-parameter gains (in the
+    stats), 30 does not and says why; the result then equals prior_gain_max=1."""
+    inputs = stage_inputs()
+    b = inputs["batches"].batch(1)
+    on, ctx_on = _run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv", prior_gain_min_fps=20.0)
+    assert len(ctx_on.stats["prior_gain"]) == 33
+    with caplog.at_level("INFO"):
+        off, ctx_off = _run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv",
+                                  prior_gain_min_fps=30.0)
+    assert "prior_gain" not in ctx_off.stats
+    assert ("batch 1: no per-parameter prior gains: intensity frames at 25.0 fps, below "
+            "stages.spline.prior_gain_min_fps (30)") in caplog.text
+    plain, _ = _run_stage(inputs, b, prior_gain_max=1.0)
+    np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
+
+
 def test_a_failed_window_raises_with_the_solver_status():
     inputs = stage_inputs()
     with pytest.raises(StageFailed) as err:
@@ -591,6 +608,9 @@ def test_bad_config_and_missing_detections_are_named():
         _run_stage(inputs, b, prior_inertia=1.0, prior_inertia_cap=0.5)
     with pytest.raises(StageFailed, match=r"stages.spline.prior_inertia_floor: expected a gain in \[0, 1\], got 2.0"):
         _run_stage(inputs, b, prior_inertia=1.0, prior_inertia_floor=2.0)
+    with pytest.raises(StageFailed, match=r"stages.spline.prior_gain_min_fps: expected frames per second >= 0, "
+                                          r"got -1.0"):
+        _run_stage(inputs, b, prior_gain_min_fps=-1.0)
     with pytest.raises(StageFailed, match=r"stages.spline.still_rate_hz: expected a number > 0, got 0.0"):
         _run_stage(inputs, b, still_rate_hz=0.0)
     with pytest.raises(StageFailed, match=r"stages.spline.still_radius_px: expected an integer >= 0, got -1"):

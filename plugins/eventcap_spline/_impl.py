@@ -143,6 +143,7 @@ def run_spline(inputs, config, ctx):
     checks = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
               "prior_inertia": ("an exponent >= 0", lambda v: v >= 0),
               "prior_inertia_floor": ("a gain in [0, 1]", lambda v: 0 <= v <= 1),
+              "prior_gain_min_fps": ("frames per second >= 0", lambda v: v >= 0),
               "lambda_sil": ("a number >= 0", lambda v: v >= 0),
               "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
               "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
@@ -196,8 +197,12 @@ def run_spline(inputs, config, ctx):
         raise StageFailed(f"stages.spline.prior_gain_max / prior_context_s: expected a number >= 1 and seconds >= 0, "
                           f"got {config.prior_gain_max!r} / {config.prior_context_s!r}", status="invalid_config")
     context = None
-    if gain_max > 1:
-        frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+    fps = 1e6 / float(np.median(np.diff(frames))) if frames.size > 1 else 0.0
+    if gain_max > 1 and fps < float(config.prior_gain_min_fps):
+        ctx.log.info("%s: no per-parameter prior gains: intensity frames at %.1f fps, below "
+                     "stages.spline.prior_gain_min_fps (%g)", where, fps, float(config.prior_gain_min_fps))
+    elif gain_max > 1:
         reach = int(round(ctx_s * 1e6))
         t_ctx = frames[(frames >= t_det[0] - reach) & (frames <= t_det[-1] + reach)]
         try:

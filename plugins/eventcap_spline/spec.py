@@ -38,6 +38,10 @@ class SplineSolveConfig:
                                             "parameters get up to this much more smoothing; 1 = λ_prior for all")
     prior_gain_criterion: str = param("reml", choices=("reml", "gcv"), help="how each parameter's fits choose its smoothing for those "
                                                    "gains: reml | gcv (eventcap.smoothing)")
+    prior_gain_min_fps: float = param(20.0, help="choose those gains only when the intensity frames come at least "
+                                                 "this often (frames per second; 0 = always): at 10 fps the fits "
+                                                 "undersample the punches and kicks, whose parameters would be held "
+                                                 "as if at rest")
     prior_context_s: float = param(1.0, help="seconds of intensity frames on each side of the window whose fits "
                                              "choose the prior's gains (prior_gain_max > 1)")
     lambda_still: float = param(0.1, help="weight of the event-silence term: the squared image velocity (px/s) of "
