@@ -579,6 +579,14 @@ def test_the_prior_gains_are_chosen_only_at_frame_rates_that_sample_the_motion(c
             "stages.spline.prior_gain_min_fps (30)") in caplog.text
     plain, _ = _run_stage(inputs, b, prior_gain_max=1.0)
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
+    # what `eventcap run` composes: gains up to 10 by GCV from 20 fps on (measured better at 25 fps, worse at 10)
+    from eventcap.benchmark import compose_run
+    from eventcap.cli import config_dir
+
+    data, _ = compose_run(config_dir(), [])
+    spline = data["stages"]["spline"]
+    assert (spline["prior_gain_max"], spline["prior_gain_criterion"], spline["prior_gain_min_fps"]) == (10.0, "gcv",
+                                                                                                       20.0)
 
 
 def test_a_failed_window_raises_with_the_solver_status():

@@ -32,12 +32,14 @@ class SplineSolveConfig:
     prior_inertia_floor: float = param(0.04, help="smallest of those gains (0.04: the ankles, ~0.002 by their "
                                                   "inertia, are held like the elbows; their jitter was most of the "
                                                   "25 fps velocity error the lighter prior added)")
-    prior_gain_max: float = param(1.0, help="largest gain of the motion prior per pose parameter, chosen per window "
-                                            "from the per-frame fits around it (REML of each parameter's fits, "
-                                            "scaled by the detections' curvature; see solve.prior_gain): static "
-                                            "parameters get up to this much more smoothing; 1 = λ_prior for all")
-    prior_gain_criterion: str = param("reml", choices=("reml", "gcv"), help="how each parameter's fits choose its smoothing for those "
-                                                   "gains: reml | gcv (eventcap.smoothing)")
+    prior_gain_max: float = param(10.0, help="largest gain of the motion prior per pose parameter, chosen per window "
+                                             "from the per-frame fits around it (each parameter's smoothing by "
+                                             "prior_gain_criterion, scaled by the detections' curvature; see "
+                                             "solve.prior_gain): static parameters get up to this much more "
+                                             "smoothing; 1 = λ_prior for all")
+    prior_gain_criterion: str = param("gcv", choices=("reml", "gcv"),
+                                      help="how each parameter's fits choose its smoothing for those gains: gcv | "
+                                           "reml (eventcap.smoothing; REML held fast_wave's waving arm at 25 fps)")
     prior_gain_min_fps: float = param(20.0, help="choose those gains only when the intensity frames come at least "
                                                  "this often (frames per second; 0 = always): at 10 fps the fits "
                                                  "undersample the punches and kicks, whose parameters would be held "
