@@ -370,14 +370,21 @@ def _unusable_message(given, exc: OSError, what: str) -> str:
     return f"cache_dir {given}: {what}: {exc}"
 
 
+def _rename_probe_paths(root: Path, pid: int, nonce: str) -> tuple[Path, Path]:
+    """The rename probe's directory before and after its rename. Both end in ``.<host>.<pid>.<nonce>``, as the
+    entries being written do, so :meth:`Cache.clean_orphans` removes what a process killed mid-probe leaves."""
+    tail = f"{_HOST}.{pid}.{nonce}"
+    return root / "tmp" / f"rename-probe.{tail}", root / "tmp" / f"rename-probe-done.{tail}"
+
+
 def _check_atomic_rename(root: Path) -> None:
     """Refuse a filesystem that cannot rename a directory (some FUSE mounts), once per process and root."""
     if root in _RENAME_CHECKED:
         return
-    probe = root / "tmp" / f"rename-probe.{_HOST}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
+    probe, done = _rename_probe_paths(root, os.getpid(), uuid.uuid4().hex[:8])
     try:
         (probe / "x").mkdir(parents=True)
-        os.rename(probe, probe.with_name(probe.name + ".done"))
+        os.rename(probe, done)
     except OSError as exc:
         if exc.errno in _NOT_WRITABLE or exc.errno in (errno.ENOTDIR, errno.EEXIST):
             raise CacheError(_unusable_message(root, exc, "cannot write the cache there")) from None
@@ -387,7 +394,7 @@ def _check_atomic_rename(root: Path) -> None:
         ) from None
     finally:
         shutil.rmtree(probe, ignore_errors=True)
-        shutil.rmtree(probe.with_name(probe.name + ".done"), ignore_errors=True)
+        shutil.rmtree(done, ignore_errors=True)
     _RENAME_CHECKED.add(root)
 
 
