@@ -20,6 +20,14 @@ from dataclasses import dataclass
 import numpy as np
 
 MIN_KNOTS = 5  # a smoothing spline needs at least 5 knots (scipy's make_smoothing_spline too)
+CRITERIA = ("reml", "gcv")  # how lam is chosen from the data: :meth:`GcvCurve.choose_reml` | :meth:`GcvCurve.choose`
+
+
+def check_criterion(criterion: str) -> str:
+    """criterion itself if it is one of :data:`CRITERIA`, else ValueError naming them."""
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion: expected one of {', '.join(CRITERIA)}, got {criterion!r}")
+    return criterion
 
 
 @dataclass(frozen=True)
@@ -99,3 +107,7 @@ class GcvCurve:
         lam = h3 * 10.0 ** ks[int(np.argmin(scores))]
         g, tr, rss = self.score(Y, lam)
         return GcvChoice(lam=lam, dof=tr, sigma=np.sqrt(rss / max(self.x.size - tr, 1e-9)), gcv=g)
+
+    def choose_by(self, Y: np.ndarray, criterion: str) -> GcvChoice:
+        """The lam that ``criterion`` (reml | gcv, :data:`CRITERIA`) chooses for the columns of Y."""
+        return self.choose_reml(Y) if check_criterion(criterion) == "reml" else self.choose(Y)

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eventcap.smoothing import MIN_KNOTS, GcvChoice, GcvCurve
+from eventcap.smoothing import MIN_KNOTS, GcvChoice, GcvCurve, check_criterion
 
 #: The parameter groups sharing one smoothing parameter with ``pool=group`` (skeleton layout S = [theta (27), root
 #: rotation (3), root translation (3)]): all angles (joint angles and root rotation, radians) and the root
@@ -36,9 +36,6 @@ from eventcap.smoothing import MIN_KNOTS, GcvChoice, GcvCurve
 GROUPS: dict[str, slice] = {"angles": slice(0, 30), "root_translation": slice(30, 33)}
 ROOT_ROTATION = slice(27, 30)
 POOLS = ("group", "parameter")
-
-
-CRITERIA = ("reml", "gcv")
 
 
 def unwrap_root_rotation(poses: np.ndarray) -> np.ndarray:
@@ -61,8 +58,7 @@ def smooth_poses(t_knots_us: np.ndarray, fits: np.ndarray, t_eval_us: np.ndarray
 
     if pool not in POOLS:
         raise ValueError(f"pool: expected one of {', '.join(POOLS)}, got {pool!r}")
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion: expected one of {', '.join(CRITERIA)}, got {criterion!r}")
+    check_criterion(criterion)
     t = np.asarray(t_knots_us, dtype=np.int64)
     if t.size < MIN_KNOTS:
         raise ValueError(f"a smoothing spline needs at least {MIN_KNOTS} knots (intensity frames), got {t.size}")
@@ -85,7 +81,7 @@ def smooth_poses(t_knots_us: np.ndarray, fits: np.ndarray, t_eval_us: np.ndarray
             g, tr, rss = curve.score(Y[:, c], lam)
             ch = GcvChoice(lam=float(lam), dof=tr, sigma=np.sqrt(rss / max(x.size - tr, 1e-9)), gcv=g)
         else:
-            ch = curve.choose_reml(Y[:, c]) if criterion == "reml" else curve.choose(Y[:, c])
+            ch = curve.choose_by(Y[:, c], criterion)
         out[:, c] = make_smoothing_spline(x, Y[:, c], lam=ch.lam)(xe)
         choices[name] = ch
     return out, choices

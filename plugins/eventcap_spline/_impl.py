@@ -88,6 +88,26 @@ def prior_base_gain(config, rest_joints: np.ndarray) -> np.ndarray | None:
                               float(config.prior_inertia_floor))
 
 
+def prior_context(config, plan, t_det, detections, where: str, log):
+    """(times, detections) of the intensity frames within prior_context_s of the window's detection frames t_det,
+    from which the prior's per-parameter gains are chosen; None (and a log line) when the frames come less often than
+    prior_gain_min_fps. StageFailed when their detections are missing."""
+    from eventcap.energy.detections import select_detections
+
+    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+    fps = 1e6 / float(np.median(np.diff(frames))) if frames.size > 1 else 0.0
+    if fps < float(config.prior_gain_min_fps):
+        log.info("%s: no per-parameter prior gains: intensity frames at %.1f fps, below "
+                 "stages.spline.prior_gain_min_fps (%g)", where, fps, float(config.prior_gain_min_fps))
+        return None
+    reach = int(round(float(config.prior_context_s) * 1e6))
+    t_ctx = frames[(frames >= t_det[0] - reach) & (frames <= t_det[-1] + reach)]
+    try:
+        return t_ctx, select_detections(detections, t_ctx)
+    except ValueError as exc:
+        raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
+
+
 def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
     """E_sil's frames: a batch's tracking frames t_us every ``step_ms`` (rounded to frames), its first and last
     included."""
@@ -196,19 +216,7 @@ def run_spline(inputs, config, ctx):
     if not (math.isfinite(gain_max) and gain_max >= 1 and math.isfinite(ctx_s) and ctx_s >= 0):
         raise StageFailed(f"stages.spline.prior_gain_max / prior_context_s: expected a number >= 1 and seconds >= 0, "
                           f"got {config.prior_gain_max!r} / {config.prior_context_s!r}", status="invalid_config")
-    context = None
-    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
-    fps = 1e6 / float(np.median(np.diff(frames))) if frames.size > 1 else 0.0
-    if gain_max > 1 and fps < float(config.prior_gain_min_fps):
-        ctx.log.info("%s: no per-parameter prior gains: intensity frames at %.1f fps, below "
-                     "stages.spline.prior_gain_min_fps (%g)", where, fps, float(config.prior_gain_min_fps))
-    elif gain_max > 1:
-        reach = int(round(ctx_s * 1e6))
-        t_ctx = frames[(frames >= t_det[0] - reach) & (frames <= t_det[-1] + reach)]
-        try:
-            context = (t_ctx, select_detections(detections, t_ctx))
-        except ValueError as exc:
-            raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
+    context = prior_context(config, plan, t_det, detections, where, ctx.log) if gain_max > 1 else None
     if not float(config.prior_inertia_cap) >= 1:
         raise StageFailed(f"stages.spline.prior_inertia_cap: expected a gain >= 1 (or .inf), got "
                           f"{config.prior_inertia_cap!r}", status="invalid_config")

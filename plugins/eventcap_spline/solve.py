@@ -464,12 +464,12 @@ def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetec
 
     The per-frame fits y_p(t_k) at the intensity frames around the window (t_ctx_us, their detections det_ctx)
     are each parameter's samples of a smoothing-spline model, y = f + noise with ∫ f''² penalised by lam_p; lam_p
-    is chosen by REML or GCV (``criterion``, :mod:`eventcap.smoothing`): large where the fits vary no more than their noise (a limb at
-    rest, an angle the detections cannot tell), small where the parameter moves. In the window's energy a
-    parameter's detections weigh about a_p (the detection terms' curvature, mean diagonal of their Hessian at the
-    window's fits / 2) per rad², so the same trade-off there is a prior weight of a_p · lam_p; the gain is that over
-    λ_prior, clipped to [1, gain_max]: the prior never gets weaker than its default, and static parameters stop
-    wiggling with the detections' noise. Frames of the context whose fit fails are left out."""
+    is chosen by REML or GCV (``criterion``, :mod:`eventcap.smoothing`): large where the fits vary no more than
+    their noise (a limb at rest, an angle the detections cannot tell), small where the parameter moves. In the
+    window's energy a parameter's detections weigh about a_p (the detection terms' curvature, mean diagonal of their
+    Hessian at the window's fits / 2) per rad², so the same trade-off there is a prior weight of a_p · lam_p; the
+    gain is that over λ_prior, clipped to [1, gain_max]: the prior never gets weaker than its default, and static
+    parameters stop wiggling with the detections' noise. Frames of the context whose fit fails are left out."""
     from eventcap.smoothing import MIN_KNOTS
 
     S, computed = [], 0
@@ -494,24 +494,18 @@ def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetec
     return PriorGain(gain, lam, a, len(keep), computed)
 
 
-GAIN_CRITERIA = ("reml", "gcv")
-
-
 def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, lam_prior: float,
                     gain_max: float, criterion: str = "reml") -> tuple[np.ndarray, np.ndarray]:
     """(gain (P,), lam (P,)): each column p of fits (K, P) at times t_us (K,) gets the smoothing parameter lam_p
     (s³) of a cubic smoothing spline through it chosen by ``criterion`` (reml | gcv), and the gain
     clip(curvature_p · lam_p / lam_prior, 1, gain_max) of :func:`prior_gain`."""
-    from eventcap.smoothing import GcvCurve
+    from eventcap.smoothing import GcvCurve, check_criterion
 
-    if criterion not in GAIN_CRITERIA:
-        raise ValueError(f"criterion: expected one of {', '.join(GAIN_CRITERIA)}, got {criterion!r}")
-
+    check_criterion(criterion)
     t = np.asarray(t_us, dtype=np.int64)
     curve = GcvCurve((t - t[0]) * 1e-6)
     Y = np.asarray(fits, dtype=np.float64)
-    choose = curve.choose_reml if criterion == "reml" else curve.choose
-    lam = np.array([choose(Y[:, p:p + 1]).lam for p in range(Y.shape[1])])
+    lam = np.array([curve.choose_by(Y[:, p:p + 1], criterion).lam for p in range(Y.shape[1])])
     return np.clip(np.asarray(curvature) * lam / lam_prior, 1.0, float(gain_max)), lam
 
 
@@ -528,7 +522,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve.
 
     context: (times, detections) of the intensity frames around the window from which the prior's gain per
-    parameter is chosen (:func:`prior_gain`, up to gain_max, by gain_criterion); None: the prior is λ_prior for every parameter.
+    parameter is chosen (:func:`prior_gain`, up to gain_max, by gain_criterion); None: the prior is λ_prior for
+    every parameter.
 
     events: the recording's events over the window, for the event-silence term (used when weights.still > 0): each
     joint's stillness per knot interval, measured around the start spline's projected bones (:func:`window_silence`).
