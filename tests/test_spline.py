@@ -127,6 +127,32 @@ def test_prior_gain_criterion_gcv_may_interpolate_few_fits_where_reml_smooths():
         gains_from_fits(t, fits, np.ones(1), 5e-4, 100.0, "aic")
 
 
+def test_the_context_pull_targets_the_smoothing_spline_and_weighs_what_the_other_frames_know():
+    """smoothed_at is (I + lam K)^-1 y and that matrix' diagonal at the named frames, per column with its own lam;
+    on the 20 fits above the resting parameter's leverage is ~0.18 (the pull ~5 frames' worth), the cleanly moving
+    one's ~1 (no pull); a time not among the fits gives NaN."""
+    from eventcap.smoothing import penalty_matrix
+
+    from eventcap_spline.solve import smoothed_at
+
+    rng = np.random.default_rng(0)
+    t = np.arange(20) * 100_000
+    ts = t * 1e-6
+    fits = np.stack([0.3 + rng.normal(0, 0.2, 20), np.sin(2 * np.pi * ts) + rng.normal(0, 0.02, 20),
+                     np.sin(2 * np.pi * ts) + rng.normal(0, 0.2, 20)], axis=1)
+    _, lam = gains_from_fits(t, fits, np.ones(3), 5e-4, 100.0)
+    at = np.array([t[0], t[7], t[8] + 50_000, t[19]])
+    g, h = smoothed_at(t, fits, lam, at)
+    K = penalty_matrix(ts)
+    for p in range(3):
+        H = np.linalg.inv(np.eye(20) + lam[p] * K)
+        np.testing.assert_allclose(g[[0, 1, 3], p], (H @ fits[:, p])[[0, 7, 19]], atol=1e-9)
+        np.testing.assert_allclose(h[[0, 1, 3], p], np.diag(H)[[0, 7, 19]], atol=1e-9)
+    assert np.all(np.isnan(g[2])) and np.all(np.isnan(h[2]))
+    assert 0.1 < h[1, 0] < 0.25 and h[1, 1] > 0.9, h[1]
+    assert abs(g[1, 0] - 0.3) < abs(fits[7, 0] - 0.3)  # the resting one's estimate is nearer its true value
+
+
 def test_windows_cover_the_batch_and_shift_inwards_at_the_ends():
     assert [window_of(10, k, 2) for k in (0, 1, 2, 5, 8, 9)] == [(0, 4), (0, 4), (0, 4), (3, 7), (5, 9), (5, 9)]
     assert window_of(3, 1, 2) == (0, 2) and window_of(1, 0, 0) == (0, 0)
@@ -135,11 +161,11 @@ def test_windows_cover_the_batch_and_shift_inwards_at_the_ends():
 
 
 # ------------------------------------------------------------------------------------------------ a window
-@functools.lru_cache(maxsize=2)
-def scene(exact: bool = False):
-    """4 intensity frames (3 batches, 120 ms) of a fast motion, simulated detections (default noise unless exact),
-    ground-truth surface tracks in the middle batch."""
-    rec = posed_recording("high_knees", n_frames=4, speed=1.0, with_template=True)
+@functools.lru_cache(maxsize=3)
+def scene(exact: bool = False, n_frames: int = 4):
+    """4 intensity frames (3 batches, 120 ms; or n_frames) of a fast motion, simulated detections (default noise
+    unless exact), ground-truth surface tracks in the second batch."""
+    rec = posed_recording("high_knees", n_frames=n_frames, speed=1.0, with_template=True)
     det = select_detections(detect("simulated", rec, **(EXACT if exact else {})), rec.frames.t_us)
     t_det = rec.frames.t_us.astype(np.int64)
     t_us = t_det[1] + 1_000 * np.arange(41, dtype=np.int64)
@@ -180,7 +206,7 @@ def ca_dense(m) -> np.ndarray:
     return np.asarray(ca.DM(m).full())
 
 
-@pytest.mark.parametrize("term", ["d2", "d3", "cor", "prior", "damp", "still", "sil"])
+@pytest.mark.parametrize("term", ["d2", "d3", "cor", "prior", "damp", "still", "sil", "context"])
 def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
     rec, det, t_det, t_us, S, xy, valid = scene()
     prob = problem()
@@ -207,8 +233,13 @@ def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
     gain = rng.uniform(1.0, 50.0, 33)  # the prior's gain per parameter (prior_gain_max > 1)
     # the event silence: a weight per knot interval and joint (zero for half of them)
     still = rng.uniform(0, 2, (prob.n_seg, 24)) * (rng.random((prob.n_seg, 24)) < 0.5)
+    # the context pull: a target and a weight >= 0 per detection frame and parameter (zero for a third of them)
+    r2 = np.random.default_rng(1)
+    pull = (spl.evaluate(C, t_det) + r2.normal(0, 0.05, (t_det.size, 33)),
+            r2.uniform(0, 3, (t_det.size, 33)) * (r2.random((t_det.size, 33)) < 0.67))
     prob.set_window(spl, t_det, det, t_us, corr, w, x + rng.normal(0, 0.01, x.shape), gain,
-                    still if term == "still" else None, t_sil_us=t_sil, sil=sil)
+                    still if term == "still" else None, t_sil_us=t_sil, sil=sil,
+                    pull=pull if term == "context" else None)
     f = lambda v: float(prob.objective(v))
     grad = lambda v: np.asarray(prob.gradient(v)[1]).ravel()
     g = grad(x)
@@ -368,9 +399,9 @@ class _Seq(list):
         self.batches = batches
 
 
-@functools.lru_cache(maxsize=1)
-def _stage_data():
-    rec, det_rows, t_det = scene()[:3]
+@functools.lru_cache(maxsize=2)
+def _stage_data(n_frames: int = 4):
+    rec, det_rows, t_det = scene(n_frames=n_frames)[:3]
     det = detect("simulated", rec)
     gt = rec.ground_truth
     plan = BatchPlan.between_frames(t_det)
@@ -387,9 +418,10 @@ def _stage_data():
     return rec, det, plan, _Seq(sliced, plan.batches())
 
 
-def stage_inputs():
-    """The stage's inputs on the scene: 3 batches of 40 ms, every batch's tracks (as the runner hands them)."""
-    rec, det, plan, sliced = _stage_data()
+def stage_inputs(n_frames: int = 4):
+    """The stage's inputs on the scene: 3 batches of 40 ms (or n_frames - 1), every batch's tracks (as the runner
+    hands them)."""
+    rec, det, plan, sliced = _stage_data(n_frames)
     return {"recording": rec, "sliced": sliced, "detections": det, "batches": plan}
 
 
@@ -575,9 +607,9 @@ def test_the_prior_gains_are_chosen_only_at_frame_rates_that_sample_the_motion(c
         off, ctx_off = _run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv",
                                   prior_gain_min_fps=30.0)
     assert "prior_gain" not in ctx_off.stats
-    assert ("batch 1: no per-parameter prior gains: intensity frames at 25.0 fps, below "
+    assert ("batch 1: no per-parameter prior gains or context pull: intensity frames at 25.0 fps, below "
             "stages.spline.prior_gain_min_fps (30)") in caplog.text
-    plain, _ = _run_stage(inputs, b, prior_gain_max=1.0)
+    plain, _ = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
     # what `eventcap run` composes: gains up to 10 by GCV from 20 fps on (measured better at 25 fps, worse at 10)
     from eventcap.benchmark import compose_run
@@ -587,6 +619,49 @@ def test_the_prior_gains_are_chosen_only_at_frame_rates_that_sample_the_motion(c
     spline = data["stages"]["spline"]
     assert (spline["prior_gain_max"], spline["prior_gain_criterion"], spline["prior_gain_min_fps"]) == (10.0, "gcv",
                                                                                                        20.0)
+
+
+def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
+    """still_gate: a parameter is as still as the least still bone it turns, in the knot interval of each time (the
+    right elbow's angle by the forearm, the root's by the pelvis, hips and spine). The stage: lambda_context > 0
+    pulls (in the stats and the log, frames' worth per parameter >= 0) and changes the poses; below
+    prior_gain_min_fps it is off like the gains and the poses equal lambda_context=0's."""
+    from eventcap.body.skeleton import JOINT_INDEX
+    from eventcap.energy.silence import Silence
+
+    from eventcap_spline.solve import still_gate
+
+    st = np.ones((4, 24))
+    st[2, JOINT_INDEX["r_wrist"]] = 0.0
+    st[1, JOINT_INDEX["l_hip"]] = 0.25
+    sil = Silence(edges_us=np.arange(5, dtype=np.int64) * 10_000, activity_hz=np.zeros((4, 24)), background_hz=0.1,
+                  stillness=st)
+    gate = still_gate(sil, np.array([5_000, 15_000, 25_000, 39_999, 60_000]))
+    elbow, shoulder, yaw = DOF_INDEX["r_elbow_flex"], DOF_INDEX["r_shoulder_flex"], 27
+    np.testing.assert_array_equal(gate[:, elbow], [1, 1, 0, 1, 1])
+    np.testing.assert_array_equal(gate[:, yaw], [1, 0.25, 1, 1, 1])
+    np.testing.assert_array_equal(gate[:, DOF_INDEX["l_hip_flex"]], 1.0)  # turns the thigh (the knee's bone)
+    assert np.all(gate[:, shoulder] == 1.0) and gate.shape == (5, 33)
+    inputs = stage_inputs(n_frames=7)  # 6 batches: 7 frames of context, enough for a smoothing spline
+    b = inputs["batches"].batch(3)
+    with caplog.at_level("INFO"):
+        on, ctx_on = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=20.0)
+    frames = np.array(ctx_on.stats["context_pull_frames"])
+    assert frames.shape == (33,) and np.all(frames >= 0) and frames.max() > 0.5
+    assert "batch 3: context pull: median" in caplog.text
+    plain, _ = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
+    assert np.abs(on["poses"].poses - plain["poses"].poses).max() > 1e-4
+    off, ctx_off = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=30.0)
+    assert "context_pull_frames" not in ctx_off.stats
+    np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
+    with pytest.raises(StageFailed, match=r"stages.spline.lambda_context: expected a number >= 0, got -1.0"):
+        _run_stage(inputs, b, lambda_context=-1.0)
+    # what `eventcap run` composes (measured on the suite at 25 fps: 0.01 / 0.03 / 0.1 / 0.3 gave MPJVE 198 / 196 /
+    # 202 / 213 mm/s against 241 without)
+    from eventcap.benchmark import compose_run
+    from eventcap.cli import config_dir
+
+    assert compose_run(config_dir(), [])[0]["stages"]["spline"]["lambda_context"] == 0.03
 
 
 def test_a_failed_window_raises_with_the_solver_status():

@@ -69,7 +69,8 @@ def solve_settings(config):
     from .solve import SilhouetteSettings, SplineWeights
 
     weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor, prior=config.lambda_prior,
-                            damp=config.lambda_damp, still=config.lambda_still, sil=config.lambda_sil)
+                            damp=config.lambda_damp, still=config.lambda_still, sil=config.lambda_sil,
+                            context=config.lambda_context)
     silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz,
                               hold_bins=int(round(config.still_hold_ms / config.knot_ms)),
                               sweep_bins=int(round(config.still_sweep_ms / config.knot_ms)))
@@ -90,14 +91,14 @@ def prior_base_gain(config, rest_joints: np.ndarray) -> np.ndarray | None:
 
 def prior_context(config, plan, t_det, detections, where: str, log):
     """(times, detections) of the intensity frames within prior_context_s of the window's detection frames t_det,
-    from which the prior's per-parameter gains are chosen; None (and a log line) when the frames come less often than
+    from which the prior's per-parameter gains and the context pull are chosen; None (and a log line) when the frames come less often than
     prior_gain_min_fps. StageFailed when their detections are missing."""
     from eventcap.energy.detections import select_detections
 
     frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
     fps = 1e6 / float(np.median(np.diff(frames))) if frames.size > 1 else 0.0
     if fps < float(config.prior_gain_min_fps):
-        log.info("%s: no per-parameter prior gains: intensity frames at %.1f fps, below "
+        log.info("%s: no per-parameter prior gains or context pull: intensity frames at %.1f fps, below "
                  "stages.spline.prior_gain_min_fps (%g)", where, fps, float(config.prior_gain_min_fps))
         return None
     reach = int(round(float(config.prior_context_s) * 1e6))
@@ -165,6 +166,7 @@ def run_spline(inputs, config, ctx):
               "prior_inertia_floor": ("a gain in [0, 1]", lambda v: 0 <= v <= 1),
               "prior_gain_min_fps": ("frames per second >= 0", lambda v: v >= 0),
               "lambda_sil": ("a number >= 0", lambda v: v >= 0),
+              "lambda_context": ("a number >= 0", lambda v: v >= 0),
               "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
               "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
               "sil_patch_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
@@ -216,7 +218,8 @@ def run_spline(inputs, config, ctx):
     if not (math.isfinite(gain_max) and gain_max >= 1 and math.isfinite(ctx_s) and ctx_s >= 0):
         raise StageFailed(f"stages.spline.prior_gain_max / prior_context_s: expected a number >= 1 and seconds >= 0, "
                           f"got {config.prior_gain_max!r} / {config.prior_context_s!r}", status="invalid_config")
-    context = prior_context(config, plan, t_det, detections, where, ctx.log) if gain_max > 1 else None
+    context = (prior_context(config, plan, t_det, detections, where, ctx.log)
+               if gain_max > 1 or weights.context > 0 else None)
     if not float(config.prior_inertia_cap) >= 1:
         raise StageFailed(f"stages.spline.prior_inertia_cap: expected a gain >= 1 (or .inf), got "
                           f"{config.prior_inertia_cap!r}", status="invalid_config")
@@ -258,12 +261,17 @@ def run_spline(inputs, config, ctx):
     if config.tracks == "window" and len(scope) < z - a + 1:
         ctx.log.warning("%s: only %d of the window's %d batches have tracks (batches= selects part of the plan)",
                         where, len(scope), z - a + 1)
-    if context is not None and res.prior_gain is not None:
+    if context is not None and gain_max > 1 and res.prior_gain is not None:
         g = res.prior_gain
         ctx.log.info("%s: motion prior gains from %d frames around the window: median %.3g, %d of 33 parameters at "
                      "the largest (%g)", where, context[0].size, float(np.median(g)),
                      int(np.sum(g >= gain_max * (1 - 1e-9))), gain_max)
         ctx.stats["prior_gain"] = [float(v) for v in g]
+    if res.pull_frames is not None:
+        frames = res.pull_frames
+        ctx.log.info("%s: context pull: median %.2f frames' worth per parameter and frame", where,
+                     float(np.median(frames)))
+        ctx.stats["context_pull_frames"] = [float(v) for v in frames.mean(0)]
     if res.silence is not None:
         st = res.silence.stillness
         ctx.log.info("%s: event silence: background %.2f events/px/s; %.0f%% of (knot interval, joint) pairs still "

@@ -4,6 +4,7 @@
               + λ_cor E_cor(S(t_0), S(t_s), S(t_2s), ...)               the batch's (or window's) tracks (ICP)
               + λ_prior Σ_p ∫ (S_p^(k)(t))² dt                           motion prior, k = 2 or 3, exact
               + λ_still Σ_j ∫ s_j(t) ‖d/dt π(x_j(S(t)))‖² dt            event silence: joints without events rest
+              + Σ_d Σ_p w_dp (S_p(t_d) - g_p(t_d))²                     context pull: g the smoothed fits around
               + λ_damp ‖x - x_start‖²
     s.t.      θ_min <= C_i <= θ_max  for every control point i           (exact joint limits on S(t))
 
@@ -21,7 +22,8 @@ Terms (all from :mod:`eventcap.energy`): E_2D (Cauchy-robust) and E_3D of one fr
 batch solve (:class:`eventcap.energy.cor.CorrespondenceEnergy`, relative form, exact block-tridiagonal Hessian) at
 the spline's poses at the correspondence frames; the prior is a fixed quadratic form; E_still
 (:mod:`eventcap.energy.silence`: s_j(t) is joint j's stillness measured from the events around its bones) is the
-joints' image velocity linearised at each solve's start, a fixed quadratic form too (Gauss-Newton). Every term is a
+joints' image velocity linearised at each solve's start, a fixed quadratic form too (Gauss-Newton); the context
+pull (:func:`prior_gain`, gated by :func:`still_gate`) is a fixed quadratic form at the detection frames. Every term is a
 function of poses S = B C, linear in C, so the chain rule is a product with the (sparse) basis: g_C = Bᵀ g_S and
 H_C = Bᵀ H_S B. IPOPT sees the sum through numpy callbacks (value, gradient, exact Hessian with a banded sparsity:
 control points i and j interact only when |i - j| <= 3, plus the t' of each detection frame).
@@ -83,9 +85,10 @@ class SplineWeights:
     damp: float = 1e-4
     still: float = 0.0  #: event silence: per (px/s)²·s of the image velocity of a joint the events call still (0: off)
     sil: float = 0.0  #: E_sil: per boundary pixel, focal-normalised point-to-line distance to its closest event (0: off)
+    context: float = 0.0  #: pull towards the smoothed fits of the frames around the window, × what they know (0: off)
 
     def __post_init__(self) -> None:
-        for name in ("d2", "d3", "cor", "prior", "damp", "still", "sil"):
+        for name in ("d2", "d3", "cor", "prior", "damp", "still", "sil", "context"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"SplineWeights.{name}: expected a finite number >= 0, got {v!r}")
@@ -122,6 +125,7 @@ class WindowResult:
     fits_computed: int = 0  #: per-frame fits computed for this window (the others came from neighbouring windows)
     prior_gain: np.ndarray | None = None  #: (33,) the prior's gain per parameter (None: 1)
     silence: Silence | None = None  #: the events' stillness per knot interval and joint (None: term off)
+    pull_frames: np.ndarray | None = None  #: (D, 33) the context pull in frames' worth, 1/h - 1 (None: off)
 
 
 def _banded_triu(n_ctrl: int, n_t: int):
@@ -218,7 +222,8 @@ class SplineProblem:
                    corr: Correspondences, weights: SplineWeights, x_ref: np.ndarray,
                    prior_gain: np.ndarray | None = None, still: np.ndarray | None = None,
                    cor_weight: np.ndarray | None = None, t_sil_us=None,
-                   sil: tuple[SilhouetteCorrespondences, SilhouetteSettings] | None = None) -> None:
+                   sil: tuple[SilhouetteCorrespondences, SilhouetteSettings] | None = None,
+                   pull: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Hand one window's data to the energy: the spline basis, detections at t_det_us (n_det rows),
         correspondences between the frames at t_cor_us (n_cor), weights, the proximal term's reference x, the
         motion prior's gain per pose parameter (33,) (its weight is λ_prior · gain_p; default 1), and the
@@ -226,7 +231,8 @@ class SplineProblem:
         (E_still = Σ_s Σ_j still[s, j] ∫_s ‖J_j(S_ref(t)) S'(t)‖² dt, the image velocity of joint j in px/s
         linearised at x_ref; :mod:`eventcap.energy.silence`; None: no such term), and a weight in [0, 1] per
         correspondence (corr.n,) (None: 1 each). E_sil (weights.sil > 0): its data at the n_sil frames t_sil_us,
-        (silhouette correspondences, settings); None: no such term."""
+        (silhouette correspondences, settings); None: no such term. pull: the context pull's (target, weight), each
+        (n_det, 33): Σ_d Σ_p weight[d, p] (S_p(t_d) - target[d, p])² (:func:`prior_gain`); None: no such term."""
         if spline.n_seg != self.n_seg:
             raise ValueError(f"set_window: the problem was built for {self.n_seg} knot intervals, got {spline.n_seg}")
         if det.n != self.n_det or np.size(t_det_us) != self.n_det:
@@ -261,6 +267,12 @@ class SplineProblem:
                                  f"{np.size(t_sil_us)}")
             self.sil.set_data(sil[0], np.zeros((self.n_sil, NUM_JOINTS, 3)), sil[1].weights(weights.sil))
             Bs = spline.basis(t_sil_us)
+        if pull is not None:
+            pull = tuple(np.asarray(v, dtype=np.float64) for v in pull)
+            if any(v.shape != (self.n_det, _NP) for v in pull) or not (np.all(np.isfinite(pull[0]))
+                                                                      and np.all(np.isfinite(pull[1]) & (pull[1] >= 0))):
+                raise ValueError(f"set_window: expected the context pull's target and weights >= 0 of shape "
+                                 f"({self.n_det}, {_NP}), got {[np.shape(v) for v in pull]}")
         dv = [det_values(det, d) for d in range(self.n_det)]
         self._data = {
             "Bd": spline.basis(t_det_us), "Be": spline.basis(t_cor_us), "Q": spline.gram(self.order),
@@ -268,6 +280,7 @@ class SplineProblem:
             "det": [np.concatenate([v[k] for v in dv]) for k in range(4)],
             "lam_det": np.tile([weights.d2, weights.d3], self.n_det), "w": weights, "x_ref": x_ref,
             "phi": np.zeros((self.n_cor - 1, NUM_JOINTS)), "lam_cor": np.array([weights.cor, 0.0]), "Bs": Bs,
+            "pull": pull,
         }
         self._cache = {}
 
@@ -323,11 +336,15 @@ class SplineProblem:
             MV = np.einsum("qab,qb->qa", M, V)
             e_still = float(np.sum(V * MV))
             g_still = 2.0 * (B1.T @ MV)
+        e_pull, WR = 0.0, None
+        if D["pull"] is not None:
+            WR = D["pull"][1] * (Sd - D["pull"][0])
+            e_pull = float(np.sum(WR * (Sd - D["pull"][0])))
         dx = x - D["x_ref"]
         Ss = None if D["Bs"] is None else D["Bs"] @ C
         out = {"key": key, "order": order, "z": z, "Se": Se, "Ss": Ss, "sil_w": 0.0,
                "det": float(e.sum()), "2d": float(e2.sum()), "3d": float(e3.sum()), "prior": e_prior,
-               "still": e_still, "damp": float(dx @ dx)}
+               "still": e_still, "pull": e_pull, "damp": float(dx @ dx)}
         if order == 0:
             out["cor_w"] = self.cor.value(Se, D["phi"], D["lam_cor"])
             if Ss is not None:
@@ -338,12 +355,15 @@ class SplineProblem:
             gC = D["Bd"].T @ gz[:, :_NP] + D["Be"].T @ gS + 2.0 * QC
             if g_still is not None:
                 gC += g_still
+            if WR is not None:
+                gC += 2.0 * (D["Bd"].T @ WR)
             if Ss is not None:
                 out["sil_w"], gSs = self.sil.gradient(Ss)
                 gC += D["Bs"].T @ gSs
             grad = np.concatenate([gC.ravel(), gz[:, _NP:].ravel()]) + (2.0 * w.damp) * dx
             out["grad"] = grad
-        out["value"] = out["det"] + out["cor_w"] + out["sil_w"] + e_prior + e_still + w.damp * out["damp"]
+        out["value"] = (out["det"] + out["cor_w"] + out["sil_w"] + e_prior + e_still + e_pull
+                        + w.damp * out["damp"])
         self._cache = out
         return out
 
@@ -359,6 +379,8 @@ class SplineProblem:
         Hd = self._det_hess(c["z"], *D["det"], D["lam_det"])[0].reshape(self.n_det, _NP + 3, _NP + 3)
         Wd = (Bd[:, :, None] * Bd[:, None, :]).reshape(self.n_det, nn)
         Hcc = Wd.T @ Hd[:, :_NP, :_NP].reshape(self.n_det, -1)
+        if D["pull"] is not None:  # 2 Σ_d b_d b_dᵀ ⊗ diag(weight_d) on each block's diagonal
+            Hcc.reshape(nn, _NP, _NP)[:, np.arange(_NP), np.arange(_NP)] += 2.0 * (Wd.T @ D["pull"][1])
         # correspondences: S_f = b_fᵀ C, block-tridiagonal in f (upper block u_f couples f and f+1)
         diag, upper = self.cor.hessian(c["Se"], D["phi"], D["lam_cor"])
         Be = D["Be"]
@@ -455,11 +477,12 @@ class PriorGain:
     #: not needed, too few fits)
     n_fits: int  #: fits in the context
     fits_computed: int
+    pull: tuple[np.ndarray, np.ndarray] | None = None  #: (target, weight) (D, 33) of the context pull (None: off)
 
 
 def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetections, window_fits: np.ndarray,
                window_tp: np.ndarray, det: FrameDetections, weights: SplineWeights, gain_max: float,
-               criterion: str = "reml") -> PriorGain:
+               criterion: str = "reml", t_det_us: np.ndarray | None = None) -> PriorGain:
     """How much stiffer than λ_prior the prior of each pose parameter should be, from the data alone.
 
     The per-frame fits y_p(t_k) at the intensity frames around the window (t_ctx_us, their detections det_ctx)
@@ -469,7 +492,15 @@ def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetec
     window's energy a parameter's detections weigh about a_p (the detection terms' curvature, mean diagonal of their
     Hessian at the window's fits / 2) per rad², so the same trade-off there is a prior weight of a_p · lam_p; the
     gain is that over λ_prior, clipped to [1, gain_max]: the prior never gets weaker than its default, and static
-    parameters stop wiggling with the detections' noise. Frames of the context whose fit fails are left out."""
+    parameters stop wiggling with the detections' noise. Frames of the context whose fit fails are left out.
+
+    The context pull (weights.context > 0, the window's detection frames t_det_us): the same smoothing splines'
+    values g_p(t_d) at the window's frames, and how much more than the frame's own detections they know there:
+    a_p (1 / h_dp - 1), h_dp the smoother's leverage of frame d (its hat matrix' diagonal; 1 / h_dp is what the
+    smoother's estimate at d weighs in frames). A parameter the frames call static (heavy smoothing, h ≈ 2 / K of
+    K frames) is held near the line through all K fits, which the window's few frames and its acceleration prior
+    cannot tell (a trend within a window costs the prior nothing); one that moves (h → 1) is not held. Returned as
+    PriorGain.pull = (g, weights.context · a_p (1 / h - 1)) per window frame; a frame whose fit failed gets weight 0."""
     from eventcap.smoothing import MIN_KNOTS
 
     S, computed = [], 0
@@ -482,16 +513,70 @@ def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetec
         computed += new
         S.append(unwrap_root(s, S[-1]) if S else s)
         keep.append(d)
-    if len(keep) < MIN_KNOTS or weights.prior <= 0 or gain_max <= 1:
+    want_pull = weights.context > 0 and t_det_us is not None
+    if len(keep) < MIN_KNOTS or ((weights.prior <= 0 or gain_max <= 1) and not want_pull):
         return PriorGain(np.ones(_NP), np.full(_NP, np.nan), np.full(_NP, np.nan), len(keep), computed)
     z = np.concatenate([window_fits, window_tp], axis=1)
     dv = [det_values(det, d) for d in range(det.n)]
     H = problem._det_hess(z, *[np.concatenate([v[k] for v in dv]) for k in range(4)],
                           np.tile([weights.d2, weights.d3], det.n))[0].reshape(det.n, _NP + 3, _NP + 3)
     a = np.maximum(np.einsum("dpp->dp", H[:, :_NP, :_NP]).mean(0) / 2.0, 0.0)
-    gain, lam = gains_from_fits(np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S), a, weights.prior,
-                                gain_max, criterion)
-    return PriorGain(gain, lam, a, len(keep), computed)
+    t_keep, Y = np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S)
+    gain, lam = gains_from_fits(t_keep, Y, a, max(weights.prior, 1e-300), max(gain_max, 1.0), criterion)
+    if weights.prior <= 0:
+        gain = np.ones(_NP)
+    pull = None
+    if want_pull:
+        g, h = smoothed_at(t_keep, Y, lam, np.asarray(t_det_us, dtype=np.int64))
+        found = np.isfinite(h[:, 0])
+        g[found] = np.stack([unwrap_root(g[d], window_fits[d]) for d in np.flatnonzero(found)]) if found.any() else g[found]
+        w = np.where(found[:, None], weights.context * a[None, :] * (1.0 / np.where(found[:, None], h, 1.0) - 1.0),
+                     0.0)
+        pull = (np.where(found[:, None], g, window_fits), np.maximum(w, 0.0))
+    return PriorGain(gain, lam, a, len(keep), computed, pull)
+
+
+def _gating_joints() -> list[np.ndarray]:
+    """Per pose parameter, the joints whose bones it turns: a joint angle's the children of its joint, the root's
+    rotation and translation the pelvis and its children."""
+    from eventcap.body.skeleton import DOF_JOINT, PARENTS
+
+    root = np.concatenate([[0], np.flatnonzero(PARENTS == 0)])
+    return [np.flatnonzero(PARENTS == j) for j in DOF_JOINT] + [root] * (_NP - len(DOF_JOINT))
+
+
+_GATING = _gating_joints()
+
+
+def still_gate(silence: Silence, t_us: np.ndarray) -> np.ndarray:
+    """(len(t_us), 33) in [0, 1]: how still each pose parameter is at t_us by the events, the least stillness of
+    the bones it turns (:func:`_gating_joints`) in the knot interval holding t."""
+    k = np.clip(np.searchsorted(silence.edges_us, np.asarray(t_us, dtype=np.int64), side="right") - 1, 0,
+                silence.stillness.shape[0] - 1)
+    st = silence.stillness[k]
+    return np.stack([st[:, j].min(axis=1) for j in _GATING], axis=1)
+
+
+def smoothed_at(t_us: np.ndarray, fits: np.ndarray, lam: np.ndarray,
+                t_at_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(g, h), both (len(t_at_us), P): the cubic smoothing splines through each column p of fits (K, P) at times
+    t_us (K,) with smoothing parameter lam_p (s³), and their leverage (hat-matrix diagonal, in (0, 1]), at those
+    of t_us that t_at_us names; NaN rows where t_at_us is not among t_us."""
+    from eventcap.smoothing import GcvCurve
+
+    t = np.asarray(t_us, dtype=np.int64)
+    curve = GcvCurve((t - t[0]) * 1e-6)
+    Y = np.asarray(fits, dtype=np.float64)
+    rows = np.searchsorted(t, t_at_us)
+    hit = (rows < t.size) & (t[np.minimum(rows, t.size - 1)] == t_at_us)
+    g = np.full((len(t_at_us), Y.shape[1]), np.nan)
+    h = np.full_like(g, np.nan)
+    U = curve.U[rows[hit]]  # (n, K)
+    Z = curve.U.T @ Y  # (K, P)
+    shrink = 1.0 / (1.0 + np.asarray(lam)[None, :] * curve.d[:, None])  # (K, P): eigenvalues of each H_p
+    g[hit] = np.einsum("nk,kp->np", U, shrink * Z)
+    h[hit] = (U * U) @ shrink
+    return g, h
 
 
 def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, lam_prior: float,
@@ -523,7 +608,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
 
     context: (times, detections) of the intensity frames around the window from which the prior's gain per
     parameter is chosen (:func:`prior_gain`, up to gain_max, by gain_criterion); None: the prior is λ_prior for
-    every parameter.
+    every parameter. With weights.context > 0 the same context also sets the context pull (:func:`prior_gain`),
+    times each parameter's stillness by the events at each frame (:func:`still_gate`; ungated without the silence).
 
     events: the recording's events over the window, for the event-silence term (used when weights.still > 0): each
     joint's stillness per knot interval, measured around the start spline's projected bones (:func:`window_silence`).
@@ -545,9 +631,12 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     t0 = time.perf_counter()
     fits, tps, _, n_fits = fit_window(problem, det, weights)
     gain = None
-    if context is not None and gain_max > 1:
-        pg = prior_gain(problem, context[0], context[1], fits, tps, det, weights, gain_max, gain_criterion)
-        gain, n_fits = pg.gain, n_fits + pg.fits_computed
+    pull, pull_frames = None, None
+    if context is not None and (gain_max > 1 or weights.context > 0):
+        pg = prior_gain(problem, context[0], context[1], fits, tps, det, weights, gain_max, gain_criterion, t_det_us)
+        gain, pull, n_fits = pg.gain, pg.pull, n_fits + pg.fits_computed
+        if pull is not None:
+            pull_frames = pull[1] / (weights.context * np.maximum(pg.curvature, 1e-300))
     if base_gain is not None:
         gain = np.asarray(base_gain, dtype=np.float64) * (1.0 if gain is None else gain)
     solves = []
@@ -562,6 +651,9 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         t1 = time.perf_counter()
         sil, still_w = window_silence(problem, spline, C, events, weights.still, silence)
         seconds["silence"] = time.perf_counter() - t1
+        if pull is not None:  # a part the events see move is not held to the frames' smoother
+            gate = still_gate(sil, t_det_us)
+            pull, pull_frames = (pull[0], pull[1] * gate), pull_frames * gate
     seconds["correspondences"] = seconds["solve"] = 0.0
     corr = Correspondences.empty()
     index, sil_data, n_boundary = None, None, 0
@@ -590,26 +682,28 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
             e2 = np.sum(problem.cor.residuals_px(Se) ** 2, axis=1)
             cor_w = 1.0 / (1.0 + e2 / float(robust_cor_px) ** 2)
         t2 = time.perf_counter()
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w, cor_w, t_sil_us, sil_data)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w, cor_w, t_sil_us, sil_data,
+                           pull)
         x, st = problem.solve(x, f"{what}: spline solve (ICP round {r + 1})")
         solves.append(SolveStats(st.status, st.iterations, st.seconds, corr.n))
         seconds["correspondences"] += t2 - t1
         seconds["solve"] += time.perf_counter() - t2
     if icp_rounds == 0:  # detections and prior only (no events)
-        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w)
+        problem.set_window(spline, t_det_us, det, t_cor_us, corr, weights, x, gain, still_w, pull=pull)
         x, st = problem.solve(x, f"{what}: spline solve (no correspondences)")
         solves.append(st)
     c = problem._eval(x, 0)
     energies = {"2d": c["2d"], "3d": c["3d"], "cor": c["cor_w"] / weights.cor if weights.cor else 0.0,
                 "prior": c["prior"] / weights.prior if weights.prior else 0.0,
                 "still": c["still"] / weights.still if weights.still else 0.0,
-                "sil": c["sil_w"] / weights.sil if weights.sil else 0.0, "total": c["value"],
+                "sil": c["sil_w"] / weights.sil if weights.sil else 0.0,
+                "context": c["pull"] / weights.context if weights.context else 0.0, "total": c["value"],
                 "n_correspondences": corr.n, "n_silhouette": sil_data[0].n if sil_data else 0,
                 "n_boundary": n_boundary}
     C, T = problem._split(x)
     return WindowResult(spline=spline, control=C.copy(), t_prime=T.copy(), fits=fits, energies=energies,
                         solves=tuple(solves), seconds=seconds, fits_computed=n_fits, prior_gain=gain,
-                        silence=sil)
+                        silence=sil, pull_frames=pull_frames)
 
 
 def window_silence(problem: SplineProblem, spline: UniformCubicBSpline, C: np.ndarray, events: np.ndarray,

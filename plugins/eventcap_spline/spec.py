@@ -40,12 +40,18 @@ class SplineSolveConfig:
     prior_gain_criterion: str = param("gcv", choices=("reml", "gcv"),
                                       help="how each parameter's fits choose its smoothing for those gains: gcv | "
                                            "reml (eventcap.smoothing; REML held fast_wave's waving arm at 25 fps)")
-    prior_gain_min_fps: float = param(20.0, help="choose those gains only when the intensity frames come at least "
-                                                 "this often (frames per second; 0 = always): at 10 fps the fits "
-                                                 "undersample the punches and kicks, whose parameters would be held "
-                                                 "as if at rest")
+    prior_gain_min_fps: float = param(20.0, help="choose those gains (and the context pull) only when the intensity "
+                                                 "frames come at least this often (frames per second; 0 = always): "
+                                                 "at 10 fps the fits undersample the punches and kicks, whose "
+                                                 "parameters would be held as if at rest")
     prior_context_s: float = param(1.0, help="seconds of intensity frames on each side of the window whose fits "
-                                             "choose the prior's gains (prior_gain_max > 1)")
+                                             "choose the prior's gains and the context pull")
+    lambda_context: float = param(0.03, help="weight of the context pull: each pose parameter held near the "
+                                             "smoothing spline through its per-frame fits around the window "
+                                             "(smoothing as for the gains), as much as those fits know more than the "
+                                             "frame's own (solve.prior_gain) and as still as the events show the "
+                                             "bones it turns (solve.still_gate): a static part does not drift within "
+                                             "a window; 0 = off; only from prior_gain_min_fps, like the gains")
     lambda_still: float = param(0.1, help="weight of the event-silence term: the squared image velocity (px/s) of "
                                          "every joint whose bone made no more events than the background, per knot "
                                          "interval, weighted by that stillness (eventcap.energy.silence); 0 = off")
