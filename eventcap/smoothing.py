@@ -73,6 +73,14 @@ class GcvCurve:
         tr = float(np.sum(1.0 / (1.0 + lam * self.d)))
         return float(n * rss.sum() / max(n - tr, 1e-9) ** 2), tr, rss
 
+    def fitted(self, Y: np.ndarray, lam: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(values, leverage), both (len(rows), C): each column c of Y (n, C) smoothed with its own lam[c], H(lam_c) y_c,
+        and H(lam_c)'s diagonal, at the knots ``rows``."""
+        U = self.U[np.asarray(rows, dtype=np.int64)]  # (r, n)
+        shrink = 1.0 / (1.0 + np.asarray(lam, dtype=np.float64)[None, :] * self.d[:, None])  # (n, C): H's eigenvalues
+        z = self.U.T @ np.asarray(Y, dtype=np.float64).reshape(self.x.size, -1)
+        return U @ (shrink * z), (U * U) @ shrink
+
     def choose(self, Y: np.ndarray, decades: tuple[float, float] = (-4.0, 10.0), per_decade: int = 20) -> GcvChoice:
         """The lam minimising GCV for the columns of Y, over lam = h³ · 10^k, k in ``decades`` (h the median knot
         spacing: from near interpolation to near a straight line), ``per_decade`` points per decade."""

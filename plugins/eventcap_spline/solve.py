@@ -67,6 +67,7 @@ from eventcap.energy.ipopt import IpoptSettings, NumpyCallback, SolveStats, chec
 from eventcap.energy.kernels import Buffered, SkinningKernels
 from eventcap.energy.silence import Silence, SilenceSettings, measure_silence
 from eventcap.energy.spline import GAUSS3, PRIOR_ORDERS, UniformCubicBSpline
+from eventcap.smoothing import MIN_KNOTS, GcvCurve, check_criterion
 from eventcap.stage import StageFailed
 
 _NP = NUM_POSE_PARAMS
@@ -269,8 +270,9 @@ class SplineProblem:
             Bs = spline.basis(t_sil_us)
         if pull is not None:
             pull = tuple(np.asarray(v, dtype=np.float64) for v in pull)
-            if any(v.shape != (self.n_det, _NP) for v in pull) or not (np.all(np.isfinite(pull[0]))
-                                                                      and np.all(np.isfinite(pull[1]) & (pull[1] >= 0))):
+            target, weight = pull
+            if (target.shape != (self.n_det, _NP) or weight.shape != target.shape or not np.all(np.isfinite(target))
+                    or not np.all(np.isfinite(weight) & (weight >= 0))):
                 raise ValueError(f"set_window: expected the context pull's target and weights >= 0 of shape "
                                  f"({self.n_det}, {_NP}), got {[np.shape(v) for v in pull]}")
         dv = [det_values(det, d) for d in range(self.n_det)]
@@ -338,8 +340,9 @@ class SplineProblem:
             g_still = 2.0 * (B1.T @ MV)
         e_pull, WR = 0.0, None
         if D["pull"] is not None:
-            WR = D["pull"][1] * (Sd - D["pull"][0])
-            e_pull = float(np.sum(WR * (Sd - D["pull"][0])))
+            R = Sd - D["pull"][0]
+            WR = D["pull"][1] * R
+            e_pull = float(np.sum(WR * R))
         dx = x - D["x_ref"]
         Ss = None if D["Bs"] is None else D["Bs"] @ C
         out = {"key": key, "order": order, "z": z, "Se": Se, "Ss": Ss, "sil_w": 0.0,
@@ -379,8 +382,6 @@ class SplineProblem:
         Hd = self._det_hess(c["z"], *D["det"], D["lam_det"])[0].reshape(self.n_det, _NP + 3, _NP + 3)
         Wd = (Bd[:, :, None] * Bd[:, None, :]).reshape(self.n_det, nn)
         Hcc = Wd.T @ Hd[:, :_NP, :_NP].reshape(self.n_det, -1)
-        if D["pull"] is not None:  # 2 Σ_d b_d b_dᵀ ⊗ diag(weight_d) on each block's diagonal
-            Hcc.reshape(nn, _NP, _NP)[:, np.arange(_NP), np.arange(_NP)] += 2.0 * (Wd.T @ D["pull"][1])
         # correspondences: S_f = b_fᵀ C, block-tridiagonal in f (upper block u_f couples f and f+1)
         diag, upper = self.cor.hessian(c["Se"], D["phi"], D["lam_cor"])
         Be = D["Be"]
@@ -398,6 +399,8 @@ class SplineProblem:
         w = D["w"]
         diag_idx = np.arange(_NP)
         Hcc[:, :, diag_idx, diag_idx] += 2.0 * D["Q"][:, :, None] * D["wp"][None, None, :]
+        if D["pull"] is not None:  # context pull: 2 Σ_d b_d b_dᵀ ⊗ diag(weight_d)
+            Hcc[:, :, diag_idx, diag_idx] += 2.0 * (Wd.T @ D["pull"][1]).reshape(n, n, _NP)
         if D["still"] is not None:
             Hcc += D["still"]["H"]
         ii = np.arange(n)
@@ -477,7 +480,8 @@ class PriorGain:
     #: not needed, too few fits)
     n_fits: int  #: fits in the context
     fits_computed: int
-    pull: tuple[np.ndarray, np.ndarray] | None = None  #: (target, weight) (D, 33) of the context pull (None: off)
+    pull: tuple[np.ndarray, np.ndarray] | None = None  #: the context pull's (target, frames' worth 1/h - 1), each
+    #: (D, 33); its weight is weights.context · curvature · frames' worth (None: off)
 
 
 def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetections, window_fits: np.ndarray,
@@ -500,9 +504,7 @@ def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetec
     smoother's estimate at d weighs in frames). A parameter the frames call static (heavy smoothing, h ≈ 2 / K of
     K frames) is held near the line through all K fits, which the window's few frames and its acceleration prior
     cannot tell (a trend within a window costs the prior nothing); one that moves (h → 1) is not held. Returned as
-    PriorGain.pull = (g, weights.context · a_p (1 / h - 1)) per window frame; a frame whose fit failed gets weight 0."""
-    from eventcap.smoothing import MIN_KNOTS
-
+    PriorGain.pull = (g, 1 / h - 1) per window frame; a frame whose fit failed gets 0 frames' worth."""
     S, computed = [], 0
     keep = []
     for d in range(det_ctx.n):
@@ -522,17 +524,18 @@ def prior_gain(problem: SplineProblem, t_ctx_us: np.ndarray, det_ctx: FrameDetec
                           np.tile([weights.d2, weights.d3], det.n))[0].reshape(det.n, _NP + 3, _NP + 3)
     a = np.maximum(np.einsum("dpp->dp", H[:, :_NP, :_NP]).mean(0) / 2.0, 0.0)
     t_keep, Y = np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S)
-    gain, lam = gains_from_fits(t_keep, Y, a, max(weights.prior, 1e-300), max(gain_max, 1.0), criterion)
-    if weights.prior <= 0:
-        gain = np.ones(_NP)
+    curve = GcvCurve((t_keep - t_keep[0]) * 1e-6)
+    gains_on = weights.prior > 0 and gain_max > 1  # else only lam is wanted (for the pull): the gains stay 1
+    gain, lam = gains_from_fits(t_keep, Y, a, weights.prior if gains_on else 1.0, gain_max if gains_on else 1.0,
+                                criterion, curve)
     pull = None
     if want_pull:
-        g, h = smoothed_at(t_keep, Y, lam, np.asarray(t_det_us, dtype=np.int64))
-        found = np.isfinite(h[:, 0])
-        g[found] = np.stack([unwrap_root(g[d], window_fits[d]) for d in np.flatnonzero(found)]) if found.any() else g[found]
-        w = np.where(found[:, None], weights.context * a[None, :] * (1.0 / np.where(found[:, None], h, 1.0) - 1.0),
-                     0.0)
-        pull = (np.where(found[:, None], g, window_fits), np.maximum(w, 0.0))
+        g, h = smoothed_at(t_keep, Y, lam, np.asarray(t_det_us, dtype=np.int64), curve)
+        frames = np.zeros_like(g)
+        for d in np.flatnonzero(np.isfinite(h[:, 0])):
+            g[d] = unwrap_root(g[d], window_fits[d])
+            frames[d] = np.maximum(1.0 / h[d] - 1.0, 0.0)
+        pull = (np.where(np.isfinite(g), g, window_fits), frames)
     return PriorGain(gain, lam, a, len(keep), computed, pull)
 
 
@@ -557,38 +560,32 @@ def still_gate(silence: Silence, t_us: np.ndarray) -> np.ndarray:
     return np.stack([st[:, j].min(axis=1) for j in _GATING], axis=1)
 
 
-def smoothed_at(t_us: np.ndarray, fits: np.ndarray, lam: np.ndarray,
-                t_at_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def smoothed_at(t_us: np.ndarray, fits: np.ndarray, lam: np.ndarray, t_at_us: np.ndarray,
+                curve: GcvCurve | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(g, h), both (len(t_at_us), P): the cubic smoothing splines through each column p of fits (K, P) at times
     t_us (K,) with smoothing parameter lam_p (s³), and their leverage (hat-matrix diagonal, in (0, 1]), at those
-    of t_us that t_at_us names; NaN rows where t_at_us is not among t_us."""
-    from eventcap.smoothing import GcvCurve
-
+    of t_us that t_at_us names (:meth:`eventcap.smoothing.GcvCurve.fitted`; curve: the GcvCurve of t_us if already
+    built); NaN rows where t_at_us is not among t_us."""
     t = np.asarray(t_us, dtype=np.int64)
-    curve = GcvCurve((t - t[0]) * 1e-6)
-    Y = np.asarray(fits, dtype=np.float64)
+    curve = GcvCurve((t - t[0]) * 1e-6) if curve is None else curve
     rows = np.searchsorted(t, t_at_us)
     hit = (rows < t.size) & (t[np.minimum(rows, t.size - 1)] == t_at_us)
-    g = np.full((len(t_at_us), Y.shape[1]), np.nan)
+    g = np.full((len(t_at_us), np.shape(fits)[1]), np.nan)
     h = np.full_like(g, np.nan)
-    U = curve.U[rows[hit]]  # (n, K)
-    Z = curve.U.T @ Y  # (K, P)
-    shrink = 1.0 / (1.0 + np.asarray(lam)[None, :] * curve.d[:, None])  # (K, P): eigenvalues of each H_p
-    g[hit] = np.einsum("nk,kp->np", U, shrink * Z)
-    h[hit] = (U * U) @ shrink
+    g[hit], h[hit] = curve.fitted(fits, lam, rows[hit])
     return g, h
 
 
 def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, lam_prior: float,
-                    gain_max: float, criterion: str = "reml") -> tuple[np.ndarray, np.ndarray]:
+                    gain_max: float, criterion: str = "reml",
+                    curve: GcvCurve | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(gain (P,), lam (P,)): each column p of fits (K, P) at times t_us (K,) gets the smoothing parameter lam_p
     (s³) of a cubic smoothing spline through it chosen by ``criterion`` (reml | gcv), and the gain
-    clip(curvature_p · lam_p / lam_prior, 1, gain_max) of :func:`prior_gain`."""
-    from eventcap.smoothing import GcvCurve, check_criterion
-
+    clip(curvature_p · lam_p / lam_prior, 1, gain_max) of :func:`prior_gain` (curve: the GcvCurve of t_us if
+    already built)."""
     check_criterion(criterion)
     t = np.asarray(t_us, dtype=np.int64)
-    curve = GcvCurve((t - t[0]) * 1e-6)
+    curve = GcvCurve((t - t[0]) * 1e-6) if curve is None else curve
     Y = np.asarray(fits, dtype=np.float64)
     lam = np.array([curve.choose_by(Y[:, p:p + 1], criterion).lam for p in range(Y.shape[1])])
     return np.clip(np.asarray(curvature) * lam / lam_prior, 1.0, float(gain_max)), lam
@@ -631,12 +628,12 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     t0 = time.perf_counter()
     fits, tps, _, n_fits = fit_window(problem, det, weights)
     gain = None
-    pull, pull_frames = None, None
+    pull_target, pull_frames = None, None
     if context is not None and (gain_max > 1 or weights.context > 0):
         pg = prior_gain(problem, context[0], context[1], fits, tps, det, weights, gain_max, gain_criterion, t_det_us)
-        gain, pull, n_fits = pg.gain, pg.pull, n_fits + pg.fits_computed
-        if pull is not None:
-            pull_frames = pull[1] / (weights.context * np.maximum(pg.curvature, 1e-300))
+        gain, n_fits = pg.gain, n_fits + pg.fits_computed
+        if pg.pull is not None:
+            pull_target, pull_frames = pg.pull
     if base_gain is not None:
         gain = np.asarray(base_gain, dtype=np.float64) * (1.0 if gain is None else gain)
     solves = []
@@ -651,9 +648,9 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         t1 = time.perf_counter()
         sil, still_w = window_silence(problem, spline, C, events, weights.still, silence)
         seconds["silence"] = time.perf_counter() - t1
-        if pull is not None:  # a part the events see move is not held to the frames' smoother
-            gate = still_gate(sil, t_det_us)
-            pull, pull_frames = (pull[0], pull[1] * gate), pull_frames * gate
+        if pull_frames is not None:  # a part the events see move is not held to the frames' smoother
+            pull_frames = pull_frames * still_gate(sil, t_det_us)
+    pull = None if pull_frames is None else (pull_target, weights.context * pg.curvature * pull_frames)
     seconds["correspondences"] = seconds["solve"] = 0.0
     corr = Correspondences.empty()
     index, sil_data, n_boundary = None, None, 0
