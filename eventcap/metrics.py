@@ -159,17 +159,18 @@ def central_derivative(x: np.ndarray, t_us: np.ndarray, window_us: float, order:
     k, step = half_window_steps(t, window_us)
     out = np.full(x.shape, np.nan)
     valid = np.zeros(t.size, dtype=bool)
-    if t.size <= 2 * k:
-        return out, valid
-    i = np.arange(k, t.size - k)
     h = k * step
-    ok = (t[i + k] - t[i] == h) & (t[i] - t[i - k] == h)
-    i = i[ok]
+    # the neighbours by time, not by index: an intensity frame between two grid times (tracking_times_us) is a
+    # frame of its own but no grid frame's neighbour
+    hi, lo = np.searchsorted(t, t + h), np.searchsorted(t, t - h)
+    ok = (hi < t.size) & (t[np.minimum(hi, t.size - 1)] == t + h) & (t[lo] == t - h)
+    i = np.flatnonzero(ok)
+    hi, lo = hi[i], lo[i]
     hs = h * 1e-6
     if order == 1:
-        out[i] = (x[i + k] - x[i - k]) / (2.0 * hs)
+        out[i] = (x[hi] - x[lo]) / (2.0 * hs)
     else:
-        out[i] = (x[i + k] - 2.0 * x[i] + x[i - k]) / (hs * hs)
+        out[i] = (x[hi] - 2.0 * x[i] + x[lo]) / (hs * hs)
     valid[i] = True
     return out, valid
 

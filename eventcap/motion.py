@@ -68,22 +68,53 @@ def join_batches(parts: Sequence[PoseSequence], rule: str = "later") -> tuple[np
     return times, out / counts[:, None], shared
 
 
+def tracking_times_us(t0_us: int, t1_us: int, rate_hz: float = 1000.0) -> np.ndarray:
+    """The tracking-frame times (int64 µs) of a batch [t0_us, t1_us]: both ends (its intensity frames) and, between
+    them, every time of the recording's tracking grid ``round(k · 1e6 / rate_hz)`` (integer k, from 0 µs).
+
+    The grid is the same for every batch, so a motion joined from batches whose frames are not a whole number of
+    tracking steps apart (15 or 30 fps at 1 kHz; any real camera's frame clock) is on one grid between its frames,
+    and overlapping windows sample the same times. Where the ends are on the grid (25 or 10 fps frames at 1 kHz
+    from a whole millisecond) this is ``t0_us + n · 1e6 / rate_hz``, n = 0..N."""
+    t0, t1 = int(t0_us), int(t1_us)
+    if t1 < t0:
+        raise ValueError(f"tracking times: expected t1_us >= t0_us, got t0_us={t0}, t1_us={t1}")
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise ValueError(f"tracking times: expected a rate > 0 Hz, got {rate_hz!r}")
+    period = 1e6 / float(rate_hz)
+    k = np.arange(np.floor(t0 / period) - 1, np.ceil(t1 / period) + 2)
+    grid = np.round(k * period).astype(np.int64)
+    inner = grid[(grid > t0) & (grid < t1)]
+    return np.unique(np.concatenate([[t0], inner, [t1]]).astype(np.int64))
+
+
 def frame_step_us(t_us: np.ndarray) -> int | None:
     """The motion's tracking frame step (median of the time differences, µs), None for a single frame."""
     t = np.asarray(t_us, dtype=np.int64)
     return int(np.median(np.diff(t))) if t.size > 1 else None
 
 
+def on_grid(t_us: np.ndarray, step_us: int) -> np.ndarray:
+    """Mask (T,) of the times on the recording's tracking grid of step_us (the multiples of step_us,
+    :func:`tracking_times_us`); the others are intensity frames between two grid times."""
+    return np.asarray(t_us, dtype=np.int64) % int(step_us) == 0
+
+
 def uniform_motion(t_us: np.ndarray, poses: np.ndarray, step_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The motion on the uniform grid ``t_us[0] + k·step_us`` up to its last frame: times (G,), poses (G, 33) and
-    a mask (G,) of the grid frames that were *not* estimated (gaps, and grid times between estimated frames that lie
-    off the grid), whose poses are interpolated linearly in time between the neighbouring estimated frames (root
-    rotation angles along the shorter way round)."""
+    """The motion on the uniform grid of the multiples of step_us (:func:`tracking_times_us`) from its first frame
+    to its last: times (G,), poses (G, 33) and a mask (G,) of the grid frames that were *not* estimated (gaps), whose
+    poses are interpolated linearly in time between the neighbouring estimated frames (root rotation angles along
+    the shorter way round). Estimated frames off the grid (intensity frames between two grid times) are used only
+    to fill gaps. A motion with no grid time between its first and last frame is refused (ValueError)."""
     t = np.asarray(t_us, dtype=np.int64)
     S = np.asarray(poses, dtype=np.float64)
     if step_us <= 0:
         raise ValueError(f"step_us: expected a positive step, got {step_us}")
-    grid = t[0] + step_us * np.arange((t[-1] - t[0]) // step_us + 1, dtype=np.int64)
+    first = -(-int(t[0]) // step_us) * step_us
+    if first > t[-1]:
+        raise ValueError(f"uniform_motion: no multiple of {step_us} us between the motion's first ({t[0]} us) and "
+                         f"last ({t[-1]} us) frame")
+    grid = first + step_us * np.arange((t[-1] - first) // step_us + 1, dtype=np.int64)
     k = np.searchsorted(t, grid)
     exact = (k < t.size) & (t[np.minimum(k, t.size - 1)] == grid)
     if exact.all():

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from .artifacts.pose import PoseSequence
-from .motion import JOIN_RULES, frame_step_us, join_batches, uniform_motion
+from .motion import JOIN_RULES, frame_step_us, join_batches, on_grid, uniform_motion
 from .viz import label as _label
 
 log = logging.getLogger("eventcap.outputs")
@@ -255,7 +255,9 @@ def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int) -> Path:
     from .body.kinematics import landmark_positions
     from .c3d import write_c3d
 
-    return write_c3d(path, t_us, joints, landmark_positions(poses, template), step_us)
+    keep = on_grid(t_us, step_us)  # C3D has one frame rate: intensity frames between two grid times stay in motion.npz
+    return write_c3d(path, np.asarray(t_us)[keep], np.asarray(joints)[keep],
+                     landmark_positions(np.asarray(poses)[keep], template), step_us)
 
 
 def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, template, cfg: OutputsConfig,

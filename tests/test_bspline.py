@@ -147,9 +147,25 @@ def test_degenerate_tracks():
 
 def test_slice_times():
     assert bspline.slice_times_us(0, 40_000).tolist() == list(range(0, 40_001, 1000))
-    assert bspline.slice_times_us(5, 40_004).tolist() == list(range(5, 40_005, 1000))  # 40_005 is past t1
+    # both ends (the batch's intensity frames), and the recording's 1 ms grid between them
+    assert bspline.slice_times_us(5, 40_004).tolist() == [5, *range(1000, 40_001, 1000), 40_004]
     assert bspline.slice_times_us(0, 10_000, 300.0).tolist() == [0, 3333, 6667, 10_000]
-    assert bspline.slice_times_us(0, 999).tolist() == [0]
+    assert bspline.slice_times_us(0, 999).tolist() == [0, 999]
+    assert bspline.slice_times_us(7, 7).tolist() == [7]
+
+
+def test_slice_times_of_a_frame_clock_off_the_tracking_grid():
+    """15 fps frames are 66 666.7 us apart: each batch ends on its second frame, and every batch's tracking frames
+    between its frames lie on one 1 ms grid, so joined batches and overlapping windows sample the same times."""
+    frames = 15_000 + np.round(np.arange(4) * 1e6 / 15).astype(np.int64)  # 15000, 81667, 148333, 215000
+    parts = [bspline.slice_times_us(a, b) for a, b in zip(frames[:-1], frames[1:])]
+    assert parts[0][[0, 1, -2, -1]].tolist() == [15_000, 16_000, 81_000, 81_667]
+    assert parts[1][[0, 1, -2, -1]].tolist() == [81_667, 82_000, 148_000, 148_333]
+    for a, b, p in zip(frames[:-1], frames[1:], parts):
+        assert p[0] == a and p[-1] == b and np.all(np.diff(p) > 0)
+        assert np.all(p[1:-1] % 1000 == 0) and np.all(np.diff(p[1:-1]) == 1000)
+    joined = np.unique(np.concatenate(parts))
+    assert np.array_equal(joined[joined % 1000 == 0], np.arange(15_000, 215_001, 1000))
 
 
 def test_exception():

@@ -11,6 +11,7 @@ import pytest
 
 from eventcap.metrics import (END_EFFECTORS, central_derivative, half_window_steps, motion_detail, peak_speed_errors,
                               root_relative, truth_at)
+from eventcap.motion import on_grid, tracking_times_us, uniform_motion
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -44,9 +45,43 @@ def test_a_gap_invalidates_only_the_frames_that_reach_across_it():
     t = np.delete(T_US, 100)  # frame at 100 ms missing
     v, ok = central_derivative(2.0 * t * 1e-6, t, 4_000, 1)
     assert np.allclose(v[ok], 2.0)
-    # frames 98..102 ms (other than the missing one) reach 100 ms with h = 2 ms
+    # with h = 2 ms only the frames at 98 and 102 ms need the missing one (99 and 101 ms reach 97/101 and 99/103 ms)
     bad_t = t[~ok]
-    assert set(bad_t.tolist()) == {0, 1000, 98_000, 99_000, 101_000, 102_000, 199_000, 200_000}
+    assert set(bad_t.tolist()) == {0, 1000, 98_000, 102_000, 199_000, 200_000}
+
+
+def test_an_intensity_frame_between_grid_times_is_no_grid_frames_neighbour():
+    """A batch boundary off the 1 ms grid (15 fps frames: 81 667 us) is a frame of the motion; the grid frames'
+    differences are those of the grid alone, and the off-grid frame itself has none."""
+    x = np.sin(T_US * 1e-5)[:, None]
+    t = np.insert(T_US, 82, 81_667)
+    xi = np.insert(x, 82, np.sin(81_667 * 1e-5))[:, None]
+    for order in (1, 2):
+        v, ok = central_derivative(x, T_US, 10_000, order)
+        vi, oki = central_derivative(xi, t, 10_000, order)
+        grid = t % 1000 == 0
+        assert np.array_equal(oki[grid], ok) and np.array_equal(vi[grid], v, equal_nan=True)
+        assert not oki[82] and np.isnan(vi[82]).all()
+
+
+def test_a_motion_of_15_fps_batches_is_on_one_grid_between_its_frames():
+    """Batches between 15 fps frames (66 666.7 us apart): the joined motion holds the frames and the whole 1 ms grid;
+    the BVH's uniform motion is that grid, estimated everywhere (nothing interpolated); a motion that starts off
+    the grid (a real camera's first frame) gets the grid from the next whole millisecond."""
+    frames = 15_000 + np.round(np.arange(4) * 1e6 / 15).astype(np.int64)
+    t = np.unique(np.concatenate([tracking_times_us(a, b) for a, b in zip(frames[:-1], frames[1:])]))
+    assert set(t[~on_grid(t, 1000)].tolist()) == {81_667, 148_333}
+    S = np.sin(t[:, None] * 1e-5 + np.arange(33))
+    grid, U, filled = uniform_motion(t, S, 1000)
+    assert np.array_equal(grid, np.arange(15_000, 215_001, 1000)) and not filled.any()
+    assert np.array_equal(U, S[on_grid(t, 1000)])
+    t1 = tracking_times_us(16_333, 83_000)  # a batch from a first frame at 16 333 us
+    grid, U, filled = uniform_motion(t1, np.sin(t1[:, None] * 1e-5 + np.arange(33)), 1000)
+    assert np.array_equal(grid, np.arange(17_000, 83_001, 1000)) and not filled.any()
+    with pytest.raises(ValueError, match=r"no multiple of 1000 us between the motion's first \(1500 us\) and last"):
+        uniform_motion(np.array([1500, 1900]), np.zeros((2, 33)), 1000)
+    with pytest.raises(ValueError, match=r"expected t1_us >= t0_us, got t0_us=5, t1_us=4"):
+        tracking_times_us(5, 4)
 
 
 def test_mpjve_and_acceleration_error_by_hand():

@@ -107,3 +107,23 @@ def test_killed_during_the_window_solves_resumes_without_recomputing_and_ends_eq
     assert fresh.returncode == 0, fresh.stderr[-3000:]
     with np.load(tmp_path / "resumed" / "motion.npz") as a, np.load(tmp_path / "fresh_run" / "motion.npz") as b:
         assert all(np.array_equal(a[k], b[k]) for k in a.files)
+
+
+def test_a_frame_clock_off_the_millisecond_grid_runs_through(tmp_path):
+    """15 fps frames are 66 666.7 us apart, so the batches' ends are off the 1 ms tracking grid (so is any real
+    camera's frame clock). The spline solve's windows, the stitch, the evaluation and every output handle it: the
+    motion holds each frame and the whole grid between, the BVH and C3D have one frame per millisecond."""
+    run_dir = tmp_path / "run"
+    code = main(["run", *TINY, "source.duration_s=0.3", "source.fps=15", "source.exposure_us=20000",
+                 "outputs.c3d=true", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
+    assert code == 0
+    t = _motion(tmp_path, "run")["t_us"]
+    frames = 10_000 + np.round(np.arange(5) * 1e6 / 15).astype(np.int64)  # 10000, 76667, 143333, 210000, 276667
+    assert set(t[t % 1000 != 0].tolist()) == {76_667, 143_333, 276_667}
+    assert np.array_equal(t[t % 1000 == 0], np.arange(10_000, 276_001, 1000)) and set(frames) <= set(t.tolist())
+    metrics = json.loads((run_dir / "metrics.json").read_text())["evaluate.metrics"]
+    assert 5 < metrics["AE_mm"] < 60 and np.isfinite(metrics["MPJVE_mm_s"])
+    assert metrics["n_velocity_frames"] == 267 - 10  # the grid frames 5 ms or more from the ends; no frame between
+    bvh = (run_dir / "motion.bvh").read_text()
+    assert "Frames: 267" in bvh and "Frame Time: 0.001" in bvh
+    assert (run_dir / "motion.c3d").stat().st_size > 10_000

@@ -9,6 +9,7 @@ import numpy as np
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.body.segments import inertia_prior_gain
 from eventcap.energy.ipopt import bounds_with
+from eventcap.motion import tracking_times_us
 from eventcap.stage import StageFailed
 
 #: Built problems of this process, keyed by template, camera, sizes and solver settings: built once per run.
@@ -240,10 +241,13 @@ def run_spline(inputs, config, ctx):
             raise
         raise StageFailed(f"{what}: {exc}", status=exc.status, details=getattr(exc, "details", {})) from exc
     # The output is the window's whole curve at the tracking rate: stitch blends the overlapping windows.
+    # The window's batches' own tracking times (one grid for the whole recording, eventcap.motion.tracking_times_us),
+    # so overlapping windows give the same times; a batch whose tracks are not at hand gets that grid at this
+    # batch's step.
     step = int(np.median(np.diff(t_us)))
-    t_win = np.arange(int(t_det[0]), int(t_det[-1]) + 1, step, dtype=np.int64)
-    if t_win[-1] != t_det[-1]:
-        t_win = np.append(t_win, t_det[-1])
+    t_win = np.unique(np.concatenate([
+        np.asarray(sliced[index[k]].t_us, dtype=np.int64) if k in index
+        else tracking_times_us(int(plan.t0_us[k]), int(plan.t1_us[k]), 1e6 / step) for k in range(a, z + 1)]))
     poses = spline.evaluate(res.control, t_win)
     # The window unwrapped its root angles from its own first fit: one branch per window (its first pose's root
     # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.

@@ -28,8 +28,9 @@ sample (+16), the prior's weight clamped to [1e-6, 1e6] of the data term's, a 1e
 leave a gap of hundreds of knot intervals is not bridged faithfully there (the ridge pulls the gap towards the
 track's mean position): split such tracks.
 
-Slicing: positions at ``t0_us + round(n · 1e6 / rate_hz)``, n = 0..N, ``N = floor((t1_us - t0_us) · rate_hz /
-1e6)``; a position is valid only inside its track's observed span (no extrapolation); invalid positions are NaN.
+Slicing: positions at the batch's ends and at every time ``round(k · 1e6 / rate_hz)`` of the recording's tracking
+grid between them (:func:`eventcap.motion.tracking_times_us`: the same grid for every batch, whatever the frame
+clock); a position is valid only inside its track's observed span (no extrapolation); invalid positions are NaN.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import solveh_banded
+
+from eventcap.motion import tracking_times_us
 
 #: Default expected noise of tracked positions, px (sub-pixel accuracy of event-based feature trackers).
 DEFAULT_SIGMA_PX = 0.2
@@ -239,13 +242,12 @@ def fit_trajectory(
 
 
 def slice_times_us(t0_us: int, t1_us: int, rate_hz: float = 1000.0) -> np.ndarray:
-    """The tracking-frame times (N+1,) int64 µs of a batch: ``t0_us + round(n·1e6/rate_hz)``, n = 0..N."""
+    """The tracking-frame times int64 µs of a batch: both ends and the recording's tracking grid between them
+    (:func:`eventcap.motion.tracking_times_us`)."""
     t0, t1 = _as_int("t0_us", t0_us), _as_int("t1_us", t1_us)
     if t1 < t0:
         raise ValueError(f"slice interval: expected t1_us >= t0_us, got t0_us={t0}, t1_us={t1}")
-    period = 1e6 / _positive("rate_hz", rate_hz)
-    n = math.floor((t1 - t0) / period + 1e-9)
-    return t0 + np.round(np.arange(n + 1) * period).astype(np.int64)
+    return tracking_times_us(t0, t1, _positive("rate_hz", rate_hz))
 
 
 @dataclass(frozen=True)
