@@ -241,13 +241,14 @@ def run_spline(inputs, config, ctx):
             raise
         raise StageFailed(f"{what}: {exc}", status=exc.status, details=getattr(exc, "details", {})) from exc
     # The output is the window's whole curve at the tracking rate: stitch blends the overlapping windows.
-    # The window's batches' own tracking times (one grid for the whole recording, eventcap.motion.tracking_times_us),
-    # so overlapping windows give the same times; a batch whose tracks are not at hand gets that grid at this
-    # batch's step.
-    step = int(np.median(np.diff(t_us)))
+    # The window's batches' tracking times (one grid for the whole recording, eventcap.motion.tracking_times_us), so
+    # overlapping windows give the same times. They follow from the plan at this batch's step when that step
+    # reproduces this batch's own times (a whole number of µs: 1 kHz); else they are read from the batches' tracks.
+    rate = 1e6 / int(np.median(np.diff(t_us)))
+    whole_us = np.array_equal(tracking_times_us(int(plan.t0_us[b.index]), int(plan.t1_us[b.index]), rate), t_us)
     t_win = np.unique(np.concatenate([
-        np.asarray(sliced[index[k]].t_us, dtype=np.int64) if k in index
-        else tracking_times_us(int(plan.t0_us[k]), int(plan.t1_us[k]), 1e6 / step) for k in range(a, z + 1)]))
+        np.asarray(sliced[index[k]].t_us, dtype=np.int64) if k in index and not whole_us
+        else tracking_times_us(int(plan.t0_us[k]), int(plan.t1_us[k]), rate) for k in range(a, z + 1)]))
     poses = spline.evaluate(res.control, t_win)
     # The window unwrapped its root angles from its own first fit: one branch per window (its first pose's root
     # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.

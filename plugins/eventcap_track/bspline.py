@@ -244,10 +244,7 @@ def fit_trajectory(
 def slice_times_us(t0_us: int, t1_us: int, rate_hz: float = 1000.0) -> np.ndarray:
     """The tracking-frame times int64 µs of a batch: both ends and the recording's tracking grid between them
     (:func:`eventcap.motion.tracking_times_us`)."""
-    t0, t1 = _as_int("t0_us", t0_us), _as_int("t1_us", t1_us)
-    if t1 < t0:
-        raise ValueError(f"slice interval: expected t1_us >= t0_us, got t0_us={t0}, t1_us={t1}")
-    return tracking_times_us(t0, t1, _positive("rate_hz", rate_hz))
+    return tracking_times_us(_as_int("t0_us", t0_us), _as_int("t1_us", t1_us), _positive("rate_hz", rate_hz))
 
 
 @dataclass(frozen=True)
