@@ -642,6 +642,13 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     np.testing.assert_array_equal(gate[:, yaw], [1, 0.25, 1, 1, 1])
     np.testing.assert_array_equal(gate[:, DOF_INDEX["l_hip_flex"]], 1.0)  # turns the thigh (the knee's bone)
     assert np.all(gate[:, shoulder] == 1.0) and gate.shape == (5, 33)
+    # a floor under the gate: a part the events show moving is still held that fraction (1: no gate)
+    floored = still_gate(sil, np.array([5_000, 15_000, 25_000, 39_999, 60_000]), 0.1)
+    np.testing.assert_allclose(floored[:, elbow], [1, 1, 0.1, 1, 1])
+    np.testing.assert_allclose(floored[:, yaw], [1, 0.325, 1, 1, 1])
+    np.testing.assert_array_equal(still_gate(sil, np.array([25_000]), 1.0), 1.0)
+    with pytest.raises(ValueError, match=r"still_gate: floor: expected a number in \[0, 1\], got 1.5"):
+        still_gate(sil, np.array([25_000]), 1.5)
     inputs = stage_inputs(n_frames=7)  # 6 batches: 7 frames of context, enough for a smoothing spline
     b = inputs["batches"].batch(3)
     with caplog.at_level("INFO"):
@@ -656,12 +663,37 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
     with pytest.raises(StageFailed, match=r"stages.spline.lambda_context: expected a number >= 0, got -1.0"):
         _run_stage(inputs, b, lambda_context=-1.0)
+    # the gate's floor, with a body busy with events everywhere (the scene has none): the events alone (floor 0)
+    # hold nothing, a floor of 0.1 holds a tenth of what no gate (1) holds
+    import dataclasses
+
+    from eventcap.events import make_events
+
+    rec = inputs["recording"]
+    px = rec.camera.project(rec.ground_truth.joints).reshape(-1, 2)
+    (x0, y0), (x1, y1) = np.floor(px.min(0)).astype(int) - 8, np.ceil(px.max(0)).astype(int) + 8
+    rng = np.random.default_rng(0)
+    n = 200_000
+    t = np.sort(rng.integers(int(rec.ground_truth.t_us[0]), int(rec.ground_truth.t_us[-1]), n))
+    busy = make_events(t, rng.integers(max(x0, 0), min(x1, rec.camera.width), n),
+                       rng.integers(max(y0, 0), min(y1, rec.camera.height), n), rng.choice([-1, 1], n))
+    inputs["recording"] = dataclasses.replace(rec, events=dataclasses.replace(rec.events, events=busy))
+    frames = {}
+    for floor in (0.0, 0.1, 1.0):
+        _, ctx_f = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, context_gate_floor=floor)
+        frames[floor] = np.array(ctx_f.stats["context_pull_frames"])
+    assert frames[1.0].max() > 0.5
+    np.testing.assert_allclose(frames[0.0], 0.0, atol=1e-6)
+    np.testing.assert_allclose(frames[0.1], 0.1 * frames[1.0], rtol=1e-6, atol=1e-9)
+    with pytest.raises(StageFailed, match=r"stages.spline.context_gate_floor: expected a number in \[0, 1\], got 2"):
+        _run_stage(inputs, b, context_gate_floor=2)
     # what `eventcap run` composes (measured on the suite at 25 fps: 0.01 / 0.03 / 0.1 / 0.3 gave MPJVE 198 / 196 /
     # 202 / 213 mm/s against 241 without)
     from eventcap.benchmark import compose_run
     from eventcap.cli import config_dir
 
-    assert compose_run(config_dir(), [])[0]["stages"]["spline"]["lambda_context"] == 0.03
+    spline = compose_run(config_dir(), [])[0]["stages"]["spline"]
+    assert (spline["lambda_context"], spline["context_gate_floor"]) == (0.03, 0.1)
 
 
 def test_a_failed_window_raises_with_the_solver_status():

@@ -168,6 +168,7 @@ def run_spline(inputs, config, ctx):
               "prior_gain_min_fps": ("frames per second >= 0", lambda v: v >= 0),
               "lambda_sil": ("a number >= 0", lambda v: v >= 0),
               "lambda_context": ("a number >= 0", lambda v: v >= 0),
+              "context_gate_floor": ("a number in [0, 1]", lambda v: 0 <= v <= 1),
               "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
               "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
               "sil_patch_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
@@ -235,7 +236,8 @@ def run_spline(inputs, config, ctx):
                            config.edge_margin_px, what=what, context=context, gain_max=gain_max,
                            events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence,
                            robust_cor_px=float(config.robust_cor_px), t_sil_us=t_sil, silhouette=silhouette,
-                           base_gain=base_gain, gain_criterion=str(config.prior_gain_criterion))
+                           base_gain=base_gain, gain_criterion=str(config.prior_gain_criterion),
+                           context_gate_floor=float(config.context_gate_floor))
     except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
         if what in str(exc):
             raise

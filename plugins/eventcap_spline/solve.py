@@ -551,13 +551,17 @@ def _gating_joints() -> list[np.ndarray]:
 _GATING = _gating_joints()
 
 
-def still_gate(silence: Silence, t_us: np.ndarray) -> np.ndarray:
-    """(len(t_us), 33) in [0, 1]: how still each pose parameter is at t_us by the events, the least stillness of
-    the bones it turns (:func:`_gating_joints`) in the knot interval holding t."""
+def still_gate(silence: Silence, t_us: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """(len(t_us), 33) in [floor, 1]: how still each pose parameter is at t_us by the events, the least stillness of
+    the bones it turns (:func:`_gating_joints`) in the knot interval holding t, as floor + (1 - floor) · stillness
+    (floor 0: the stillness itself; 1: every parameter 1, no gate)."""
+    if not (isinstance(floor, (int, float)) and not isinstance(floor, bool) and 0.0 <= floor <= 1.0):
+        raise ValueError(f"still_gate: floor: expected a number in [0, 1], got {floor!r}")
     k = np.clip(np.searchsorted(silence.edges_us, np.asarray(t_us, dtype=np.int64), side="right") - 1, 0,
                 silence.stillness.shape[0] - 1)
     st = silence.stillness[k]
-    return np.stack([st[:, j].min(axis=1) for j in _GATING], axis=1)
+    gate = np.stack([st[:, j].min(axis=1) for j in _GATING], axis=1)
+    return gate if floor == 0.0 else floor + (1.0 - floor) * gate
 
 
 def smoothed_at(t_us: np.ndarray, fits: np.ndarray, lam: np.ndarray, t_at_us: np.ndarray,
@@ -598,7 +602,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
                  events: np.ndarray | None = None, silence: SilenceSettings = SilenceSettings(),
                  robust_cor_px: float = 0.0, t_sil_us: np.ndarray | None = None,
                  silhouette: SilhouetteSettings = SilhouetteSettings(),
-                 base_gain: np.ndarray | None = None, gain_criterion: str = "reml") -> WindowResult:
+                 base_gain: np.ndarray | None = None, gain_criterion: str = "reml",
+                 context_gate_floor: float = 0.0) -> WindowResult:
     """Solve one window: fits at its detection frames, a smoothing spline through them as the start, then
     ``icp_rounds`` alternations of correspondence search (at the current spline's poses at t_cor_us, with the
     tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. StageFailed on a failed solve.
@@ -606,7 +611,8 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
     context: (times, detections) of the intensity frames around the window from which the prior's gain per
     parameter is chosen (:func:`prior_gain`, up to gain_max, by gain_criterion); None: the prior is λ_prior for
     every parameter. With weights.context > 0 the same context also sets the context pull (:func:`prior_gain`),
-    times each parameter's stillness by the events at each frame (:func:`still_gate`; ungated without the silence).
+    times each parameter's stillness by the events at each frame (:func:`still_gate`, never below
+    context_gate_floor; ungated without the silence).
 
     events: the recording's events over the window, for the event-silence term (used when weights.still > 0): each
     joint's stillness per knot interval, measured around the start spline's projected bones (:func:`window_silence`).
@@ -649,7 +655,7 @@ def solve_window(problem: SplineProblem, spline: UniformCubicBSpline, t_det_us: 
         sil, still_w = window_silence(problem, spline, C, events, weights.still, silence)
         seconds["silence"] = time.perf_counter() - t1
         if pull_frames is not None:  # a part the events see move is not held to the frames' smoother
-            pull_frames = pull_frames * still_gate(sil, t_det_us)
+            pull_frames = pull_frames * still_gate(sil, t_det_us, context_gate_floor)
     pull = None if pull_frames is None else (pull_target, weights.context * pg.curvature * pull_frames)
     seconds["correspondences"] = seconds["solve"] = 0.0
     corr = Correspondences.empty()

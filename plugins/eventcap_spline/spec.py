@@ -52,6 +52,9 @@ class SplineSolveConfig:
                                              "frame's own (solve.prior_gain) and as still as the events show the "
                                              "bones it turns (solve.still_gate): a static part does not drift within "
                                              "a window; 0 = off; only from prior_gain_min_fps, like the gains")
+    context_gate_floor: float = param(0.1, help="the context pull's event gate never below this: a part the events "
+                                                "show moving is still held this fraction of what its fits know (0 = "
+                                                "the events alone gate, the default before; 1 = no gate)")
     lambda_still: float = param(0.1, help="weight of the event-silence term: the squared image velocity (px/s) of "
                                          "every joint whose bone made no more events than the background, per knot "
                                          "interval, weighted by that stillness (eventcap.energy.silence); 0 = off")
