@@ -85,6 +85,30 @@ def test_reml_does_not_interpolate_few_fits_where_gcv_may():
     assert sum(d > 8 for d in gcv_dof) == 4 and max(reml_dof) < 5
 
 
+
+def test_the_criteria_of_the_whole_grid_equal_them_lam_by_lam_and_each_column_gets_its_own_choice():
+    """GcvCurve.table (every lam at once) equals score (GCV) and reml lam by lam, pooled and column by column;
+    choose_each gives each column the lam choose_by gives it alone; and a bad criterion is named."""
+    rng = np.random.default_rng(3)
+    x = np.sort(rng.choice(np.arange(200), 37, replace=False)) * 0.013
+    Y = np.cumsum(rng.normal(0.0, 0.1, (37, 6)), axis=0) + rng.normal(0.0, 0.05, (37, 6))
+    Y[:, 5] = 0.3 * x - 0.1 + rng.normal(0.0, 0.05, 37)  # a straight line and noise: smoothed most
+    c = GcvCurve(x)
+    lams = c.grid()
+    assert lams.size == 281 and lams[0] == pytest.approx(np.median(np.diff(x)) ** 3 * 1e-4)
+    for crit, one in (("gcv", lambda Z, lam: c.score(Z, lam)[0]), ("reml", c.reml)):
+        pooled = c.table(Y, lams, crit)
+        each = c.table(Y, lams, crit, pooled=False)
+        assert pooled.shape == (281,) and each.shape == (281, 6)
+        for i in (0, 77, 140, 280):
+            assert pooled[i] == pytest.approx(one(Y, lams[i]), rel=1e-9)
+            assert each[i] == pytest.approx([one(Y[:, k:k + 1], lams[i]) for k in range(6)], rel=1e-9)
+        chosen = c.choose_each(Y, crit)
+        assert np.array_equal(chosen, [c.choose_by(Y[:, k:k + 1], crit).lam for k in range(6)])
+        assert chosen[5] > 100 * np.median(chosen[:5])
+    with pytest.raises(ValueError, match="criterion: expected one of reml, gcv, got 'aic'"):
+        c.choose_each(Y, "aic")
+
 def test_smooth_poses_groups_and_parameters():
     rng = np.random.default_rng(2)
     t_us = np.arange(31, dtype=np.int64) * FRAME_US

@@ -591,7 +591,7 @@ def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, l
     t = np.asarray(t_us, dtype=np.int64)
     curve = GcvCurve((t - t[0]) * 1e-6) if curve is None else curve
     Y = np.asarray(fits, dtype=np.float64)
-    lam = np.array([curve.choose_by(Y[:, p:p + 1], criterion).lam for p in range(Y.shape[1])])
+    lam = curve.choose_each(Y, criterion)
     return np.clip(np.asarray(curvature) * lam / lam_prior, 1.0, float(gain_max)), lam
 
 
