@@ -15,12 +15,13 @@ whole-recording stage's time is divided by the run's number of batches).
 
 Motion detail (beyond the paper; the evaluate stage's root-relative measures): AE of root-relative joints, MPJVE and
 acceleration error are the mean over the runs; the end effectors' peak-speed error is the median over the pooled
-(batch, end effector) pairs of the runs. ``fig_end_effector_speed.png`` shows, per motion (first seed), the speed of
-the end effector that moves fastest in the truth, truth against each method (from each run's ``motion.npz``).
+(batch, end effector) pairs of the runs, and (runs) the median of the runs' own medians. ``fig_end_effector_speed.png``
+shows, per motion (first seed), the speed of the end effector that moves fastest in the truth, truth against each
+method (from each run's ``motion.npz``).
 
 Writes ``table.csv`` (one row per method), ``runs.csv`` (one row per run), ``benchmark.json`` (config, runs with
 their per-frame errors, table), ``fig7_per_frame_error.png`` and ``fig_end_effector_speed.png``, and prints the
-tables.
+tables, then the first row against every other capture by capture (where it is lower, and where not).
 """
 
 from __future__ import annotations
@@ -222,7 +223,8 @@ class Benchmark:
              f"{sum(r.get('cached', 0) for r in records)} reused)")
         return {"config": self.cfg, "run_overrides": self.run_overrides, "methods_left_out": left_out,
                 "methods": [m.name for m in methods], "motions": self.motions, "seeds": self.seeds,
-                "runs": records, "table": aggregate(records, [m.name for m in methods], self.motions)}
+                "runs": records, "table": aggregate(records, [m.name for m in methods], self.motions),
+                "per_capture": per_capture(records, [m.name for m in methods])}
 
 
 def progress_line(k: int, n: int, rec: Mapping[str, Any]) -> str:
@@ -346,15 +348,42 @@ def _mean_of(records: Sequence[Mapping[str, Any]], key: str) -> float | None:
 def detail_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Motion detail over runs: AE of root-relative joints, MPJVE and acceleration error as the mean over the runs
     (runs of one suite have the same length), the peak-speed error as the median over the pooled (batch, end
-    effector) pairs of all runs (a fraction)."""
+    effector) pairs of all runs (a fraction), and as the median of the runs' own medians (``peak_speed_err_runs``:
+    each capture counts once, however many fast moments it has)."""
     out: dict[str, Any] = {k: _mean_of(records, k) for k in ("AE_rootrel_mm", "MPJVE_mm_s", "accel_err_m_s2")}
+    vals = [r["peak_speed_err"] for r in records if r.get("peak_speed_err") is not None]
+    out["peak_speed_err_runs"] = float(np.median(vals)) if vals else None
     pairs = [v for r in records for row in (r.get("peak_speed_errors") or []) for v in row if v is not None]
-    if pairs:
-        out["peak_speed_err"] = float(np.median(pairs))
-    else:  # records from before the pairs were kept: the median of the runs' own medians
-        vals = [r["peak_speed_err"] for r in records if r.get("peak_speed_err") is not None]
-        out["peak_speed_err"] = float(np.median(vals)) if vals else None
+    # records from before the pairs were kept: the median of the runs' own medians
+    out["peak_speed_err"] = float(np.median(pairs)) if pairs else out["peak_speed_err_runs"]
     return out
+
+
+#: The measures compared capture by capture (:func:`per_capture`): lower is better for each.
+CAPTURE_MEASURES = (("AE_mm", "AE"), ("AE_rootrel_mm", "AE.rootrel"), ("MPJVE_mm_s", "MPJVE"),
+                    ("peak_speed_err", "peak"))
+
+
+def per_capture(records: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> dict[str, Any]:
+    """The first method against each other one, capture by capture (motion, seed): for each measure of
+    :data:`CAPTURE_MEASURES`, on how many of the captures both measured the first is lower, and the captures where
+    it is not, with both values. Means over a suite can hide a capture lost; this does not."""
+    if len(methods) < 2:
+        return {"reference": methods[0] if methods else None, "against": {}}
+    ref, others = methods[0], methods[1:]
+    by = {(r["motion"], r["seed"], r["method"]): r for r in records if r.get("frames") or r.get("ok")}
+    caps = sorted({(m, s) for m, s, _ in by})
+    against = {}
+    for name in others:
+        res = {}
+        for key, _ in CAPTURE_MEASURES:
+            both = [(c, by[(*c, ref)][key], by[(*c, name)][key]) for c in caps
+                    if (*c, ref) in by and (*c, name) in by and by[(*c, ref)].get(key) is not None
+                    and by[(*c, name)].get(key) is not None]
+            res[key] = {"lower": sum(a < b for _, a, b in both), "of": len(both),
+                        "not_lower": [{"motion": c[0], "seed": c[1], ref: a, name: b} for c, a, b in both if a >= b]}
+        against[name] = res
+    return {"reference": ref, "against": against}
 
 
 def aggregate(records: Sequence[Mapping[str, Any]], methods: Sequence[str], motions: Sequence[str]) -> list[dict]:
@@ -412,16 +441,40 @@ def _grid(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *(fmt(r) for r in rows)])
 
 
-def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], note: str = "") -> str:
-    """The printed report: Table 1, AE per motion, time per batch per stage."""
+def format_per_capture(comparison: Mapping[str, Any]) -> str:
+    """The printed comparison of :func:`per_capture`: a row per method, the captures where the reference is lower
+    per measure, then each capture where it is not."""
+    ref, against = comparison.get("reference"), comparison.get("against") or {}
+    if not against:
+        return ""
+    head = ["method", *(label for _, label in CAPTURE_MEASURES)]
+    rows = [[name, *(f"{res[k]['lower']}/{res[k]['of']}" for k, _ in CAPTURE_MEASURES)] for name, res in against.items()]
+    lines = [f"Per capture: where {ref} is lower than each method (captures, of those both measured)",
+             _grid(head, rows)]
+    fmt = {"peak_speed_err": _pct, "MPJVE_mm_s": lambda v: _num(v, 0)}
+    for name, res in against.items():
+        for key, label in CAPTURE_MEASURES:
+            f = fmt.get(key, _num)
+            for c in res[key]["not_lower"]:
+                lines.append(f"  {ref} not lower than {name}: {c['motion']} seed {c['seed']} {label} "
+                             f"{f(c[ref])} against {f(c[name])}")
+    return "\n".join(lines)
+
+
+def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], note: str = "",
+                  comparison: Mapping[str, Any] | None = None) -> str:
+    """The printed report: Table 1, AE per motion, motion detail per motion, time per batch per stage, and the
+    first method against the others capture by capture (``comparison``, :func:`per_capture`)."""
     parts = []
     head = ["method", "AE.all (mm)", "AE.raw (mm)", "AE.nonRaw (mm)", "AE.rootrel (mm)", "MPJVE (mm/s)",
-            "Acc.err (m/s²)", "peak speed err", "Size.sec (MB/s)", "runs"]
+            "Acc.err (m/s²)", "peak speed err", "(runs)", "Size.sec (MB/s)", "runs"]
     rows = [[r["method"], _pm(r["AE_mm"], r["AE_STD_mm"]), _pm(r["AE_raw_mm"], r["AE_raw_STD_mm"]),
              _pm(r["AE_nonRaw_mm"], r["AE_nonRaw_STD_mm"]), _num(r.get("AE_rootrel_mm")), _num(r.get("MPJVE_mm_s"), 0),
-             _num(r.get("accel_err_m_s2"), 1), _pct(r.get("peak_speed_err")), _num(r["data_MBps"], 2),
-             f"{r['evaluated']}/{r['runs']}"] for r in table]
-    parts.append("Table 1" + (f" ({note})" if note else "") + "\n" + _grid(head, rows))
+             _num(r.get("accel_err_m_s2"), 1), _pct(r.get("peak_speed_err")), _pct(r.get("peak_speed_err_runs")),
+             _num(r["data_MBps"], 2), f"{r['evaluated']}/{r['runs']}"] for r in table]
+    parts.append("Table 1" + (f" ({note})" if note else "") + "\n" + _grid(head, rows)
+                 + "\n(peak speed err: the median over every run's (batch, end effector) pairs; (runs): the median of "
+                   "the runs' own medians)")
     head = ["method", *motions]
     rows = [[r["method"], *(_pm(r["per_motion"][m]["AE_mm"], r["per_motion"][m]["STD_mm"]) for m in motions)]
             for r in table]
@@ -438,7 +491,9 @@ def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], no
              _num(sum(r["s_per_batch"].values()), 2), *(_num(r["stats"].get(k), 2) for k in stats)] for r in table]
     parts.append("Time per batch (s; mean over runs, from the cache manifests; whole-recording stages divided by the "
                  "batches; last columns: medians of the stage's own statistics)\n" + _grid(head, rows))
-    return "\n\n".join(parts)
+    if comparison:
+        parts.append(format_per_capture(comparison))
+    return "\n\n".join(p for p in parts if p)
 
 
 def table_csv_rows(table: Sequence[Mapping[str, Any]], motions: Sequence[str]) -> list[dict[str, Any]]:
@@ -446,7 +501,8 @@ def table_csv_rows(table: Sequence[Mapping[str, Any]], motions: Sequence[str]) -
     for r in table:
         row = {k: r.get(k) for k in ("method", "runs", "evaluated", "incomplete", "AE_mm", "AE_STD_mm", "AE_raw_mm",
                                      "AE_raw_STD_mm", "AE_nonRaw_mm", "AE_nonRaw_STD_mm", "AE_rootrel_mm",
-                                     "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "data_MBps")}
+                                     "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "peak_speed_err_runs",
+                                     "data_MBps")}
         for m in motions:
             pm = r["per_motion"][m]
             row[f"AE_{m}_mm"] = pm["AE_mm"]
@@ -606,7 +662,7 @@ def main(argv: Sequence[str], config_dir: Path) -> int:
     seq = (f"{len(bench.motions)} motion(s) x {len(bench.seeds)} seed(s) x {cfg['duration_s']} s; AE after "
            f"Procrustes, every 10th tracking frame")
     print()
-    print(format_tables(results["table"], bench.motions, seq))
+    print(format_tables(results["table"], bench.motions, seq, results.get("per_capture")))
     print()
     print("wrote " + ", ".join(str(p) for p in files.values()))
     bad = [r for r in results["runs"] if not r.get("ok")]

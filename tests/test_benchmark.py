@@ -18,6 +18,7 @@ from eventcap.benchmark import (
     compose_benchmark,
     format_tables,
     parse_methods,
+    per_capture,
     split_overrides,
     write_results,
 )
@@ -68,12 +69,13 @@ def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
     lines = text.splitlines()
     assert lines[0] == "Table 1 (fake)"
     assert lines[1].split() == ["method", "AE.all", "(mm)", "AE.raw", "(mm)", "AE.nonRaw", "(mm)", "AE.rootrel",
-                                "(mm)", "MPJVE", "(mm/s)", "Acc.err", "(m/s²)", "peak", "speed", "err", "Size.sec",
-                                "(MB/s)", "runs"]
+                                "(mm)", "MPJVE", "(mm/s)", "Acc.err", "(m/s²)", "peak", "speed", "err", "(runs)",
+                                "Size.sec", "(MB/s)", "runs"]
+    # (runs): the median of the runs' own peak_speed_err (fake runs carry none: n/a)
     assert lines[3].split() == ["A", "31.7", "±", "14.6", "26.7", "±", "17.0", "33.3", "±", "13.3", "63.3", "600",
-                                "n/a", "40%", "2.67", "3/3"]
+                                "n/a", "40%", "n/a", "2.67", "3/3"]
     assert lines[4].split() == ["B", "100.0", "±", "0.0", "100.0", "±", "0.0", "100.0", "±", "0.0", "n/a", "n/a",
-                                "n/a", "n/a", "1.00", "1/2"]
+                                "n/a", "n/a", "n/a", "1.00", "1/2"]
     detail = text.split("Per motion: AE of root-relative joints")[1].splitlines()
     assert detail[3].split() == ["A", "45.0", "/", "400", "/", "30%", "100.0", "/", "1000", "/", "200%"]
     per_motion = text.split("AE per motion")[1].splitlines()
@@ -90,6 +92,38 @@ def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
     assert len(list(csv.DictReader(open(files["runs"])))) == 5
     assert json.loads(files["json"].read_text())["table"][0]["method"] == "A"
     assert files["plot"].stat().st_size > 1000
+
+
+def test_the_first_method_against_the_others_capture_by_capture():
+    """per_capture counts, per measure, the captures where the first method is lower, names those where it is not
+    (ties included), leaves out captures one of the two did not measure, and the report prints both; the peak-speed
+    error of the runs is also summarised as the median of their own medians."""
+    def run(method, motion, seed, ae, rr, mpjve, peak):
+        frames = {"t_us": [0], "err_mm": [ae], "sampled": [True], "raw": [True]}
+        return {"motion": motion, "seed": seed, "method": method, "ok": True, "frames": frames, "AE_mm": ae,
+                "AE_rootrel_mm": rr, "MPJVE_mm_s": mpjve, "peak_speed_err": peak}
+
+    runs = [run("default", "kick", 0, 20.0, 30.0, 180.0, 0.10), run("smooth", "kick", 0, 25.0, 35.0, 300.0, 0.40),
+            run("default", "kick", 1, 22.0, 31.0, 320.0, 0.15), run("smooth", "kick", 1, 21.0, 36.0, 310.0, 0.15),
+            run("default", "wave", 0, 19.0, 28.0, 100.0, None), run("smooth", "wave", 0, 30.0, 40.0, 190.0, 0.80),
+            {"motion": "wave", "seed": 1, "method": "smooth", "ok": False, "frames": None}]
+    cmp_ = per_capture(runs, ["default", "smooth"])
+    got = cmp_["against"]["smooth"]
+    assert cmp_["reference"] == "default"
+    assert [(got[k]["lower"], got[k]["of"]) for k in ("AE_mm", "AE_rootrel_mm", "MPJVE_mm_s", "peak_speed_err")] \
+        == [(2, 3), (3, 3), (2, 3), (1, 2)]
+    assert got["AE_mm"]["not_lower"] == [{"motion": "kick", "seed": 1, "default": 22.0, "smooth": 21.0}]
+    assert got["peak_speed_err"]["not_lower"] == [{"motion": "kick", "seed": 1, "default": 0.15, "smooth": 0.15}]
+    text = format_tables(aggregate(runs, ["default", "smooth"], ["kick", "wave"]), ["kick", "wave"], "", cmp_)
+    part = text.split("Per capture: where default is lower than each method")[1].splitlines()
+    assert part[1].split() == ["method", "AE", "AE.rootrel", "MPJVE", "peak"]
+    assert part[3].split() == ["smooth", "2/3", "3/3", "2/3", "1/2"]
+    assert part[4:] == ["  default not lower than smooth: kick seed 1 AE 22.0 against 21.0",
+                        "  default not lower than smooth: kick seed 1 MPJVE 320 against 310",
+                        "  default not lower than smooth: kick seed 1 peak 15% against 15%"]
+    table = aggregate(runs, ["default", "smooth"], ["kick", "wave"])
+    assert table[0]["peak_speed_err_runs"] == pytest.approx(0.125) and table[1]["peak_speed_err_runs"] == 0.4
+    assert per_capture(runs, ["default"]) == {"reference": "default", "against": {}}
 
 
 def test_method_list_comes_from_config_and_rows_needing_a_missing_node_are_left_out():
