@@ -371,15 +371,15 @@ def per_capture(records: Sequence[Mapping[str, Any]], methods: Sequence[str]) ->
     if len(methods) < 2:
         return {"reference": methods[0] if methods else None, "against": {}}
     ref, others = methods[0], methods[1:]
-    by = {(r["motion"], r["seed"], r["method"]): r for r in records if r.get("frames") or r.get("ok")}
+    by = {(r["motion"], r["seed"], r["method"]): r for r in records}
     caps = sorted({(m, s) for m, s, _ in by})
+    value = lambda c, method, key: (by.get((*c, method)) or {}).get(key)  # noqa: E731 - None: not measured
     against = {}
     for name in others:
         res = {}
         for key, _ in CAPTURE_MEASURES:
-            both = [(c, by[(*c, ref)][key], by[(*c, name)][key]) for c in caps
-                    if (*c, ref) in by and (*c, name) in by and by[(*c, ref)].get(key) is not None
-                    and by[(*c, name)].get(key) is not None]
+            both = [(c, value(c, ref, key), value(c, name, key)) for c in caps
+                    if value(c, ref, key) is not None and value(c, name, key) is not None]
             res[key] = {"lower": sum(a < b for _, a, b in both), "of": len(both),
                         "not_lower": [{"motion": c[0], "seed": c[1], ref: a, name: b} for c, a, b in both if a >= b]}
         against[name] = res
