@@ -168,11 +168,14 @@ class Benchmark:
         return [f"cache_dir={self.cfg['cache_dir']}", *map(str, self.cfg.get("overrides") or ()), *self.run_overrides]
 
     def active_methods(self) -> tuple[list[Method], dict[str, str]]:
-        """Methods whose required nodes the pipeline has (composed with the common overrides), and why others not."""
-        data, _ = compose_run(self.config_dir, self.base_overrides())
-        nodes = set((data.get("pipeline") or {}).get("nodes") or {})
+        """Methods whose required nodes their own pipeline has (composed with the common overrides and the method's
+        own), and why others not. The common overrides are composed once first: a bad one stops here."""
+        compose_run(self.config_dir, self.base_overrides())
         active, left_out = [], {}
         for m in self.methods:
+            if m.requires:
+                data, _ = compose_run(self.config_dir, [*self.base_overrides(), *m.overrides])
+                nodes = set((data.get("pipeline") or {}).get("nodes") or {})
             missing = [r for r in m.requires if r not in nodes]
             if missing:
                 left_out[m.name] = f"the pipeline has no node {', '.join(repr(r) for r in missing)}"

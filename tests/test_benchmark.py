@@ -131,14 +131,17 @@ def test_method_list_comes_from_config_and_rows_needing_a_missing_node_are_left_
     assert len(cfg["motions"]) >= 6 and len(cfg["seeds"]) >= 2
     names = [m.name for m in parse_methods(cfg["methods"])]
     assert names == ["default", "paper", "linear", "frames_smooth", "all", "w/o_batch", "w/o_refine", "fused", "spline"]
-    # a pipeline without a refine node: the w/o_refine row is left out (detected from the composed pipeline)
+    # every row of the paper's pipeline names its pipeline, so none depends on the default's nodes: w/o_refine runs
+    # although the default pipeline (the spline solve) has no refine node
+    assert [m.name for m in Benchmark(cfg, CONF, []).active_methods()[0]] == names
+    # a row that requires a node its own pipeline (common overrides, then its own) lacks is left out, with the reason
     plain = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses"]
-    active, left_out = Benchmark(cfg, CONF, plain).active_methods()
-    assert "w/o_refine" not in [m.name for m in active]
-    assert left_out == {"w/o_refine": "the pipeline has no node 'refine'"}
-    # with one, the row runs
-    bench = Benchmark(cfg, CONF, [*plain, "+pipeline.nodes.refine.inputs={poses: solve.poses}"])
-    assert [m.name for m in bench.active_methods()[0]] == names
+    rows = {**cfg, "methods": [{"name": "plain", "requires": ["refine"]},
+                               {"name": "with_refine", "requires": ["refine"],
+                                "overrides": ["+pipeline.nodes.refine.inputs={poses: solve.poses}"]}]}
+    active, left_out = Benchmark(rows, CONF, plain).active_methods()
+    assert [m.name for m in active] == ["with_refine"]
+    assert left_out == {"plain": "the pipeline has no node 'refine'"}
     quick = compose_benchmark(CONF, "quick", [])
     assert (len(quick["motions"]), quick["seeds"], quick["duration_s"], quick["name"]) == (2, [0], 0.2, "quick")
 
@@ -215,8 +218,7 @@ def test_quick_preset_twice(tmp_path):
     methods = [m.name for m in Benchmark(compose_benchmark(CONF, "quick", []), CONF).active_methods()[0]]
     n = 2 * len(methods)
     assert f"{n} runs in" in second.stdout and "(0 cache entries computed" in second.stdout
-    if "w/o_refine" not in methods:  # the default pipeline has no refine node
-        assert "method w/o_refine: left out (the pipeline has no node 'refine')" in second.stdout
+    assert "w/o_refine" in methods and "left out" not in second.stdout  # the paper's ablations run whatever the default
     table = list(csv.DictReader(open(tmp_path / "out" / "table.csv")))
     assert [r["method"] for r in table] == methods and methods[:4] == ["default", "paper", "linear", "frames_smooth"]
     for r in table:
