@@ -173,10 +173,11 @@ class Benchmark:
         compose_run(self.config_dir, self.base_overrides())
         active, left_out = [], {}
         for m in self.methods:
+            missing = []
             if m.requires:
                 data, _ = compose_run(self.config_dir, [*self.base_overrides(), *m.overrides])
                 nodes = set((data.get("pipeline") or {}).get("nodes") or {})
-            missing = [r for r in m.requires if r not in nodes]
+                missing = [r for r in m.requires if r not in nodes]
             if missing:
                 left_out[m.name] = f"the pipeline has no node {', '.join(repr(r) for r in missing)}"
             else:
