@@ -55,8 +55,8 @@ from eventcap.artifacts.tracking import SlicedTracks  # noqa: E402
 from eventcap.body.kinematics import joint_positions  # noqa: E402
 from eventcap.metrics import mean_joint_error, pose_at  # noqa: E402
 from eventcap_solve._impl import problem_for  # noqa: E402
-from eventcap_solve.batch import (EnergyWeights, IpoptSettings, interpolate_poses, select_detections,  # noqa: E402
-                                  solve_batch, unwrap_root)
+from eventcap_solve.batch import interpolate_poses, select_detections, solve_batch, unwrap_root  # noqa: E402
+from eventcap_solve.spec import BatchSolveConfig  # noqa: E402
 from eventcap_solve.fusion import innovation_rho, place, pose_graph  # noqa: E402
 
 MOTIONS = "karate_kick,boxing_combo,javelin_throw,dance_spin,fast_wave,jumping_jack"
@@ -82,23 +82,23 @@ def frame_times(sliced: list[SlicedTracks]) -> np.ndarray:
     return np.asarray([int(s.t_us[0]) for s in sliced] + [int(sliced[-1].t_us[-1])], dtype=np.int64)
 
 
-def frame_fits(problem, det: Detections, sliced: list[SlicedTracks], weights: EnergyWeights) -> np.ndarray:
+def frame_fits(problem, det: Detections, sliced: list[SlicedTracks]) -> np.ndarray:
     """(K+1, 33) per-frame fits (E_2D + E_3D) at the K+1 intensity frames, root angles unwrapped along the
     sequence: exactly the poses ``linear`` interpolates."""
     times = frame_times(sliced)
     ends = select_detections(det, times)
     fits = []
     for d in range(len(times)):
-        S, _, _ = problem.fit_frame(ends, d, weights)
+        S, _, _ = problem.fit_frame(ends, d)
         fits.append(unwrap_root(S, fits[-1]) if fits else S)
     return np.stack(fits)
 
 
 def odometry(problem, det: Detections, s: SlicedTracks) -> np.ndarray:
-    """(N+1, 33) one batch's event-only trajectory relative to its S_0 (the solve's mode ``odometry``)."""
+    """(N+1, 33) one batch's event-only trajectory relative to its S_0 (the problem's mode is ``odometry``)."""
     t_us = np.asarray(s.t_us, dtype=np.int64)
     res = solve_batch(problem, t_us, np.asarray(s.xy, dtype=np.float64), np.asarray(s.valid),
-                      select_detections(det, t_us[[0, -1]]), mode="odometry")
+                      select_detections(det, t_us[[0, -1]]))
     return res.poses - res.poses[0]
 
 
@@ -167,14 +167,13 @@ def main() -> None:
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_fusion"))
     ap.add_argument("--extra", default="", help="more hydra overrides, space separated (e.g. source.speed=2)")
     args = ap.parse_args()
-    weights = EnergyWeights()
     trackers = [t for t in args.tracks.split(",") if t]
     ideal, odo, odo_err, rho_est = {}, {t: {} for t in trackers}, {t: {} for t in trackers}, {t: {} for t in trackers}
     for motion in args.motions.split(","):
         for i, track in enumerate(trackers or ["eklt"]):
             rec, det, sliced = load(motion, track, args)
-            problem = problem_for(rec.template, rec.camera, sliced[0].t_us.size, IpoptSettings(), None, 2.0)
-            fits = frame_fits(problem, det, sliced, weights)
+            problem = problem_for(rec.template, rec.camera, sliced[0].t_us.size, BatchSolveConfig(mode="odometry"))
+            fits = frame_fits(problem, det, sliced)
             if i == 0:
                 ideal[motion] = ideal_row(rec, sliced, fits)
                 print(f"{motion}: ideal " + " ".join(f"{x:.1f}" for x in ideal[motion]), flush=True)

@@ -16,7 +16,7 @@ of estimates with exact ground truth to compare against:
 
 Configurations (``--configs``): ``default`` (the stage's defaults: the paper's λ_sil 1, λ_stab 5, λ_dist 4, l2, plus
 the 5 ms event support filter), ``paper`` (denoise_us 0: every event searched, as in the paper), ``stab0.5``
-(λ_stab 0.5), ``huber`` (loss huber, 1 px).
+(λ_stab 0.5), ``huber`` (sil_loss huber, 1 px).
 
 Printed per motion, start and configuration (mean over batches): the stage's refinement time per batch (its
 ``refine_s``: event index, boundary rendering, search, IPOPT; the NLP build and numba's first-call compilation are
@@ -55,7 +55,7 @@ from eventcap_refine.spec import SILHOUETTE  # noqa: E402
 
 N = 40  # tracking frames per batch - 1 (25 fps, 1 ms)
 CONFIGS = {"default": {}, "paper": {"denoise_us": 0}, "stab0.5": {"lambda_stab": 0.5},
-           "huber": {"loss": "huber", "huber_px": 1.0}}
+           "huber": {"sil_loss": "huber", "sil_huber_px": 1.0}}
 
 
 def capture(template, motion: str, duration_s: float, seed: int):

@@ -162,11 +162,12 @@ def timing(args) -> None:
     from eventcap.artifacts.pose import Detections
     from eventcap.artifacts.tracking import SlicedTracks
     from eventcap.energy.detections import select_detections
-    from eventcap.energy.ipopt import IpoptSettings
+    from eventcap.energy.factor import Layout
+    from eventcap.energy.problem import SplinePoses, coupling_band
     from eventcap.energy.spline import UniformCubicBSpline
-    from eventcap_spline._impl import cor_frames, prior_base_gain, sil_frames, solve_settings, window_of
+    from eventcap_spline._impl import cor_frames, prior_base_gain, sil_frames, window_of
+    from eventcap_spline.solve import SplineSolver, fit_window, solve_window
     from eventcap_spline.spec import SplineSolveConfig
-    from eventcap_spline.solve import SplineProblem, fit_window, solve_window
 
     motion, rate = args.motions.split(",")[0], args.rates.split(",")[0]
     rd = Path(args.out) / f"timing-{motion}-{rate}fps"
@@ -182,7 +183,6 @@ def timing(args) -> None:
     k = min(args.timing_batch, len(sliced) - 1)
     frames = np.array([int(x.t_us[0]) for x in sliced] + [int(sliced[-1].t_us[-1])])
     cfg = SplineSolveConfig()  # the stage's defaults: every term of the default solve
-    w, silence, sil = solve_settings(cfg)
     step = cfg.cor_step
     print(f"window solve of batch {k} ({motion}, {rate} fps, stage defaults: correspondences every {step} "
           f"tracking frames, event silence, E_sil every {cfg.sil_step_ms:g} ms, inertia-weighted prior), CPU "
@@ -197,17 +197,17 @@ def timing(args) -> None:
         s = sliced[k]
         idx = cor_frames(s.t_us.size, step)
         t_us = np.asarray(s.t_us, dtype=np.int64)
-        t_sil = sil_frames(t_us, cfg.sil_step_ms) if w.sil > 0 else None
+        t_sil = sil_frames(t_us, cfg.sil_step_ms) if cfg.lambda_sil > 0 else None
         c0 = time.process_time()
-        prob = SplineProblem(rec.template, rec.camera, n_seg, t_det.size, idx.size, IpoptSettings(max_iter=200),
-                             n_sil=0 if t_sil is None else t_sil.size)
+        layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=idx.size, n_sil=0 if t_sil is None else t_sil.size,
+                        band=coupling_band(SplinePoses(n_seg, spl), t_us[idx]))
+        sol = SplineSolver(rec.template, rec.camera, layout, cfg)
         c1 = time.process_time()
-        fit_window(prob, d, w)  # fills the per-process fit cache: not timed below
+        fit_window(sol, d)  # fills the per-process fit cache: not timed below
         c2 = time.process_time()
-        res = solve_window(prob, spl, t_det, d, t_us[idx], np.asarray(s.xy, dtype=np.float64)[idx],
-                           np.asarray(s.valid)[idx], w, events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1),
-                           silence=silence, t_sil_us=t_sil, silhouette=sil,
-                           base_gain=prior_base_gain(cfg, rec.template.rest_joints))
+        res = solve_window(sol, spl, t_det, d, t_us[idx], np.asarray(s.xy, dtype=np.float64)[idx],
+                           np.asarray(s.valid)[idx], events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1),
+                           t_sil_us=t_sil, base_gain=prior_base_gain(cfg, rec.template.rest_joints))
         c3 = time.process_time()
         its = sum(x.iterations for x in res.solves)
         print(f"{hw:>11} {z - a + 1:>7} {spl.n_ctrl:>5} {c1 - c0:8.2f} {c3 - c2:8.2f} {its:>6} "

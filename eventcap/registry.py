@@ -10,7 +10,6 @@ is ``module:attribute`` or ``/path/to/file.py:attribute``. Stages from it overri
 
 from __future__ import annotations
 
-import difflib
 import importlib
 import importlib.util
 import logging
@@ -21,6 +20,7 @@ from dataclasses import replace
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from .names import unknown_name_message
 from .stage import StageSpec, StageSpecError
 
 log = logging.getLogger(__name__)
@@ -62,18 +62,6 @@ class Registry:
             same = [s.name for s in self.specs() if s.kind == kind]
             raise UnknownStageError(f"stage {name!r} is a {spec.kind!r} stage, not {kind!r}; {kind} stages: {', '.join(same) or 'none'}")
         return spec
-
-
-def unknown_name_message(what: str, name: str, available: list[str], where: str = "") -> str:
-    """``no stage named 'eklT' (in ...); did you mean 'eklt'? Available: a, b, c``"""
-    msg = f"no {what} named {name!r}" + (f" in {where}" if where else "")
-    close = difflib.get_close_matches(name, available, n=3, cutoff=0.6)
-    if not close:
-        close = [a for a in available if a.lower() == str(name).lower()]
-    if close:
-        msg += "; did you mean " + " or ".join(repr(c) for c in close) + "?"
-    msg += f" Available: {', '.join(available) if available else '(none installed)'}"
-    return msg
 
 
 def _as_specs(obj, origin: str) -> list[StageSpec]:

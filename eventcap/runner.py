@@ -28,7 +28,7 @@ from .cache import Cache, CacheCorruptError, Entry, EntryLock, explain_differenc
 from .config import ConfigError, build_config, config_to_dict, file_digests, result_config
 from .pipeline import Node, build_pipeline
 from .registry import Registry, load_registry
-from .stage import StageContext, StageFailed, StageSpec
+from .stage import StageContext, StageSpec
 
 log = logging.getLogger("eventcap.runner")
 
@@ -182,7 +182,8 @@ def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
         cache.commit(task.stage, task.key, task.doc, outputs, info)
         return TaskResult(task.node, task.key, bidx, "computed", time.perf_counter() - t0)
     except Exception as exc:  # recorded, reported, never cached as success
-        status = exc.status if isinstance(exc, StageFailed) else type(exc).__name__
+        # A stage's own failure, or a library error that names its cause (eventcap.energy.errors), keeps its status.
+        status = exc.status if isinstance(getattr(exc, "status", None), str) else type(exc).__name__
         record = {"node": task.node, "batch": task.batch.as_key() if task.batch else None, "status": status,
                   "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc(),
                   "details": getattr(exc, "details", {})}

@@ -22,9 +22,9 @@ def _objective(X, fits, steps, rho):
 # ------------------------------------------------------------------------------------------------ odometry mode
 def test_odometry_mode_follows_the_events_from_the_first_fit_and_ignores_frame_n():
     rec, det, t_us, S, xy, valid = scene()
-    prob = problem()
+    prob = problem(mode="odometry", edge_margin_px=0.0)
     ends = select_detections(det, t_us[[0, N]])
-    res = solve_batch(prob, t_us, xy, valid, ends, mode="odometry", edge_margin_px=0)
+    res = solve_batch(prob, t_us, xy, valid, ends)
     fit0, _, _ = prob.fit_frame(ends, 0)
     np.testing.assert_array_equal(res.poses[0], fit0)  # anchored exactly at S_0's fit
     # Exact detections and exact tracks: the events alone carry the pose most of the way to the true end pose
@@ -38,8 +38,7 @@ def test_odometry_mode_follows_the_events_from_the_first_fit_and_ignores_frame_n
     kp[1] += 25.0
     j3[1] += 0.1
     other = FrameDetections(kp, ends.confidence_2d, j3, ends.confidence_3d)
-    assert np.array_equal(solve_batch(prob, t_us, xy, valid, other, mode="odometry", edge_margin_px=0).poses,
-                          res.poses)
+    assert np.array_equal(solve_batch(prob, t_us, xy, valid, other).poses, res.poses)
 
 
 # ------------------------------------------------------------------------------------------------ pose graph

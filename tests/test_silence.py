@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 
 from eventcap.body.skeleton import JOINT_INDEX, NUM_JOINTS
-from eventcap.energy.silence import SilenceSettings, measure_silence
+from eventcap.energy.silence import measure_silence
 from eventcap.events import EVENT_DTYPE
 
 H, W = 180, 240
 EDGES = np.arange(0, 50_001, 10_000, dtype=np.int64)  # 5 bins of 10 ms
+#: the measurement's settings (the spline stage's config states their defaults; these are the values tested)
+SETTINGS = {"radius_px": 6, "rate_hz": 2.0, "hold_bins": 0, "sweep_bins": 0}
 
 
 def skeleton_px() -> np.ndarray:
@@ -55,7 +57,7 @@ def test_a_moving_forearm_leaves_the_legs_and_the_other_arm_still():
     ev = np.concatenate([noise(0.5), edge_sweep(J[0, JOINT_INDEX["r_elbow"]], J[0, JOINT_INDEX["r_wrist"]],
                                                 10_000, 30_000)])
     ev = ev[np.argsort(ev["t"], kind="stable")]
-    sil = measure_silence(ev, EDGES, J, H, W, radius_px=6, rate_hz=2.0)
+    sil = measure_silence(ev, EDGES, J, H, W, **SETTINGS)
     assert sil.stillness.shape == sil.activity_hz.shape == (5, NUM_JOINTS)
     assert sil.background_hz == pytest.approx(0.5, rel=0.15)
     s = sil.stillness
@@ -71,18 +73,18 @@ def test_a_moving_forearm_leaves_the_legs_and_the_other_arm_still():
     # the forearm's activity: 3 events per px of its length every 1 ms, in 13 px boxes -> ~ 3 * 13 / 169 / 1 ms
     assert 100 < sil.activity_hz[1, wrist] < 400
     # holding: still only as much as in the least still bin within ± 1 bin; the bins next to the motion lose it
-    held = measure_silence(ev, EDGES, J, H, W, radius_px=6, rate_hz=2.0, hold_bins=1).stillness
+    held = measure_silence(ev, EDGES, J, H, W, **{**SETTINGS, "hold_bins": 1}).stillness
     assert held[[0, 1, 2, 3], wrist].max() < 0.01 and held[4, wrist] == s[4, wrist] > 0.5
     np.testing.assert_array_equal(held, np.array([s[max(k - 1, 0):k + 2].min(axis=0) for k in range(5)]))
 
 
 def test_background_rate_is_subtracted_and_a_bone_out_of_view_counts_as_moving():
     J = np.broadcast_to(skeleton_px(), (5, NUM_JOINTS, 2)).copy()
-    busy = measure_silence(noise(20.0, seed=1), EDGES, J, H, W, rate_hz=2.0)  # flicker: 20 events/px/s everywhere
+    busy = measure_silence(noise(20.0, seed=1), EDGES, J, H, W, **SETTINGS)  # flicker: 20 events/px/s everywhere
     assert busy.background_hz == pytest.approx(20.0, rel=0.05)
     assert np.median(busy.stillness) > 0.3  # the background is not motion
     J[:, JOINT_INDEX["l_hand"]] = np.nan  # behind the camera
-    sil = measure_silence(noise(0.2), EDGES, J, H, W)
+    sil = measure_silence(noise(0.2), EDGES, J, H, W, **SETTINGS)
     hand = JOINT_INDEX["l_hand"]
     assert np.isinf(sil.activity_hz[:, hand]).all() and np.all(sil.stillness[:, hand] == 0.0)
     assert sil.stillness[:, JOINT_INDEX["r_hand"]].min() > 0.5
@@ -92,7 +94,7 @@ def test_the_pelvis_is_as_active_as_the_most_active_of_its_bones():
     J = np.broadcast_to(skeleton_px(), (5, NUM_JOINTS, 2))
     hip = JOINT_INDEX["r_hip"]
     ev = edge_sweep(J[0, 0], J[0, hip], 0, 50_000)  # the short bone pelvis -> right hip moves
-    sil = measure_silence(ev, EDGES, J, H, W)
+    sil = measure_silence(ev, EDGES, J, H, W, **SETTINGS)
     assert np.all(sil.activity_hz[:, 0] == sil.activity_hz[:, [JOINT_INDEX[n] for n in ("l_hip", "r_hip",
                                                                                          "spine1")]].max(1))
     assert sil.stillness[:, 0].max() < 0.01 and sil.stillness[:, JOINT_INDEX["l_ankle"]].min() > 0.99
@@ -101,17 +103,17 @@ def test_the_pelvis_is_as_active_as_the_most_active_of_its_bones():
 def test_bad_input_is_named():
     J = np.broadcast_to(skeleton_px(), (5, NUM_JOINTS, 2))
     with pytest.raises(ValueError, match=r"joints_px: expected shape \(5, 24, 2\)"):
-        measure_silence(noise(0.1), EDGES, J[:4], H, W)
+        measure_silence(noise(0.1), EDGES, J[:4], H, W, **SETTINGS)
     with pytest.raises(ValueError, match="increasing bin edges"):
-        measure_silence(noise(0.1), EDGES[::-1], J, H, W)
+        measure_silence(noise(0.1), EDGES[::-1], J, H, W, **SETTINGS)
     with pytest.raises(ValueError, match="rate_hz > 0"):
-        measure_silence(noise(0.1), EDGES, J, H, W, rate_hz=0.0)
-    with pytest.raises(ValueError, match="SilenceSettings.radius_px"):
-        SilenceSettings(radius_px=2.5)
-    with pytest.raises(ValueError, match="SilenceSettings.hold_bins"):
-        SilenceSettings(hold_bins=-1)
-    with pytest.raises(ValueError, match="SilenceSettings.rate_hz"):
-        SilenceSettings(rate_hz=float("nan"))
+        measure_silence(noise(0.1), EDGES, J, H, W, **{**SETTINGS, "rate_hz": 0.0})
+    with pytest.raises(ValueError, match="radius_px: expected an integer >= 0, got 2.5"):
+        measure_silence(noise(0.1), EDGES, J, H, W, **{**SETTINGS, "radius_px": 2.5})
+    with pytest.raises(ValueError, match="hold_bins: expected an integer >= 0, got -1"):
+        measure_silence(noise(0.1), EDGES, J, H, W, **{**SETTINGS, "hold_bins": -1})
+    with pytest.raises(ValueError, match="rate_hz > 0"):
+        measure_silence(noise(0.1), EDGES, J, H, W, **{**SETTINGS, "rate_hz": float("nan")})
 
 
 def test_sweep_finds_a_limb_the_estimate_has_at_the_right_place_at_the_wrong_time():
@@ -126,12 +128,12 @@ def test_sweep_finds_a_limb_the_estimate_has_at_the_right_place_at_the_wrong_tim
                                                 10_000, 20_000)])
     ev = ev[np.argsort(ev["t"], kind="stable")]
     wrist, other = JOINT_INDEX["r_wrist"], JOINT_INDEX["l_wrist"]
-    plain = measure_silence(ev, EDGES, J, H, W)
-    swept = measure_silence(ev, EDGES, J, H, W, sweep_bins=2)
+    plain = measure_silence(ev, EDGES, J, H, W, **SETTINGS)
+    swept = measure_silence(ev, EDGES, J, H, W, **{**SETTINGS, "sweep_bins": 2})
     assert plain.stillness[1, wrist] > 0.9 and swept.stillness[1, wrist] < 0.01
     assert swept.stillness[:, other].min() > 0.5
     assert np.all(swept.activity_hz >= plain.activity_hz - 1e-9)
-    one = measure_silence(ev, EDGES, J, H, W, sweep_bins=1)  # bin 3 is 2 bins from bin 1: not reached
+    one = measure_silence(ev, EDGES, J, H, W, **{**SETTINGS, "sweep_bins": 1})  # bin 3 is 2 bins from bin 1: not reached
     assert one.stillness[1, wrist] > 0.9
-    with pytest.raises(ValueError, match=r"SilenceSettings.sweep_bins: expected an integer >= 0, got -1"):
-        SilenceSettings(sweep_bins=-1)
+    with pytest.raises(ValueError, match=r"sweep_bins: expected an integer >= 0, got -1"):
+        measure_silence(ev, EDGES, J, H, W, **{**SETTINGS, "sweep_bins": -1})

@@ -6,7 +6,6 @@ import functools
 
 import numpy as np
 import pytest
-from conftest import assert_derivatives_match_fd
 from test_detect import detect, posed_recording
 
 from eventcap.artifacts import Batch, BatchPlan
@@ -17,16 +16,13 @@ from eventcap.metrics import mean_joint_error
 from eventcap.sim.capture import _pick_track_points, _track_points
 from eventcap.stage import StageContext, StageFailed
 from eventcap.testing import StageConformance
-from eventcap_solve.batch import (
-    BatchProblem,
-    EnergyWeights,
-    IpoptSettings,
-    interpolate_poses,
-    project_derivatives,
-    select_detections,
-    solve_batch,
-)
-from eventcap_solve.correspondences import find_correspondences, temporal_indicator
+from eventcap.energy.cor import EventCorrespondences
+from eventcap.energy.correspondences import find_correspondences, temporal_indicator
+from eventcap.energy.errors import EnergyError, SolveFailed
+from eventcap.energy.factor import Layout, Window
+from eventcap.energy.kernels import project_derivatives
+from eventcap_solve.batch import BatchProblem, interpolate_poses, select_detections, solve_batch
+from eventcap_solve.spec import BatchSolveConfig
 
 T0, N = 5_000, 40  # first batch of posed_recording: frames at 5 ms and 45 ms, tracking frames every 1 ms
 EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
@@ -46,10 +42,15 @@ def scene(motion: str = "high_knees", speed: float = 2.0, n_points: int = 200):
     return rec, det, t_us, S, xy, valid
 
 
-@functools.lru_cache(maxsize=1)
-def problem() -> BatchProblem:
+def problem(**config) -> BatchProblem:
+    """The batch problem of the scene with the stage's config (defaults but for the changes given)."""
+    return _problem(tuple(sorted(config.items())))
+
+
+@functools.lru_cache(maxsize=8)
+def _problem(config: tuple) -> BatchProblem:
     rec = scene()[0]
-    return BatchProblem(rec.template, rec.camera, N + 1)
+    return BatchProblem(rec.template, rec.camera, N + 1, BatchSolveConfig(**dict(config)))
 
 
 def joint_error_mm(rec, poses, truth) -> np.ndarray:
@@ -75,67 +76,13 @@ def test_projection_derivatives_match_finite_differences():
     assert np.abs(J).max() > 50  # px per metre at 3 m: the check is not vacuous
 
 
-def _objective_inputs(seed: int = 0):
-    """x, p of the batch NLP at a perturbed pose with real correspondences, and the weights' slice of p."""
-    rec, det, t_us, S, xy, valid = scene()
-    prob = problem()
-    rng = np.random.default_rng(seed)
-    lo, hi = pose_bounds()
-    poses = np.clip(S + rng.normal(0, 0.03, S.shape), lo + 1e-3, hi - 1e-3)
-    corr = find_correspondences(rec.template, rec.camera, poses, xy, valid)
-    assert corr.n > 500
-    phi = (rng.random((N, NUM_JOINTS)) < 0.5).astype(float)
-    ends = select_detections(det, t_us[[0, N]])
-    tp = rng.normal(0, 0.05, (2, 3))
-    x = np.concatenate([poses.ravel(), tp.ravel()])
-    return prob, corr, x, ends, phi, poses
-
-
-@functools.lru_cache(maxsize=1)
-def robust_problem() -> BatchProblem:
-    rec = scene()[0]
-    return BatchProblem(rec.template, rec.camera, N + 1, robust_px=2.0)
-
-
-@pytest.mark.parametrize("term", ["cor", "d2", "d2_robust", "d3", "temp", "damp", "cor_frozen"])
-def test_every_energy_term_gradient_and_hessian_match_finite_differences(term):
-    prob, corr, x, ends, phi, poses = _objective_inputs()
-    if term == "d2_robust":
-        prob = robust_problem()
-        # detections off by up to 10 px: errors on both sides of the Cauchy scale
-        kp = ends.keypoints_2d + np.random.default_rng(3).uniform(-10, 10, ends.keypoints_2d.shape)
-        ends = ends.__class__(kp, ends.confidence_2d, ends.joints_3d, ends.confidence_3d)
-    names = ("cor", "d2", "d3", "temp", "damp")
-    w = EnergyWeights(**{n: (1.0 if term.startswith(n) else 0.0) for n in names})
-    prob.numeric.set_correspondences(corr, relative=term != "cor_frozen")
-    # E_damp's reference: somewhere else than x, so its gradient is not zero.
-    p = prob.batch_params(poses + 0.01, ends, phi, w)
-    f = lambda v: float(prob.objective(v, p))
-    g = np.asarray(prob.gradient(x, p)[1]).ravel()
-    Hu = np.asarray(ca_dense(prob.hessian(x, p)))
-    H = np.triu(Hu) + np.triu(Hu, 1).T
-    assert f(x) > 0 and np.abs(g).max() > 0
-    rng = np.random.default_rng(1)
-    # Coordinates of frames 0, 1, N//2, N (pose parameters) and t' (E_3D's auxiliary translations).
-    coords = np.concatenate([rng.choice(33, 6, replace=False) + 33 * f_ for f_ in (0, 1, N // 2, N)],
-                            ) if term != "d3" else np.concatenate([rng.choice(33, 8, replace=False),
-                                                                   33 * (N + 1) + np.arange(6)])
-    assert_derivatives_match_fd(f, lambda v: np.asarray(prob.gradient(v, p)[1]).ravel(), x, g, H, coords, 1e-4, term)
-
-
-def ca_dense(m):
-    import casadi as ca
-
-    return ca.DM(m).full()
-
-
 def test_correspondences_reproject_exactly_where_found():
     """A correspondence's point, posed with the pose it was found at, lies under its pixel (module doc)."""
     rec, det, t_us, S, xy, valid = scene()
     corr = find_correspondences(rec.template, rec.camera, S, xy, valid, edge_margin_px=0.0)
-    prob = problem()
-    prob.numeric.set_correspondences(corr, relative=True)
-    e_cor, _ = prob.numeric.terms(S, np.zeros((N, NUM_JOINTS)))
+    cor = EventCorrespondences(1.0, None, rec.template, rec.camera, Layout(n_cor=N + 1))
+    cor.prepare(Window(int(t_us[0]), int(t_us[-1]), t_cor_us=t_us, correspondences=corr))
+    e_cor = cor.value(S)
     # Ground-truth tracks and ground-truth poses: E_cor vanishes (up to float32 pixel storage).
     assert e_cor / corr.n < (0.01 / np.sqrt(rec.camera.fx * rec.camera.fy)) ** 2
     assert set(np.unique(corr.frame - corr.source)) == {-1, 1}
@@ -154,10 +101,9 @@ def test_temporal_indicator_holds_parts_without_correspondences():
 # ------------------------------------------------------------------------------------------------ accuracy
 def test_batch_beats_linear_on_fast_motion_with_exact_data():
     rec, det, t_us, S, xy, valid = scene()
-    prob = problem()
     ends = select_detections(det, t_us[[0, N]])
     # Exact tracks: no need to keep away from silhouette edges (on a 240x180 image that drops most limb points).
-    err = {m: joint_error_mm(rec, solve_batch(prob, t_us, xy, valid, ends, mode=m, edge_margin_px=0).poses, S)
+    err = {m: joint_error_mm(rec, solve_batch(problem(mode=m, edge_margin_px=0.0), t_us, xy, valid, ends).poses, S)
            for m in ("linear", "per_frame", "batch")}
     # Exact detections: linear interpolation's error is the motion's non-linearity between the frames.
     assert err["linear"].mean() > 3.0
@@ -170,18 +116,18 @@ def test_batch_beats_linear_on_fast_motion_with_exact_data():
 
 def test_linear_mode_is_the_interpolated_end_fits():
     rec, det, t_us, S, xy, valid = scene()
-    res = solve_batch(problem(), t_us, xy, valid, select_detections(det, t_us[[0, N]]), mode="linear")
+    res = solve_batch(problem(mode="linear"), t_us, xy, valid, select_detections(det, t_us[[0, N]]))
     np.testing.assert_allclose(res.poses, interpolate_poses(res.poses[0], res.poses[-1], t_us), atol=1e-12)
     assert res.energies["n_correspondences"] == 0 and res.status == "Solve_Succeeded"
 
 
 def test_all_mode_fits_every_frame():
     rec, det, t_us, S, xy, valid = scene()
-    with pytest.raises(ValueError, match="needs detections at all 41"):
-        solve_batch(problem(), t_us, xy, valid, select_detections(det, t_us[[0, N]]), mode="all")
+    with pytest.raises(EnergyError, match="needs detections at all 41"):
+        solve_batch(problem(mode="all"), t_us, xy, valid, select_detections(det, t_us[[0, N]]))
     every = detect("simulated", rec, at="tracking", **EXACT)  # as if detected on latent images every 1 ms
     assert np.array_equal(every.t_us, np.arange(rec.frames.t_us[0], rec.frames.t_us[-1] + 1, 1000))
-    res = solve_batch(problem(), t_us, xy, valid, select_detections(every, t_us), mode="all")
+    res = solve_batch(problem(mode="all"), t_us, xy, valid, select_detections(every, t_us))
     assert joint_error_mm(rec, res.poses, S).max() < 1.0  # exact detections at every frame: exact poses
     assert len(res.solves) == N + 1
 
@@ -189,8 +135,8 @@ def test_all_mode_fits_every_frame():
 def test_solves_are_bit_identical():
     rec, det, t_us, S, xy, valid = scene()
     ends = select_detections(det, t_us[[0, N]])
-    a = solve_batch(problem(), t_us, xy, valid, ends, icp_rounds=1)
-    b = solve_batch(problem(), t_us, xy, valid, ends, icp_rounds=1)
+    a = solve_batch(problem(icp_rounds=1), t_us, xy, valid, ends)
+    b = solve_batch(problem(icp_rounds=1), t_us, xy, valid, ends)
     assert np.array_equal(a.poses, b.poses) and a.iterations == b.iterations
 
 
@@ -207,7 +153,7 @@ def test_nan_in_valid_track_fails_before_the_solver():
     bad = xy.copy()
     h = int(np.flatnonzero(valid[7])[0])
     bad[7, h] = np.nan
-    with pytest.raises(StageFailed, match=f"track {h} has a non-finite position at tracking frame 7") as exc:
+    with pytest.raises(EnergyError, match=f"track {h} has a non-finite position at tracking frame 7") as exc:
         solve_batch(problem(), t_us, bad, valid, select_detections(det, t_us[[0, N]]))
     assert exc.value.status == "invalid_input"
 
@@ -218,25 +164,23 @@ def test_nan_detection_with_confidence_fails():
     kp = ends.keypoints_2d.copy()
     kp[1, 4] = np.nan
     bad = ends.__class__(kp, ends.confidence_2d, ends.joints_3d, ends.confidence_3d)
-    with pytest.raises(StageFailed, match="keypoints_2d is not finite at detection frame 1, entry 4") as exc:
+    with pytest.raises(EnergyError, match="keypoints_2d is not finite at detection frame 1, entry 4") as exc:
         solve_batch(problem(), t_us, xy, valid, bad)
     assert exc.value.status == "invalid_input"
 
 
 def test_impossible_bound_is_refused_with_the_parameter_named():
     rec = scene()[0]
-    lo, hi = pose_bounds()
-    lo = lo.copy()
-    lo[3] = hi[3] + 0.1
-    with pytest.raises(ValueError, match="lower bound above upper bound for pose parameter 3"):
-        BatchProblem(rec.template, rec.camera, N + 1, lower=lo, upper=hi)
+    with pytest.raises(EnergyError, match=r"stages.solve.limits: lower bound above upper bound for pose parameter 1 "
+                                          r"\(l_hip_abd\): 1.1 > 1.0") as exc:
+        BatchProblem(rec.template, rec.camera, N + 1, BatchSolveConfig(limits={"l_hip_abd": [1.1, 1.0]}))
+    assert exc.value.status == "invalid_bounds"
 
 
 def test_iteration_cap_gives_a_failure_with_ipopts_status():
     rec, det, t_us, S, xy, valid = scene()
-    capped = BatchProblem(rec.template, rec.camera, N + 1, IpoptSettings(max_iter=2))
-    with pytest.raises(StageFailed, match="status Maximum_Iterations_Exceeded") as exc:
-        solve_batch(capped, t_us, xy, valid, select_detections(det, t_us[[0, N]]))
+    with pytest.raises(SolveFailed, match="status Maximum_Iterations_Exceeded") as exc:
+        solve_batch(problem(max_iter=2), t_us, xy, valid, select_detections(det, t_us[[0, N]]))
     assert exc.value.status == "Maximum_Iterations_Exceeded"
 
 
@@ -315,16 +259,16 @@ def test_neighbouring_batches_agree_on_their_shared_frame():
     res = solve_batch(prob, t_us, xy, valid, ends)
     next_start, _, _ = prob.fit_frame(select_detections(det, t_us[[N]]), 0)  # batch k+1's S_0
     np.testing.assert_array_equal(joint_positions(res.poses[-1], rec.template), joint_positions(next_start, rec.template))
-    free = solve_batch(prob, t_us, xy, valid, ends, boundary="free")
+    free = solve_batch(problem(boundary="free"), t_us, xy, valid, ends)
     assert np.abs(free.poses[-1] - res.poses[-1]).max() > 1e-6
-    with pytest.raises(ValueError, match="boundary: expected one of"):
-        solve_batch(prob, t_us, xy, valid, ends, boundary="loose")
+    with pytest.raises(EnergyError, match="boundary: expected one of"):
+        solve_batch(problem(boundary="loose"), t_us, xy, valid, ends)
 
 
 def test_stage_joint_limit_overrides_are_applied_and_checked():
     from eventcap.config import build_config
     from eventcap.registry import load_registry
-    from eventcap_solve.batch import PARAM_NAMES
+    from eventcap.energy.ipopt import PARAM_NAMES
 
     spec = load_registry().get("batch")
     run = spec.load_run()
@@ -344,7 +288,7 @@ def test_stage_joint_limit_overrides_are_applied_and_checked():
 
 
 def test_edge_distance_marks_silhouette_and_self_occlusion_edges():
-    from eventcap_solve.correspondences import edge_distance
+    from eventcap.energy.correspondences import edge_distance
 
     depth = np.full((40, 60), np.inf, np.float32)
     tri = np.full((40, 60), -1, np.int32)

@@ -3,12 +3,12 @@ every term of the spline energy against finite differences, accuracy against gro
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import assert_derivatives_match_fd
 from test_detect import detect, posed_recording
 from test_refine import boundary_events
 
@@ -18,15 +18,17 @@ from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import DOF_INDEX, pose_bounds
 from eventcap.energy.correspondences import find_correspondences
 from eventcap.energy.detections import select_detections
-from eventcap.energy.event_search import EventIndex
-from eventcap.energy.sil import find_silhouette_correspondences
 from eventcap.energy.spline import UniformCubicBSpline
 from eventcap.metrics import mean_joint_error
 from eventcap.sim.capture import _pick_track_points, _track_points
 from eventcap.stage import StageContext, StageFailed
 from eventcap.testing import StageConformance
 from eventcap_spline._impl import cor_frames, window_of
-from eventcap_spline.solve import SilhouetteSettings, SplineProblem, SplineWeights, gains_from_fits, solve_window
+from eventcap.energy.errors import EnergyError
+from eventcap.energy.factor import Layout, Window
+from eventcap.energy.prior import gains_from_fits
+from eventcap_spline.solve import SplineSolver, solve_window
+from eventcap_spline.spec import SplineSolveConfig
 
 H_US = 10_000  # knot spacing of the test splines
 EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
@@ -101,13 +103,13 @@ def test_prior_gain_is_large_for_a_parameter_at_rest_and_one_for_a_moving_one():
     ts = t * 1e-6
     fits = np.stack([0.3 + rng.normal(0, 0.2, 20), np.sin(2 * np.pi * ts) + rng.normal(0, 0.02, 20),
                      np.sin(2 * np.pi * ts) + rng.normal(0, 0.2, 20)], axis=1)
-    gain, lam = gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 100.0)
+    gain, lam = gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 100.0, "reml")
     assert lam[0] > 100 * lam[2] > 100 * lam[1]
     assert gain[0] > 20 and gain[1] == gain[2] == 1.0
     np.testing.assert_allclose(gain[0], lam[0] / 5e-4)
     # detections that weigh 10x less need 10x less prior; the clip holds
-    assert gains_from_fits(t, fits, np.full(3, 0.1), 5e-4, 100.0)[0][0] == pytest.approx(gain[0] / 10)
-    assert gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 10.0)[0][0] == 10.0
+    assert gains_from_fits(t, fits, np.full(3, 0.1), 5e-4, 100.0, "reml")[0][0] == pytest.approx(gain[0] / 10)
+    assert gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 10.0, "reml")[0][0] == 10.0
     # GCV agrees on these 20 fits
     gcv_gain, gcv_lam = gains_from_fits(t, fits, np.full(3, 1.0), 5e-4, 100.0, "gcv")
     np.testing.assert_allclose(gcv_lam, lam)
@@ -133,14 +135,14 @@ def test_the_context_pull_targets_the_smoothing_spline_and_weighs_what_the_other
     one's ~1 (no pull); a time not among the fits gives NaN."""
     from eventcap.smoothing import penalty_matrix
 
-    from eventcap_spline.solve import smoothed_at
+    from eventcap.energy.prior import smoothed_at
 
     rng = np.random.default_rng(0)
     t = np.arange(20) * 100_000
     ts = t * 1e-6
     fits = np.stack([0.3 + rng.normal(0, 0.2, 20), np.sin(2 * np.pi * ts) + rng.normal(0, 0.02, 20),
                      np.sin(2 * np.pi * ts) + rng.normal(0, 0.2, 20)], axis=1)
-    _, lam = gains_from_fits(t, fits, np.ones(3), 5e-4, 100.0)
+    _, lam = gains_from_fits(t, fits, np.ones(3), 5e-4, 100.0, "reml")
     at = np.array([t[0], t[7], t[8] + 50_000, t[19]])
     g, h = smoothed_at(t, fits, lam, at)
     K = penalty_matrix(ts)
@@ -180,10 +182,18 @@ def scene(exact: bool = False, n_frames: int = 4):
 T_SIL = slice(None, None, 5)  # E_sil at every 5th tracking frame of the scene: 9 frames
 
 
-@functools.lru_cache(maxsize=1)
-def problem() -> SplineProblem:
+def solver(**config) -> SplineSolver:
+    """The spline solver of the scene's window (3 batches, E_cor at the middle batch's 41 tracking frames, E_sil at 9
+    of them) with the stage's config (defaults but for the changes given)."""
+    return _solver(tuple(sorted(config.items())))
+
+
+@functools.lru_cache(maxsize=8)
+def _solver(config: tuple) -> SplineSolver:
     rec, det, t_det = scene()[:3]
-    return SplineProblem(rec.template, rec.camera, int((t_det[-1] - t_det[0]) // H_US), t_det.size, 41, n_sil=9)
+    n_seg = int((t_det[-1] - t_det[0]) // H_US)
+    layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=41, n_sil=9)
+    return SplineSolver(rec.template, rec.camera, layout, SplineSolveConfig(**{"knot_ms": H_US / 1000, **dict(config)}))
 
 
 @functools.lru_cache(maxsize=1)
@@ -200,99 +210,45 @@ def joint_error_mm(rec, poses, truth) -> float:
     return float(np.mean(1000 * mean_joint_error(joint_positions(poses, rest), joint_positions(truth, rest))))
 
 
-def ca_dense(m) -> np.ndarray:
-    import casadi as ca
-
-    return np.asarray(ca.DM(m).full())
-
-
-@pytest.mark.parametrize("term", ["d2", "d3", "cor", "prior", "damp", "still", "sil", "context"])
-def test_every_spline_term_gradient_and_hessian_match_finite_differences(term):
-    rec, det, t_det, t_us, S, xy, valid = scene()
-    prob = problem()
-    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
-    rng = np.random.default_rng(0)
-    lo, hi = pose_bounds()
-    gt = rec.ground_truth
-    tk = np.linspace(t_det[0], t_det[-1], 25).astype(np.int64) // 1000 * 1000
-    C = spl.fit(tk, gt.poses[np.searchsorted(gt.t_us, tk)], smooth=1e-6)
-    C = np.clip(C + rng.normal(0, 0.03, C.shape), lo + 1e-3, hi - 1e-3)
-    corr = find_correspondences(rec.template, rec.camera, spl.evaluate(C, t_us), xy, valid)
-    assert corr.n > 500
-    tp = rng.normal(0, 0.05, (t_det.size, 3))
-    x = np.concatenate([C.ravel(), tp.ravel()])
-    w = SplineWeights(**{n: (1.0 if n == term else 0.0) for n in ("d2", "d3", "cor", "prior", "damp", "sil")})
-    sil, t_sil = None, t_us[T_SIL]
-    if term == "sil":  # the silhouette at 9 frames against exact boundary events, with the Huber loss
-        settings = SilhouetteSettings(loss="huber", huber_px=1.0)
-        index = EventIndex(silhouette_events(), rec.camera.width, rec.camera.height, t_sil, 10_000, 0)
-        sc = find_silhouette_correspondences(rec.template, rec.camera, spl.evaluate(C, t_sil), index,
-                                             settings.weights(1.0), 8)[0]
-        assert sc.n > 1000
-        sil = (sc, settings)
-    gain = rng.uniform(1.0, 50.0, 33)  # the prior's gain per parameter (prior_gain_max > 1)
-    # the event silence: a weight per knot interval and joint (zero for half of them)
-    still = rng.uniform(0, 2, (prob.n_seg, 24)) * (rng.random((prob.n_seg, 24)) < 0.5)
-    # the context pull: a target and a weight >= 0 per detection frame and parameter (zero for a third of them)
-    r2 = np.random.default_rng(1)
-    pull = (spl.evaluate(C, t_det) + r2.normal(0, 0.05, (t_det.size, 33)),
-            r2.uniform(0, 3, (t_det.size, 33)) * (r2.random((t_det.size, 33)) < 0.67))
-    prob.set_window(spl, t_det, det, t_us, corr, w, x + rng.normal(0, 0.01, x.shape), gain,
-                    still if term == "still" else None, t_sil_us=t_sil, sil=sil,
-                    pull=pull if term == "context" else None)
-    f = lambda v: float(prob.objective(v))
-    grad = lambda v: np.asarray(prob.gradient(v)[1]).ravel()
-    g = grad(x)
-    Hu = ca_dense(prob.hessian(x))
-    H = np.triu(Hu) + np.triu(Hu, 1).T
-    assert f(x) > 0 and np.abs(g).max() > 0
-    # Control points 0, 4 (inside the middle batch), the last one; t' of two detection frames.
-    coords = np.concatenate([rng.choice(33, 5, replace=False) + 33 * i for i in (0, 4, 6, prob.n_ctrl - 1)]
-                            + [prob.nC + np.array([0, 4, 8])])
-    assert_derivatives_match_fd(f, grad, x, g, H, coords, 1e-4, term)
-    # Nothing outside the declared sparsity (blocks of control points more than 3 apart never interact).
-    full = prob._hessian(x)
-    assert np.abs(full - H).max() <= 1e-12 * max(1.0, np.abs(full).max())
-
-
 def test_event_silence_term_is_the_image_velocity_of_the_still_joints():
-    """E_still at its linearisation point = Σ_s Σ_j w[s, j] ∫_s ‖d/dt π(x_j(S(t)))‖² dt, the joints' image
+    """E_still at its linearisation point = λ Σ_s Σ_j s[s, j] ∫_s ‖d/dt π(x_j(S(t)))‖² dt, the joints' image
     velocities (px/s) by central differences of the projected joints in time."""
-    from eventcap.energy.correspondences import Correspondences
+    from eventcap.energy.silence import EventSilence
 
     rec, det, t_det, t_us = scene()[:4]
-    prob = problem()
-    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
+    n_seg = int((t_det[-1] - t_det[0]) // H_US)
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, n_seg)
     gt = rec.ground_truth
     tk = np.arange(t_det[0], t_det[-1] + 1, 5_000)
     C = spl.fit(tk, gt.poses[np.searchsorted(gt.t_us, tk)], smooth=1e-6)
-    x = np.concatenate([C.ravel(), np.zeros(prob.nT)])
-    still = np.zeros((prob.n_seg, 24))
+    still = np.zeros((n_seg, 24))
     still[2:5, 4] = 1.0  # the left knee over three knot intervals
     still[7, 21] = 3.0  # the right wrist over one
-    w = SplineWeights(d2=0.0, d3=0.0, cor=0.0, prior=0.0, damp=0.0)
-    prob.set_window(spl, t_det, det, t_us, Correspondences.empty(), w, x, None, still)
-    e = float(prob.objective(x))
+    term = EventSilence(1.0, None, rec.template, rec.camera, Layout(n_seg=n_seg))
+    window = Window(spl.t0_us, spl.t1_us, knots_us=spl.t0_us + H_US * np.arange(n_seg + 1), stillness=still,
+                    estimate=lambda t: spl.evaluate(C, t))
+    term.prepare(window)
+    e = term.value(spl.evaluate(C, term.t_us, 1))
     t = np.arange(spl.t0_us, spl.t1_us, 10, dtype=np.float64) + 5.0  # 10 µs steps, interval midpoints
     rest = rec.template.rest_joints
     cam = rec.camera
     v = (cam.project(joint_positions(spl.evaluate(C, t + 1.0), rest))
          - cam.project(joint_positions(spl.evaluate(C, t - 1.0), rest))) / 2e-6  # px/s
-    seg = np.minimum(((t - spl.t0_us) // H_US).astype(int), prob.n_seg - 1)
+    seg = np.minimum(((t - spl.t0_us) // H_US).astype(int), n_seg - 1)
     numeric = float(np.sum(still[seg] * np.sum(v ** 2, axis=-1)) * 10e-6)
     assert numeric > 1.0  # the knee and the wrist move in this scene
     assert e == pytest.approx(numeric, rel=0.02)
-    with pytest.raises(ValueError, match=r"event-silence weights >= 0 of shape \(\d+, 24\)"):
-        prob.set_window(spl, t_det, det, t_us, Correspondences.empty(), w, x, None, still[:, :23])
+    with pytest.raises(EnergyError, match=r"E_still: expected stillness of shape \(\d+, 24\)"):
+        term.prepare(dataclasses.replace(window, stillness=still[:, :23]))
 
 
 def test_spline_through_noisy_detections_beats_the_per_frame_fits():
     """Detections with the default simulated noise: the spline over 4 frames (no events) is nearer the truth in
     the middle batch than linear interpolation of the per-frame fits, and the joint limits hold at 1 kHz."""
     rec, det, t_det, t_us, S, xy, valid = scene()
-    prob = problem()
-    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
-    res = solve_window(prob, spl, t_det, det, t_us, xy, valid, SplineWeights(), icp_rounds=0)
+    sol = solver(icp_rounds=0, lambda_sil=0.0)
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
+    res = solve_window(sol, spl, t_det, det, t_us, xy, valid)
     assert all(s.status == "Solve_Succeeded" for s in res.solves[-1:])
     P = spl.evaluate(res.control, t_us)
     a = ((t_us - t_us[0]) / (t_us[-1] - t_us[0]))[:, None]
@@ -306,17 +262,17 @@ def test_spline_through_noisy_detections_beats_the_per_frame_fits():
 
 def test_cor_residuals_are_zero_on_exact_tracks_at_the_true_poses_and_shift_with_a_track():
     rec, det, t_det, t_us, S, xy, valid = scene()
-    prob = problem()
+    cor = solver().factor("cor")
     corr = find_correspondences(rec.template, rec.camera, S, xy, valid)
-    prob.cor.set_correspondences(corr, relative=True)
-    r = prob.cor.residuals_px(S)
+    cor.set_correspondences(corr, relative=True)
+    r = cor.residuals_px(S)
     assert r.shape == (corr.n, 2) and corr.n > 500
     assert np.percentile(np.linalg.norm(r, axis=1), 95) < 0.05  # only the rounding of the tracks' sub-pixel pick
     moved = xy.copy()
     moved[:, 7] += np.array([3.0, -4.0])[None] * ((t_us - t_us[0]) / 1000.0)[:, None] / 40.0  # 5 px by the end
     corr2 = find_correspondences(rec.template, rec.camera, S, moved, valid)
-    prob.cor.set_correspondences(corr2, relative=True)
-    r2 = prob.cor.residuals_px(S)
+    cor.set_correspondences(corr2, relative=True)
+    r2 = cor.residuals_px(S)
     mine = corr2.track == 7
     step = (corr2.frame[mine] - corr2.source[mine]) / 40.0  # the drift over each correspondence's frames
     assert mine.any()
@@ -327,14 +283,15 @@ def test_silhouette_events_pull_the_spline_onto_the_true_outline():
     """E_sil against exact boundary events (no tracks): the projected joints of the middle batch move nearer the
     truth's (noisy detections leave them ~1 px off); a much larger weight is not needed to get there."""
     rec, det, t_det, t_us, S, xy, valid = scene()
-    prob = problem()
-    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
     rest, cam = rec.template.rest_joints, rec.camera
     truth_px = cam.project(joint_positions(S, rest))
     err = {}
-    for lam in (0.0, 50.0):
-        res = solve_window(prob, spl, t_det, det, t_us, xy[:, :0], valid[:, :0], SplineWeights(sil=lam),
-                           icp_rounds=3, events=silhouette_events(), t_sil_us=t_us[T_SIL])
+    for lam in (0.0, 50.0):  # the window's other terms as in SplineWeights' defaults before the factors
+        sol = solver(lambda_sil=lam, icp_rounds=3, lambda_prior=5e-4, lambda_still=0.0, lambda_context=0.0,
+                     prior_gain_max=1.0)
+        spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
+        res = solve_window(sol, spl, t_det, det, t_us, xy[:, :0], valid[:, :0], events=silhouette_events(),
+                           t_sil_us=t_us[T_SIL])
         assert res.solves[-1].status == "Solve_Succeeded"
         assert (res.energies["n_silhouette"] > 2000) == (lam > 0)
         px = cam.project(joint_positions(spl.evaluate(res.control, t_us), rest))
@@ -346,12 +303,11 @@ def test_a_base_gain_scales_the_prior_per_parameter():
     """base_gain multiplies λ_prior per pose parameter: a gain of 0.1 everywhere is λ_prior / 10; a gain on one
     parameter changes only how that one is smoothed (the start spline's too)."""
     rec, det, t_det, t_us, S, xy, valid = scene(exact=True)
-    prob = problem()
-    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
 
     def solve(prior, gain=None):
-        res = solve_window(prob, spl, t_det, det, t_us, xy, valid, SplineWeights(prior=prior), icp_rounds=1,
-                           base_gain=gain)
+        sol = solver(lambda_prior=prior, icp_rounds=1, lambda_still=0.0, lambda_context=0.0, lambda_sil=0.0)
+        spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
+        res = solve_window(sol, spl, t_det, det, t_us, xy, valid, base_gain=gain)
         assert res.solves[-1].status == "Solve_Succeeded"
         return res
 
@@ -370,24 +326,24 @@ def test_robust_cor_weights_keep_drifting_tracks_from_pulling_the_motion():
     """One track in four drifts off its surface point at 0.5 px/ms: least squares follows them, the Cauchy
     reweighting (robust_cor_px) much less: the middle batch stays nearer the truth and the clean tracks' solution."""
     rec, det, t_det, t_us, S, xy, valid = scene(exact=True)
-    prob = problem()
-    spl = UniformCubicBSpline(int(t_det[0]), H_US, prob.n_seg)
     bad = xy.copy()
     drift = (0.5 * (t_us - t_us[0]) / 1000.0)[:, None]
     bad[:, ::4, 0] += drift
     bad[:, ::4, 1] -= drift
     poses = {}
     for name, tracks, sigma in (("clean", xy, 0.0), ("least squares", bad, 0.0), ("robust", bad, 0.5)):
-        res = solve_window(prob, spl, t_det, det, t_us, tracks, valid, SplineWeights(d2=20.0, cor=2000.0),
-                           icp_rounds=3, robust_cor_px=sigma)
+        sol = solver(lambda_2d=20.0, lambda_cor=2000.0, icp_rounds=3, robust_cor_px=sigma, lambda_prior=5e-4,
+                     lambda_still=0.0, lambda_context=0.0, lambda_sil=0.0, prior_gain_max=1.0)
+        spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
+        res = solve_window(sol, spl, t_det, det, t_us, tracks, valid)
         assert res.solves[-1].status == "Solve_Succeeded"
         poses[name] = spl.evaluate(res.control, t_us)
     truth = {k: joint_error_mm(rec, v, S) for k, v in poses.items()}
     to_clean = {k: joint_error_mm(rec, v, poses["clean"]) for k, v in poses.items()}
     assert truth["robust"] < 0.75 * truth["least squares"], truth
     assert to_clean["robust"] < 0.5 * to_clean["least squares"], to_clean
-    with pytest.raises(ValueError, match=r"robust_cor_px: expected a Cauchy scale in pixels >= 0, got -1"):
-        solve_window(prob, spl, t_det, det, t_us, bad, valid, robust_cor_px=-1)
+    with pytest.raises(EnergyError, match=r"robust_cor_px: expected a Cauchy scale in pixels >= 0, got -1"):
+        solve_window(solver(robust_cor_px=-1, lambda_sil=0.0), spl, t_det, det, t_us, bad, valid)
 
 
 # ------------------------------------------------------------------------------------------------ the stage
@@ -629,14 +585,14 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     from eventcap.body.skeleton import JOINT_INDEX
     from eventcap.energy.silence import Silence
 
-    from eventcap_spline.solve import still_gate
+    from eventcap.energy.prior import still_gate
 
     st = np.ones((4, 24))
     st[2, JOINT_INDEX["r_wrist"]] = 0.0
     st[1, JOINT_INDEX["l_hip"]] = 0.25
     sil = Silence(edges_us=np.arange(5, dtype=np.int64) * 10_000, activity_hz=np.zeros((4, 24)), background_hz=0.1,
                   stillness=st)
-    gate = still_gate(sil, np.array([5_000, 15_000, 25_000, 39_999, 60_000]))
+    gate = still_gate(sil, np.array([5_000, 15_000, 25_000, 39_999, 60_000]), 0.0)
     elbow, shoulder, yaw = DOF_INDEX["r_elbow_flex"], DOF_INDEX["r_shoulder_flex"], 27
     np.testing.assert_array_equal(gate[:, elbow], [1, 1, 0, 1, 1])
     np.testing.assert_array_equal(gate[:, yaw], [1, 0.25, 1, 1, 1])

@@ -22,11 +22,16 @@ from eventcap.body.skeleton import (
 )
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-from eventcap.stage import StageFailed
 
+from .errors import EnergyError, SolveFailed
+from .factor import Factor, Layout, Linearization, Window
 from .ipopt import IpoptSettings, SolveStats, run_ipopt
+from .kernels import Buffered
 
 _NP = NUM_POSE_PARAMS
+#: λ_damp of the per-frame fits (the paper's initialisation): a proximal pull towards the closed-form start, which
+#: keeps the angles nothing observes (a straight arm's twist) from drifting in a cold-started solve.
+FIT_DAMP = 1e-3
 #: Torso joints whose 3D detections fix the initial root rotation (rigid enough in any pose).
 _TORSO = tuple(JOINT_INDEX[n] for n in ("pelvis", "l_hip", "r_hip", "spine1", "spine2", "spine3", "neck",
                                          "l_collar", "r_collar", "l_shoulder", "r_shoulder"))
@@ -165,13 +170,10 @@ def unwrap_root(S: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- E_2D, E_3D of a frame
-def detection_terms(template: Template, camera: Camera, S, tp, kp, c2, j3, c3, robust_px: float = 0.0):
-    """E_2D and E_3D of one frame as CasADi expressions of the pose S (33) and the auxiliary translation t' (3).
-
-    kp (25, 2) px, c2 (25, 1), j3 (24, 3) m root-relative, c3 (24, 1): the detections (symbols or values).
-    Image residuals are focal-normalised; with robust_px > 0 each landmark's squared error e² becomes the Cauchy
-    loss σ² log(1 + e²/σ²), σ = robust_px (also focal-normalised). Returns (E_2D, E_3D).
-    """
+def keypoint_expression(template: Template, camera: Camera, S, kp, c2, robust_px: float):
+    """E_2D of one frame as a CasADi expression of the pose S (33): kp (25, 2) px and c2 (25, 1) the landmarks and
+    their confidences (symbols or values). Image residuals are focal-normalised; with robust_px > 0 each
+    landmark's squared error e² becomes the Cauchy loss σ² log(1 + e²/σ²), σ = robust_px (focal-normalised)."""
     scale = 1.0 / math.sqrt(camera.fx * camera.fy)
     L = landmark_positions(S, template)  # (25, 3)
     uv = camera.project_sym(L.T)  # (2, 25)
@@ -180,11 +182,20 @@ def detection_terms(template: Template, camera: Camera, S, tp, kp, c2, j3, c3, r
     if robust_px > 0:  # Cauchy: ≈ ‖r‖² for small errors, grows only logarithmically for outliers
         s2 = (robust_px * scale) ** 2
         sq = s2 * ca.log1p(sq / s2)
-    e2 = ca.sum2(c2.T * sq)
+    return ca.sum2(c2.T * sq)
+
+
+def joint_expression(template: Template, S, tp, j3, c3):
+    """E_3D of one frame as a CasADi expression of the pose S (33) and the auxiliary translation t' (3): j3 (24, 3)
+    root-relative joints in metres, c3 (24, 1) their confidences."""
     J = joint_positions(S, template.rest_joints)  # (24, 3)
     r3 = J - (j3 + ca.repmat(tp.T, NUM_JOINTS, 1))
-    e3 = ca.sum1(c3 * ca.sum2(r3 * r3))
-    return e2, e3
+    return ca.sum1(c3 * ca.sum2(r3 * r3))
+
+
+def detection_terms(template: Template, camera: Camera, S, tp, kp, c2, j3, c3, robust_px: float):
+    """(E_2D, E_3D) of one frame as CasADi expressions (:func:`keypoint_expression`, :func:`joint_expression`)."""
+    return keypoint_expression(template, camera, S, kp, c2, robust_px), joint_expression(template, S, tp, j3, c3)
 
 
 def det_symbols(prefix: str):
@@ -202,6 +213,100 @@ def det_values(det: FrameDetections, d: int) -> list[np.ndarray]:
     return [kp.ravel(order="F"), c2, j3.ravel(order="F"), c3]
 
 
+class _MappedTerm:
+    """Value, gradient and dense Hessian of a one-frame CasADi expression e(z, data...), mapped over n frames as
+    three functions (a line search's values and IPOPT's gradients do not pay for the Hessian, which is most of the
+    cost of one frame's terms)."""
+
+    def __init__(self, name: str, e, z, data: list, n: int):
+        H, g = ca.hessian(e, z)
+        args = [z, *data]
+        self.value = Buffered(ca.Function(f"{name}", args, [e]).map(n))
+        self.grad = Buffered(ca.Function(f"{name}_grad", args, [e, g]).map(n))
+        self.hess = Buffered(ca.Function(f"{name}_hess", args, [ca.densify(H)]).map(n))
+        self.n, self.nz = n, z.numel()
+
+    def __call__(self, z: np.ndarray, data: list[np.ndarray], order: int):
+        """(values (n,), gradients (n, nz) or None, Hessians (n, nz, nz) or None)."""
+        if order == 0:
+            return self.value(z, *data)[0], None, None
+        e, g = self.grad(z, *data)
+        H = self.hess(z, *data)[0].reshape(self.n, self.nz, self.nz) if order >= 2 else None
+        return e, g.reshape(self.n, self.nz), H
+
+
+class Keypoints2D(Factor):
+    """E_2D (paper Eq. 6) at every detection frame: λ_2D Σ_d Σ_l c_dl ρ(‖π(L_l(S_d)) - P2D_dl‖ / f) over the BODY_25
+    landmarks, ρ the Cauchy loss of scale ``robust_2d_px`` (0: squares). Exact Hessian (CasADi)."""
+
+    name = "2d"
+    settings = ("robust_2d_px",)
+
+    def __init__(self, weight, config, template, camera, layout):
+        super().__init__(weight, config, template, camera, layout)
+        S = ca.SX.sym("S", _NP)
+        kp, c2, _, _ = det_symbols("")
+        e = keypoint_expression(template, camera, S, kp, c2, float(config.robust_2d_px))
+        self._fn = _MappedTerm("E_2d", e, S, [kp, c2], self.n)
+        self._data: list[np.ndarray] = []
+
+    @staticmethod
+    def size(layout: Layout) -> int:
+        return layout.n_det
+
+    def prepare(self, window: Window) -> None:
+        det = window.need("detections", "E_2D")
+        if det.n != self.n:
+            raise EnergyError(f"E_2D: expected {self.n} detection frames, got {det.n}")
+        self.t_us = np.asarray(window.need("t_det_us", "E_2D"), dtype=np.int64)
+        dv = [det_values(det, d) for d in range(det.n)]
+        self._data = [np.concatenate([v[k] for v in dv]) for k in (0, 1)]
+
+    def linearize(self, S, aux, order):
+        e, g, H = self._fn(S, self._data, order)
+        w = self.weight
+        return Linearization(w * float(e.sum()), None if g is None else w * g, None if H is None else w * H)
+
+
+class Joints3D(Factor):
+    """E_3D (paper Eq. 7) at every detection frame: λ_3D Σ_d Σ_l c_dl ‖J_l(S_d) - (P3D_dl + t'_d)‖², P3D the
+    root-relative 3D detections, t'_d an auxiliary translation per frame (this factor's own variables)."""
+
+    name = "3d"
+    aux_size = 3
+
+    def __init__(self, weight, config, template, camera, layout):
+        super().__init__(weight, config, template, camera, layout)
+        S, tp = ca.SX.sym("S", _NP), ca.SX.sym("tp", 3)
+        _, _, j3, c3 = det_symbols("")
+        e = joint_expression(template, S, tp, j3, c3)
+        self._fn = _MappedTerm("E_3d", e, ca.vertcat(S, tp), [j3, c3], self.n)
+        self._data: list[np.ndarray] = []
+
+    @staticmethod
+    def size(layout: Layout) -> int:
+        return layout.n_det
+
+    def prepare(self, window: Window) -> None:
+        det = window.need("detections", "E_3D")
+        if det.n != self.n:
+            raise EnergyError(f"E_3D: expected {self.n} detection frames, got {det.n}")
+        self.t_us = np.asarray(window.need("t_det_us", "E_3D"), dtype=np.int64)
+        dv = [det_values(det, d) for d in range(det.n)]
+        self._data = [np.concatenate([v[k] for v in dv]) for k in (2, 3)]
+
+    def linearize(self, S, aux, order):
+        z = np.concatenate([S, aux], axis=1)
+        e, g, H = self._fn(z, self._data, order)
+        w = self.weight
+        lin = Linearization(w * float(e.sum()))
+        if g is not None:
+            lin.grad, lin.aux_grad = w * g[:, :_NP], w * g[:, _NP:]
+        if H is not None:
+            lin.diag, lin.cross, lin.aux_diag = w * H[:, :_NP, :_NP], w * H[:, :_NP, _NP:], w * H[:, _NP:, _NP:]
+        return lin
+
+
 class FrameFitter:
     """The one-frame fit of a pose to its detections (E_2D + E_3D, the paper's initialisation), built once.
 
@@ -209,7 +314,7 @@ class FrameFitter:
     """
 
     def __init__(self, template: Template, camera: Camera, settings: IpoptSettings, lower: np.ndarray,
-                 upper: np.ndarray, robust_px: float = 0.0):
+                 upper: np.ndarray, robust_px: float):
         self.template, self.camera, self.settings = template, camera, settings
         self.lower, self.upper, self.robust_px = lower, upper, float(robust_px)
         S = ca.SX.sym("S", _NP)
@@ -231,7 +336,7 @@ class FrameFitter:
         start: (S, t') warm start; default :func:`initial_guess`, from which E_3D alone is fitted first.
         """
         if det.confidence_2d[d].max() <= 0 and det.confidence_3d[d].max() <= 0:
-            raise StageFailed(f"detection frame {d}: nothing detected (all confidences 0): cannot fit a pose",
+            raise SolveFailed(f"detection frame {d}: nothing detected (all confidences 0): cannot fit a pose",
                               status="no_detections")
         lbx = np.concatenate([self.lower, np.full(3, -np.inf)])
         ubx = np.concatenate([self.upper, np.full(3, np.inf)])

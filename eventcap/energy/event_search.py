@@ -122,8 +122,7 @@ class EventIndex:
                             np.int64(self.window_us // 2), np.int32(_NONE), table)  # 2|dt| <= T for integers
             self.dt[np.ix_(order, pixels)] = table
 
-    def closest(self, frame: np.ndarray, pixel: np.ndarray, lambda_dist: float = 4.0,
-                patch_px: int = 8) -> EventMatches:
+    def closest(self, frame: np.ndarray, pixel: np.ndarray, lambda_dist: float, patch_px: int) -> EventMatches:
         """e_b of Eq. 13 for boundary pixels ``pixel`` (B, 2) int (x, y) at tracking frames ``frame`` (B,) int
         (indices into frame_t_us). Among equal D the first patch offset in row-major order wins."""
         frame = np.asarray(frame, dtype=np.int64)

@@ -21,7 +21,9 @@ from eventcap.body.skeleton import (
     ROOT_TRANSLATION_NAMES,
     pose_bounds,
 )
-from eventcap.stage import StageFailed
+from eventcap.names import unknown_name_message
+
+from .errors import EnergyError, SolveFailed
 
 #: IPOPT return statuses accepted as success.
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -31,7 +33,8 @@ PARAM_NAMES = DOF_NAMES + ROOT_ROTATION_NAMES + ROOT_TRANSLATION_NAMES
 
 @dataclass(frozen=True)
 class IpoptSettings:
-    """IPOPT options that are pinned for speed and reproducibility (fixed when the problem is built).
+    """IPOPT options that are pinned for speed and reproducibility (fixed when the problem is built). The three a
+    stage's config states (max_iter, tol, mumps_pivot_order) have no default here; the rest are this library's.
 
     Batch solves start from good estimates (interpolation, previous ICP round): a monotone barrier starting at a
     tiny ``mu_init`` keeps IPOPT from first pushing the many joint angles that sit on their limits into the
@@ -39,11 +42,11 @@ class IpoptSettings:
     default). Detection fits start from a crude guess and use IPOPT's adaptive barrier.
     """
 
-    max_iter: int = 100  # iteration limit per solve; reaching it is a failure
-    tol: float = 1e-6  # IPOPT's (scaled) convergence tolerance
+    max_iter: int  # iteration limit per solve; reaching it is a failure (the stage's config states it)
+    tol: float  # IPOPT's (scaled) convergence tolerance (the stage's config)
+    mumps_pivot_order: int  # MUMPS ordering, pinned (its automatic choice may differ between machines; the config)
     acceptable_tol: float = 1e-4  # "solved to acceptable level" after acceptable_iter iterations below it
     acceptable_iter: int = 10
-    mumps_pivot_order: int = 0  # AMD: pinned (MUMPS' automatic choice may differ between machines)
     mu_init: float = 1e-7  # initial barrier parameter of the (warm-started) batch solves
     bound_push: float = 1e-4  # how far batch solves move the warm start away from the bounds (relative)
 
@@ -153,6 +156,10 @@ def block_tridiagonal_triu(n_blocks: int, size: int):
 
 
 
+class _BoundsError(EnergyError):
+    status = "invalid_bounds"
+
+
 def checked_bounds(lower, upper, who: str) -> tuple[np.ndarray, np.ndarray]:
     """Bounds (33,) of the pose parameters: the given ones, or :func:`skeleton.pose_bounds` for None; checked for
     shape and order (errors name ``who`` and the first offending parameter)."""
@@ -164,47 +171,43 @@ def checked_bounds(lower, upper, who: str) -> tuple[np.ndarray, np.ndarray]:
     bad = np.flatnonzero(~(lower <= upper))
     if bad.size:
         k = int(bad[0])
-        raise ValueError(f"{who}: lower bound above upper bound for pose parameter {k} ({PARAM_NAMES[k]}): "
-                         f"{lower[k]} > {upper[k]}")
+        raise _BoundsError(f"{who}: lower bound above upper bound for pose parameter {k} ({PARAM_NAMES[k]}): "
+                           f"{lower[k]} > {upper[k]}")
     return lower, upper
 
 
 
 def bounds_with(limits, where: str = "stages.solve.limits") -> tuple[np.ndarray, np.ndarray]:
     """Default joint limits (skeleton.pose_bounds) with the config's overrides {name: [min, max]} applied;
-    StageFailed(status="invalid_bounds") naming ``where`` for an unknown name or a malformed pair."""
-    from eventcap.registry import unknown_name_message
-
+    EnergyError (status "invalid_bounds") naming ``where`` for an unknown name or a malformed pair."""
     lo, hi = pose_bounds()
     for name, pair in (limits or {}).items():
         if name not in PARAM_NAMES:
-            raise StageFailed(f"{where}: " + unknown_name_message("pose parameter", name, list(PARAM_NAMES)),
-                              status="invalid_bounds")
+            raise _BoundsError(f"{where}: " + unknown_name_message("pose parameter", name, list(PARAM_NAMES)))
         if len(pair) != 2:
-            raise StageFailed(f"{where}.{name}: expected [min, max], got {list(pair)}",
-                              status="invalid_bounds")
+            raise _BoundsError(f"{where}.{name}: expected [min, max], got {list(pair)}")
         k = PARAM_NAMES.index(name)
         lo[k], hi[k] = float(pair[0]), float(pair[1])
-    return lo, hi
+    return checked_bounds(lo, hi, where)
 
 
 def run_ipopt(solver, x0, p, lbx, ubx, what: str) -> tuple[np.ndarray, SolveStats]:
-    """One IPOPT solve through a built nlpsol; StageFailed (with IPOPT's status) unless it succeeded with finite
+    """One IPOPT solve through a built nlpsol; SolveFailed (with IPOPT's status) unless it succeeded with finite
     values. Returns (x, stats)."""
     t0 = time.perf_counter()
     try:
         res = solver(x0=x0, p=p, lbx=lbx, ubx=ubx)
     except RuntimeError as exc:  # CasADi refuses ill-posed input (e.g. lbx > ubx) before IPOPT runs
-        raise StageFailed(f"{what}: the solver refused the problem: {exc}", status="Invalid_Problem_Definition",
+        raise SolveFailed(f"{what}: the solver refused the problem: {exc}", status="Invalid_Problem_Definition",
                           details={"error": str(exc)}) from exc
     st = solver.stats()
     status = str(st.get("return_status", "unknown"))
     stats = SolveStats(status=status, iterations=int(st.get("iter_count", 0)),
                        seconds=time.perf_counter() - t0)
     if status not in SUCCESS_STATUSES:
-        raise StageFailed(f"{what}: IPOPT did not converge (status {status} after {stats.iterations} "
+        raise SolveFailed(f"{what}: IPOPT did not converge (status {status} after {stats.iterations} "
                           f"iterations)", status=status, details={"iterations": stats.iterations})
     x = np.asarray(res["x"], dtype=np.float64).ravel()
     if not np.all(np.isfinite(x)):
-        raise StageFailed(f"{what}: IPOPT returned non-finite poses (status {status})", status="non_finite")
+        raise SolveFailed(f"{what}: IPOPT returned non-finite poses (status {status})", status="non_finite")
     return x, stats

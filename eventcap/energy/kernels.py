@@ -120,15 +120,43 @@ class SkinningKernels:
         self._dg = Buffered(ca.Function("skin_dG", [S], [g, dg]).map(n_frames))
         self._h = Buffered(ca.Function("skin_d2G", [S, lam], [hess]).map(n_frames))
 
+        self._memo: tuple = (None, None)  # the last poses' (G, dG): factors sharing these kernels reuse them
+
     def transforms(self, S: np.ndarray) -> np.ndarray:
+        key, val = self._memo
+        if key is not None and key == np.asarray(S, dtype=np.float64).tobytes():
+            return val[0]
         return self._g(S)[0].reshape(self.F, 4 * NUM_JOINTS, 3)
 
     def transforms_jac(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = np.asarray(S, dtype=np.float64).tobytes()
+        if self._memo[0] == key:
+            return self._memo[1]
         g, dg = self._dg(S)
-        return g.reshape(self.F, 4 * NUM_JOINTS, 3), dg.reshape(self.F, 4 * NUM_JOINTS, 3, _NP)
+        val = (g.reshape(self.F, 4 * NUM_JOINTS, 3), dg.reshape(self.F, 4 * NUM_JOINTS, 3, _NP))
+        self._memo = (key, val)
+        return val
 
     def contracted_hessian(self, S: np.ndarray, lam: np.ndarray) -> np.ndarray:
         return self._h(S, lam)[0].reshape(self.F, _NP, _NP)
+
+
+#: Built skinning kernels by (rest joints, frames): the factors of one problem (E_cor, E_temp, E_sil, E_stab at the
+#: same frames) share them, and their memo of the last poses.
+_KERNELS: dict = {}
+
+
+def shared_kernels(rest_joints: np.ndarray, n_frames: int) -> SkinningKernels:
+    """The skinning kernels of n_frames frames for these rest joints, built once per process (keyed by value)."""
+    key = (np.asarray(rest_joints, dtype=np.float64).tobytes(), int(n_frames))
+    if key not in _KERNELS:
+        _KERNELS[key] = SkinningKernels(rest_joints, int(n_frames))
+    return _KERNELS[key]
+
+
+def clear_kernels() -> None:
+    """Forget the built kernels (they are rebuilt on demand)."""
+    _KERNELS.clear()
 
 
 def premultiplied_weights(rest_points: np.ndarray, weights: np.ndarray) -> np.ndarray:

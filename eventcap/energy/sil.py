@@ -9,7 +9,7 @@ n_b and surface points v_b (:mod:`.boundary`) and the closest event u_b of each 
 
 - E_sil (Eq. 11): the point-to-line (2D "point-to-plane") distance of the projected surface point to its event,
   along the boundary normal. ρ is the loss: ``l2`` (ρ(r) = r², the paper) or ``huber`` (r² for |r| <= δ, else
-  2δ|r| - δ², δ = ``huber_px``): events from texture inside the body or from the background that happen to be the
+  2δ|r| - δ², δ = ``sil_huber_px``): events from texture inside the body or from the background that happen to be the
   nearest ones then pull linearly instead of quadratically.
 - E_stab (Eq. 10): the 24 joints stay close to reference joints J(Ŝ_f) (λ_stab = 0: no such term).
 
@@ -37,31 +37,13 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 
 from .boundary import NORMAL_SIGMA_PX, boundary_samples
+from .errors import EnergyError
 from .event_search import EventIndex
+from .factor import Factor, Layout, Linearization, Window
+from .kernels import premultiplied_weights, shared_kernels
 
 _NP = NUM_POSE_PARAMS
 LOSSES = ("l2", "huber")
-
-
-@dataclass(frozen=True)
-class SilhouetteWeights:
-    """λ of Eq. 9 and Eq. 12 and the loss of E_sil (units: module doc)."""
-
-    sil: float = 1.0
-    stab: float = 5.0
-    dist: float = 4.0  # λ_dist of the closest event search (Eq. 12)
-    loss: str = "l2"
-    huber_px: float = 1.0  # δ of the Huber loss, pixels
-
-    def __post_init__(self) -> None:
-        for name in ("sil", "stab", "dist", "huber_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"SilhouetteWeights.{name}: expected a finite number >= 0, got {v!r}")
-        if self.loss not in LOSSES:
-            raise ValueError(f"loss: expected one of {LOSSES}, got {self.loss!r}")
-        if self.loss == "huber" and not self.huber_px > 0:
-            raise ValueError(f"huber_px: the Huber loss needs a threshold > 0 pixels, got {self.huber_px!r}")
 
 
 @dataclass(frozen=True)
@@ -96,46 +78,58 @@ def robust_loss(r: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.
     raise ValueError(f"loss: expected one of {LOSSES}, got {loss!r}")
 
 
-# --------------------------------------------------------------------------------------------- the energy (numpy)
-class SilhouetteEnergy:
-    """E_refine of all F frames as a function of the poses S (F, 33): value, gradient and exact Hessian blocks.
+# --------------------------------------------------------------------------------------------- the factors
+class SilhouetteToEvents(Factor):
+    """E_sil (Eq. 11): λ_sil Σ_b ρ(n_bᵀ(π(v_b(S_f)) - u_b) / f) at the window's silhouette frames (module doc), ρ the
+    loss ``sil_loss`` (l2 | huber, threshold ``sil_huber_px``); exact block-diagonal Hessian."""
 
-    Data (:meth:`set_data`): the correspondences, the reference joints J(Ŝ) (F, 24, 3) and the weights.
-    """
+    name = "sil"
+    settings = ("sil_loss", "sil_huber_px")
 
-    def __init__(self, camera: Camera, kernels, rest_joints: np.ndarray):
-        from eventcap.energy.kernels import premultiplied_weights
-
+    def __init__(self, weight, config, template, camera: Camera, layout: Layout):
         from ._sil_kernels import camera_params
 
-        self.camera, self.kernels, self.F = camera, kernels, kernels.F
+        super().__init__(weight, config, template, camera, layout)
+        self.loss, self.huber_px = str(config.sil_loss), float(config.sil_huber_px)
+        if self.loss not in LOSSES:
+            raise EnergyError(f"sil_loss: expected one of {LOSSES}, got {self.loss!r}")
+        if self.loss == "huber" and not self.huber_px > 0:
+            raise EnergyError(f"sil_huber_px: the Huber loss needs a threshold > 0 pixels, got {self.huber_px!r}")
+        self.kernels = shared_kernels(template.rest_joints, self.n)
         self.cam = camera_params(camera)
         self.scale = 1.0 / math.sqrt(camera.fx * camera.fy)
-        self.WXJ = premultiplied_weights(rest_joints, np.eye(NUM_JOINTS))  # (24, 96): J_l = WXJ_l · G
-        self.set_data(SilhouetteCorrespondences.empty(), np.zeros((self.F, NUM_JOINTS, 3)), SilhouetteWeights())
+        self.delta = self.huber_px * self.scale
+        self.set_correspondences(SilhouetteCorrespondences.empty())
 
-    def set_data(self, corr: SilhouetteCorrespondences, ref_joints: np.ndarray, weights: SilhouetteWeights) -> None:
-        ref_joints = np.asarray(ref_joints, dtype=np.float64)
-        if ref_joints.shape != (self.F, NUM_JOINTS, 3):
-            raise ValueError(f"reference joints: expected shape ({self.F}, 24, 3), got {ref_joints.shape}")
-        if corr.n and (corr.frame.min() < 0 or corr.frame.max() >= self.F or np.any(np.diff(corr.frame) < 0)):
-            raise ValueError(f"correspondences: frames must be sorted and lie in [0, {self.F})")
-        self.corr, self.ref, self.w = corr, ref_joints, weights
+    @staticmethod
+    def size(layout: Layout) -> int:
+        return layout.n_sil
+
+    def prepare(self, window: Window) -> None:
+        t = np.asarray(window.need("t_sil_us", "E_sil"), dtype=np.int64)
+        if t.shape != (self.n,):
+            raise EnergyError(f"E_sil: expected {self.n} silhouette frames, got {t.shape}")
+        self.t_us = t
+        self.set_correspondences(SilhouetteCorrespondences.empty() if window.silhouette is None
+                                 else window.silhouette)
+
+    def set_correspondences(self, corr: SilhouetteCorrespondences) -> None:
         from ._sil_kernels import sparse_premultiplied
 
+        if corr.n and (corr.frame.min() < 0 or corr.frame.max() >= self.n or np.any(np.diff(corr.frame) < 0)):
+            raise EnergyError(f"E_sil: correspondences' frames must be sorted and lie in [0, {self.n})")
+        self.corr = corr
         # Premultiplied weights WX (P, 96), point = WX · G, kept as their nonzeros (~15%: 2-9 joints per point).
         self.nz_idx, self.nz_val = sparse_premultiplied(corr.rest_points, corr.weights)
         self.frame = np.ascontiguousarray(corr.frame, dtype=np.int64)
         self.normal = np.ascontiguousarray(corr.normal, dtype=np.float64)
         self.target = np.ascontiguousarray(corr.target_px, dtype=np.float64)
-        self.delta = weights.huber_px * self.scale
-        bounds = np.searchsorted(corr.frame, np.arange(self.F + 1))
-        self.slices = [(f, slice(bounds[f], bounds[f + 1])) for f in range(self.F) if bounds[f + 1] > bounds[f]]
-        most = int(np.diff(bounds).max()) if self.F else 0
+        bounds = np.searchsorted(corr.frame, np.arange(self.n + 1))
+        self.slices = [(f, slice(bounds[f], bounds[f + 1])) for f in range(self.n) if bounds[f + 1] > bounds[f]]
+        most = int(np.diff(bounds).max()) if self.n else 0
         self._buffers = (np.empty((most, 3 * _NP)), np.empty((most, 3 * _NP)))  # J3 and B·J3 of one frame
         self._cache: dict = {}
 
-    # -------------------------------------------------------------- pieces
     def _points(self, G: np.ndarray) -> np.ndarray:
         from ._sil_kernels import sparse_points
 
@@ -155,20 +149,13 @@ class SilhouetteEnergy:
                              r, gr, hr)
         return r, gr, hr
 
-    def terms(self, S: np.ndarray) -> dict:
-        """Unweighted E_sil (with the loss) and E_stab, per frame: {'sil': (F,), 'stab': (F,)}."""
-        S = np.asarray(S, dtype=np.float64).reshape(self.F, _NP)
-        G = self.kernels.transforms(S)
-        sil = np.zeros(self.F)
+    def per_frame(self, S: np.ndarray) -> np.ndarray:
+        """Unweighted E_sil (with the loss) per frame (n,)."""
+        out = np.zeros(self.n)
         if self.corr.n:
-            rho = robust_loss(self.residuals(self._points(G))[0], self.w.loss, self.delta)[0]
-            np.add.at(sil, self.corr.frame, rho)
-        d = self.WXJ @ G - self.ref
-        return {"sil": sil, "stab": np.sum(d * d, axis=(1, 2))}
-
-    def value(self, S: np.ndarray) -> float:
-        t = self.terms(S)
-        return float(self.w.sil * t["sil"].sum() + self.w.stab * t["stab"].sum())
+            rho = robust_loss(self.residuals(self._points(self.kernels.transforms(S)))[0], self.loss, self.delta)[0]
+            np.add.at(out, self.corr.frame, rho)
+        return out
 
     def _first_order(self, S: np.ndarray) -> dict:
         from ._sil_kernels import sparse_accumulate
@@ -177,75 +164,109 @@ class SilhouetteEnergy:
         if self._cache.get("key") == key:
             return self._cache
         G, dG = self.kernels.transforms_jac(S)
-        lamG = np.zeros((self.F, 4 * NUM_JOINTS, 3))  # ∂E/∂G per frame
-        value = 0.0
-        c = {"key": key, "dG": dG}
+        lamG = np.zeros((self.n, 4 * NUM_JOINTS, 3))  # ∂E/∂G per frame
+        c = {"key": key, "dG": dG, "value": 0.0}
         if self.corr.n:
-            pts = self._points(G)
-            r, gr, hr = self.residuals(pts, 2)
-            rho, d1, d2 = robust_loss(r, self.w.loss, self.delta)
-            a = (self.w.sil * d1)[:, None] * gr  # ∂E/∂point
-            sparse_accumulate(self.nz_idx, self.nz_val, self.frame, a, lamG)
-            value += self.w.sil * float(rho.sum())
-            c.update(d1=d1, d2=d2, gr=gr, hr=hr)
-        J = self.WXJ @ G
-        dJ = J - self.ref
-        value += self.w.stab * float(np.sum(dJ * dJ))
-        lamG += self.WXJ.T @ ((2.0 * self.w.stab) * dJ)  # ∂E/∂J (F, 24, 3) carried to G
-        # ∂E/∂S_f = Σ_{a,c} ∂E/∂G[f,a,c] · ∂G[f,a,c]/∂S_f: points and joints are linear in G.
-        g = np.matmul(lamG.reshape(self.F, 1, -1), dG.reshape(self.F, -1, _NP))[:, 0, :]
-        c.update(value=value, g=g, lamG=lamG)
+            r, gr, hr = self.residuals(self._points(G), 2)
+            rho, d1, d2 = robust_loss(r, self.loss, self.delta)
+            sparse_accumulate(self.nz_idx, self.nz_val, self.frame, (self.weight * d1)[:, None] * gr, lamG)
+            c.update(value=self.weight * float(rho.sum()), d1=d1, d2=d2, gr=gr, hr=hr)
+        # ∂E/∂S_f = Σ_{a,c} ∂E/∂G[f,a,c] · ∂G[f,a,c]/∂S_f: points are linear in G.
+        c["g"] = np.matmul(lamG.reshape(self.n, 1, -1), dG.reshape(self.n, -1, _NP))[:, 0, :]
+        c["lamG"] = lamG
         self._cache = c
         return c
 
-    # -------------------------------------------------------------- what IPOPT calls
-    def gradient(self, S: np.ndarray) -> tuple[float, np.ndarray]:
-        c = self._first_order(np.asarray(S, dtype=np.float64).reshape(self.F, _NP))
-        return c["value"], c["g"]
+    def linearize(self, S, aux, order):
+        S = np.ascontiguousarray(S, dtype=np.float64)
+        if order == 0:
+            return Linearization(self.weight * float(self.per_frame(S).sum()))
+        c = self._first_order(S)
+        lin = Linearization(c["value"], c["g"])
+        if order >= 2:
+            lin.diag = self._hessian(S, c)
+        return lin
 
-    def hessian(self, S: np.ndarray) -> np.ndarray:
-        """Exact Hessian as diagonal blocks (F, 33, 33) (frames do not interact)."""
+    def _hessian(self, S: np.ndarray, c: dict) -> np.ndarray:
         from ._sil_kernels import point_jacobians
 
-        S = np.asarray(S, dtype=np.float64).reshape(self.F, _NP)
-        c = self._first_order(S)
-        dGm = c["dG"].reshape(self.F, 4 * NUM_JOINTS, 3 * _NP)
-        diag = np.zeros((self.F, _NP, _NP))
+        dGm = c["dG"].reshape(self.n, 4 * NUM_JOINTS, 3 * _NP)
+        diag = np.zeros((self.n, _NP, _NP))
         if self.corr.n:
             # Σ_p J3_pᵀ B_p J3_p per frame, with J3_p = ∂point/∂S = WX_p · ∂G and the point-space Hessian of
             # λ ρ(r): B_p = λ (ρ'' ∇r ∇rᵀ + ρ' ∇²r). Frame by frame, so that J3 and B·J3 stay in cache.
-            c2, c1 = self.w.sil * c["d2"], self.w.sil * c["d1"]
+            c2, c1 = self.weight * c["d2"], self.weight * c["d1"]
             gr, hr = c["gr"], c["hr"]
             J3, BJ = self._buffers
             for f, sl in self.slices:
-                n = sl.stop - sl.start
-                point_jacobians(self.nz_idx[sl], self.nz_val[sl], f, dGm, c2[sl], gr[sl], c1[sl], hr[sl], J3[:n],
-                                BJ[:n])
-                diag[f] = J3[:n].reshape(-1, _NP).T @ BJ[:n].reshape(-1, _NP)
-        JJ = (self.WXJ @ dGm).reshape(self.F, -1, _NP)  # ∂J/∂S per frame (F, 72, 33)
-        diag += (2.0 * self.w.stab) * np.matmul(np.swapaxes(JJ, 1, 2), JJ)
+                m = sl.stop - sl.start
+                point_jacobians(self.nz_idx[sl], self.nz_val[sl], f, dGm, c2[sl], gr[sl], c1[sl], hr[sl], J3[:m],
+                                BJ[:m])
+                diag[f] = J3[:m].reshape(-1, _NP).T @ BJ[:m].reshape(-1, _NP)
         diag += self.kernels.contracted_hessian(S, c["lamG"])
         return diag
 
 
+class JointStability(Factor):
+    """E_stab (Eq. 10): λ_stab Σ_f Σ_l ‖J_l(S_f) - J_l(Ŝ_f)‖², the 24 joints held near reference joints (the
+    refinement: where the batch solve put them), at the window's silhouette frames."""
+
+    name = "stab"
+
+    def __init__(self, weight, config, template, camera, layout):
+        super().__init__(weight, config, template, camera, layout)
+        self.kernels = shared_kernels(template.rest_joints, self.n)
+        self.WXJ = premultiplied_weights(template.rest_joints, np.eye(NUM_JOINTS))  # (24, 96): J_l = WXJ_l · G
+        self.ref = np.zeros((self.n, NUM_JOINTS, 3))
+
+    @staticmethod
+    def size(layout: Layout) -> int:
+        return layout.n_sil
+
+    def prepare(self, window: Window) -> None:
+        self.t_us = np.asarray(window.need("t_sil_us", "E_stab"), dtype=np.int64)
+        ref = np.asarray(window.need("ref_joints", "E_stab"), dtype=np.float64)
+        if ref.shape != (self.n, NUM_JOINTS, 3):
+            raise EnergyError(f"E_stab: reference joints: expected shape ({self.n}, 24, 3), got {ref.shape}")
+        self.ref = ref
+
+    def per_frame(self, S: np.ndarray) -> np.ndarray:
+        d = self.WXJ @ self.kernels.transforms(np.ascontiguousarray(S, dtype=np.float64)) - self.ref
+        return np.sum(d * d, axis=(1, 2))
+
+    def linearize(self, S, aux, order):
+        S = np.ascontiguousarray(S, dtype=np.float64)
+        if order == 0:
+            return Linearization(self.weight * float(self.per_frame(S).sum()))
+        G, dG = self.kernels.transforms_jac(S)
+        dJ = self.WXJ @ G - self.ref
+        lamG = self.WXJ.T @ ((2.0 * self.weight) * dJ)  # ∂E/∂J (F, 24, 3) carried to G
+        g = np.matmul(lamG.reshape(self.n, 1, -1), dG.reshape(self.n, -1, _NP))[:, 0, :]
+        lin = Linearization(self.weight * float(np.sum(dJ * dJ)), g)
+        if order >= 2:
+            JJ = (self.WXJ @ dG.reshape(self.n, 4 * NUM_JOINTS, 3 * _NP)).reshape(self.n, -1, _NP)
+            lin.diag = ((2.0 * self.weight) * np.matmul(np.swapaxes(JJ, 1, 2), JJ)
+                        + self.kernels.contracted_hessian(S, lamG))
+        return lin
 
 
 def find_silhouette_correspondences(template: Template, camera: Camera, poses: np.ndarray, index: EventIndex,
-                         weights: SilhouetteWeights, patch_px: int,
-                         sigma_px: float = NORMAL_SIGMA_PX) -> tuple[SilhouetteCorrespondences, int, dict]:
-    """One correspondence search: boundary samples of ``poses`` (F, 33) and their closest events.
+                                    dist: float, patch_px: int,
+                                    sigma_px: float = NORMAL_SIGMA_PX) -> tuple[SilhouetteCorrespondences, int, dict]:
+    """One correspondence search: boundary samples of ``poses`` (F, 33) and their closest events (Eq. 12-13: within
+    ``patch_px`` and the index's time window, λ_dist = ``dist`` weighing time against distance).
 
     Returns (matched correspondences, number of boundary samples, seconds per phase).
     """
     t0 = time.perf_counter()
     samples = boundary_samples(template, camera, poses, sigma_px)
     t1 = time.perf_counter()
-    m = index.closest(samples.frame, samples.pixel, weights.dist, patch_px)
+    m = index.closest(samples.frame, samples.pixel, dist, patch_px)
     corr = SilhouetteCorrespondences(frame=samples.frame[m.found], rest_points=samples.rest_points[m.found],
                            weights=samples.weights[m.found], normal=samples.normal[m.found],
                            target_px=m.target_px[m.found])
     return corr, samples.n, {"boundary": t1 - t0, "search": time.perf_counter() - t1}
 
 
-__all__ = ["LOSSES", "SilhouetteCorrespondences", "SilhouetteEnergy", "SilhouetteWeights",
+__all__ = ["LOSSES", "JointStability", "SilhouetteCorrespondences", "SilhouetteToEvents",
            "find_silhouette_correspondences", "robust_loss"]

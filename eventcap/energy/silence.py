@@ -40,33 +40,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import casadi as ca
 import cv2
 import numpy as np
 from scipy.ndimage import minimum_filter1d
 
-from eventcap.body.skeleton import NUM_JOINTS, PARENTS
+from eventcap.body.kinematics import joint_positions
+from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS, PARENTS
 
-
-@dataclass(frozen=True)
-class SilenceSettings:
-    """How the event-silence term measures stillness (:func:`measure_silence`)."""
-
-    radius_px: int = 6  #: half side of the box of pixels counted around each sample along a bone
-    rate_hz: float = 2.0  #: activity above the background (events / px / s) at which the stillness is 1/e
-    hold_bins: int = 0  #: a joint's stillness in a bin is its least within ± this many bins
-    sweep_bins: int = 0  #: a bin's events are counted around the bones where the estimate puts them in every bin
-    #: within ± this many (the most active place counts)
-
-    def __post_init__(self) -> None:
-        if isinstance(self.radius_px, bool) or int(self.radius_px) != self.radius_px or self.radius_px < 0:
-            raise ValueError(f"SilenceSettings.radius_px: expected an integer >= 0, got {self.radius_px!r}")
-        for name in ("hold_bins", "sweep_bins"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < 0:
-                raise ValueError(f"SilenceSettings.{name}: expected an integer >= 0, got {v!r}")
-        v = self.rate_hz
-        if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
-            raise ValueError(f"SilenceSettings.rate_hz: expected a finite number > 0, got {v!r}")
+from .errors import EnergyError
+from .factor import Factor, Layout, Linearization, Window
+from .kernels import Buffered
+from .spline import GAUSS3
 
 
 @dataclass(frozen=True)
@@ -80,9 +65,9 @@ class Silence:
     stillness: np.ndarray  #: (K, 24) in [0, 1]: 1 = no more events than the background
 
 
-def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndarray, height: int, width: int,
-                    radius_px: int = 6, rate_hz: float = 2.0, n_samples: int = 4, margin_px: float = 20.0,
-                    hold_bins: int = 0, sweep_bins: int = 0) -> Silence:
+def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndarray, height: int, width: int, *,
+                    radius_px: int, rate_hz: float, hold_bins: int, sweep_bins: int, n_samples: int = 4,
+                    margin_px: float = 20.0) -> Silence:
     """Stillness of every joint per bin (see the module doc).
 
     events: structured events (t µs, x, y, p) of the bins' span (others are ignored); edges_us: (K+1,) increasing;
@@ -103,9 +88,11 @@ def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndar
         raise ValueError(f"measure_silence: expected >= 2 increasing bin edges, got {edges.size}")
     if J.shape != (K, NUM_JOINTS, 2):
         raise ValueError(f"measure_silence: joints_px: expected shape ({K}, {NUM_JOINTS}, 2), got {J.shape}")
-    if not (rate_hz > 0 and radius_px >= 0 and n_samples >= 1):
-        raise ValueError(f"measure_silence: expected rate_hz > 0, radius_px >= 0, n_samples >= 1, got {rate_hz!r}, "
-                         f"{radius_px!r}, {n_samples!r}")
+    if not (np.isfinite(rate_hz) and rate_hz > 0 and n_samples >= 1):
+        raise ValueError(f"measure_silence: expected rate_hz > 0, n_samples >= 1, got {rate_hz!r}, {n_samples!r}")
+    for name, v in (("radius_px", radius_px), ("hold_bins", hold_bins), ("sweep_bins", sweep_bins)):
+        if isinstance(v, bool) or int(v) != v or v < 0:
+            raise ValueError(f"measure_silence: {name}: expected an integer >= 0, got {v!r}")
     r = int(radius_px)
     t = events["t"]
     keep = (t >= edges[0]) & (t < edges[-1])
@@ -162,4 +149,64 @@ def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndar
     return Silence(edges_us=edges, activity_hz=activity, background_hz=background, stillness=still)
 
 
-__all__ = ["Silence", "SilenceSettings", "measure_silence"]
+def knot_gauss_times(knots_us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 3 Gauss-Legendre points of every knot interval: (times µs (3·K,) float, interval of each (3·K,),
+    quadrature weight in seconds of each (3·K,)); exact for polynomials of degree <= 5 over each interval."""
+    edges = np.asarray(knots_us, dtype=np.int64)
+    K = edges.size - 1
+    h = np.diff(edges).astype(np.float64)
+    seg = np.repeat(np.arange(K), 3)
+    g, wq = GAUSS3
+    return edges[seg] + h[seg] * np.tile(g, K), seg, np.tile(wq, K) * h[seg] * 1e-6
+
+
+class EventSilence(Factor):
+    """E_still (module doc): λ_still Σ_k Σ_j s_j(k) ∫_k ‖J_j(S_ref(t)) S'(t)‖² dt, the image velocity (px/s) of every
+    joint the events call still (stillness s of the window, per knot interval and joint), with the Jacobian J_j of
+    joint j's pixel held at the estimate the solve starts from (Gauss-Newton, a fixed quadratic form in the
+    velocities). Samples: the 3 Gauss points of every knot interval (exact for the cubic spline's velocities)."""
+
+    name = "still"
+    derivative = 1
+
+    def __init__(self, weight, config, template, camera, layout):
+        super().__init__(weight, config, template, camera, layout)
+        S = ca.SX.sym("S", NUM_POSE_PARAMS)
+        px = camera.project_sym(joint_positions(S, template.rest_joints).T)  # (2, 24)
+        jac = ca.densify(ca.jacobian(ca.reshape(px, 2 * NUM_JOINTS, 1), S))
+        self._joint_px_jac = Buffered(ca.Function("joint_px_jac", [S], [jac]).map(self.n))
+        self.M = np.zeros((self.n, NUM_POSE_PARAMS, NUM_POSE_PARAMS))
+
+    @staticmethod
+    def size(layout: Layout) -> int:
+        return 3 * layout.n_seg
+
+    def prepare(self, window: Window) -> None:
+        knots = np.asarray(window.need("knots_us", "E_still"), dtype=np.int64)
+        t_q, seg, w_q = knot_gauss_times(knots)
+        if window.stillness is None:  # no events for this window: nothing is known still
+            self.t_us, self.M = t_q, np.zeros((self.n, NUM_POSE_PARAMS, NUM_POSE_PARAMS))
+            return
+        still = np.asarray(window.stillness, dtype=np.float64)
+        if t_q.size != self.n or still.shape != (self.n // 3, NUM_JOINTS):
+            raise EnergyError(f"E_still: expected stillness of shape ({self.n // 3}, {NUM_JOINTS}) over as many knot "
+                              f"intervals, got {still.shape} over {knots.size - 1}")
+        if not np.all(np.isfinite(still) & (still >= 0)):
+            raise EnergyError("E_still: stillness must be finite and >= 0")
+        estimate = window.need("estimate", "E_still")
+        self.t_us = t_q
+        Jq = self._joint_px_jac(estimate(t_q))[0].reshape(self.n, NUM_POSE_PARAMS, NUM_JOINTS, 2)
+        wjq = still[seg] * w_q[:, None]  # (Q, 24)
+        self.M = np.einsum("qajx,qj,qbjx->qab", Jq, wjq, Jq)
+
+    def linearize(self, S, aux, order):
+        MV = np.einsum("qab,qb->qa", self.M, S)  # S: the velocities at the Gauss points
+        lin = Linearization(self.weight * float(np.sum(S * MV)))
+        if order >= 1:
+            lin.grad = (2.0 * self.weight) * MV
+        if order >= 2:
+            lin.diag = (2.0 * self.weight) * self.M
+        return lin
+
+
+__all__ = ["EventSilence", "Silence", "knot_gauss_times", "measure_silence"]

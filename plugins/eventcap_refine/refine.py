@@ -26,18 +26,19 @@ correction of the batch result, as in the paper, not a re-fit to the events alon
 
 How it is computed. All frames of a batch are one NLP over the F·33 pose parameters (frames do not interact: the
 Hessian is block diagonal; one NLP needs as many IPOPT iterations as the slowest frame, 41 separate ones would pay
-IPOPT's and CasADi's overhead 41 times per ICP iteration), built once per process for a template, camera and frame
-count (~0.1 s), and solved by IPOPT (exact Hessian, MUMPS, the batch solver's pinned options
-:class:`eventcap.energy.ipopt.IpoptSettings` with tol = :data:`TOL`), warm-started from the previous ICP iteration.
-The energy is evaluated exactly — value, gradient and Hessian — as in the batch solver's E_cor: per frame, the 24
-skinning transforms G(S) (96×3), their Jacobian and the contraction of their second derivatives come from the
-solver's CasADi kernels (:class:`eventcap.energy.kernels.SkinningKernels`); each surface point is v = WX·G
+IPOPT's and CasADi's overhead 41 times per ICP iteration): the factors E_sil and E_stab of :mod:`eventcap.energy`
+(:class:`eventcap.energy.sil.SilhouetteToEvents`, :class:`eventcap.energy.sil.JointStability`, shared with the
+spline solve) summed over one pose per frame by :class:`eventcap.energy.problem.FactorProblem`, built once per
+process for a template, camera, frame count and config, and solved by IPOPT (exact Hessian, MUMPS, pinned options),
+warm-started from the previous ICP iteration. The energy is evaluated exactly — value, gradient and Hessian: per
+frame, the 24 skinning transforms G(S) (96×3), their Jacobian and the contraction of their second derivatives come
+from CasADi kernels (:class:`eventcap.energy.kernels.SkinningKernels`); each surface point is v = WX·G
 (premultiplied weights, kept sparse: a point is weighted to 2-9 of the 24 joints), its Jacobian WX·∂G; the
 residuals' derivatives w.r.t. the point (camera model of :meth:`Camera.project`, closed form) and the per-point
-products are compiled loops (:mod:`eventcap.energy._sil_kernels`, checked against ``eventcap.energy.kernels.project_derivatives`` and
-finite differences in the tests). IPOPT sees the energy through CasADi callbacks plugged in as ``grad_f`` /
-``hess_lag``; the correspondences are handed to the energy object per solve, never rebuilt into the NLP. Every
-solve's status is checked: anything but success raises :class:`eventcap.stage.StageFailed` with IPOPT's status.
+products are compiled loops (:mod:`eventcap.energy._sil_kernels`, checked against
+``eventcap.energy.kernels.project_derivatives`` and finite differences in the tests). The correspondences are
+handed to the factors per solve, never rebuilt into the NLP. Every solve's status is checked: anything but success
+raises :class:`eventcap.energy.errors.SolveFailed` with IPOPT's status.
 
 What it achieves (synthetic captures, benchmarks/bench_refine.py). Events pin the silhouette to about a pixel
 (1.5 cm at 3 m): the refinement corrects estimates whose silhouettes are off by pixels, and cannot improve ones
@@ -49,145 +50,63 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import casadi as ca
 import numpy as np
 
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-from eventcap.stage import StageFailed
-
-from eventcap.energy.event_search import DENOISE_US, EventIndex
-from eventcap.energy.sil import (
-    SilhouetteCorrespondences,
-    SilhouetteEnergy,
-    SilhouetteWeights,
-    find_silhouette_correspondences,
-)
+from eventcap.energy.errors import EnergyError
+from eventcap.energy.event_search import EventIndex
+from eventcap.energy.factor import Layout, Window, factors_from_config
+from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
+from eventcap.energy.problem import FactorProblem, FramePoses
+from eventcap.energy.sil import SilhouetteCorrespondences, find_silhouette_correspondences
 
 _NP = NUM_POSE_PARAMS
-#: IPOPT's convergence tolerance for the refinement (scaled NLP error). Measured on synthetic batches: 1e-4 and
-#: 1e-6 give the same poses to 0.01 mm, with 3-4 instead of 5-6 iterations per solve.
-TOL = 1e-4
-
-
-def default_settings():
-    """The pinned IPOPT options of the refinement: the batch solver's, with tol = :data:`TOL`."""
-    from eventcap.energy.ipopt import IpoptSettings
-
-    return IpoptSettings(tol=TOL)
-
-
-def _block_diagonal_triu(n_blocks: int, size: int):
-    """Upper-triangle sparsity of a block-diagonal matrix and the (row, col) within a block of each nonzero, in
-    CasADi's column-major order (block by block, column by column)."""
-    rr, cc = [], []
-    for c in range(size):
-        for r in range(c + 1):
-            rr.append(r), cc.append(c)
-    r_in, c_in = np.array(rr), np.array(cc)
-    rows = (np.arange(n_blocks)[:, None] * size + r_in[None, :]).ravel()
-    cols = (np.arange(n_blocks)[:, None] * size + c_in[None, :]).ravel()
-    sp = ca.Sparsity.triplet(n_blocks * size, n_blocks * size, rows.tolist(), cols.tolist())
-    r_chk, c_chk = sp.get_triplet()
-    assert np.array_equal(r_chk, rows) and np.array_equal(c_chk, cols), "unexpected CasADi nonzero order"
-    return sp, r_in, c_in
 
 
 # --------------------------------------------------------------------------------------------- the problem
-@dataclass(frozen=True)
-class SolveStats:
-    status: str
-    iterations: int
-    seconds: float
-
-
 class RefineProblem:
-    """The refinement NLP of one batch (F frames), built once per (template, camera, F, settings, bounds).
+    """The refinement NLP of one batch (F frames), built once per (template, camera, F, config). ``config``: the
+    stage's config (plugins/eventcap_refine/spec.py, SilhouetteRefineConfig), the one source of every setting."""
 
-    settings: :class:`eventcap.energy.ipopt.IpoptSettings` (pinned IPOPT options; warm-started solves).
-    lower/upper: bounds of the 33 pose parameters (default :func:`skeleton.pose_bounds`).
-    """
-
-    def __init__(self, template: Template, camera: Camera, frames: int, settings=None,
-                 lower: np.ndarray | None = None, upper: np.ndarray | None = None, kernels=None):
-        from eventcap.energy.ipopt import NumpyCallback, checked_bounds
-        from eventcap.energy.kernels import SkinningKernels
-
+    def __init__(self, template: Template, camera: Camera, frames: int, config):
         if not isinstance(template, Template):
-            raise ValueError(f"RefineProblem: expected a Template, got {type(template).__name__}")
+            raise EnergyError(f"RefineProblem: expected a Template, got {type(template).__name__}")
         if not isinstance(camera, Camera):
-            raise ValueError(f"RefineProblem: expected a Camera, got {type(camera).__name__}")
+            raise EnergyError(f"RefineProblem: expected a Camera, got {type(camera).__name__}")
         if isinstance(frames, bool) or int(frames) != frames or frames < 1:
-            raise ValueError(f"RefineProblem: frames (tracking frames per batch) must be an integer >= 1, "
-                             f"got {frames!r}")
+            raise EnergyError(f"RefineProblem: frames (tracking frames per batch) must be an integer >= 1, "
+                              f"got {frames!r}")
         t0 = time.perf_counter()
-        self.template, self.camera, self.F = template, camera, int(frames)
-        self.settings = settings if settings is not None else default_settings()
-        self.lower, self.upper = checked_bounds(lower, upper, "RefineProblem")
-        self.kernels = kernels if kernels is not None else SkinningKernels(template.rest_joints, self.F)
-        if self.kernels.F != self.F:
-            raise ValueError(f"RefineProblem: kernels for {self.kernels.F} frames, problem for {self.F}")
-        self.energy = ne = SilhouetteEnergy(camera, self.kernels, template.rest_joints)
-        nx = _NP * self.F
-        sp_h, r_in, c_in = _block_diagonal_triu(self.F, _NP)
-
-        def grad(v):
-            value, g = ne.gradient(v)
-            return [value, g.ravel()]
-
-        def hess(v):
-            return [ne.hessian(v)[:, r_in, c_in].ravel()]
-
-        self._callbacks = [
-            NumpyCallback("E_refine", nx, [ca.Sparsity.dense(1, 1)], lambda v: [ne.value(v)]),
-            NumpyCallback("E_refine_grad", nx, [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(nx, 1)], grad),
-            NumpyCallback("E_refine_hess", nx, [sp_h], hess),
-        ]
-        cb_f, cb_g, cb_h = self._callbacks
-        X, P = ca.MX.sym("x", nx), ca.MX.sym("p", 0)
-        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0)
-        f_mx = cb_f(X)
-        val, g = cb_g(X)
-        grad_f = ca.Function("grad_f", [X, P], [val, g], ["x", "p"], ["f", "grad_f_x"])
-        hess_lag = ca.Function("hess_lag", [X, P, lam_f, lam_g], [lam_f * cb_h(X)],
-                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
-        #: Objective, gradient and (upper-triangular) Hessian exactly as IPOPT sees them (for derivative checks).
-        self.objective = ca.Function("objective", [X], [f_mx])
-        self.gradient = ca.Function("gradient", [X], [val, g])  # (value, gradient): the callback fills both
-        self.hessian = ca.Function("hessian", [X], [cb_h(X)])
-        opts = dict(self.settings.options(True), grad_f=grad_f, hess_lag=hess_lag)
-        self._solver = ca.nlpsol("refine", "ipopt", {"x": X, "p": P, "f": f_mx}, opts)
+        self.template, self.camera, self.F, self.config = template, camera, int(frames), config
+        lo, hi = bounds_with(config.limits, "stages.refine.limits")
+        settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
+        factors = factors_from_config(config, template, camera, Layout(n_frames=self.F, n_sil=self.F))
+        self.problem = FactorProblem(FramePoses(self.F), factors, settings, lo, hi, damp=0.0, name="refine")
+        self.lower, self.upper = self.problem.lower, self.problem.upper
         self.build_seconds = time.perf_counter() - t0
 
-    def set_data(self, corr: SilhouetteCorrespondences, ref_joints: np.ndarray, weights: SilhouetteWeights) -> None:
-        self.energy.set_data(corr, ref_joints, weights)
+    def set_data(self, t_us, corr: SilhouetteCorrespondences, ref_joints: np.ndarray, S: np.ndarray) -> None:
+        window = Window(int(t_us[0]), int(t_us[-1]), t_sil_us=np.asarray(t_us, dtype=np.int64), silhouette=corr,
+                        ref_joints=ref_joints)
+        self.problem.set_window(t_us, window, np.asarray(S, dtype=np.float64).ravel())
 
     def solve(self, start: np.ndarray, what: str = "refinement") -> tuple[np.ndarray, SolveStats]:
         """Minimise E_refine (data: :meth:`set_data`) from ``start`` (F, 33), within the bounds."""
-        from eventcap.energy.ipopt import SUCCESS_STATUSES
-
         start = np.asarray(start, dtype=np.float64)
         if start.shape != (self.F, _NP):
-            raise ValueError(f"solve: expected a start of shape ({self.F}, 33), got {start.shape}")
-        x0 = np.clip(start, self.lower, self.upper).ravel()
-        t0 = time.perf_counter()
-        try:
-            res = self._solver(x0=x0, lbx=np.tile(self.lower, self.F), ubx=np.tile(self.upper, self.F))
-        except RuntimeError as exc:  # CasADi refuses ill-posed input before IPOPT runs
-            raise StageFailed(f"{what}: the solver refused the problem: {exc}", status="Invalid_Problem_Definition",
-                              details={"error": str(exc)}) from exc
-        st = self._solver.stats()
-        stats = SolveStats(status=str(st.get("return_status", "unknown")), iterations=int(st.get("iter_count", 0)),
-                           seconds=time.perf_counter() - t0)
-        if stats.status not in SUCCESS_STATUSES:
-            raise StageFailed(f"{what}: IPOPT did not converge (status {stats.status} after {stats.iterations} "
-                              f"iterations)", status=stats.status, details={"iterations": stats.iterations})
-        x = np.asarray(res["x"], dtype=np.float64).reshape(self.F, _NP)
-        if not np.all(np.isfinite(x)):
-            raise StageFailed(f"{what}: IPOPT returned non-finite poses (status {stats.status})", status="non_finite")
-        return x, stats
+            raise EnergyError(f"solve: expected a start of shape ({self.F}, 33), got {start.shape}")
+        x, stats = self.problem.solve(np.clip(start, self.lower, self.upper).ravel(), what)
+        return x.reshape(self.F, _NP), stats
+
+    def terms(self, S: np.ndarray) -> dict:
+        """Unweighted E_sil and E_stab at the poses S (F, 33), and the weighted total."""
+        x = np.asarray(S, dtype=np.float64).ravel()
+        t = self.problem.terms(x)
+        return {"sil": t.get("sil", 0.0), "stab": t.get("stab", 0.0),
+                "total": float(sum(f.weight * t[f.name] for f in self.problem.factors))}
 
 
 # --------------------------------------------------------------------------------------------- a batch
@@ -215,63 +134,61 @@ class RefineResult:
 
 
 def refine_batch(problem: RefineProblem, t_us: np.ndarray, poses: np.ndarray, events: np.ndarray,
-                 weights: SilhouetteWeights = SilhouetteWeights(), icp_iterations: int = 4, patch_px: int = 8,
-                 window_us: int | None = None, denoise_us: int = DENOISE_US) -> RefineResult:
-    """Refine the poses (F, 33) of one batch at tracking frame times t_us (F,) against the recording's events.
+                 window_us: int | None = None) -> RefineResult:
+    """Refine the poses (F, 33) of one batch at tracking frame times t_us (F,) against the recording's events, with
+    the problem's config (icp_iterations, sil_patch_px, sil_dist, denoise_us: events without another event in their
+    3×3 pixel neighbourhood within ±denoise_us are not searched; 0: all are, the paper).
 
-    window_us: T of Eq. 12-13 (default t_N - t_0, the batch duration). denoise_us: events without another event in
-    their 3×3 pixel neighbourhood within ±denoise_us are not searched (0: all are, the paper; see :mod:`.search`).
-    Raises StageFailed on unusable input or an unsuccessful IPOPT solve.
+    window_us: T of Eq. 12-13 (default t_N - t_0, the batch duration). Raises EnergyError on unusable input,
+    SolveFailed on an unsuccessful IPOPT solve.
     """
-    t_us = np.asarray(t_us)
-    poses = np.asarray(poses, dtype=np.float64)
-    F = problem.F
-    if t_us.shape != (F,) or not np.issubdtype(t_us.dtype, np.integer):
-        raise StageFailed(f"refine input: expected {F} integer tracking frame times (µs), got {t_us.dtype} "
-                          f"{t_us.shape}", status="invalid_input")
-    if F > 1 and np.any(np.diff(t_us) <= 0):
-        raise StageFailed("refine input: tracking frame times must increase", status="invalid_input")
-    if poses.shape != (F, _NP):
-        raise StageFailed(f"refine input: expected poses of shape ({F}, 33), got {poses.shape}",
-                          status="invalid_input")
-    if not np.all(np.isfinite(poses)):
-        f = int(np.flatnonzero(~np.all(np.isfinite(poses), axis=1))[0])
-        raise StageFailed(f"refine input: the pose of tracking frame {f} is not finite", status="invalid_input")
-    if isinstance(icp_iterations, bool) or int(icp_iterations) != icp_iterations or icp_iterations < 1:
-        raise ValueError(f"icp_iterations: expected an integer >= 1, got {icp_iterations!r}")
+    c = problem.config
+    t_us, poses = _checked(problem, t_us, poses)
+    if isinstance(c.icp_iterations, bool) or int(c.icp_iterations) != c.icp_iterations or c.icp_iterations < 1:
+        raise EnergyError(f"icp_iterations: expected an integer >= 1, got {c.icp_iterations!r}")
     T = int(t_us[-1] - t_us[0]) if window_us is None else int(window_us)
     t_start = time.perf_counter()
     try:
-        index = EventIndex(events, problem.camera.width, problem.camera.height, t_us, T, denoise_us)
+        index = EventIndex(events, problem.camera.width, problem.camera.height, t_us, T, int(c.denoise_us))
     except ValueError as exc:
-        raise StageFailed(f"refine input: {exc}", status="invalid_input") from exc
+        raise EnergyError(f"refine input: {exc}") from exc
     seconds = {"index": time.perf_counter() - t_start, "boundary": 0.0, "search": 0.0, "solve": 0.0}
     ref = joint_positions(poses, problem.template.rest_joints)  # J_l(Ŝ_f) of E_stab
     S = np.clip(poses, problem.lower, problem.upper)
     icp: list[IcpStats] = []
     before = None
-    corr = SilhouetteCorrespondences.empty()
-    for it in range(int(icp_iterations)):
-        corr, n_boundary, secs = find_silhouette_correspondences(problem.template, problem.camera, S, index, weights, patch_px)
-        problem.set_data(corr, ref, weights)
+    for it in range(int(c.icp_iterations)):
+        corr, n_boundary, secs = find_silhouette_correspondences(problem.template, problem.camera, S, index,
+                                                                 float(c.sil_dist), int(c.sil_patch_px))
+        problem.set_data(t_us, corr, ref, S)
         if before is None:
-            before = _energies(problem, S, weights)
+            before = problem.terms(S)
         S, st = problem.solve(S, f"refinement, ICP iteration {it + 1}")
         secs["solve"] = st.seconds
         for k, v in secs.items():
             seconds[k] += v
         icp.append(IcpStats(boundary=n_boundary, matched=corr.n, status=st.status, iterations=st.iterations,
                             seconds=secs))
-    after = _energies(problem, S, weights)
-    energies = {**{f"{k}_start": v for k, v in before.items()}, **after}
+    energies = {**{f"{k}_start": v for k, v in before.items()}, **problem.terms(S)}
     return RefineResult(poses=S, status=icp[-1].status, iterations=sum(s.iterations for s in icp), energies=energies,
                         icp=tuple(icp), seconds=seconds, events=index.n_events, events_dropped=index.n_unsupported)
 
 
-def _energies(problem: RefineProblem, S: np.ndarray, weights: SilhouetteWeights) -> dict:
-    t = problem.energy.terms(S)
-    sil, stab = float(t["sil"].sum()), float(t["stab"].sum())
-    return {"sil": sil, "stab": stab, "total": weights.sil * sil + weights.stab * stab}
+def _checked(problem: RefineProblem, t_us, poses) -> tuple[np.ndarray, np.ndarray]:
+    t_us = np.asarray(t_us)
+    poses = np.asarray(poses, dtype=np.float64)
+    F = problem.F
+    if t_us.shape != (F,) or not np.issubdtype(t_us.dtype, np.integer):
+        raise EnergyError(f"refine input: expected {F} integer tracking frame times (µs), got {t_us.dtype} "
+                          f"{t_us.shape}")
+    if F > 1 and np.any(np.diff(t_us) <= 0):
+        raise EnergyError("refine input: tracking frame times must increase")
+    if poses.shape != (F, _NP):
+        raise EnergyError(f"refine input: expected poses of shape ({F}, 33), got {poses.shape}")
+    if not np.all(np.isfinite(poses)):
+        f = int(np.flatnonzero(~np.all(np.isfinite(poses), axis=1))[0])
+        raise EnergyError(f"refine input: the pose of tracking frame {f} is not finite")
+    return t_us, poses
 
 
 __all__ = ["RefineProblem", "RefineResult", "refine_batch"]

@@ -8,12 +8,12 @@ import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.body.segments import inertia_prior_gain
-from eventcap.energy.ipopt import bounds_with
 from eventcap.motion import tracking_times_us
 from eventcap.stage import StageFailed
 
-#: Built problems of this process, keyed by template, camera, sizes and solver settings: built once per run.
-_PROBLEMS: dict = {}
+#: Built solvers of this process, keyed by value (template, camera, window layout, config): built once per run.
+_SOLVERS: dict = {}
+_SOLVERS_MAX = 16
 
 
 def window_of(n_batches: int, k: int, half: int) -> tuple[int, int]:
@@ -62,24 +62,6 @@ def window_tracks(parts, step: int, where: str) -> tuple[np.ndarray, np.ndarray,
     return t_cor, xy_all, valid_all
 
 
-def solve_settings(config):
-    """The solve's weights, event-silence settings and E_sil settings from the stage's config (ValueError on a bad
-    value): (SplineWeights, SilenceSettings, SilhouetteSettings)."""
-    from eventcap.energy.silence import SilenceSettings
-
-    from .solve import SilhouetteSettings, SplineWeights
-
-    weights = SplineWeights(d2=config.lambda_2d, d3=config.lambda_3d, cor=config.lambda_cor, prior=config.lambda_prior,
-                            damp=config.lambda_damp, still=config.lambda_still, sil=config.lambda_sil,
-                            context=config.lambda_context)
-    silence = SilenceSettings(radius_px=config.still_radius_px, rate_hz=config.still_rate_hz,
-                              hold_bins=int(round(config.still_hold_ms / config.knot_ms)),
-                              sweep_bins=int(round(config.still_sweep_ms / config.knot_ms)))
-    silhouette = SilhouetteSettings(window_us=int(round(config.sil_window_ms * 1000)),
-                                    patch_px=int(config.sil_patch_px), huber_px=float(config.sil_huber_px))
-    return weights, silence, silhouette
-
-
 def prior_base_gain(config, rest_joints: np.ndarray) -> np.ndarray | None:
     """The motion prior's fixed gain per pose parameter (33,) from the stage's config: each rotation's inertia
     (``prior_inertia``, ``prior_inertia_cap``, ``prior_inertia_floor``;
@@ -118,74 +100,77 @@ def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
     return np.unique(np.append(t_us[::k], t_us[-1]))
 
 
-def problem_for(template, camera, n_seg, n_det, n_cor, settings, limits, robust_px, prior, n_sil=0):
-    from .solve import SplineProblem
+def solver_for(template, camera, layout, config):
+    """The built solver for this window layout and config (built once per process, keyed by value)."""
+    from eventcap.energy.errors import EnergyError
 
-    lo, hi = bounds_with(limits, "stages.spline.limits")
-    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), n_seg, n_det, n_cor, settings,
-           lo.tobytes(), hi.tobytes(), float(robust_px), prior, int(n_sil))
-    prob = _PROBLEMS.get(key)
-    built = prob is None
+    from .solve import SplineSolver
+
+    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), layout, repr(config))
+    solver = _SOLVERS.get(key)
+    built = solver is None
     if built:
         try:
-            prob = SplineProblem(template, camera, n_seg, n_det, n_cor, settings, lo, hi, robust_px, prior, n_sil)
-        except ValueError as exc:
-            raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
-        _PROBLEMS[key] = prob
-    return prob, built
+            solver = SplineSolver(template, camera, layout, config)
+        except EnergyError as exc:
+            raise StageFailed(f"stages.spline: {exc}", status=exc.status) from exc
+        if len(_SOLVERS) >= _SOLVERS_MAX:
+            _SOLVERS.clear()
+        _SOLVERS[key] = solver
+    return solver, built
 
 
-def run_spline(inputs, config, ctx):
-    from eventcap.energy.detections import select_detections
-    from eventcap.energy.ipopt import IpoptSettings
-    from eventcap.energy.spline import PRIOR_ORDERS, UniformCubicBSpline
+def clear_solvers() -> None:
+    """Forget this process's built solvers and per-frame fits."""
+    from .solve import clear_fits
 
-    from .solve import solve_window
+    _SOLVERS.clear()
+    clear_fits()
 
-    rec, sliced, detections, plan, b = (inputs["recording"], inputs["sliced"], inputs["detections"],
-                                        inputs["batches"], ctx.batch)
-    where = f"batch {b.index}" if b is not None else "batch ?"
-    if rec.template is None:
-        raise StageFailed(f"stage 'spline' needs the actor template, but recording {rec.name or rec.source!r} has "
-                          "none", status="missing_template")
-    if b is None:
-        raise StageFailed("stage 'spline' runs per batch (no batch given)", status="invalid_input")
+
+_CHECKS = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
+           "prior_inertia": ("an exponent >= 0", lambda v: v >= 0),
+           "prior_inertia_floor": ("a gain in [0, 1]", lambda v: 0 <= v <= 1),
+           "prior_gain_min_fps": ("frames per second >= 0", lambda v: v >= 0),
+           "prior_gain_max": ("a gain >= 1", lambda v: v >= 1),
+           "prior_context_s": ("seconds >= 0", lambda v: v >= 0),
+           "lambda_sil": ("a number >= 0", lambda v: v >= 0),
+           "lambda_context": ("a number >= 0", lambda v: v >= 0),
+           "context_gate_floor": ("a number in [0, 1]", lambda v: 0 <= v <= 1),
+           "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
+           "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
+           "sil_patch_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
+           "sil_huber_px": ("pixels > 0", lambda v: v > 0),
+           "sil_dist": ("a number >= 0", lambda v: v >= 0),
+           "still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
+           "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
+           "still_rate_hz": ("a number > 0", lambda v: v > 0),
+           "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
+           "knot_ms": ("milliseconds >= 0.001", lambda v: round(v * 1000) >= 1)}
+
+
+def check_config(config) -> None:
+    """StageFailed naming the first key of the stage's config whose value cannot be used."""
     for name in ("half_window", "cor_step", "icp_rounds"):
         v = getattr(config, name)
         if isinstance(v, bool) or int(v) != v or v < (1 if name == "cor_step" else 0):
             raise StageFailed(f"stages.spline.{name}: expected an integer >= {1 if name == 'cor_step' else 0}, "
                               f"got {v!r}", status="invalid_config")
-    if config.prior not in PRIOR_ORDERS:
-        raise StageFailed(f"stages.spline.prior: expected one of {sorted(PRIOR_ORDERS)}, got {config.prior!r}",
-                          status="invalid_config")
-    h_us = int(round(config.knot_ms * 1000))
-    if not (math.isfinite(config.knot_ms) and h_us >= 1):
-        raise StageFailed(f"stages.spline.knot_ms: expected a positive number of milliseconds, got "
-                          f"{config.knot_ms!r}", status="invalid_config")
-    checks = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
-              "prior_inertia": ("an exponent >= 0", lambda v: v >= 0),
-              "prior_inertia_floor": ("a gain in [0, 1]", lambda v: 0 <= v <= 1),
-              "prior_gain_min_fps": ("frames per second >= 0", lambda v: v >= 0),
-              "lambda_sil": ("a number >= 0", lambda v: v >= 0),
-              "lambda_context": ("a number >= 0", lambda v: v >= 0),
-              "context_gate_floor": ("a number in [0, 1]", lambda v: 0 <= v <= 1),
-              "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
-              "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
-              "sil_patch_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
-              "sil_huber_px": ("pixels > 0", lambda v: v > 0),
-              "still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
-              "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
-              "still_rate_hz": ("a number > 0", lambda v: v > 0),
-              "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v)}
-    for name, (what, good) in checks.items():
+    for name, (what, good) in _CHECKS.items():
         v = getattr(config, name)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not good(v):
             raise StageFailed(f"stages.spline.{name}: expected {what}, got {v!r}", status="invalid_config")
-    try:
-        weights, silence, silhouette = solve_settings(config)
-        settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
-    except ValueError as exc:
-        raise StageFailed(f"stages.spline: {exc}", status="invalid_config") from exc
+    if not float(config.prior_inertia_cap) >= 1:
+        raise StageFailed(f"stages.spline.prior_inertia_cap: expected a gain >= 1 (or .inf), got "
+                          f"{config.prior_inertia_cap!r}", status="invalid_config")
+
+
+def window_inputs(inputs, b, config, where: str):
+    """The data of this batch's window: (own tracks, window (a, z), detection times, their detections, tracks for
+    E_cor (t_cor, xy, valid), silhouette frames or None)."""
+    from eventcap.energy.detections import select_detections
+
+    sliced, detections, plan = inputs["sliced"], inputs["detections"], inputs["batches"]
     a, z = window_of(len(plan), b.index, int(config.half_window))
     # every batch's tracks, as the runner hands them (runner.BatchSequence: .batches names them, loaded on access)
     index = {bb.index: i for i, bb in enumerate(sliced.batches)}
@@ -204,27 +189,53 @@ def run_spline(inputs, config, ctx):
     problems = det.problems()
     if problems:
         raise StageFailed(f"{where}: detections unusable: " + "; ".join(problems), status="invalid_input")
+    cor = window_tracks([own if k == b.index else sliced[index[k]] for k in scope], int(config.cor_step), where)
+    t_sil = sil_frames(t_us, config.sil_step_ms) if config.lambda_sil > 0 else None
+    return own, (a, z), scope, index, t_det, det, cor, t_sil
+
+
+def window_times(sliced, index, plan, b, a: int, z: int, t_us: np.ndarray) -> np.ndarray:
+    """The window's batches' tracking times (one grid for the whole recording, eventcap.motion.tracking_times_us), so
+    overlapping windows give the same times. They follow from the plan at this batch's step when that step
+    reproduces this batch's own times (a whole number of µs: 1 kHz); else they are read from the batches' tracks."""
+    rate = 1e6 / int(np.median(np.diff(t_us)))
+    whole_us = np.array_equal(tracking_times_us(int(plan.t0_us[b.index]), int(plan.t1_us[b.index]), rate), t_us)
+    return np.unique(np.concatenate([
+        np.asarray(sliced[index[k]].t_us, dtype=np.int64) if k in index and not whole_us
+        else tracking_times_us(int(plan.t0_us[k]), int(plan.t1_us[k]), rate) for k in range(a, z + 1)]))
+
+
+def run_spline(inputs, config, ctx):
+    from eventcap.energy.errors import EnergyError, SolveFailed
+    from eventcap.energy.factor import Layout
+    from eventcap.energy.problem import SplinePoses, coupling_band
+    from eventcap.energy.spline import UniformCubicBSpline
+
+    from .solve import solve_window
+
+    rec, plan, b = inputs["recording"], inputs["batches"], ctx.batch
+    where = f"batch {b.index}" if b is not None else "batch ?"
+    if rec.template is None:
+        raise StageFailed(f"stage 'spline' needs the actor template, but recording {rec.name or rec.source!r} has "
+                          "none", status="missing_template")
+    if b is None:
+        raise StageFailed("stage 'spline' runs per batch (no batch given)", status="invalid_input")
+    check_config(config)
+    own, (a, z), scope, index, t_det, det, (t_cor, xy, valid), t_sil = window_inputs(inputs, b, config, where)
+    h_us = int(round(config.knot_ms * 1000))
     n_seg = int(math.ceil((t_det[-1] - t_det[0]) / h_us))
     spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
-    t_cor, xy, valid = window_tracks([own if k == b.index else sliced[index[k]] for k in scope],
-                                     int(config.cor_step), where)
-    t_sil = sil_frames(t_us, config.sil_step_ms) if weights.sil > 0 else None
-    prob, built = problem_for(rec.template, rec.camera, n_seg, t_det.size, t_cor.size, settings, config.limits,
-                              config.robust_2d_px, config.prior, 0 if t_sil is None else t_sil.size)
+    layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=t_cor.size, n_sil=0 if t_sil is None else t_sil.size,
+                    band=coupling_band(SplinePoses(n_seg, spline), t_cor))
+    solver, built = solver_for(rec.template, rec.camera, layout, config)
     if built:
-        ctx.log.info("built the spline NLP (%d control points, %d detection frames, %d correspondence frames) in "
-                     "%.2f s (once per process)", spline.n_ctrl, t_det.size, t_cor.size, prob.build_seconds)
-        ctx.stats["build_s"] = prob.build_seconds
+        ctx.log.info("built the spline NLP (%d control points, %d detection frames, %d correspondence frames; "
+                     "factors %s) in %.2f s (once per process)", spline.n_ctrl, t_det.size, t_cor.size,
+                     ", ".join(f.name for f in solver.factors), solver.build_seconds)
+        ctx.stats["build_s"] = solver.build_seconds
     what = f"{where} (window of batches {a}..{z})"
-    gain_max, ctx_s = float(config.prior_gain_max), float(config.prior_context_s)
-    if not (math.isfinite(gain_max) and gain_max >= 1 and math.isfinite(ctx_s) and ctx_s >= 0):
-        raise StageFailed(f"stages.spline.prior_gain_max / prior_context_s: expected a number >= 1 and seconds >= 0, "
-                          f"got {config.prior_gain_max!r} / {config.prior_context_s!r}", status="invalid_config")
-    context = (prior_context(config, plan, t_det, detections, where, ctx.log)
-               if gain_max > 1 or weights.context > 0 else None)
-    if not float(config.prior_inertia_cap) >= 1:
-        raise StageFailed(f"stages.spline.prior_inertia_cap: expected a gain >= 1 (or .inf), got "
-                          f"{config.prior_inertia_cap!r}", status="invalid_config")
+    context = (prior_context(config, plan, t_det, inputs["detections"], where, ctx.log)
+               if config.prior_gain_max > 1 or config.lambda_context > 0 else None)
     try:
         base_gain = prior_base_gain(config, rec.template.rest_joints)
     except ValueError as exc:
@@ -232,29 +243,28 @@ def run_spline(inputs, config, ctx):
     if base_gain is not None:
         ctx.stats["prior_inertia_gain"] = [float(v) for v in base_gain]
     try:
-        res = solve_window(prob, spline, t_det, det, t_cor, xy, valid, weights, int(config.icp_rounds),
-                           config.edge_margin_px, what=what, context=context, gain_max=gain_max,
-                           events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), silence=silence,
-                           robust_cor_px=float(config.robust_cor_px), t_sil_us=t_sil, silhouette=silhouette,
-                           base_gain=base_gain, gain_criterion=str(config.prior_gain_criterion),
-                           context_gate_floor=float(config.context_gate_floor))
-    except StageFailed as exc:  # name the window in every failure (the per-frame fits' too)
-        if what in str(exc):
-            raise
-        raise StageFailed(f"{what}: {exc}", status=exc.status, details=getattr(exc, "details", {})) from exc
+        res = solve_window(solver, spline, t_det, det, t_cor, xy, valid, what=what, context=context,
+                           events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), t_sil_us=t_sil,
+                           base_gain=base_gain)
+    except (StageFailed, SolveFailed, EnergyError) as exc:  # name the window in every failure (the fits' too)
+        msg = str(exc) if what in str(exc) else f"{what}: {exc}"
+        raise StageFailed(msg, status=getattr(exc, "status", "failed"), details=getattr(exc, "details", {})) from exc
     # The output is the window's whole curve at the tracking rate: stitch blends the overlapping windows.
-    # The window's batches' tracking times (one grid for the whole recording, eventcap.motion.tracking_times_us), so
-    # overlapping windows give the same times. They follow from the plan at this batch's step when that step
-    # reproduces this batch's own times (a whole number of µs: 1 kHz); else they are read from the batches' tracks.
-    rate = 1e6 / int(np.median(np.diff(t_us)))
-    whole_us = np.array_equal(tracking_times_us(int(plan.t0_us[b.index]), int(plan.t1_us[b.index]), rate), t_us)
-    t_win = np.unique(np.concatenate([
-        np.asarray(sliced[index[k]].t_us, dtype=np.int64) if k in index and not whole_us
-        else tracking_times_us(int(plan.t0_us[k]), int(plan.t1_us[k]), rate) for k in range(a, z + 1)]))
+    t_win = window_times(inputs["sliced"], index, plan, b, a, z, np.asarray(own.t_us, dtype=np.int64))
     poses = spline.evaluate(res.control, t_win)
     # The window unwrapped its root angles from its own first fit: one branch per window (its first pose's root
     # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.
     poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[0, 27:30] / (2.0 * np.pi))
+    log_window(ctx, config, res, where, (a, z), t_det, scope, b, context, spline, t_sil)
+    energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
+    iters = int(sum(s.iterations for s in res.solves))
+    return {"poses": PoseSequence(t_us=t_win, poses=poses, status=res.solves[-1].status, iterations=iters,
+                                  energies=energies)}
+
+
+def log_window(ctx, config, res, where, window, t_det, scope, b, context, spline, t_sil) -> None:
+    """The window's log lines and run statistics."""
+    a, z = window
     iters = int(sum(s.iterations for s in res.solves))
     secs = sum(res.seconds.values())
     ctx.log.info("%s: window of batches %d..%d (%d frames of detections, %d fitted here, %d control points), %d "
@@ -268,6 +278,7 @@ def run_spline(inputs, config, ctx):
     if config.tracks == "window" and len(scope) < z - a + 1:
         ctx.log.warning("%s: only %d of the window's %d batches have tracks (batches= selects part of the plan)",
                         where, len(scope), z - a + 1)
+    gain_max = float(config.prior_gain_max)
     if context is not None and gain_max > 1 and res.prior_gain is not None:
         g = res.prior_gain
         ctx.log.info("%s: motion prior gains from %d frames around the window: median %.3g, %d of 33 parameters at "
@@ -275,10 +286,9 @@ def run_spline(inputs, config, ctx):
                      int(np.sum(g >= gain_max * (1 - 1e-9))), gain_max)
         ctx.stats["prior_gain"] = [float(v) for v in g]
     if res.pull_frames is not None:
-        frames = res.pull_frames
         ctx.log.info("%s: context pull: median %.2f frames' worth per parameter and frame", where,
-                     float(np.median(frames)))
-        ctx.stats["context_pull_frames"] = [float(v) for v in frames.mean(0)]
+                     float(np.median(res.pull_frames)))
+        ctx.stats["context_pull_frames"] = [float(v) for v in res.pull_frames.mean(0)]
     if res.silence is not None:
         st = res.silence.stillness
         ctx.log.info("%s: event silence: background %.2f events/px/s; %.0f%% of (knot interval, joint) pairs still "
@@ -289,6 +299,3 @@ def run_spline(inputs, config, ctx):
                       "fits_computed": res.fits_computed,
                       "solves": [[s.status, s.iterations, s.seconds] for s in res.solves],
                       "n_correspondences": int(res.energies["n_correspondences"])})
-    energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
-    return {"poses": PoseSequence(t_us=t_win, poses=poses, status=res.solves[-1].status, iterations=iters,
-                                  energies=energies)}

@@ -96,7 +96,11 @@ class SplineSolveConfig:
     sil_step_ms: float = param(5.0, help="E_sil at the batch's tracking frames this many ms apart (ends included)")
     sil_window_ms: float = param(10.0, help="E_sil: a boundary pixel's closest event within ± half this of its frame")
     sil_patch_px: int = param(8, help="E_sil: ... and within a square of this side around it (paper: 8)")
+    sil_loss: str = param("huber", choices=("l2", "huber"),
+                          help="E_sil: loss on the point-to-line residuals: l2 (the paper) | huber")
     sil_huber_px: float = param(1.0, help="E_sil: Huber loss threshold, px")
+    sil_dist: float = param(4.0, help="E_sil: λ_dist of the closest event search (paper Eq. 12): the squared time "
+                                      "offset in window lengths against the squared distance in pixels")
     icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
     edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette edge give no correspondence")
     lambda_damp: float = param(1e-4, help="proximal pull of the control points towards each solve's start")
