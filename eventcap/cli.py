@@ -19,6 +19,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -69,8 +70,11 @@ def _run_job(cfg) -> bool:
 def cmd_run(argv: list[str]) -> int:
     import hydra
 
+    from .config import register_stage_configs
+
     cdir = str(config_dir())
     _RUN_FAILURES.clear()
+    register_stage_configs()
 
     @hydra.main(version_base="1.3", config_path=cdir, config_name="config")
     def _main(cfg) -> None:
@@ -121,8 +125,10 @@ def unknown_override_message(exc: BaseException, argv: list[str], cdir: str | Pa
     from omegaconf.errors import OmegaConfBaseException
 
     cause = exc.__cause__
+    # a plain node says "Key 'k' is not in struct", a stage's structured node "Key 'k' not in '<Config>Node'"
     if not (type(exc).__name__ == "ConfigCompositionException" and str(exc).startswith("Could not override")
-            and isinstance(cause, OmegaConfBaseException) and "is not in struct" in str(cause)):
+            and isinstance(cause, OmegaConfBaseException)
+            and ("is not in struct" in str(cause) or re.search(r"Key '[^']*' not in '", str(cause)))):
         return None
     key = str(getattr(cause, "key", "") or "")
     full_key = str(getattr(cause, "full_key", "") or key)
@@ -157,7 +163,10 @@ def _known_keys(parent: str, override_key: str, argv: list[str], cdir) -> tuple[
     rest = [a for a in argv if "=" in a and not a.startswith("-") and a.partition("=")[0].lstrip("+~") != override_key]
     from hydra.core.global_hydra import GlobalHydra
 
+    from .config import register_stage_configs
+
     GlobalHydra.instance().clear()  # a failed hydra.main may leave it initialised
+    register_stage_configs()
     cfg = None
     for overrides in (rest, [a for a in rest if not a.startswith("hydra.") or a.startswith("hydra.searchpath")], []):
         try:
@@ -220,6 +229,8 @@ def cmd_stages(args) -> int:
 
     logging.getLogger("eventcap.registry").setLevel(logging.ERROR)  # problems are printed below, once
     reg = load_registry()
+    if args.name:
+        return _print_stage_config(reg, args.name)
     specs = [s for s in reg.specs() if args.kind is None or s.kind == args.kind]
     if not specs:
         print("no stages installed" + (f" of kind {args.kind!r}" if args.kind else ""))
@@ -233,6 +244,37 @@ def cmd_stages(args) -> int:
                 print(f"  {'':<{width}}  from {s.origin}")
     for p in reg.problems:
         print(f"warning: {p}", file=sys.stderr)
+    return 0
+
+
+def _print_stage_config(reg, name: str) -> int:
+    """Every key of a stage's config with its default, choices and meaning: the one place they are stated."""
+    import dataclasses
+    import textwrap
+
+    from .registry import UnknownStageError
+
+    try:
+        spec = reg.get(name)
+    except UnknownStageError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{spec.name} (v{spec.version}, {spec.kind}, {'per batch' if spec.per_batch else 'whole recording'}): "
+          f"{spec.description}")
+    print(f"  from {spec.origin}; set a key with stages.<node>.<key>=value (the node runs this stage)")
+    for f in dataclasses.fields(spec.config):
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            default = "(required)"
+        meta = f.metadata
+        extra = (f"; one of {' | '.join(map(str, meta['choices']))}" if meta.get("choices") else "") + \
+            ("" if meta.get("affects_result", True) else "; not part of the cache key")
+        print(f"  {f.name} = {default!r}{extra}")
+        for line in textwrap.wrap(meta.get("help", ""), 110):
+            print(f"      {line}")
     return 0
 
 
@@ -477,15 +519,8 @@ def _pin_threads() -> None:
         os.environ.setdefault(var, "1")
 
 
-def main(argv: list[str] | None = None) -> int:
-    _pin_threads()  # before anything imports numpy
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] == "run":
-        return cmd_run(argv[1:])
-    if argv and argv[0] == "simulate":
-        return cmd_simulate(argv[1:])
-    if argv and argv[0] == "benchmark" and not ({"-h", "--help"} & set(argv[1:])):
-        return cmd_benchmark(argv[1:])
+def _parser() -> argparse.ArgumentParser:
+    """The command line of the subcommands argparse handles (run, simulate and benchmark take Hydra overrides)."""
     parser = argparse.ArgumentParser(prog="eventcap", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("run", help="run the pipeline (hydra overrides follow; see `eventcap run --help`)")
@@ -502,7 +537,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--column", action="append", default=[], metavar="KEY",
                    help="one more column: a dotted key into the metrics (e.g. per_joint_mm.l_wrist); repeatable")
     p.add_argument("--no-plot", action="store_true", help="no report.png")
-    p = sub.add_parser("stages", help="list installed stages")
+    p = sub.add_parser("stages", help="list installed stages, or one stage's config keys with their defaults")
+    p.add_argument("name", nargs="?", help="a stage: print its config keys, defaults and meaning")
     p.add_argument("--kind", help="only stages of this kind (e.g. track)")
     p.add_argument("-v", "--verbose", action="store_true", help="show where each stage comes from")
     p = sub.add_parser("cache", help="inspect or clean the stage cache")
@@ -552,6 +588,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--chunk-events", type=int, default=1 << 20, metavar="N",
                    help="events decoded per chunk (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    _pin_threads()  # before anything imports numpy
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "run":
+        return cmd_run(argv[1:])
+    if argv and argv[0] == "simulate":
+        return cmd_simulate(argv[1:])
+    if argv and argv[0] == "benchmark" and not ({"-h", "--help"} & set(argv[1:])):
+        return cmd_benchmark(argv[1:])
+    parser = _parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.command == "stages":

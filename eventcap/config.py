@@ -49,6 +49,32 @@ def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
     return obj
 
 
+#: The Hydra config group holding every installed stage's config (``/stage/<name>``), filled by
+#: :func:`register_stage_configs`: a stage variant's YAML (conf/stages/<node>/<variant>.yaml) starts from it with
+#: ``defaults: [/stage/<name>@_here_, _self_]`` and states only what differs.
+STAGE_GROUP = "stage"
+
+
+def register_stage_configs() -> list[str]:
+    """Store every installed stage's config dataclass (plus its ``stage`` key) in Hydra's ConfigStore under
+    ``/stage/<name>`` (once per process): the stage's spec is the one place its defaults are stated, and a
+    composed config still holds every key (``eventcap run --cfg job`` shows them, a run's config.yaml records
+    them, and an override ``stages.<node>.<key>=...`` needs no '+'). Returns the registered names."""
+    from hydra.core.config_store import ConfigStore
+
+    from .registry import load_registry
+
+    cs = ConfigStore.instance()
+    names = []
+    for spec in load_registry().specs():
+        node = dataclasses.make_dataclass(
+            f"{spec.config.__name__}Node", [("stage", str, dataclasses.field(default=spec.name))],
+            bases=(spec.config,))
+        cs.store(group=STAGE_GROUP, name=spec.name, node=node, provider="eventcap")
+        names.append(spec.name)
+    return names
+
+
 def config_to_dict(config: Any) -> dict[str, Any]:
     """All fields as plain JSON-able values."""
     return {k: _plain(v) for k, v in dataclasses.asdict(config).items()}

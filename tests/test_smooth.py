@@ -120,26 +120,26 @@ def test_smooth_poses_groups_and_parameters():
     t_eval = np.arange(0, t_us[-1] + 1, 1_000, dtype=np.int64)
     want = np.interp(t_eval, t_us, np.zeros(31))  # shape only
     for pool in ("group", "parameter"):
-        out, choices = smooth_poses(t_us, noisy, t_eval, pool)
+        out, choices = smooth_poses(t_us, noisy, t_eval, pool, 0.0, "reml")
         assert out.shape == (want.size, 33)
         assert len(choices) == (2 if pool == "group" else 33)
         on_knots = out[np.searchsorted(t_eval, t_us)]
         assert np.sqrt(np.mean((on_knots - clean) ** 2)) < 0.7 * np.sqrt(np.mean((noisy - clean) ** 2))
     # a fixed lam, the same for all groups
-    out, choices = smooth_poses(t_us, noisy, t_eval, "group", lam=1e-3)
+    out, choices = smooth_poses(t_us, noisy, t_eval, "group", 1e-3, "reml")
     assert {c.lam for c in choices.values()} == {1e-3}
     with pytest.raises(ValueError, match="pool: expected one of group, parameter, got 'x'"):
-        smooth_poses(t_us, noisy, t_eval, "x")
+        smooth_poses(t_us, noisy, t_eval, "x", 0.0, "reml")
     with pytest.raises(ValueError, match="criterion: expected one of reml, gcv, got 'aic'"):
-        smooth_poses(t_us, noisy, t_eval, criterion="aic")
-    gcv, _ = smooth_poses(t_us, noisy, t_eval, criterion="gcv")
+        smooth_poses(t_us, noisy, t_eval, "group", 0.0, "aic")
+    gcv, _ = smooth_poses(t_us, noisy, t_eval, "group", 0.0, "gcv")
     assert np.sqrt(np.mean((gcv[np.searchsorted(t_eval, t_us)] - clean) ** 2)) < np.sqrt(np.mean((noisy - clean) ** 2))
     with pytest.raises(ValueError, match="at least 5 knots"):
-        smooth_poses(t_us[:4], noisy[:4], t_eval)
+        smooth_poses(t_us[:4], noisy[:4], t_eval, "group", 0.0, "reml")
     bad = noisy.copy()
     bad[3, 5] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
-        smooth_poses(t_us, bad, t_eval)
+        smooth_poses(t_us, bad, t_eval, "group", 0.0, "reml")
 
 
 def test_root_rotation_that_wraps_is_smoothed_as_a_spin():
@@ -152,7 +152,7 @@ def test_root_rotation_that_wraps_is_smoothed_as_a_spin():
     fits = np.zeros((51, 33))
     fits[:, 27] = wrap_angle(yaw + rng.normal(0.0, 0.05, 51))
     t_eval = np.arange(0, t_us[-1] + 1, 1_000, dtype=np.int64)
-    out, _ = smooth_poses(t_us, fits, t_eval)
+    out, _ = smooth_poses(t_us, fits, t_eval, "group", 0.0, "reml")
     err = wrap_angle(out[:, 27] - 4.0 * t_eval * 1e-6)
     assert np.abs(err).max() < 0.1 and np.sqrt(np.mean(err**2)) < 0.03
 

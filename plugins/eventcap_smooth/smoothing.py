@@ -46,8 +46,8 @@ def unwrap_root_rotation(poses: np.ndarray) -> np.ndarray:
     return out
 
 
-def smooth_poses(t_knots_us: np.ndarray, fits: np.ndarray, t_eval_us: np.ndarray, pool: str = "group",
-                 lam: float = 0.0, criterion: str = "reml") -> tuple[np.ndarray, dict[str, GcvChoice]]:
+def smooth_poses(t_knots_us: np.ndarray, fits: np.ndarray, t_eval_us: np.ndarray, pool: str, lam: float,
+                 criterion: str) -> tuple[np.ndarray, dict[str, GcvChoice]]:
     """Smoothing splines through pose fits (K, 33) at times t_knots_us (K,), evaluated at t_eval_us (T,).
 
     pool: ``group`` (one lam per parameter group, :data:`GROUPS`) or ``parameter`` (one per parameter); lam > 0
