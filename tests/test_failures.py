@@ -4,7 +4,6 @@ each, the nodes skipped because of them, the first error once, and advice only w
 from __future__ import annotations
 
 import copy
-import logging
 
 from conftest import TOY_PIPELINE, TOY_STAGES
 
