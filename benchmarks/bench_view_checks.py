@@ -16,8 +16,8 @@ Modes: ``frames`` runs BlazePose on the EDI latent images at the intensity frame
 ``events`` treats the capture as an event-only camera (the exported recording read back with ``pipeline=events_only
 source=recording source.frames=false``: images reconstructed from the events every 40 ms, BlazePose ``at=frames`` on
 them; the frames mode must run first). Each runs the detect stage through the
-runner (template, source, sharpen or reconstruct and detect only; cached) four times: with no check, and with each
-check alone, then with all of them (the default), ``min_found=0`` so that the stage reports instead of stopping.
+runner (template, source, sharpen or reconstruct and detect only; cached): with no check, with each check alone, then
+with all of them (the default), ``min_found=0`` so that the stage reports instead of stopping.
 
 Per run: images with a detection, rejections per check, and against the truth (the landmarks projected at the
 image's time): the landmarks marked in view that are truly outside the image (``false in view``, the target is 0),
@@ -43,6 +43,7 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from eventcap.body.skeleton import LANDMARK_NAMES  # noqa: E402
 from eventcap.runner import Runner  # noqa: E402
+from eventcap_detect.checks import CHECKS, inside_image  # noqa: E402
 
 SUITE = ("karate_kick", "boxing_combo", "javelin_throw", "dance_spin", "fast_wave", "jumping_jack")
 MAPPED = [i for i, n in enumerate(LANDMARK_NAMES) if "small_toe" not in n]  # BlazePose has no small toes
@@ -105,8 +106,7 @@ def score(det, rec) -> dict:
     pts = gt.landmarks[k]  # (n, L, 3)
     depth = rec.camera.depth(pts)
     px = rec.camera.project(pts)
-    truly = (depth > 0) & (px[..., 0] >= 0) & (px[..., 1] >= 0) & (px[..., 0] <= rec.width - 1) & \
-        (px[..., 1] <= rec.height - 1)
+    truly = (depth > 0) & inside_image(px, rec.width, rec.height)
     iv = det.observed()
     err = np.linalg.norm(det.keypoints_2d - px, axis=-1)
     status = list(det.image_status)
@@ -132,8 +132,7 @@ def main() -> None:
     calib.parent.mkdir(parents=True, exist_ok=True)
     calib.write_text(DVS128_CALIB)
     rows = []
-    variants = {"none": [], "outside": ["outside"], "region": ["region"], "scale": ["scale"],
-                "all": ["outside", "region", "scale"]}
+    variants = {"none": [], **{c: [c] for c in CHECKS}, "all": list(CHECKS)}
     for name, over in cases(args.cases.split(","), calib):
         over = [*over, f"source.duration_s={args.duration}", "source.seed=0"]
         out = Path(args.out) / name

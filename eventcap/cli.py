@@ -509,6 +509,31 @@ def _pin_threads() -> None:
         os.environ.setdefault(var, "1")
 
 
+def _add_preview_parser(sub) -> None:
+    p = sub.add_parser("preview", help="PNG of a recording: frame (or image from events), sharp image, events, "
+                                       "ground-truth skeleton")
+    p.add_argument("recording", help="a recording in any format the readers take (AEDAT4, AEDAT 2.0/3.1, HDF5, "
+                                      "EVT2/EVT3 .raw, DAT, npy/npz, csv/txt, an rpg folder) or the project's zarr "
+                                      "(e.g. runs/simulate/*/source.recording.zarr)")
+    p.add_argument("--frame", type=int, default=None, help="intensity frame (or event-only image) index; default: "
+                                                            "the recording's most active moment")
+    p.add_argument("--t", type=float, default=None, help="time to show, seconds from the first event (the nearest "
+                                                         "frame)")
+    p.add_argument("--format", default="", help="force a format (as source.format); default: detect it")
+    p.add_argument("--width", type=int, default=0, help="sensor width for files that do not store it")
+    p.add_argument("--height", type=int, default=0, help="sensor height for files that do not store it")
+    p.add_argument("--columns", default="", help="column order of unnamed array/text columns, e.g. x,y,t,p")
+    p.add_argument("--time-unit", default="", help="unit of array/text time columns: s | ms | us | ns")
+    p.add_argument("--calibration", default="", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3])")
+    p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
+    p.add_argument("--out", help="output PNG (default: next to the recording)")
+    p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
+    p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
+    p.add_argument("--reconstruct", action="store_true", help="add the image reconstructed from the events alone "
+                                                               "(always shown for event-only recordings)")
+    p.add_argument("--rate", type=float, default=25.0, help="event-only recordings: image times every 1/rate s")
+
+
 def main(argv: list[str] | None = None) -> int:
     _pin_threads()  # before anything imports numpy
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -543,28 +568,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache-dir", default=default_cache_dir(), help="cache root (default: %(default)s)")
     p.add_argument("--older-than", type=float, default=None, help="gc: also remove entries older than this many days")
     p.add_argument("--all", action="store_true", help="gc: remove every entry")
-    p = sub.add_parser("preview", help="PNG of a recording: frame (or image from events), sharp image, events, "
-                                       "ground-truth skeleton")
-    p.add_argument("recording", help="a recording in any format the readers take (AEDAT4, AEDAT 2.0/3.1, HDF5, "
-                                      "EVT2/EVT3 .raw, DAT, npy/npz, csv/txt, an rpg folder) or the project's zarr "
-                                      "(e.g. runs/simulate/*/source.recording.zarr)")
-    p.add_argument("--frame", type=int, default=None, help="intensity frame (or event-only image) index; default: "
-                                                            "the recording's most active moment")
-    p.add_argument("--t", type=float, default=None, help="time to show, seconds from the first event (the nearest "
-                                                         "frame)")
-    p.add_argument("--format", default="", help="force a format (as source.format); default: detect it")
-    p.add_argument("--width", type=int, default=0, help="sensor width for files that do not store it")
-    p.add_argument("--height", type=int, default=0, help="sensor height for files that do not store it")
-    p.add_argument("--columns", default="", help="column order of unnamed array/text columns, e.g. x,y,t,p")
-    p.add_argument("--time-unit", default="", help="unit of array/text time columns: s | ms | us | ns")
-    p.add_argument("--calibration", default="", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3])")
-    p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
-    p.add_argument("--out", help="output PNG (default: next to the recording)")
-    p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
-    p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
-    p.add_argument("--reconstruct", action="store_true", help="add the image reconstructed from the events alone "
-                                                               "(always shown for event-only recordings)")
-    p.add_argument("--rate", type=float, default=25.0, help="event-only recordings: image times every 1/rate s")
+    _add_preview_parser(sub)
     p = sub.add_parser("view", help="the run in the Rerun viewer (capture.rrd; built from the run folder if missing)")
     p.add_argument("target", metavar="RUN_DIR", help="a run folder (runs/<name>/<timestamp>/) or an .rrd file")
     p.add_argument("--rebuild", action="store_true", help="write capture.rrd again even if the run folder has one")

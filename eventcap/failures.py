@@ -22,9 +22,7 @@ ADVICE: dict[str, str] = {
     "KeyboardInterrupt": "interrupted: run the same command again to resume",
     "missing_detections": "no usable detection at those batches' frames: the detect node's log names the images "
                           "without a person",
-    "no_person": "no person in view: check the recording (eventcap preview FILE) and the detector",
-    "too_few_detections": "too few images with a person to solve anything: check the recording (eventcap preview "
-                          "FILE) and the detector",
+    # no_person, too_few_detections: the detect stage's own message says what to look at
 }
 
 

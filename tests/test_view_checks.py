@@ -166,6 +166,18 @@ def test_landmarks_outside_the_image_and_too_few_detections(tmp_path):
     assert info.value.status == "too_few_detections"
 
 
+def test_head_and_ankles_in_view_without_the_hips_do_not_hang_together(tmp_path):
+    """A face close-up with feet drawn on it: the hips, between the head and the ankles, would be in the image."""
+    rec = posed_recording("jumping_jack", N)
+    kp = truth_2d(rec).copy()
+    hips = [LANDMARK_INDEX[n] for n in ("mid_hip", "r_hip", "l_hip")]
+    kp[:, hips] = (-50.0, 90.0)  # outside the image
+    d = run_file(tmp_path, rec, kp, min_found=0)
+    assert d.image_status == ("parts",) * N
+    assert run_file(tmp_path, rec, kp, checks=["outside", "region", "scale"], min_found=0).image_status == \
+        ("ok",) * N
+
+
 def test_found_message_and_gaps():
     status = ["no_person"] * 199 + ["ok"] * 3
     assert checks.found_message(status, "blazepose", enough=False) == \
@@ -181,3 +193,29 @@ def test_the_simulated_detector_states_what_is_in_view(tmp_path):
     rec = posed_recording("jumping_jack", N)
     d = detect("simulated", rec)
     assert d.image_status == ("ok",) * N and np.array_equal(d.in_view, d.confidence_2d > 0)
+
+
+def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monkeypatch):
+    """The real DAVIS346 recording (a lab with a robot arm, no person): detect stops with the count, every later
+    node is skipped because of it, and the run's last line says so once."""
+    from eventcap.cli import main
+    from eventcap.runner import reset_process_caches
+
+    real = [Path(__file__).resolve().parent / "data" / "davis346_lab_aps.aedat4",
+            Path("/work/shared/data/real/davis346_lab_aps.aedat4")]
+    path = next((p for p in real if p.is_file()), None)
+    if path is None:
+        pytest.skip(f"the DAVIS346 sample is not here ({' nor '.join(map(str, real))})")
+    monkeypatch.delenv("EVENTCAP_STAGES", raising=False)
+    reset_process_caches()
+    run_dir = tmp_path / "run"
+    code = main(["run", "source=recording", f"source.path={path}", "stages/detect=blazepose", "template=procedural",
+                 "template.target_faces=2000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
+    log = (run_dir / "eventcap.log").read_text()
+    assert code == 1
+    assert ("detect (blazepose v3): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
+            "images; is there a person in view (eventcap preview FILE)?") in log
+    assert ("run incomplete: detect failed (no_person); skipped because of it: track, slice, solve, stitch, cut, "
+            "evaluate; first error: detect: StageFailed: blazepose (full, at latent): no person in 3 of 3 images") \
+        in log
+    assert "world frame: y up, the camera at the origin looking along -z, ASSUMED LEVEL" in log

@@ -8,9 +8,13 @@ Every detector's landmarks (the skeleton's BODY_25 order) go through the same th
 2. **Checks** that reject a whole image's detection (the reason is logged per image and counted):
 
    - ``outside``: fewer than ``min_in_view`` landmarks in the image (the detector put the body outside it);
-   - ``region``: a whole body (head, torso and an ankle in view) much smaller than the moving region around it:
-     its size (the longer side of its landmarks' box) under ``region_ratio`` x that of the connected event
-     activity it lies in (``moving_region``): a body drawn inside a face or a torso that fills the image;
+   - ``parts``: the head and an ankle in view but no hip: the image is convex, so the hips between them would be
+     in it too (a face close-up with feet drawn on it);
+   - ``region``: a whole body (head, torso and an ankle in view) that does not fit the moving region around it
+     (the connected event activity it lies in, :func:`moving_region`): its size (the longer side of its
+     landmarks' box) under ``region_ratio`` x the region's (a body drawn inside a face, or inside a torso that
+     fills the image), or the region reaching an edge of the image that the body keeps more than ``edge_ratio`` of
+     the image away from (the person goes on beyond the image: the body drawn inside is not all of them);
    - ``scale``: a whole body whose height disagrees with the scale of its own head and shoulders: ear-to-ear
      width over ``head_ratio`` or shoulder width over ``shoulder_ratio`` x the torso's length (neck to mid-hip).
      The head and shoulders of a close-up with a small body folded under them give 0.4-2 and 0.9-8; whole bodies
@@ -33,12 +37,13 @@ import numpy as np
 
 from eventcap.body.skeleton import LANDMARK_INDEX
 
-CHECKS = ("outside", "region", "scale")
+CHECKS = ("outside", "parts", "region", "scale")
 _HEAD = tuple(LANDMARK_INDEX[n] for n in ("nose", "r_eye", "l_eye", "r_ear", "l_ear"))
 _ANKLES = (LANDMARK_INDEX["r_ankle"], LANDMARK_INDEX["l_ankle"])
 _NECK, _MID_HIP = LANDMARK_INDEX["neck"], LANDMARK_INDEX["mid_hip"]
 _EARS = (LANDMARK_INDEX["r_ear"], LANDMARK_INDEX["l_ear"])
 _SHOULDERS = (LANDMARK_INDEX["r_shoulder"], LANDMARK_INDEX["l_shoulder"])
+_HIPS = (LANDMARK_INDEX["r_hip"], LANDMARK_INDEX["l_hip"], _MID_HIP)
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,7 @@ class ViewSettings:
     border_px: float = 0.0
     min_in_view: int = 3
     region_ratio: float = 0.5
+    edge_ratio: float = 0.15
     head_ratio: float = 0.35
     shoulder_ratio: float = 0.9
     window_us: int = 40_000
@@ -58,7 +64,7 @@ class ViewSettings:
         unknown = sorted(set(self.checks) - set(CHECKS))
         if unknown:
             raise ValueError(f"checks: unknown check {unknown[0]!r}; known: {', '.join(CHECKS)}")
-        for name in ("border_px", "region_ratio", "head_ratio", "shoulder_ratio", "min_found"):
+        for name in ("border_px", "region_ratio", "edge_ratio", "head_ratio", "shoulder_ratio", "min_found"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
@@ -69,10 +75,12 @@ class ViewSettings:
 
 
 def inside_image(kp: np.ndarray, width: int, height: int, border_px: float = 0.0) -> np.ndarray:
-    """(..., L) bool: points (..., L, 2) at least ``border_px`` inside the image (pixel centres 0..width-1)."""
+    """(..., L) bool: points (..., L, 2) at least ``border_px`` inside the image, whose pixels cover
+    [-0.5, width - 0.5) x [-0.5, height - 0.5) (integer coordinates are pixel centres)."""
     x, y = kp[..., 0], kp[..., 1]
-    b = float(border_px)
-    return np.isfinite(x) & np.isfinite(y) & (x >= b) & (y >= b) & (x <= width - 1 - b) & (y <= height - 1 - b)
+    lo = float(border_px) - 0.5
+    return np.isfinite(x) & np.isfinite(y) & (x >= lo) & (y >= lo) & (x < width - 0.5 - float(border_px)) & \
+        (y < height - 0.5 - float(border_px))
 
 
 def cell_size(width: int, height: int) -> int:
@@ -126,7 +134,10 @@ def check_detection(kp: np.ndarray, in_view: np.ndarray, active: np.ndarray | No
     n_in = int(in_view.sum())
     if "outside" in settings.checks and n_in < settings.min_in_view:
         return "outside", f"{n_in} landmarks in the image (at least {settings.min_in_view})"
-    whole = in_view[list(_HEAD)].any() and in_view[list(_ANKLES)].any() and in_view[[_NECK, _MID_HIP]].all()
+    head, ankle = in_view[list(_HEAD)].any(), in_view[list(_ANKLES)].any()
+    if "parts" in settings.checks and head and ankle and not in_view[list(_HIPS)].any():
+        return "parts", "the head and an ankle in the image, the hips between them not: the parts do not hang together"
+    whole = head and ankle and in_view[[_NECK, _MID_HIP]].all()
     if not whole:
         return "ok", ""
     pts = kp[in_view]
@@ -143,10 +154,26 @@ def check_detection(kp: np.ndarray, in_view: np.ndarray, active: np.ndarray | No
     if "region" in settings.checks and active is not None:
         region = moving_region(active, box, cell)
         if region is not None:
-            moving = max(region[2] - region[0], region[3] - region[1])
-            if size < settings.region_ratio * moving:
-                return "region", (f"a whole body {size:.0f} px tall inside a moving region of {moving:.0f} px "
-                                  f"(at least {settings.region_ratio:g} x expected)")
+            return _region(box, size, region, active.shape, cell, settings)
+    return "ok", ""
+
+
+def _region(box, size, region, grid_shape, cell, settings) -> tuple[str, str]:
+    """The region check of one whole body (its landmarks' ``box`` and ``size``) against the moving ``region``."""
+    moving = max(region[2] - region[0], region[3] - region[1])
+    if size < settings.region_ratio * moving:
+        return "region", (f"a whole body {size:.0f} px tall inside a moving region of {moving:.0f} px (at least "
+                          f"{settings.region_ratio:g} x expected)")
+    # the moving region reaches an edge of the image the whole body keeps well away from: the person goes on
+    # beyond the image, so the body drawn inside it is not all of them
+    width, height = grid_shape[1] * cell, grid_shape[0] * cell
+    sides = (("left", region[0] <= cell, box[0], width), ("top", region[1] <= cell, box[1], height),
+             ("right", region[2] >= width - cell, width - box[2], width),
+             ("bottom", region[3] >= height - cell, height - box[3], height))
+    for side, touches, gap, extent in sides:
+        if touches and gap > settings.edge_ratio * extent:
+            return "region", (f"the moving region reaches the image's {side} edge, the whole body stays {gap:.0f} "
+                              f"px from it (more than {settings.edge_ratio:g} of the image)")
     return "ok", ""
 
 

@@ -15,14 +15,17 @@ class ViewChecksConfig:
     """What is in view and the checks against the events, shared by the detectors of real images
     (plugins/eventcap_detect/checks.py)."""
 
-    checks: list[str] = param(default_factory=lambda: ["outside", "region", "scale"],
+    checks: list[str] = param(default_factory=lambda: ["outside", "parts", "region", "scale"],
                               help="checks that reject a detection: outside (too few landmarks in the image) | "
-                                   "region (a whole body much smaller than the moving region around it) | scale "
-                                   "(a whole body too small for its own head and shoulders); [] = none")
+                                   "parts (head and ankle in view, no hip) | region (a whole body that does not "
+                                   "fit the moving region around it) | scale (a whole body too small for its own "
+                                   "head and shoulders); [] = none")
     border_px: float = param(0.0, help="a landmark is in view when at least this far inside the image, px")
     min_in_view: int = param(3, help="check outside: fewer landmarks in the image reject the detection")
     region_ratio: float = param(0.5, help="check region: a whole body smaller than this x the moving region it "
                                           "lies in is rejected")
+    edge_ratio: float = param(0.15, help="check region: a moving region reaching an image edge that a whole body "
+                                         "keeps more than this share of the image away from rejects it")
     head_ratio: float = param(0.35, help="check scale: ear-to-ear width over this x the torso (neck to mid-hip) "
                                          "rejects a whole body")
     shoulder_ratio: float = param(0.9, help="check scale: shoulder width over this x the torso rejects a whole "
