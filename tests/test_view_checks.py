@@ -178,6 +178,17 @@ def test_head_and_ankles_in_view_without_the_hips_do_not_hang_together(tmp_path)
         ("ok",) * N
 
 
+def test_too_few_detections_name_the_stretch_worth_solving(tmp_path):
+    rec = posed_recording("jumping_jack", 30)
+    kp = truth_2d(rec)
+    conf = np.zeros(kp.shape[:2])
+    conf[5:17] = 0.9  # a person in images 5-16 only (0.205-0.645 s)
+    with pytest.raises(StageFailed, match=r"no person in 18 of 30 images: a person in 12: 40% of the images, fewer "
+                                          r"than 50% .*; the longest stretch with a person is images 5-16: "
+                                          r"source.t_start_s=0.20 source.t_end_s=0.65 keeps it"):
+        run_file(tmp_path, rec, kp, conf)
+
+
 def test_found_message_and_gaps():
     status = ["no_person"] * 199 + ["ok"] * 3
     assert checks.found_message(status, "blazepose", enough=False) == \
@@ -185,6 +196,9 @@ def test_found_message_and_gaps():
     assert checks.found_message(["ok", "region", "ok", "no_person"], "x") == \
         "x: a person in 2 of 4 images (rejected: region 1; no person in 1)"
     assert checks.longest_gap(["ok", "region", "no_person", "ok", "no_person"]) == 2
+    status = ["no_person"] * 3 + ["ok"] * 4 + ["region"] + ["ok"] * 5 + ["no_person"] * 2 + ["ok"] * 6
+    assert checks.longest_stretch(status) == (3, 12)  # one rejected image inside the stretch, two end it
+    assert checks.longest_stretch(["no_person"] * 3) == (0, -1)
     with pytest.raises(ValueError, match="checks: unknown check 'silhouette'"):
         checks.ViewSettings(checks=("silhouette",))
 

@@ -19,7 +19,8 @@ class Detections(Artifact):
     that says so, present in it); the others have confidence 0, and so have the 3D joints no landmark in view
     supports. ``image_status`` says per image why it holds a detection or not: ``ok``, ``no_person`` (the
     detector found nobody) or the name of the check that rejected it (``outside``, ``region``, ``scale``: see
-    ``plugins/eventcap_detect/checks.py``); a rejected image has no observation at all. Schema v1 had neither:
+    ``plugins/eventcap_detect/checks.py``); a rejected image has no observation at all (confidence 0 everywhere), its
+    positions kept as the detector gave them, to look at. Schema v1 had neither:
     its caches are refused and recomputed."""
 
     schema_version: ClassVar[int] = 2

@@ -89,9 +89,10 @@ def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what
         if st not in ("ok", "no_person"):
             ctx.log.info("%s: image %d (t = %.3f s) rejected by check %s: %s", what, i, t_us[i] / 1e6, st, w)
     ok = np.array([st == "ok" for st in status], bool)
+    rejected = np.array([st not in ("ok", "no_person") for st in status], bool)
     in_view &= ok[:, None]
     conf[~in_view] = 0.0
-    kp[~in_view] = 0.0
+    kp[~in_view & ~rejected[:, None]] = 0.0  # a rejected image keeps the detector's positions, to look at
     conf3[~ok] = 0.0
     if joint_views is not None:
         conf3[~joint_views] = 0.0
@@ -102,6 +103,10 @@ def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what
     if n and ok.sum() < settings.min_found * n:
         why = (f": {100 * ok.sum() / n:.0f}% of the images, fewer than {100 * settings.min_found:.0f}% "
                f"(stages.detect.min_found={settings.min_found:g}): too few to solve anything") if ok.any() else ""
+        a, b = checks.longest_stretch(status)
+        if b - a + 1 >= 10:  # a stretch worth solving on its own: say how to cut it out
+            why += (f"; the longest stretch with a person is images {a}-{b}: source.t_start_s={t_us[a] / 1e6:.2f} "
+                    f"source.t_end_s={t_us[b] / 1e6:.2f} keeps it")
         raise StageFailed(f"{checks.found_message(status, what, enough=False)}{why}; is there a person in view "
                           f"(eventcap preview FILE)?", status="too_few_detections" if ok.any() else "no_person")
     level = ctx.log.warning if ok.sum() < n else ctx.log.info

@@ -14,7 +14,8 @@ Every detector's landmarks (the skeleton's BODY_25 order) go through the same th
      (the connected event activity it lies in, :func:`moving_region`): its size (the longer side of its
      landmarks' box) under ``region_ratio`` x the region's (a body drawn inside a face, or inside a torso that
      fills the image), or the region reaching an edge of the image that the body keeps more than ``edge_ratio`` of
-     the image away from (the person goes on beyond the image: the body drawn inside is not all of them);
+     the image (plus a fifth of its own size: the head's top, the soles) away from (the person goes on beyond the
+     image: the body drawn inside is not all of them);
    - ``scale``: a whole body whose height disagrees with the scale of its own head and shoulders: ear-to-ear
      width over ``head_ratio`` or shoulder width over ``shoulder_ratio`` x the torso's length (neck to mid-hip).
      The head and shoulders of a close-up with a small body folded under them give 0.4-2 and 0.9-8; whole bodies
@@ -38,6 +39,9 @@ import numpy as np
 from eventcap.body.skeleton import LANDMARK_INDEX
 
 CHECKS = ("outside", "parts", "region", "scale")
+#: How far a body's silhouette reaches beyond its landmarks' box, as a share of the box's longer side (the top of the
+#: head above the eyes; the soles below the ankles)
+_BEYOND_LANDMARKS = 0.2
 _HEAD = tuple(LANDMARK_INDEX[n] for n in ("nose", "r_eye", "l_eye", "r_ear", "l_ear"))
 _ANKLES = (LANDMARK_INDEX["r_ankle"], LANDMARK_INDEX["l_ankle"])
 _NECK, _MID_HIP = LANDMARK_INDEX["neck"], LANDMARK_INDEX["mid_hip"]
@@ -165,15 +169,18 @@ def _region(box, size, region, grid_shape, cell, settings) -> tuple[str, str]:
         return "region", (f"a whole body {size:.0f} px tall inside a moving region of {moving:.0f} px (at least "
                           f"{settings.region_ratio:g} x expected)")
     # the moving region reaches an edge of the image the whole body keeps well away from: the person goes on
-    # beyond the image, so the body drawn inside it is not all of them
+    # beyond the image, so the body drawn inside it is not all of them. The silhouette reaches beyond the landmarks
+    # (the top of the head above the eyes, the soles below the ankles: about a fifth of the body), so that much more
+    # is allowed
     width, height = grid_shape[1] * cell, grid_shape[0] * cell
     sides = (("left", region[0] <= cell, box[0], width), ("top", region[1] <= cell, box[1], height),
              ("right", region[2] >= width - cell, width - box[2], width),
              ("bottom", region[3] >= height - cell, height - box[3], height))
     for side, touches, gap, extent in sides:
-        if touches and gap > settings.edge_ratio * extent:
+        if touches and gap > settings.edge_ratio * extent + _BEYOND_LANDMARKS * size:
             return "region", (f"the moving region reaches the image's {side} edge, the whole body stays {gap:.0f} "
-                              f"px from it (more than {settings.edge_ratio:g} of the image)")
+                              f"px from it (more than {settings.edge_ratio:g} of the image + "
+                              f"{_BEYOND_LANDMARKS:g} of the body)")
     return "ok", ""
 
 
@@ -218,4 +225,21 @@ def longest_gap(status: list[str]) -> int:
     for s in status:
         run = 0 if s == "ok" else run + 1
         best = max(best, run)
+    return best
+
+
+def longest_stretch(status: list[str]) -> tuple[int, int]:
+    """(first, last) image of the longest run of accepted detections that at most one image interrupts; (0, -1)
+    when there is none."""
+    best, start, gap = (0, -1), None, 0
+    for i, s in enumerate([*status, "end", "end"]):
+        if s == "ok":
+            start, gap = (i if start is None else start), 0
+            last = i
+            if last - start > best[1] - best[0]:
+                best = (start, last)
+        elif start is not None:
+            gap += 1
+            if gap > 1:
+                start, gap = None, 0
     return best
