@@ -22,6 +22,8 @@ ADVICE: dict[str, str] = {
     "KeyboardInterrupt": "interrupted: run the same command again to resume",
     "missing_detections": "no usable detection at those batches' frames: the detect node's log names the images "
                           "without a person",
+    "no_detections": "no usable detection at those batches' frames: the detect node's log names the images without "
+                     "a person",
     # no_person, too_few_detections: the detect stage's own message says what to look at
 }
 

@@ -233,3 +233,23 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
             "evaluate; first error: detect: StageFailed: blazepose (full, at latent): no person in 3 of 3 images") \
         in log
     assert "world frame: y up, the camera at the origin looking along -z, ASSUMED LEVEL" in log
+
+
+def test_detections_of_schema_1_are_refused_and_new_fields_round_trip(tmp_path):
+    import zarr
+
+    from eventcap.artifacts import ArtifactError
+    from eventcap.artifacts.pose import Detections
+
+    d = detect("simulated", posed_recording("jumping_jack", N))
+    g = zarr.open_group(str(tmp_path / "d.zarr"), mode="w")
+    d.to_zarr(g)
+    back = Detections.from_zarr(zarr.open_group(str(tmp_path / "d.zarr"), mode="r"))
+    assert back.equals(d) and back.image_status == ("ok",) * N and len(back.person_up) == 3
+    g.attrs["schema_version"] = 1  # a cache entry written before what is in view was stated
+    with pytest.raises(ArtifactError, match="Detections schema version 1 on disk, this code reads version 2"):
+        Detections.from_zarr(zarr.open_group(str(tmp_path / "d.zarr"), mode="r"))
+    # a landmark out of view cannot carry a confidence
+    with pytest.raises(ArtifactError, match="landmark 0 of image 0 is not in view but has confidence"):
+        Detections(t_us=d.t_us, keypoints_2d=d.keypoints_2d, confidence_2d=d.confidence_2d, joints_3d=d.joints_3d,
+                   confidence_3d=d.confidence_3d, in_view=np.zeros_like(d.in_view))
