@@ -200,7 +200,8 @@ def test_found_message_and_gaps():
     assert checks.longest_stretch(status) == (3, 12)  # one rejected image inside the stretch, two end it
     assert checks.longest_stretch(["no_person"] * 3) == (0, -1)
     with pytest.raises(ValueError, match="checks: unknown check 'silhouette'"):
-        checks.ViewSettings(checks=("silhouette",))
+        checks.ViewSettings(checks=("silhouette",), border_px=0.0, min_in_view=3, region_ratio=0.5, edge_ratio=0.15,
+                            head_ratio=0.35, shoulder_ratio=0.9, window_us=40_000, min_found=0.5)
 
 
 def test_the_simulated_detector_states_what_is_in_view(tmp_path):

@@ -34,7 +34,7 @@ def view_settings(config):
     from .checks import ViewSettings
 
     if not hasattr(config, "checks"):
-        return ViewSettings(checks=(), min_found=config.min_found)
+        return ViewSettings.without_checks(config.min_found)
     return ViewSettings(checks=tuple(config.checks), border_px=config.border_px, min_in_view=config.min_in_view,
                         region_ratio=config.region_ratio, edge_ratio=config.edge_ratio, head_ratio=config.head_ratio,
                         shoulder_ratio=config.shoulder_ratio, window_us=config.check_window_us,

@@ -52,17 +52,24 @@ _HIPS = (LANDMARK_INDEX["r_hip"], LANDMARK_INDEX["l_hip"], _MID_HIP)
 
 @dataclass(frozen=True)
 class ViewSettings:
-    """Settings of the view checks (built from a detect stage's config; see the module docstring)."""
+    """Settings of the view checks, built from a detect stage's config (whose dataclass states their defaults and
+    meaning: ``ViewChecksConfig`` in spec.py); see the module docstring."""
 
-    checks: tuple[str, ...] = CHECKS
-    border_px: float = 0.0
-    min_in_view: int = 3
-    region_ratio: float = 0.5
-    edge_ratio: float = 0.15
-    head_ratio: float = 0.35
-    shoulder_ratio: float = 0.9
-    window_us: int = 40_000
-    min_found: float = 0.5
+    checks: tuple[str, ...]
+    border_px: float
+    min_in_view: int
+    region_ratio: float
+    edge_ratio: float
+    head_ratio: float
+    shoulder_ratio: float
+    window_us: int
+    min_found: float
+
+    @classmethod
+    def without_checks(cls, min_found: float) -> ViewSettings:
+        """Only what is in view (inside the image) and enough detections: no check rejects anything."""
+        return cls(checks=(), border_px=0.0, min_in_view=0, region_ratio=0.0, edge_ratio=0.0, head_ratio=0.0,
+                   shoulder_ratio=0.0, window_us=1, min_found=min_found)
 
     def __post_init__(self):
         unknown = sorted(set(self.checks) - set(CHECKS))
