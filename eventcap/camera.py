@@ -265,6 +265,34 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     return R, -R @ eye
 
 
+def level_rotation(pitch_deg: float = 0.0, roll_deg: float = 0.0) -> np.ndarray:
+    """World→camera rotation of a camera at the world's origin looking along -z, for a y-up world: with both angles
+    0 the camera is level (image up = world up, image right = world x). ``pitch_deg`` tilts the optical axis (negative:
+    looking down); ``roll_deg`` turns the camera about its axis (positive: the world's up appears turned clockwise
+    in the image, image up (0, -1) towards image right). :func:`tilt_from_up` inverts it."""
+    p, r = math.radians(float(pitch_deg)), math.radians(float(roll_deg))
+    if not (math.isfinite(p) and math.isfinite(r)) or abs(p) >= math.pi / 2:
+        raise ValueError(f"level_rotation: expected finite angles with |pitch| < 90 degrees, got pitch {pitch_deg!r}, "
+                         f"roll {roll_deg!r}")
+    R, _ = look_at((0.0, 0.0, 0.0), (0.0, math.sin(p), -math.cos(p)))
+    c, s = math.cos(r), math.sin(r)
+    roll = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return roll @ R
+
+
+def tilt_from_up(up_camera) -> tuple[float, float]:
+    """(pitch_deg, roll_deg) of :func:`level_rotation` under which the world's up is ``up_camera`` (a direction in
+    camera axes: x right, y down, z forward; normalised here)."""
+    u = np.asarray(up_camera, dtype=np.float64)
+    n = float(np.linalg.norm(u))
+    if u.shape != (3,) or not (n > 0 and math.isfinite(n)):
+        raise ValueError(f"tilt_from_up: expected a non-zero direction (3,), got {u.tolist()}")
+    u = u / n
+    pitch = math.degrees(math.asin(float(np.clip(u[2], -1.0, 1.0))))
+    roll = math.degrees(math.atan2(u[0], -u[1]))
+    return pitch, roll
+
+
 def davis240c_default(distortion: bool = True, eye=DEFAULT_EYE_M, target=DEFAULT_TARGET_M) -> Camera:
     """A DAVIS240C (240×180, rpg calibration) placed for the synthetic capture (see ``DEFAULT_EYE_M``)."""
     fx, fy, cx, cy, *dist = DAVIS240C_CALIBRATION

@@ -4,7 +4,8 @@
     eventcap simulate [key=value ...]    write a synthetic recording (motion=karate_kick duration_s=1 seed=0)
     eventcap stages [--kind K]           installed stages with one-line descriptions (imports no implementation)
     eventcap cache ls | explain KEY | gc inspect and clean the stage cache
-    eventcap preview RECORDING.zarr      PNG of frames, events and the ground-truth skeleton
+    eventcap preview FILE                PNG of frames (or images from events), events and the ground-truth skeleton,
+                                         at the most active moment; any readable format; says what it read
     eventcap benchmark [overrides]       Table 1 / Fig. 7 on synthetic captures: methods x motions x seeds, one cache
                                          (benchmark=quick for a short one; conf/benchmark/*.yaml)
     eventcap report RUNS_DIR             one table (+ CSV, plot) of the jobs of a sweep (eventcap run -m ...)
@@ -318,18 +319,41 @@ def cmd_cache(args) -> int:
     return 0
 
 
+def _read_for_preview(args):
+    """The recording at ``args.recording`` in any format the readers take (the project's zarr format too), and a
+    line saying what was read."""
+    from .io.convert import is_project_recording, recording_from_raw
+
+    path = Path(args.recording)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    if args.format in ("", None, "eventcap") and is_project_recording(path):
+        import zarr
+
+        from .artifacts.recording import Recording
+
+        return Recording.from_zarr(zarr.open_group(str(path), mode="r"), where=str(path)), "eventcap (zarr)"
+    from .io import read_recording
+
+    raw = read_recording(path, format=args.format or None, width=args.width or None, height=args.height or None,
+                         time_unit=args.time_unit or None, columns=args.columns or None)
+    rec = recording_from_raw(raw, calibration=args.calibration or None, hint="give --calibration")
+    return rec, raw.format
+
+
 def cmd_preview(args) -> int:
-    """A PNG of a recording (the project's zarr format): frame, true sharp image, events, ground-truth skeleton."""
+    """A PNG of a recording in any readable format: frame (or image from events), true sharp image, events,
+    ground-truth skeleton; by default at the recording's most active moment. Says what it read."""
     import cv2
     import numpy as np
     import zarr
 
     from .artifacts import ArtifactError
-    from .artifacts.recording import Recording
-    from .viz import recording_overview
+    from .viz import describe_recording, most_active_time, recording_overview
 
     try:
-        rec = Recording.from_zarr(zarr.open_group(str(args.recording), mode="r"), where=str(args.recording))
+        rec, fmt = _read_for_preview(args)
+        print(f"read {args.recording}: {fmt}; {describe_recording(rec)}")
         latent = None
         if args.latent:
             from .artifacts.tracking import LatentFrames
@@ -345,16 +369,24 @@ def cmd_preview(args) -> int:
             sliced = SlicedTracks.from_zarr(zarr.open_group(str(args.tracks), mode="r"), where=str(args.tracks))
             plan = BatchPlan.between_frames(rec.frames.t_us)
             batch = plan.batch(int(np.searchsorted(plan.t0_us, sliced.t_us[0])))
-            img = tracks_overview(rec, latent, sliced, batch)
+            img, what = tracks_overview(rec, latent, sliced, batch), f"batch {batch.index}"
         else:
+            t_us, what = None, f"frame {args.frame}"
+            if args.t is not None:
+                t_us, what = int(round(args.t * 1e6)), f"t = {args.t:.3f} s (--t)"
+            elif args.frame is None:
+                t_us, count = most_active_time(rec.events.events, 20_000)
+                what = f"t = {t_us / 1e6:.3f} s, the most active moment ({count:,} events in 20 ms; --t or --frame " \
+                       f"to choose)"
             img = recording_overview(rec, frame_index=args.frame, scale=args.scale, latent=latent,
-                                     reconstruct=True if args.reconstruct else None, rate_hz=args.rate)
-    except (ArtifactError, FileNotFoundError, ValueError) as exc:
+                                     reconstruct=True if args.reconstruct else None, rate_hz=args.rate, t_us=t_us)
+    except (ArtifactError, FileNotFoundError, ValueError) as exc:  # RecordingError is a ValueError
         print(f"eventcap preview: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out or Path(args.recording).with_suffix(f".frame{args.frame}.png"))
+    stem = Path(args.recording).name.split(".")[0] or "recording"
+    out = Path(args.out or Path(args.recording).parent / f"{stem}.preview.png")
     cv2.imwrite(str(out), img)
-    print(f"wrote {out} ({img.shape[1]}x{img.shape[0]})")
+    print(f"showing {what}; wrote {out} ({img.shape[1]}x{img.shape[0]})")
     return 0
 
 
@@ -519,6 +551,31 @@ def _pin_threads() -> None:
         os.environ.setdefault(var, "1")
 
 
+def _add_preview_parser(sub) -> None:
+    p = sub.add_parser("preview", help="PNG of a recording: frame (or image from events), sharp image, events, "
+                                       "ground-truth skeleton")
+    p.add_argument("recording", help="a recording in any format the readers take (AEDAT4, AEDAT 2.0/3.1, HDF5, "
+                                      "EVT2/EVT3 .raw, DAT, npy/npz, csv/txt, an rpg folder) or the project's zarr "
+                                      "(e.g. runs/simulate/*/source.recording.zarr)")
+    p.add_argument("--frame", type=int, default=None, help="intensity frame (or event-only image) index; default: "
+                                                            "the recording's most active moment")
+    p.add_argument("--t", type=float, default=None, help="time to show, seconds from the first event (the nearest "
+                                                         "frame)")
+    p.add_argument("--format", default="", help="force a format (as source.format); default: detect it")
+    p.add_argument("--width", type=int, default=0, help="sensor width for files that do not store it")
+    p.add_argument("--height", type=int, default=0, help="sensor height for files that do not store it")
+    p.add_argument("--columns", default="", help="column order of unnamed array/text columns, e.g. x,y,t,p")
+    p.add_argument("--time-unit", default="", help="unit of array/text time columns: s | ms | us | ns")
+    p.add_argument("--calibration", default="", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3])")
+    p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
+    p.add_argument("--out", help="output PNG (default: next to the recording)")
+    p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
+    p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
+    p.add_argument("--reconstruct", action="store_true", help="add the image reconstructed from the events alone "
+                                                               "(always shown for event-only recordings)")
+    p.add_argument("--rate", type=float, default=25.0, help="event-only recordings: image times every 1/rate s")
+
+
 def _parser() -> argparse.ArgumentParser:
     """The command line of the subcommands argparse handles (run, simulate and benchmark take Hydra overrides)."""
     parser = argparse.ArgumentParser(prog="eventcap", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -547,17 +604,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", default=default_cache_dir(), help="cache root (default: %(default)s)")
     p.add_argument("--older-than", type=float, default=None, help="gc: also remove entries older than this many days")
     p.add_argument("--all", action="store_true", help="gc: remove every entry")
-    p = sub.add_parser("preview", help="PNG of a recording: frame (or image from events), sharp image, events, "
-                                       "ground-truth skeleton")
-    p.add_argument("recording", help="a recording in the project's format (e.g. runs/simulate/*/source.recording.zarr)")
-    p.add_argument("--frame", type=int, default=1, help="intensity frame index")
-    p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
-    p.add_argument("--out", help="output PNG (default: next to the recording)")
-    p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
-    p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
-    p.add_argument("--reconstruct", action="store_true", help="add the image reconstructed from the events alone "
-                                                               "(always shown for event-only recordings)")
-    p.add_argument("--rate", type=float, default=25.0, help="event-only recordings: image times every 1/rate s")
+    _add_preview_parser(sub)
     p = sub.add_parser("view", help="the run in the Rerun viewer (capture.rrd; built from the run folder if missing)")
     p.add_argument("target", metavar="RUN_DIR", help="a run folder (runs/<name>/<timestamp>/) or an .rrd file")
     p.add_argument("--rebuild", action="store_true", help="write capture.rrd again even if the run folder has one")

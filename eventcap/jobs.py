@@ -42,15 +42,10 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     if written["problems"]:
         failures.append(f"{run_dir}: outputs: {'; '.join(written['problems'])}")
     if not result.ok:
-        failed = [f"{n} batch {f['batch']}" if f["batch"] is not None else n
-                  for n, r in result.nodes.items() for f in r.failed]
-        by_cause: dict[str, list[str]] = {}  # nodes skipped for one cause are listed once with it
-        for n, r in result.nodes.items():
-            if r.skipped:
-                by_cause.setdefault(r.skip_causes[0]["cause"] if r.skip_causes else "", []).append(n)
-        skipped = [f"{', '.join(ns)} ({cause})" if cause else ", ".join(ns) for cause, ns in by_cause.items()]
-        msg = f"failed: {', '.join(failed) or '-'}; skipped: {', '.join(skipped) or '-'}"
-        log.error("run incomplete: %s. Fix the cause and run the same command again: committed results are reused.", msg)
+        from .failures import failure_summary
+
+        msg = failure_summary(result)
+        log.error("run incomplete: %s", msg)
         failures.append(f"{run_dir}: {msg}")
     return runner, result
 

@@ -17,6 +17,8 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
   frames as PNG. The file appears atomically (written as ``overlay.partial.mp4``, then renamed).
 - ``motion.c3d`` (``c3d: true``): the joints and the template's landmarks in millimetres at the tracking rate, for
   mocap tools (:mod:`eventcap.c3d`).
+- ``plausibility.json``: speeds beyond human limits, joints behind the camera, sudden flips, the head below the
+  pelvis, each with its frames (:mod:`eventcap.plausibility`); also logged, one line per kind.
 - ``capture.rrd`` (``rerun: true``): a Rerun recording of everything the run saw and produced (:mod:`eventcap.viewer`;
   ``eventcap view RUN_DIR`` opens it, or builds it from a finished run).
 
@@ -41,6 +43,7 @@ import numpy as np
 
 from .artifacts.pose import PoseSequence
 from .motion import JOIN_RULES, frame_step_us, join_batches, on_grid, uniform_motion
+from .plausibility import write_plausibility
 from .viz import label as _label
 
 log = logging.getLogger("eventcap.outputs")
@@ -229,6 +232,9 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     if cfg.rerun:
         jobs.append(("rerun", lambda: _write_rerun(run_dir, runner, result, t_us, poses, joints, rec, template,
                                                    cfg, summary)))
+    # Plausibility warnings (eventcap/plausibility.py): logged, and written to plausibility.json; never change the motion
+    jobs.append(("plausibility", lambda: write_plausibility(run_dir / "plausibility.json", t_us, joints,
+                                                            rec.camera if rec is not None else None)))
     for name, job in jobs:
         try:
             path = job()

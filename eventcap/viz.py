@@ -63,15 +63,42 @@ def image_times(rec, rate_hz: float = 25.0) -> tuple[np.ndarray, str]:
         "image"
 
 
-def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int = 10_000, latent=None,
-                       reconstruct: bool | None = None, rate_hz: float = 25.0) -> np.ndarray:
+def most_active_time(events: np.ndarray, window_us: int = 20_000) -> tuple[int, int]:
+    """The centre (µs) of the ``window_us`` window holding the most events, and that count: the recording's most
+    active moment (windows start every ``window_us / 8``). ``(0, 0)`` without events."""
+    t = events["t"]
+    if t.size == 0:
+        return 0, 0
+    step = max(1, int(window_us) // 8)
+    starts = np.arange(int(t[0]), max(int(t[-1]) - int(window_us), int(t[0])) + step, step, dtype=np.int64)
+    counts = np.searchsorted(t, starts + int(window_us)) - np.searchsorted(t, starts)
+    k = int(np.argmax(counts))
+    return int(starts[k]) + int(window_us) // 2, int(counts[k])
+
+
+def describe_recording(rec) -> str:
+    """What a recording holds, in one line: sensor size, events, duration, event rate, frames, camera, source."""
+    t = rec.events.events["t"]
+    dur = (int(t[-1]) - int(t[0])) / 1e6 if t.size else 0.0
+    rate = f", {t.size / dur / 1e6:.3g} M events/s" if dur > 0 else ""
+    n_frames = 0 if rec.frames is None else int(rec.frames.t_us.size)
+    frames = "no intensity frames (an event-only recording)" if not n_frames else \
+        f"{n_frames} intensity frame{'s' if n_frames != 1 else ''}"
+    gt = ", ground truth" if rec.ground_truth is not None else ""
+    return (f"{rec.width} x {rec.height} px, {t.size:,} events over {dur:.3f} s{rate}, {frames}{gt}; "
+            f"{rec.source or rec.name}")
+
+
+def recording_overview(rec, frame_index: int | None = 1, scale: int = 2, window_us: int = 10_000, latent=None,
+                       reconstruct: bool | None = None, rate_hz: float = 25.0, t_us: int | None = None) -> np.ndarray:
     """One picture of a Recording at an intensity frame: blurry frame | EDI-sharpened frame (if ``latent``, a
     LatentFrames, is given) | reconstruction from the events alone (``reconstruct``; default: only when the
     recording has no frames) | true sharp image (if known) | events within ±window_us of the frame | frame (or
     reconstruction) with the ground-truth skeleton projected (if known).
 
     Event-only recordings have no frame: image ``frame_index`` is at the ground truth's image times (synthetic
-    ``source.frames=false``) or every 1/rate_hz from the first event."""
+    ``source.frames=false``) or every 1/rate_hz from the first event. ``t_us`` (instead of ``frame_index``) shows
+    the frame nearest that time, or for an event-only recording the image at exactly that time."""
     import cv2
 
     from eventcap.reconstruct import DEFAULT_BASELINE, DEFAULT_CUTOFF_RAD_S, reconstruct as events_to_images
@@ -81,7 +108,12 @@ def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int
     has_frames = what == "frame"
     if reconstruct is None:
         reconstruct = not has_frames
-    k = int(np.clip(frame_index, 0, times.size - 1))
+    if t_us is not None and not has_frames:
+        times = np.array([int(t_us)], np.int64)
+        frame_index = 0
+    elif t_us is not None:
+        frame_index = int(np.argmin(np.abs(times - int(t_us))))
+    k = int(np.clip(frame_index or 0, 0, times.size - 1))
     t = int(times[k])
     h, w = rec.height, rec.width
     panels = []

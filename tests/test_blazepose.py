@@ -341,6 +341,7 @@ def test_no_person_anywhere_fails_the_stage_with_the_reason():
     blank = FrameStack(images=np.zeros_like(rec.frames.images), t_us=rec.frames.t_us,
                        exposure_us=rec.frames.exposure_us, height=rec.height, width=rec.width)
     empty = Recording(events=rec.events, camera=rec.camera, frames=blank, name="blank")
-    with pytest.raises(StageFailed, match="no person found in any of the 3 images") as info:
+    with pytest.raises(StageFailed, match=r"^blazepose \(full, at frames\): no person in 3 of 3 images; is there a "
+                                          r"person in view") as info:
         detect(empty)
     assert info.value.status == "no_person"

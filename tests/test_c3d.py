@@ -99,7 +99,7 @@ def test_a_run_writes_motion_c3d_equal_to_motion_npz(tmp_path):
     from eventcap.body.kinematics import landmark_positions
 
     runner, result, summary = run(config(tmp_path / "cache", c3d=True, bvh=False, video=False), tmp_path / "run")
-    assert summary["problems"] == [] and set(summary["written"]) == {"npz", "c3d"}
+    assert summary["problems"] == [] and set(summary["written"]) == {"npz", "c3d", "plausibility"}
     assert json.loads((tmp_path / "run" / "run.json").read_text())["outputs"]["written"]["c3d"].endswith("motion.c3d")
     m = read_motion_npz(tmp_path / "run" / "motion.npz")
     tpl = runner.load_output(result, "template.template")[None]

@@ -41,7 +41,7 @@ def test_run_reports_failures_and_exits_nonzero(tmp_path):
     p = run_cli(["run", *TOY, "stages.smooth.fail_batches=[1]"], tmp_path, check=False)
     assert p.returncode == 1
     assert "batch 1 FAILED (Injected_Failure)" in p.stderr + p.stdout
-    assert "failed: smooth batch 1" in p.stderr + p.stdout
+    assert "run incomplete: smooth failed in 1 of 4 batches: 1 Injected_Failure (batch 1)" in p.stderr + p.stdout
 
 
 def test_bad_override_and_bad_stage_are_clear(tmp_path):

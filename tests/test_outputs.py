@@ -53,7 +53,9 @@ def test_bvh_npz_and_video_of_a_tiny_run(tmp_path):
 
     run_dir = tmp_path / "run"
     runner, result, summary = run(config(tmp_path / "cache", video_every_ms=4, video_png_frames=3), run_dir)
-    assert result.ok and summary["problems"] == [] and set(summary["written"]) == {"bvh", "npz", "video"}
+    assert result.ok and summary["problems"] == [] and \
+        set(summary["written"]) == {"bvh", "npz", "video", "plausibility"}
+    assert json.loads((run_dir / "plausibility.json").read_text())["findings"] == []  # the true jumping jack
     tpl = runner.load_output(result, "template.template")[None]
     parts = runner.load_output(result, "solve.poses")
     assert sorted(parts) == [0, 1]
@@ -107,7 +109,7 @@ def test_a_failed_batch_leaves_a_gap_that_the_bvh_interpolates(tmp_path, caplog)
     cfg["stages"]["solve"]["fail_batches"] = [1]
     with caplog.at_level(logging.WARNING, logger="eventcap.outputs"):
         runner, result, summary = run(cfg, tmp_path / "run")
-    assert set(summary["written"]) == {"bvh", "npz"}
+    assert set(summary["written"]) == {"bvh", "npz", "plausibility"}
     parts = runner.load_output(result, "solve.poses")
     assert sorted(parts) == [0, 2]
     m = read_motion_npz(tmp_path / "run" / "motion.npz")  # the estimated frames only
@@ -137,7 +139,8 @@ def test_recording_without_ground_truth_still_gets_every_output(tmp_path):
     cfg = config(tmp_path / "cache", video_every_ms=10)
     cfg["source"] = {"stage": "recording", "path": str(path)}
     runner, result, summary = run(cfg, tmp_path / "run")
-    assert result.ok and summary["problems"] == [] and set(summary["written"]) == {"bvh", "npz", "video"}
+    assert result.ok and summary["problems"] == [] and \
+        set(summary["written"]) == {"bvh", "npz", "video", "plausibility"}
     assert runner.load_output(result, "source.recording")[None].ground_truth is None
 
 

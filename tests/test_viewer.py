@@ -228,7 +228,7 @@ def test_eventcap_view_builds_the_recording_of_a_finished_run(finished_run, tmp_
     assert rows_a == rows_b and all(np.array_equal(times_a[k], times_b[k]) for k in times_a)
     # recorded beside the run's other outputs in run.json
     outputs = json.loads((copy / "run.json").read_text())["outputs"]
-    assert set(outputs["written"]) == {"npz", "rerun"}
+    assert set(outputs["written"]) == {"npz", "rerun", "plausibility"}
     # an .rrd given directly, and --no-open
     assert main(["view", str(copy / "capture.rrd"), "--no-open"]) == 0
     assert "open it with the Rerun viewer" in capsys.readouterr().out

@@ -13,15 +13,30 @@ from .base import Artifact, ArtifactError, array, attr
 @dataclass(frozen=True, eq=False)
 class Detections(Artifact):
     """2D landmarks (the skeleton's BODY_25 order, incl. the 4 face landmarks) and root-relative 3D joints (SMPL
-    order, relative to the pelvis) at each intensity frame, with confidences in [0, 1] (0 = not detected)."""
+    order, relative to the pelvis) at each intensity frame, with confidences in [0, 1] (0 = not detected).
 
-    schema_version: ClassVar[int] = 1
+    What is in view: ``in_view`` marks the landmarks that are observations (inside the image and, for a detector
+    that says so, present in it); the others have confidence 0, and so have the 3D joints no landmark in view
+    supports. ``image_status`` says per image why it holds a detection or not: ``ok``, ``no_person`` (the
+    detector found nobody) or the name of the check that rejected it (``outside``, ``region``, ``scale``: see
+    ``plugins/eventcap_detect/checks.py``); a rejected image has no observation at all (confidence 0 everywhere), its
+    positions kept as the detector gave them, to look at. Schema v1 had neither:
+    its caches are refused and recomputed."""
+
+    schema_version: ClassVar[int] = 2
     t_us: np.ndarray = array("int64", ("n",), units="us", doc="time of the intensity frame")
     keypoints_2d: np.ndarray = array("float32", ("n", "l", 2), units="px")
     confidence_2d: np.ndarray = array("float32", ("n", "l"))
     joints_3d: np.ndarray = array("float64", ("n", 24, 3), units="m, relative to the pelvis")
     confidence_3d: np.ndarray = array("float32", ("n", 24))
+    in_view: np.ndarray = array("bool", ("n", "l"), optional=True,
+                                doc="landmark in the image and seen there (an observation); None: not stated "
+                                    "(read as confidence_2d > 0)")
     detector: str = attr(default="", doc="what produced them (simulated detectors say so)")
+    image_status: tuple = attr(default=(), doc="per image: ok | no_person | the check that rejected it; empty: "
+                                               "not stated")
+    person_up: tuple = attr(default=(), doc="the person's mean vertical over the accepted detections, camera axes "
+                                            "(x right, y down, z forward), unit; empty: not measured")
 
     def validate(self) -> None:
         super().validate()
@@ -29,6 +44,20 @@ class Detections(Artifact):
             c = getattr(self, name)
             if c.size and (c.min() < 0 or c.max() > 1):
                 raise ArtifactError(f"Detections.{name}: expected values in [0, 1], got [{c.min()}, {c.max()}]")
+        n = self.t_us.shape[0]
+        if self.image_status and len(self.image_status) != n:
+            raise ArtifactError(f"Detections.image_status: expected one entry per image ({n}), got "
+                                f"{len(self.image_status)}")
+        if self.person_up and len(self.person_up) != 3:
+            raise ArtifactError(f"Detections.person_up: expected 3 numbers or none, got {self.person_up!r}")
+        if self.in_view is not None and self.in_view.size and (self.confidence_2d[~self.in_view] > 0).any():
+            i, j = np.argwhere(~self.in_view & (self.confidence_2d > 0))[0]
+            raise ArtifactError(f"Detections: landmark {j} of image {i} is not in view but has confidence "
+                                f"{self.confidence_2d[i, j]} (a landmark out of view is not an observation)")
+
+    def observed(self) -> np.ndarray:
+        """(n, l) bool: the landmarks that are observations (``in_view``, or confidence > 0 when not stated)."""
+        return self.in_view.copy() if self.in_view is not None else self.confidence_2d > 0
 
 
 @dataclass(frozen=True, eq=False)

@@ -18,11 +18,103 @@ def _frame_times(rec, stage: str) -> np.ndarray:
     return rec.frames.t_us
 
 
-def _detections(t_us, kp, conf, joints, conf3, detector: str) -> Detections:
+def _detections(t_us, kp, conf, joints, conf3, detector: str, view=None) -> Detections:
+    in_view, status, up = view if view is not None else (None, (), ())
     return Detections(t_us=np.array(t_us, dtype=np.int64), keypoints_2d=np.asarray(kp, dtype=np.float32),
                       confidence_2d=np.clip(conf, 0.0, 1.0).astype(np.float32),
                       joints_3d=np.asarray(joints, dtype=np.float64),
-                      confidence_3d=np.clip(conf3, 0.0, 1.0).astype(np.float32), detector=detector)
+                      confidence_3d=np.clip(conf3, 0.0, 1.0).astype(np.float32), detector=detector,
+                      in_view=None if in_view is None else np.asarray(in_view, bool), image_status=tuple(status),
+                      person_up=tuple(up))
+
+
+def view_settings(config):
+    """The view checks' settings from a detect stage's config (ViewChecksConfig fields; the simulated detector has
+    only min_found: it sees the ground truth, nothing to reject)."""
+    from .checks import ViewSettings
+
+    if not hasattr(config, "checks"):
+        return ViewSettings.without_checks(config.min_found)
+    return ViewSettings(checks=tuple(config.checks), border_px=config.border_px, min_in_view=config.min_in_view,
+                        region_ratio=config.region_ratio, edge_ratio=config.edge_ratio, head_ratio=config.head_ratio,
+                        shoulder_ratio=config.shoulder_ratio, window_us=config.check_window_us,
+                        min_found=config.min_found)
+
+
+def person_up(joints: np.ndarray, conf3: np.ndarray, ok: np.ndarray, R: np.ndarray) -> tuple:
+    """The person's mean vertical in camera axes: the pelvis-to-shoulders direction of the accepted detections' 3D
+    joints (world axes, turned back by the camera's rotation R); () when no accepted detection has both."""
+    from eventcap.body.skeleton import JOINT_INDEX
+
+    sh = [JOINT_INDEX["l_shoulder"], JOINT_INDEX["r_shoulder"]]
+    use = ok & (conf3[:, sh] > 0).all(axis=1) & (conf3[:, 0] > 0)
+    if not use.any():
+        return ()
+    v = joints[use][:, sh].mean(axis=1) - joints[use][:, 0]
+    v = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+    up = R @ v.mean(axis=0)
+    n = float(np.linalg.norm(up))
+    return tuple(float(x) for x in up / n) if n > 0.5 else ()
+
+
+def _log_world_up(rec, up: tuple, n: int, log) -> None:
+    """Compare the world's y with the person's vertical; advise the tilt that makes them agree when they do not."""
+    from eventcap.camera import tilt_from_up
+
+    if not up:
+        log.info("world up: not checked (no accepted detection with the shoulders and the pelvis in 3D)")
+        return
+    world_up = rec.camera.R @ np.array([0.0, 1.0, 0.0])
+    angle = float(np.degrees(np.arccos(np.clip(np.dot(world_up, up), -1.0, 1.0))))
+    pitch, roll = tilt_from_up(up)
+    msg = (f"world up: the person's mean vertical (pelvis to shoulders, {n} images) is {angle:.0f} deg from the "
+           f"world's y; a camera tilted pitch {pitch:.0f} deg, roll {roll:.0f} deg would make them agree")
+    if angle > 20:
+        log.warning(msg + f" (for a recording without extrinsics: source.camera_pitch_deg={pitch:.0f} "
+                          f"source.camera_roll_deg={roll:.0f}; or the person does not stand upright)")
+    else:
+        log.info(msg)
+
+
+def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what: str, joint_views=None):
+    """In view, checks, enough detections to solve: zero what is not observed, log per rejected image, stop the
+    stage when too few images hold a detection (StageFailed naming the counts). Returns (in_view, status, up)."""
+    from . import checks
+
+    settings = view_settings(config)
+    n = int(t_us.size)
+    in_view = np.asarray(in_view, bool) & (conf > 0) & found[:, None]
+    status, why = checks.check_images(kp, in_view, found, t_us, rec.events.events, rec.width, rec.height, settings)
+    for i, (st, w) in enumerate(zip(status, why)):
+        if st not in ("ok", "no_person"):
+            ctx.log.info("%s: image %d (t = %.3f s) rejected by check %s: %s", what, i, t_us[i] / 1e6, st, w)
+    ok = np.array([st == "ok" for st in status], bool)
+    rejected = np.array([st not in ("ok", "no_person") for st in status], bool)
+    in_view &= ok[:, None]
+    conf[~in_view] = 0.0
+    kp[~in_view & ~rejected[:, None]] = 0.0  # a rejected image keeps the detector's positions, to look at
+    conf3[~ok] = 0.0
+    if joint_views is not None:
+        conf3[~joint_views] = 0.0
+    summary = checks.found_message(status, what)
+    gap = checks.longest_gap(status)
+    ctx.stats.update({"images": n, "accepted": int(ok.sum()), "status": {k: status.count(k) for k in set(status)},
+                      "longest_gap_images": gap})
+    if n and ok.sum() < settings.min_found * n:
+        why = (f": {100 * ok.sum() / n:.0f}% of the images, fewer than {100 * settings.min_found:.0f}% "
+               f"(stages.detect.min_found={settings.min_found:g}): too few to solve anything") if ok.any() else ""
+        a, b = checks.longest_stretch(status)
+        if b - a + 1 >= 10:  # a stretch worth solving on its own: say how to cut it out
+            why += (f"; the longest stretch with a person is images {a}-{b}: source.t_start_s={t_us[a] / 1e6:.2f} "
+                    f"source.t_end_s={t_us[b] / 1e6:.2f} keeps it")
+        raise StageFailed(f"{checks.found_message(status, what, enough=False)}{why}; is there a person in view "
+                          f"(eventcap preview FILE)?", status="too_few_detections" if ok.any() else "no_person")
+    level = ctx.log.warning if ok.sum() < n else ctx.log.info
+    level("%s; the longest run without one: %d images; %.1f%% of the accepted landmarks in view", summary, gap,
+          100.0 * in_view[ok].mean() if ok.any() else 0.0)
+    up = person_up(joints, conf3, ok, rec.camera.R)
+    _log_world_up(rec, up, int(ok.sum()), ctx.log)
+    return in_view, status, up
 
 
 def run_simulated(inputs, config, ctx):
@@ -49,8 +141,10 @@ def run_simulated(inputs, config, ctx):
                  "" if truth.occlusion_checked else " (no template: occlusion not checked)")
     detector = (f"simulated: ground-truth projections with a CNN-like error model ({model.describe()}, "
                 f"seed={config.seed}, occlusion={'z-buffer' if truth.occlusion_checked else 'off'})")
-    return {"detections": _detections(truth.t_us, sim.keypoints_px, sim.confidence, sim.joints_3d_m,
-                                      sim.confidence_3d, detector)}
+    kp, conf, conf3 = sim.keypoints_px.copy(), sim.confidence.copy(), sim.confidence_3d.copy()
+    view = finish(rec, truth.t_us, kp, conf, sim.joints_3d_m, conf3, conf > 0, np.ones(truth.t_us.size, bool),
+                  config, ctx, "simulated detector")
+    return {"detections": _detections(truth.t_us, kp, conf, sim.joints_3d_m, conf3, detector, view)}
 
 
 def run_file(inputs, config, ctx):
@@ -82,7 +176,13 @@ def run_file(inputs, config, ctx):
     detector = f"file: {Path(config.path).name} ({fmt}, layout {config.layout})"
     if config.path_3d:
         detector += f"; 3D: {Path(config.path_3d).name}"
-    return {"detections": _detections(t_us, kp, conf, joints, conf3, detector)}
+    from .checks import inside_image
+
+    kp, conf, conf3 = np.array(kp, np.float64), np.array(conf, np.float64), np.array(conf3, np.float64)
+    in_view = inside_image(kp, rec.width, rec.height, config.border_px)
+    view = finish(rec, t_us, kp, conf, joints, conf3, in_view, (conf > 0).any(axis=1), config, ctx,
+                  f"detections_file {Path(config.path).name}")
+    return {"detections": _detections(t_us, kp, conf, joints, conf3, detector, view)}
 
 
 def _blazepose_images(rec, latent, config):
@@ -119,6 +219,7 @@ def run_blazepose(inputs, config, ctx):
     from eventcap.body.skeleton import JOINT_NAMES, LANDMARK_NAMES
 
     from . import blazepose as bp
+    from .checks import inside_image
 
     rec, latent = inputs["recording"], inputs.get("latent")
     if config.at not in ("frames", "latent", "tracking"):
@@ -135,28 +236,30 @@ def run_blazepose(inputs, config, ctx):
     conf = np.zeros((n, len(LANDMARK_NAMES)))
     joints = np.zeros((n, len(JOINT_NAMES), 3))
     conf3 = np.zeros((n, len(JOINT_NAMES)))
+    in_view = np.zeros((n, len(LANDMARK_NAMES)), bool)
+    joint_views = np.zeros((n, len(JOINT_NAMES)), bool)
     for i, pose in enumerate(seq.poses):
         if pose is None:
             continue
         kp[i], conf[i] = bp.mapped(w2, pose.xy, pose.visibility * pose.presence * pose.flag)
         j, conf3[i] = bp.mapped(w3, pose.world, pose.presence * pose.flag)
         joints[i] = (j - j[0]) @ rec.camera.R  # camera -> world axes (rows: v_world = R^T v_cam), root-relative
-    outside = (kp[..., 0] < 0) | (kp[..., 1] < 0) | (kp[..., 0] > rec.width - 1) | (kp[..., 1] > rec.height - 1)
-    conf[outside] = 0.0
-    kp[conf == 0] = 0.0
-    found = sum(p is not None for p in seq.poses)
-    if n and not found:
-        raise StageFailed(f"blazepose ({config.model}, at {config.at}): no person found in any of the {n} images "
-                          f"(detector, events and the whole image tried; is there a person in view?)",
-                          status="no_person")
+        # in view: present (the network's own output) and inside the image, for every point a landmark is made of
+        seen = (pose.presence >= config.landmark_presence) & inside_image(pose.xy, rec.width, rec.height,
+                                                                          config.border_px)
+        in_view[i] = bp.mapped(w2, pose.xy, seen.astype(float))[1] > 0
+        joint_views[i] = bp.mapped(w3, pose.world, seen.astype(float))[1] > 0
+    in_view &= inside_image(kp, rec.width, rec.height, config.border_px)
+    found = np.array([p is not None for p in seq.poses], bool)
     how = {k: seq.found_by.count(k) for k in ("tracked", "detector", "events", "image")}
     ms = 1000 * seq.seconds / max(n, 1)
-    ctx.stats.update({"images": n, "found": found, "found_by": how, "tracking_losses": len(seq.losses),
+    ctx.stats.update({"found": int(found.sum()), "found_by": how, "tracking_losses": len(seq.losses),
                       "ms_per_image": ms})
-    level = ctx.log.warning if found < n else ctx.log.info
-    level("blazepose (%s, at %s): person found in %d of %d images (tracked %d, detector %d, events %d, whole "
-          "image %d), %d tracking losses, %.1f ms per image", config.model, config.at, found, n, how["tracked"],
-          how["detector"], how["events"], how["image"], len(seq.losses), ms)
+    ctx.log.info("blazepose (%s, at %s): person found in %d of %d images (tracked %d, detector %d, events %d, "
+                 "whole image %d), %d tracking losses, %.1f ms per image", config.model, config.at, found.sum(), n,
+                 how["tracked"], how["detector"], how["events"], how["image"], len(seq.losses), ms)
+    view = finish(rec, times, kp, conf, joints, conf3, in_view, found, config, ctx,
+                  f"blazepose ({config.model}, at {config.at})", joint_views=joint_views)
     detector = (f"blazepose: BlazePose GHUM 3D {config.model} (MediaPipe Pose, TFLite) on {config.at} images, "
                 f"track={config.track}, find={config.find}")
-    return {"detections": _detections(times, kp, conf, joints, conf3, detector)}
+    return {"detections": _detections(times, kp, conf, joints, conf3, detector, view)}

@@ -11,6 +11,32 @@ from eventcap.stage import Port, StageSpec, param
 
 
 @dataclass
+class ViewChecksConfig:
+    """What is in view and the checks against the events, shared by the detectors of real images
+    (plugins/eventcap_detect/checks.py)."""
+
+    checks: list[str] = param(default_factory=lambda: ["outside", "parts", "region", "scale"],
+                              help="checks that reject a detection: outside (too few landmarks in the image) | "
+                                   "parts (head and ankle in view, no hip) | region (a whole body that does not "
+                                   "fit the moving region around it) | scale (a whole body too small for its own "
+                                   "head and shoulders); [] = none")
+    border_px: float = param(0.0, help="a landmark is in view when at least this far inside the image, px")
+    min_in_view: int = param(3, help="check outside: fewer landmarks in the image reject the detection")
+    region_ratio: float = param(0.5, help="check region: a whole body smaller than this x the moving region it "
+                                          "lies in is rejected")
+    edge_ratio: float = param(0.15, help="check region: a moving region reaching an image edge that a whole body "
+                                         "keeps more than this share of the image away from rejects it")
+    head_ratio: float = param(0.35, help="check scale: ear-to-ear width over this x the torso (neck to mid-hip) "
+                                         "rejects a whole body")
+    shoulder_ratio: float = param(0.9, help="check scale: shoulder width over this x the torso rejects a whole "
+                                            "body")
+    check_window_us: int = param(40000, help="check region: the events within this window around an image make "
+                                             "its moving region, us")
+    min_found: float = param(0.5, help="the stage stops when fewer than this share of the images hold an "
+                                       "accepted detection (nothing to solve)", affects_result=False)
+
+
+@dataclass
 class SimulatedDetectorConfig:
     seed: int = param(0, help="seed of the simulated detector's errors (with the run's ctx.rng)")
     sigma_px: float = param(2.0, help="std of the Gaussian 2D error per image axis, pixels (before blur scaling)")
@@ -32,10 +58,12 @@ class SimulatedDetectorConfig:
                                        "confidence 0")
     occlusion_margin_m: float = param(0.15, help="a keypoint is hidden when the surface in front of it is nearer "
                                                  "than its depth minus this margin (joints lie inside the body)")
+    min_found: float = param(0.5, help="the stage stops when fewer than this share of the images hold a detection",
+                             affects_result=False)
 
 
 @dataclass
-class DetectionsFileConfig:
+class DetectionsFileConfig(ViewChecksConfig):
     path: str = param("", help="detections: a folder of OpenPose JSON files (one per frame), a .json, .npz or "
                                ".csv file", file=True)
     format: str = param("auto", help="openpose | npz | csv | auto (folder or .json = openpose, else by extension)",
@@ -60,7 +88,7 @@ class DetectionsFileConfig:
 
 
 @dataclass
-class BlazePoseConfig:
+class BlazePoseConfig(ViewChecksConfig):
     model: str = param("full", help="landmark network: full (15 ms per image here) | lite (faster, less exact)",
                        choices=("full", "lite"))
     at: str = param("latent", help="images it looks at: frames (the raw, blurred intensity frames: the paper's "
@@ -79,10 +107,12 @@ class BlazePoseConfig:
                                                 "is lost")
     gamma: float = param(1.0, help="the networks get linear intensity ** (1 / gamma) (1: linear, as measured "
                                    "best on our captures)")
+    landmark_presence: float = param(0.5, help="a landmark is in view when the network's presence output (that "
+                                               "it lies in the image) is at least this, and it lies in the image")
 
 
 BLAZEPOSE = StageSpec(
-    name="blazepose", kind="detect", version=2,
+    name="blazepose", kind="detect", version=3,
     description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints",
     config=BlazePoseConfig,
     inputs={"recording": Port(Recording),
@@ -100,7 +130,7 @@ SIMULATED = StageSpec(
 )
 
 FILE = StageSpec(
-    name="detections_file", kind="detect", version=1,
+    name="detections_file", kind="detect", version=2,
     description="2D/3D detections produced elsewhere (OpenPose JSON, npz, csv), aligned with the frames",
     config=DetectionsFileConfig, inputs={"recording": Port(Recording)},
     outputs={"detections": Port(Detections)},

@@ -61,6 +61,35 @@ def _read_external(path: Path, config, ctx) -> Recording:
                               hint="give source.calibration")
 
 
+def _world_frame(rec: Recording, config, ctx) -> Recording:
+    """A y-up world for a recording whose camera has no extrinsics (identity rotation, zero translation: every format
+    but a synthetic capture's): the camera is assumed level at the world's origin, looking along -z, unless
+    ``source.camera_pitch_deg`` / ``camera_roll_deg`` say how it is tilted (``source.up=camera`` keeps the camera's
+    axes). The log states the assumption; the detect stage checks it against the person's vertical."""
+    from eventcap.camera import level_rotation
+
+    cam = rec.camera
+    if not (np.array_equal(cam.R, np.eye(3)) and not cam.t.any()):
+        ctx.log.info("world frame: from the recording's camera extrinsics")
+        return rec
+    if config.up == "camera":
+        ctx.log.warning("world frame: the camera's own axes (source.up=camera: y points DOWN, the head's y is below "
+                        "the pelvis's)")
+        return rec
+    if config.up != "level":
+        raise ValueError(f"source.up: expected level or camera, got {config.up!r}")
+    try:
+        R = level_rotation(config.camera_pitch_deg, config.camera_roll_deg)
+    except ValueError as exc:
+        raise ValueError(f"source.camera_pitch_deg / camera_roll_deg: {exc}") from None
+    given = config.camera_pitch_deg or config.camera_roll_deg
+    ctx.log.info("world frame: y up, the camera at the origin looking along -z, %s (the recording has no "
+                 "extrinsics and no floor; the detect stage compares it with the person's vertical)",
+                 f"tilted as given: pitch {config.camera_pitch_deg:g} deg, roll {config.camera_roll_deg:g} deg"
+                 if given else "ASSUMED LEVEL (pitch 0, roll 0: source.camera_pitch_deg / camera_roll_deg if not)")
+    return dataclasses.replace(rec, camera=cam.with_pose(R, np.zeros(3)))
+
+
 def run_recording(inputs, config, ctx):
     if not config.path:
         raise StageFailed("source=recording needs source.path=<file or folder>", status="missing_file")
@@ -71,6 +100,7 @@ def run_recording(inputs, config, ctx):
         rec = _read_project(path, config)
     else:
         rec = _read_external(path, config, ctx)
+    rec = _world_frame(rec, config, ctx)
     if inputs.get("template") is not None and rec.template is None:
         rec = dataclasses.replace(rec, template=inputs["template"])
     if not config.frames and rec.frames is not None:

@@ -32,10 +32,18 @@ class RecordingConfig:
                                     "recording)")
     batch_rate_hz: float = param(25.0, help="without intensity frames: batches of 1/rate from the first event (the "
                                             "times images are reconstructed at, pipeline=events_only)")
+    up: str = param("level", help="world frame of a recording whose camera has no extrinsics: level (y up: the "
+                                  "camera assumed level, at the origin, looking along -z; tilted by camera_pitch_deg "
+                                  "and camera_roll_deg) | camera (the camera's own axes, y down)",
+                    choices=("level", "camera"))
+    camera_pitch_deg: float = param(0.0, help="with up=level: the camera's tilt, degrees (negative: looking down); "
+                                              "the detect stage measures it from the person's vertical")
+    camera_roll_deg: float = param(0.0, help="with up=level: the camera's roll about its axis, degrees (positive: "
+                                             "the world's up appears turned clockwise in the image)")
 
 
 RECORDING = StageSpec(
-    name="recording", kind="source", version=2,
+    name="recording", kind="source", version=3,
     description="a recording from a file (real cameras' formats or the project's own), cut into batches",
     config=RecordingConfig, inputs={"template": Port(Template, optional=True)},
     outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},

@@ -1,0 +1,252 @@
+"""What is in view, and detections that do not fit what the events show (issue 35, item 2).
+
+Every detector's landmarks (the skeleton's BODY_25 order) go through the same three steps:
+
+1. **In view.** A landmark is an observation only where it lies inside the image (at least ``border_px`` from
+   its edge) and the detector says it is there (BlazePose's presence output, a file's or the simulated
+   detector's confidence > 0). Landmarks out of view get confidence 0: a partial view gives a partial detection.
+2. **Checks** that reject a whole image's detection (the reason is logged per image and counted):
+
+   - ``outside``: fewer than ``min_in_view`` landmarks in the image (the detector put the body outside it);
+   - ``parts``: the head and an ankle in view but no hip: the image is convex, so the hips between them would be
+     in it too (a face close-up with feet drawn on it);
+   - ``region``: a whole body (head, torso and an ankle in view) that does not fit the moving region around it
+     (the connected event activity it lies in, :func:`moving_region`): its size (the longer side of its
+     landmarks' box) under ``region_ratio`` x the region's (a body drawn inside a face, or inside a torso that
+     fills the image), or the region reaching an edge of the image that the body keeps more than ``edge_ratio`` of
+     the image (plus a fifth of its own size: the head's top, the soles) away from (the person goes on beyond the
+     image: the body drawn inside is not all of them);
+   - ``scale``: a whole body whose height disagrees with the scale of its own head and shoulders: ear-to-ear
+     width over ``head_ratio`` or shoulder width over ``shoulder_ratio`` x the torso's length (neck to mid-hip).
+     The head and shoulders of a close-up with a small body folded under them give 0.4-2 and 0.9-8; whole bodies
+     of the synthetic captures at most 0.28 and 0.74 (benchmarks/bench_view_checks.py).
+
+   Checks that need what a detection lacks (no torso, no events near it) do not judge it. They assume a static
+   camera, as the method does: a moving camera makes the whole image fire.
+3. **Enough to solve**: the stage stops when fewer than ``min_found`` of the images (default: half) hold an
+   accepted detection, naming the counts (:func:`found_message`): "no person in 199 of 202 images: a person in 3". Half, because a solve pinned by fewer detections than frames it spans fabricates the rest; the
+   longest run of images without a detection is logged for the solve's windows to judge.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from eventcap.body.skeleton import LANDMARK_INDEX
+
+CHECKS = ("outside", "parts", "region", "scale")
+#: How far a body's silhouette reaches beyond its landmarks' box, as a share of the box's longer side (the top of the
+#: head above the eyes; the soles below the ankles)
+_BEYOND_LANDMARKS = 0.2
+_HEAD = tuple(LANDMARK_INDEX[n] for n in ("nose", "r_eye", "l_eye", "r_ear", "l_ear"))
+_ANKLES = (LANDMARK_INDEX["r_ankle"], LANDMARK_INDEX["l_ankle"])
+_NECK, _MID_HIP = LANDMARK_INDEX["neck"], LANDMARK_INDEX["mid_hip"]
+_EARS = (LANDMARK_INDEX["r_ear"], LANDMARK_INDEX["l_ear"])
+_SHOULDERS = (LANDMARK_INDEX["r_shoulder"], LANDMARK_INDEX["l_shoulder"])
+_HIPS = (LANDMARK_INDEX["r_hip"], LANDMARK_INDEX["l_hip"], _MID_HIP)
+
+
+@dataclass(frozen=True)
+class ViewSettings:
+    """Settings of the view checks, built from a detect stage's config (whose dataclass states their defaults and
+    meaning: ``ViewChecksConfig`` in spec.py); see the module docstring."""
+
+    checks: tuple[str, ...]
+    border_px: float
+    min_in_view: int
+    region_ratio: float
+    edge_ratio: float
+    head_ratio: float
+    shoulder_ratio: float
+    window_us: int
+    min_found: float
+
+    @classmethod
+    def without_checks(cls, min_found: float) -> ViewSettings:
+        """Only what is in view (inside the image) and enough detections: no check rejects anything."""
+        return cls(checks=(), border_px=0.0, min_in_view=0, region_ratio=0.0, edge_ratio=0.0, head_ratio=0.0,
+                   shoulder_ratio=0.0, window_us=1, min_found=min_found)
+
+    def __post_init__(self):
+        unknown = sorted(set(self.checks) - set(CHECKS))
+        if unknown:
+            raise ValueError(f"checks: unknown check {unknown[0]!r}; known: {', '.join(CHECKS)}")
+        for name in ("border_px", "region_ratio", "edge_ratio", "head_ratio", "shoulder_ratio", "min_found"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+        if not 0 <= self.min_found <= 1:
+            raise ValueError(f"min_found: expected a share of the images in [0, 1], got {self.min_found!r}")
+        if int(self.window_us) <= 0 or int(self.min_in_view) < 0:
+            raise ValueError(f"window_us > 0 and min_in_view >= 0 expected, got {self.window_us}, {self.min_in_view}")
+
+
+def inside_image(kp: np.ndarray, width: int, height: int, border_px: float = 0.0) -> np.ndarray:
+    """(..., L) bool: points (..., L, 2) at least ``border_px`` inside the image, whose pixels cover
+    [-0.5, width - 0.5) x [-0.5, height - 0.5) (integer coordinates are pixel centres)."""
+    x, y = kp[..., 0], kp[..., 1]
+    lo = float(border_px) - 0.5
+    return np.isfinite(x) & np.isfinite(y) & (x >= lo) & (y >= lo) & (x < width - 0.5 - float(border_px)) & \
+        (y < height - 0.5 - float(border_px))
+
+
+def cell_size(width: int, height: int) -> int:
+    """Side of the cells event activity is counted in: about 1/30 of the image's shorter side, at least 4 px."""
+    return max(4, int(round(min(width, height) / 30)))
+
+
+def activity_cells(events: np.ndarray, t_us: int, width: int, height: int, window_us: int) -> np.ndarray:
+    """(rows, cols) bool: the cells where the events within ``window_us`` around ``t_us`` are well above the
+    background: at least 3, and 4 standard deviations (Poisson) above the quietest quarter of the cells, or half
+    the count of the busiest quarter when that is lower (a close-up whose every cell fires is active all over)."""
+    cell = cell_size(width, height)
+    gw, gh = -(-width // cell), -(-height // cell)
+    t = events["t"]
+    a, b = np.searchsorted(t, [t_us - window_us // 2, t_us + window_us // 2])
+    ev = events[a:b]
+    counts = np.bincount((ev["y"] // cell).astype(np.int64) * gw + (ev["x"] // cell).astype(np.int64),
+                         minlength=gw * gh).reshape(gh, gw)
+    quiet, busy = np.percentile(counts, [25, 75])
+    return counts >= max(3.0, min(quiet + 4.0 * math.sqrt(quiet + 1.0), 0.5 * busy))
+
+
+def moving_region(active: np.ndarray, box: tuple[float, float, float, float], cell: int
+                  ) -> tuple[float, float, float, float] | None:
+    """The box (x0, y0, x1, y1, px) of the connected event activity that meets ``box`` (grown by one cell): the
+    moving silhouette around a detection. None when no active cell meets it."""
+    from scipy import ndimage
+
+    labels, _ = ndimage.label(ndimage.binary_closing(active, np.ones((3, 3)), border_value=0) | active,
+                              structure=np.ones((3, 3)))
+    gh, gw = active.shape
+    c0 = max(0, int(box[0] // cell) - 1), max(0, int(box[1] // cell) - 1)
+    c1 = min(gw - 1, int(box[2] // cell) + 1), min(gh - 1, int(box[3] // cell) + 1)
+    if c1[0] < c0[0] or c1[1] < c0[1]:
+        return None
+    ids = np.unique(labels[c0[1]:c1[1] + 1, c0[0]:c1[0] + 1])
+    ids = ids[ids > 0]
+    if ids.size == 0:
+        return None
+    ys, xs = np.nonzero(np.isin(labels, ids))
+    return float(xs.min() * cell), float(ys.min() * cell), float((xs.max() + 1) * cell), float((ys.max() + 1) * cell)
+
+
+def _length(kp, a, b) -> float:
+    return float(np.hypot(*(kp[a] - kp[b])))
+
+
+def check_detection(kp: np.ndarray, in_view: np.ndarray, active: np.ndarray | None, cell: int,
+                    settings: ViewSettings) -> tuple[str, str]:
+    """(check, why) of the first check that rejects one image's detection (kp (L, 2), in_view (L,)), or ("ok", "")."""
+    n_in = int(in_view.sum())
+    if "outside" in settings.checks and n_in < settings.min_in_view:
+        return "outside", f"{n_in} landmarks in the image (at least {settings.min_in_view})"
+    head, ankle = in_view[list(_HEAD)].any(), in_view[list(_ANKLES)].any()
+    if "parts" in settings.checks and head and ankle and not in_view[list(_HIPS)].any():
+        return "parts", "the head and an ankle in the image, the hips between them not: the parts do not hang together"
+    whole = head and ankle and in_view[[_NECK, _MID_HIP]].all()
+    if not whole:
+        return "ok", ""
+    pts = kp[in_view]
+    box = (float(pts[:, 0].min()), float(pts[:, 1].min()), float(pts[:, 0].max()), float(pts[:, 1].max()))
+    size = max(box[2] - box[0], box[3] - box[1])
+    torso = _length(kp, _NECK, _MID_HIP)
+    if "scale" in settings.checks and torso > 0:
+        if in_view[list(_EARS)].all() and _length(kp, *_EARS) > settings.head_ratio * torso:
+            return "scale", (f"the head {_length(kp, *_EARS) / torso:.2f} x the torso wide (at most "
+                             f"{settings.head_ratio:g}): a small body under a close-up's head")
+        if in_view[list(_SHOULDERS)].all() and _length(kp, *_SHOULDERS) > settings.shoulder_ratio * torso:
+            return "scale", (f"the shoulders {_length(kp, *_SHOULDERS) / torso:.2f} x the torso wide (at most "
+                             f"{settings.shoulder_ratio:g}): a small body under a close-up's shoulders")
+    if "region" in settings.checks and active is not None:
+        region = moving_region(active, box, cell)
+        if region is not None:
+            return _region(box, size, region, active.shape, cell, settings)
+    return "ok", ""
+
+
+def _region(box, size, region, grid_shape, cell, settings) -> tuple[str, str]:
+    """The region check of one whole body (its landmarks' ``box`` and ``size``) against the moving ``region``."""
+    moving = max(region[2] - region[0], region[3] - region[1])
+    if size < settings.region_ratio * moving:
+        return "region", (f"a whole body {size:.0f} px tall inside a moving region of {moving:.0f} px (at least "
+                          f"{settings.region_ratio:g} x expected)")
+    # the moving region reaches an edge of the image the whole body keeps well away from: the person goes on
+    # beyond the image, so the body drawn inside it is not all of them. The silhouette reaches beyond the landmarks
+    # (the top of the head above the eyes, the soles below the ankles: about a fifth of the body), so that much more
+    # is allowed
+    width, height = grid_shape[1] * cell, grid_shape[0] * cell
+    sides = (("left", region[0] <= cell, box[0], width), ("top", region[1] <= cell, box[1], height),
+             ("right", region[2] >= width - cell, width - box[2], width),
+             ("bottom", region[3] >= height - cell, height - box[3], height))
+    for side, touches, gap, extent in sides:
+        if touches and gap > settings.edge_ratio * extent + _BEYOND_LANDMARKS * size:
+            return "region", (f"the moving region reaches the image's {side} edge, the whole body stays {gap:.0f} "
+                              f"px from it (more than {settings.edge_ratio:g} of the image + "
+                              f"{_BEYOND_LANDMARKS:g} of the body)")
+    return "ok", ""
+
+
+def check_images(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, t_us: np.ndarray, events: np.ndarray,
+                 width: int, height: int, settings: ViewSettings) -> tuple[list[str], list[str]]:
+    """Per image: its status (``ok`` | ``no_person`` | the rejecting check) and why (empty for ``ok``).
+    kp (n, L, 2) px, in_view (n, L), found (n,) whether the detector gave a detection at all."""
+    cell = cell_size(width, height)
+    status, why = [], []
+    for i in range(t_us.size):
+        if not found[i]:
+            status.append("no_person")
+            why.append("")
+            continue
+        active = activity_cells(events, int(t_us[i]), width, height, settings.window_us) \
+            if "region" in settings.checks and events is not None and events.size else None
+        s, w = check_detection(kp[i], in_view[i], active, cell, settings)
+        status.append(s)
+        why.append(w)
+    return status, why
+
+
+def found_message(status: list[str], what: str, enough: bool = True) -> str:
+    """What the detect stage says about its images: ``a person in 197 of 202 images (rejected: region 3, scale 2)``,
+    or when there are not ``enough``, the cause first: ``no person in 199 of 202 images: a person in 3``."""
+    n = len(status)
+    counts = Counter(status)
+    ok = counts.pop("ok", 0)
+    none = counts.pop("no_person", 0)
+    rejected = ", ".join(f"{k} {c}" for c, k in sorted(((c, k) for k, c in counts.items()), reverse=True))
+    n_rej = sum(counts.values())
+    if not enough:
+        return (f"{what}: no person in {none} of {n} images" + (f", {n_rej} rejected ({rejected})" if n_rej else "")
+                + (f": a person in {ok}" if ok else ""))
+    extra = "; ".join(([f"rejected: {rejected}"] if n_rej else []) + ([f"no person in {none}"] if none else []))
+    return f"{what}: a person in {ok} of {n} images" + (f" ({extra})" if extra else "")
+
+
+def longest_gap(status: list[str]) -> int:
+    """The longest run of consecutive images without an accepted detection."""
+    best = run = 0
+    for s in status:
+        run = 0 if s == "ok" else run + 1
+        best = max(best, run)
+    return best
+
+
+def longest_stretch(status: list[str]) -> tuple[int, int]:
+    """(first, last) image of the longest run of accepted detections that at most one image interrupts; (0, -1)
+    when there is none."""
+    best, start, gap = (0, -1), None, 0
+    for i, s in enumerate([*status, "end", "end"]):
+        if s == "ok":
+            start, gap = (i if start is None else start), 0
+            last = i
+            if last - start > best[1] - best[0]:
+                best = (start, last)
+        elif start is not None:
+            gap += 1
+            if gap > 1:
+                start, gap = None, 0
+    return best

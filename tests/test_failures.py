@@ -1,0 +1,66 @@
+"""The line an incomplete run ends with (issue 35, item 6): failures counted by cause with the first batches of
+each, the nodes skipped because of them, the first error once, and advice only where it can help."""
+
+from __future__ import annotations
+
+import copy
+
+from conftest import TOY_PIPELINE, TOY_STAGES
+
+from eventcap.failures import failure_summary
+from eventcap.runner import NodeReport, Runner, RunResult
+
+
+def _report(node, per_batch=True, computed=0, failed=(), skipped=0, skip_causes=()):
+    rep = NodeReport(node, node, per_batch, computed=computed, skipped=skipped, skip_causes=list(skip_causes))
+    rep.failed = [{"batch": b, "status": s, "error": f"StageFailed: batch {b}: {s} in detail", "key": ""}
+                  for b, s in failed]
+    return rep
+
+
+def test_mixed_causes_are_counted_with_their_first_batches():
+    failed = [(b, "missing_detections") for b in range(3, 183)] + \
+             [(b, "Maximum_Iterations_Exceeded") for b in range(185, 192)]
+    solve = _report("solve", computed=14, failed=failed)
+    refine = _report("refine", computed=14, skipped=187,
+                     skip_causes=[{"batch": b, "cause": f"upstream failed: solve[batch {b}]: StageFailed: x"}
+                                  for b, _ in failed])
+    evaluate = _report("evaluate", per_batch=False, skipped=1,
+                       skip_causes=[{"batch": None, "cause": "upstream failed: solve[batch 3]: StageFailed: x"}])
+    # the runner names the root failure in every skip downstream (evaluate's is solve's, through refine)
+    result = RunResult({"solve": solve, "refine": refine, "evaluate": evaluate}, {})
+    line = failure_summary(result)
+    assert line.startswith("solve failed in 187 of 201 batches: 180 missing_detections (batches 3, 4, 5, ...), "
+                           "7 Maximum_Iterations_Exceeded (batches 185, 186, 187, ...)")
+    assert "skipped because of it: refine (187 of 201 batches), evaluate" in line
+    assert "first error: solve[batch 3]: StageFailed: batch 3: missing_detections in detail" in line
+    assert "detect node's log names the images" in line  # advice for missing detections
+    assert "run the same command again" not in line  # a deterministic failure: running again cannot help
+    assert len(line) < 450
+
+
+def test_transient_failure_gets_the_advice_to_run_again():
+    rep = _report("track", computed=3, failed=[(2, "BrokenProcessPool")])
+    line = failure_summary(RunResult({"track": rep}, {}))
+    assert line.startswith("track failed in 1 of 4 batches: 1 BrokenProcessPool (batch 2)")
+    assert "run the same command again" in line
+
+
+def test_a_skip_with_its_own_cause_names_it():
+    rep = _report("smooth", skipped=1, skip_causes=[{"batch": None, "cause": "no batches to run: the batch plan of "
+                                                                             "signal is empty"}])
+    line = failure_summary(RunResult({"smooth": rep}, {}))
+    assert line.startswith("skipped: smooth (no batches to run: the batch plan of signal is empty)")
+
+
+def test_187_failed_batches_of_a_real_run_end_in_one_short_line(toy, tmp_path, caplog):
+    stages = copy.deepcopy(TOY_STAGES)
+    stages["signal"]["n_batches"] = 201
+    stages["smooth"]["fail_batches"] = list(range(3, 190))
+    result = Runner({"pipeline": TOY_PIPELINE, "stages": stages, "cache_dir": str(tmp_path / "cache")}).run(None)
+    line = failure_summary(result)
+    assert line == ("smooth failed in 187 of 201 batches: 187 Injected_Failure (batches 3, 4, 5, ...); skipped "
+                    "because of it: scale (187 of 201 batches), total; first error: smooth[batch 3]: StageFailed: "
+                    "injected failure in batch 3; every failure in full: run.json")
+    # before: every failed and skipped unit was listed, 3,590 characters for this run
+    assert len(line) < 300
