@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 import zarr
 
 from eventcap.artifacts.recording import Recording
