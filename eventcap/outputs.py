@@ -452,9 +452,69 @@ class OverlayRenderer:
         return np.concatenate([img, self.side_view(joints, truth)], axis=1)
 
 
+class _Encoder:
+    """The overlay's video encoder: H.264 in MP4 through PyAV (FFmpeg's libx264, bundled in the ``av`` wheel), which
+    browsers play; OpenCV's MPEG-4 Part 2 (FourCC ``mp4v``), which they do not, when PyAV or its encoder is missing.
+    ``codec`` says which one writes."""
+
+    def __init__(self, path: Path, fps: float, size: tuple[int, int]):
+        self.path, self.size = path, size
+        self._av = self._cv = None
+        try:
+            import av
+
+            av.codec.Codec("libx264", "w")
+        except Exception as exc:  # noqa: BLE001 - ImportError, or a PyAV built without libx264
+            self._fallback(fps, f"{type(exc).__name__}: {exc}")
+            return
+        from fractions import Fraction
+
+        self._av = av.open(str(path), mode="w", format="mp4", options={"movflags": "+faststart"})
+        stream = self._av.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+        # yuv420p, the pixel format browsers decode, needs even sizes: the frame is padded by a pixel if needed
+        stream.width, stream.height = size[0] + size[0] % 2, size[1] + size[1] % 2
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"crf": "20", "preset": "medium"}
+        self._stream = stream
+        self.codec = "H.264 (libx264 through PyAV)"
+
+    def _fallback(self, fps: float, why: str) -> None:
+        import cv2
+
+        self._cv = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), self.size)
+        if not self._cv.isOpened():
+            raise RuntimeError(f"OpenCV cannot write an 'mp4v' video to {self.path} (no encoder in this OpenCV build?)")
+        self.codec = f"MPEG-4 Part 2 (OpenCV mp4v; browsers do not play it: H.264 needs PyAV, pip install av; {why})"
+
+    def write(self, bgr: np.ndarray) -> None:
+        if self._cv is not None:
+            self._cv.write(bgr)
+            return
+        import av
+
+        h, w = self._stream.height, self._stream.width
+        if bgr.shape[:2] != (h, w):
+            bgr = np.pad(bgr, ((0, h - bgr.shape[0]), (0, w - bgr.shape[1]), (0, 0)), mode="edge")
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(bgr), format="bgr24")
+        for packet in self._stream.encode(frame):
+            self._av.mux(packet)
+
+    def close(self, flush: bool = True) -> None:
+        if self._cv is not None:
+            self._cv.release()
+        elif self._av is not None:
+            try:
+                if flush:
+                    for packet in self._stream.encode():
+                        self._av.mux(packet)
+            finally:
+                self._av.close()
+
+
 def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, poses: np.ndarray, joints: np.ndarray,
                         cfg: OutputsConfig, latent=None, name: str = "overlay.mp4") -> Path:
-    """Write ``<run_dir>/overlay.mp4`` (and PNGs of a few of its frames in ``overlay_frames/``); returns its path."""
+    """Write ``<run_dir>/overlay.mp4`` (and PNGs of a few of its frames in ``overlay_frames/``); returns its path.
+    The log names the codec (:class:`_Encoder`)."""
     import cv2
 
     run_dir = Path(run_dir)
@@ -469,13 +529,11 @@ def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, po
     shutil.rmtree(png_dir, ignore_errors=True)
     pngs = set(np.unique(np.linspace(0, idx.size - 1, cfg.video_png_frames).round().astype(int)).tolist()) \
         if cfg.video_png_frames else set()
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(cfg.video_fps), size)
-    if not writer.isOpened():
-        raise RuntimeError(f"OpenCV cannot write an 'mp4v' video to {tmp} (no encoder in this OpenCV build?)")
+    writer = _Encoder(tmp, float(cfg.video_fps), size)
     t0 = time.perf_counter()
     every_log = max(1, min(100, idx.size // 5))
-    log.info("outputs: rendering %d video frames (%dx%d, %g fps) to %s", idx.size, size[0], size[1],
-             cfg.video_fps, out)
+    log.info("outputs: rendering %d video frames (%dx%d, %g fps) to %s, codec %s", idx.size, size[0], size[1],
+             cfg.video_fps, out, writer.codec)
     try:
         for n, i in enumerate(idx):
             img = r.frame(int(t_us[i]), poses[i], joints[i], f"frame {n + 1}/{idx.size}")
@@ -485,10 +543,11 @@ def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, po
                 cv2.imwrite(str(png_dir / f"frame{n:04d}_t{t_us[i] / 1000:09.3f}ms.png"), img)
             if (n + 1) % every_log == 0 or n + 1 == idx.size:
                 log.info("outputs: video %d/%d frames (%.1f s)", n + 1, idx.size, time.perf_counter() - t0)
-        writer.release()
+        writer.close()
         os.replace(tmp, out)
     except BaseException:
-        writer.release()
+        writer.close(flush=False)
         tmp.unlink(missing_ok=True)
         raise
+    log.info("outputs: overlay video codec: %s", writer.codec)
     return out
