@@ -56,8 +56,15 @@ def _run_job(cfg) -> bool:
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf
 
-    logging.getLogger().setLevel(str(cfg.get("log_level", "INFO")).upper())
+    from .config import ConfigError, log_level_number
+
     run_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        logging.getLogger().setLevel(log_level_number(cfg.get("log_level", "INFO")))
+    except ConfigError as exc:  # refused before anything runs, as every other setting
+        log.error("%s", exc)
+        _RUN_FAILURES.append(f"{run_dir}: {exc}")
+        return False
     data = OmegaConf.to_container(cfg, resolve=True)
     overrides = list(HydraConfig.get().overrides.task)
     log.info("run folder: %s%s", run_dir, f" (overrides: {' '.join(overrides)})" if overrides else "")
