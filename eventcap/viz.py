@@ -63,6 +63,21 @@ def image_times(rec, rate_hz: float = 25.0) -> tuple[np.ndarray, str]:
         "image"
 
 
+#: Pixels of one enlarged panel beyond which a picture is refused (a 4096 x 4096 panel; six of them are ~300 MB).
+MAX_PANEL_PIXELS = 4096 * 4096
+
+
+def check_picture_size(width: int, height: int, scale: int) -> None:
+    """Refuse a picture whose panels would be enormous (a declared sensor of 65,535 px would ask for gigabytes)."""
+    if not (isinstance(scale, int) and scale >= 1):
+        raise ValueError(f"scale: expected an integer >= 1, got {scale!r}")
+    px = int(width) * int(height) * scale * scale
+    if px > MAX_PANEL_PIXELS:
+        raise ValueError(f"a {width} × {height} sensor at scale {scale} makes {width * scale} × {height * scale} "
+                         f"panels ({px * 3 / 2**30:.1f} GiB each): larger than any event camera's; use a smaller "
+                         f"scale, or check the recording's declared size")
+
+
 def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int = 10_000, latent=None,
                        reconstruct: bool | None = None, rate_hz: float = 25.0) -> np.ndarray:
     """One picture of a Recording at an intensity frame: blurry frame | EDI-sharpened frame (if ``latent``, a
@@ -77,6 +92,7 @@ def recording_overview(rec, frame_index: int = 1, scale: int = 2, window_us: int
     from eventcap.reconstruct import DEFAULT_BASELINE, DEFAULT_CUTOFF_RAD_S, reconstruct as events_to_images
     from eventcap.reconstruct import to_intensity, to_log_images
 
+    check_picture_size(rec.width, rec.height, scale)
     times, what = image_times(rec, rate_hz)
     has_frames = what == "frame"
     if reconstruct is None:
