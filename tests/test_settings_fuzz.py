@@ -122,7 +122,7 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
              ("source.fps", 0): "source.fps: expected a finite number > 0, got 0",
              ("source.duration_s", -1): "source.duration_s: expected a finite number > 0, got -1",
              ("source.exposure_us", "abc"): "source.exposure_us: expected an integer >= 0, got 'abc'",
-             ("stages.track.patch_px", 24): "stages.track.patch_px: expected an odd integer >= 3, got 24",
+             ("stages.track.patch_px", 24): "stages.track.patch_px: expected an odd integer >= 5, got 24",
              ("stages.spline.knot_ms", math.inf): "stages.spline.knot_ms: expected a finite number > 0, got inf",
              ("stages.detect.outlier_prob", 1.5): "stages.detect.outlier_prob: expected a finite number in [0, 1], "
                                                   "got 1.5"}

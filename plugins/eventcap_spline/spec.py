@@ -27,9 +27,9 @@ class SplineSolveConfig:
                                            "I_p the inertia of the body that pose parameter turns (de Leva's "
                                            "segments on the actor's bones, eventcap.body.segments): light parts "
                                            "(forearm, foot) may accelerate more than the trunk; 0 = λ_prior for all")
-    prior_inertia_cap: float = param(1.0, gt=0, finite=False, help="largest of those gains (1: parts lighter than the mean are held "
+    prior_inertia_cap: float = param(1.0, ge=1, finite=False, help="largest of those gains (1: parts lighter than the mean are held "
                                                "less, none more; .inf: the gains' geometric mean is 1)")
-    prior_inertia_floor: float = param(0.04, ge=0, help="smallest of those gains (0.04: the ankles, ~0.002 by their "
+    prior_inertia_floor: float = param(0.04, ge=0, le=1, help="smallest of those gains (0.04: the ankles, ~0.002 by their "
                                                   "inertia, are held like the elbows; their jitter was most of the "
                                                   "25 fps velocity error the lighter prior added)")
     prior_gain_max: float = param(10.0, ge=1, help="largest gain of the motion prior per pose parameter, chosen per window "

@@ -31,7 +31,7 @@ class FeatureRegionConfig:
 
 @dataclass
 class EkltStageConfig(FeatureRegionConfig):
-    patch_px: int = param(25, ge=3, odd=True, help="side of the feature patch (odd)")
+    patch_px: int = param(25, ge=5, odd=True, help="side of the feature patch (odd)")
     max_features: int = param(100, ge=1, help="Shi-Tomasi corners detected per start image")
     min_distance_px: float = param(10.0, ge=0, help="minimum distance between corners")
     quality_level: float = param(0.01, gt=0, le=1, help="relative corner quality threshold")
@@ -53,7 +53,7 @@ class KltStageConfig(FeatureRegionConfig):
     min_distance_px: float = param(10.0, ge=0, help="minimum distance between corners")
     quality_level: float = param(0.01, gt=0, le=1, help="relative corner quality threshold")
     step_us: int = param(1000, gt=0, help="spacing of the EDI latent images LK runs on")
-    window_px: int = param(21, ge=3, odd=True, help="Lucas-Kanade window")
+    window_px: int = param(21, ge=3, help="Lucas-Kanade window")
     max_level: int = param(3, ge=0, help="pyramid levels")
 
 
