@@ -289,7 +289,7 @@ def bench_slicing() -> None:
               f"max |2nd difference| {d2:.3f} px (truth {d2_true:.3f})")  # fmt: skip
 
 
-def bench_real(path: Path = Path("/work/shared/data/real/davis346_lab_aps.aedat4")) -> None:
+def bench_real(path: Path = Path(__file__).resolve().parents[1] / "tests" / "data" / "real" / "davis346_lab_aps.aedat4") -> None:
     """EDI on the real DAVIS346 recording (no ground truth): C estimate and that the output is finite."""
     try:
         from eventcap.io.readers import read_recording

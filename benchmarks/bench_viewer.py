@@ -68,16 +68,17 @@ def _check_c3d(path: Path, m: dict, runner, result) -> None:
     import c3d
     import ezc3d
 
-    from eventcap.body.kinematics import landmark_positions
+    from eventcap.body.markers import plug_in_gait_markers
     from eventcap.c3d import c3d_labels
 
     tpl = runner.load_output(result, "template.template")[None]
-    want = np.concatenate([m["joints"], landmark_positions(m["poses"], tpl)], axis=1) * 1000.0
+    markers = plug_in_gait_markers(tpl)
+    want = np.concatenate([m["joints"], markers.positions(m["poses"], tpl)], axis=1) * 1000.0
     k = (m["t_us"] - m["t_us"][0]) // 1000
     f = ezc3d.c3d(str(path))
     P = np.transpose(f["data"]["points"][:3], (2, 1, 0))
     labels = list(f["parameters"]["POINT"]["LABELS"]["value"])
-    print(f"c3d ezc3d: {len(labels)} labels (== joints + lm_ landmarks: {labels == c3d_labels(True)}), "
+    print(f"c3d ezc3d: {len(labels)} labels (== joints + markers: {labels == c3d_labels(markers.names)}), "
           f"rate {f['parameters']['POINT']['RATE']['value'][0]:g} Hz, units {f['parameters']['POINT']['UNITS']['value'][0]}, "
           f"{P.shape[0]} frames, max |c3d - npz| = {np.abs(P[k] - want).max():.5f} mm")
     with open(path, "rb") as fh, warnings.catch_warnings():

@@ -25,6 +25,14 @@ whatever the pose vector holds. Each channel is unwrapped over time (a spin give
 360°); angles a multiple of 360° apart are the same rotation. Euler angles take the branch whose middle angle lies
 in [-90°, 90°]: a root pitched past ±90° (a somersault) flips its yaw and roll by 180° there, still exactly the
 same rotation; at ±90° itself (gimbal lock) the third angle is 0.
+
+World frame and time origin (:mod:`eventcap.worldframe`): y up by default; ``up_axis="z"`` rotates everything by
++90° about x, ``(x, y, z) -> (x, -z, y)`` (offsets, root positions, and every joint's rotation conjugated), and
+renames each joint's rotation axes to match (y <-> z), so the channels stay the joint angles up to sign.
+``scale`` sets the length unit (1 m, 100 cm, 1000 mm). BVH has no metadata field, so the first line carries a
+comment after ``HIERARCHY``: the frame and, when given, the time of the first frame on the run's time axis
+(``t0_us``). Readers take the first word of that line (checked with the ``bvh`` and ``bvhio`` packages; Blender's
+importer reads the same way).
 """
 
 from __future__ import annotations
@@ -51,6 +59,7 @@ from eventcap.body.skeleton import (
     check_rest_joints,
 )
 from eventcap.body.template import Template
+from eventcap.worldframe import check_frame, describe, rotation
 
 _AXIS_LETTERS = "XYZ"
 #: Order of the root rotation channels: the pose vector's R_root = R_y(yaw) @ R_x(pitch) @ R_z(roll).
@@ -112,9 +121,13 @@ def _rotation_order(joint: int) -> str:
     return order + "".join(a for a in _COMPLETION if a not in order)
 
 
-def bvh_layout() -> BvhLayout:
-    """The skeleton's BVH layout (joint order and per-joint rotation orders)."""
-    return BvhLayout(order=_depth_first(), rotation_orders=tuple(_rotation_order(j) for j in range(NUM_JOINTS)))
+def bvh_layout(up_axis: str = "y") -> BvhLayout:
+    """The skeleton's BVH layout (joint order and per-joint rotation orders) in the ``up_axis`` frame: z up renames
+    each order's axes y <-> z (the rotation x -> x, y -> z, z -> -y turns a rotation about y into one about z)."""
+    orders = tuple(_rotation_order(j) for j in range(NUM_JOINTS))
+    if up_axis == "z":
+        orders = tuple(o.translate(str.maketrans("YZ", "ZY")) for o in orders)
+    return BvhLayout(order=_depth_first(), rotation_orders=orders)
 
 
 # -- rotations ------------------------------------------------------------------------------------------------------
@@ -192,11 +205,11 @@ def check_poses(poses, what: str = "poses S") -> np.ndarray:
     return S
 
 
-def local_rotations(S: np.ndarray, rest_joints) -> tuple[np.ndarray, np.ndarray]:
+def local_rotations(S: np.ndarray, rest_joints, up_axis: str = "y") -> tuple[np.ndarray, np.ndarray]:
     """Each joint's rotation relative to its parent, from the forward kinematics, and the pelvis' world position.
 
     S (T, 33); rest_joints (24, 3) metres or a Template. Returns (T, 24, 3, 3) (the root's is its world rotation)
-    and (T, 3) metres.
+    and (T, 3) metres, in the ``up_axis`` frame (z up: positions rotated by Q, rotations conjugated Q R Q^T).
     """
     rest = _rest_of(rest_joints)
     S = check_poses(S)
@@ -206,19 +219,23 @@ def local_rotations(S: np.ndarray, rest_joints) -> tuple[np.ndarray, np.ndarray]
     local[:, 0] = world[:, 0]
     local[:, 1:] = np.swapaxes(world[:, PARENTS[1:]], -1, -2) @ world[:, 1:]
     pelvis = G[:, 0, :3, 3] + world[:, 0] @ rest[0]  # skinning transform: p = R r + b
+    if up_axis != "y":
+        Q = rotation(up_axis)
+        local = Q @ local @ Q.T
+        pelvis = pelvis @ Q.T
     return local, pelvis
 
 
 def bvh_channels(S: np.ndarray, rest_joints, scale: float = 1.0, unwrap: bool = True,
-                 previous: np.ndarray | None = None) -> np.ndarray:
+                 previous: np.ndarray | None = None, up_axis: str = "y") -> np.ndarray:
     """The MOTION rows of the BVH file of poses S (T, 33): (T, 75), columns as in ``bvh_layout().channels``
     (root position in metres times ``scale``, rotations in degrees).
 
     ``unwrap``: remove 360° jumps of each channel over time (starting from row ``previous`` (75,) if given, the
     last row of a preceding chunk).
     """
-    layout = bvh_layout()
-    local, pelvis = local_rotations(S, rest_joints)
+    layout = bvh_layout(up_axis)
+    local, pelvis = local_rotations(S, rest_joints, up_axis)
     T = local.shape[0]
     out = np.empty((T, layout.num_channels))
     out[:, 0:3] = pelvis * scale
@@ -255,15 +272,17 @@ def _end_site(rest: np.ndarray, j: int) -> np.ndarray:
     return 0.5 * (rest[j] - rest[int(PARENTS[j])])
 
 
-def hierarchy_text(rest_joints, scale: float = 1.0, decimals: int = 8) -> str:
-    """The HIERARCHY section of the skeleton (24 joints, offsets from the rest joints times ``scale``)."""
-    rest = _rest_of(rest_joints)
+def hierarchy_text(rest_joints, scale: float = 1.0, decimals: int = 8, up_axis: str = "y",
+                   comment: str = "") -> str:
+    """The HIERARCHY section of the skeleton (24 joints, offsets from the rest joints times ``scale``, in the
+    ``up_axis`` frame); ``comment`` follows ``HIERARCHY`` on the first line after a ``#``."""
+    rest = _rest_of(rest_joints) @ rotation(up_axis).T
     scale = _check_positive("scale", scale)
-    layout = bvh_layout()
+    layout = bvh_layout(up_axis)
     children: dict[int, list[int]] = {j: [] for j in range(NUM_JOINTS)}
     for j in range(1, NUM_JOINTS):
         children[int(PARENTS[j])].append(j)
-    lines = ["HIERARCHY"]
+    lines = ["HIERARCHY" + (f"  # {comment}" if comment else "")]
 
     def emit(j: int, depth: int) -> None:
         pad = "  " * depth
@@ -300,12 +319,13 @@ def _remove(p: Path) -> None:
 
 
 def write_bvh(path, poses, rest_joints, frame_time_s: float = 0.001, scale: float = 1.0, decimals: int = 8,
-              unwrap: bool = True) -> Path:
+              unwrap: bool = True, up_axis: str = "y", t0_us: int | None = None) -> Path:
     """Write a skeletal motion as a BVH file; returns the path.
 
     poses: S (T, 33) in the skeleton layout (default: one pose every millisecond, ``frame_time_s = 0.001``).
     rest_joints: the template's rest joints (24, 3) metres, or the Template. ``scale``: factor on all lengths
-    (1 = metres, 100 = centimetres). ``decimals``: digits after the point of every number. The file appears
+    (1 = metres, 100 = centimetres). ``decimals``: digits after the point of every number. ``up_axis``: y | z.
+    ``t0_us``: time of the first frame on the run's time axis, stated in the first line's comment. The file appears
     atomically (written beside it as ``<name>.partial``, then renamed); on error nothing is left behind.
     """
     path = Path(path)
@@ -315,7 +335,13 @@ def write_bvh(path, poses, rest_joints, frame_time_s: float = 0.001, scale: floa
     scale = _check_positive("scale", scale)
     if not (isinstance(decimals, (int, np.integer)) and 1 <= decimals <= 15):
         raise ValueError(f"decimals: expected an int in [1, 15], got {decimals!r}")
-    header = hierarchy_text(rest, scale, decimals) + f"MOTION\nFrames: {S.shape[0]}\nFrame Time: {frame_time_s!r}\n"
+    check_frame(up_axis, "m")
+    unit = {1.0: "m", 100.0: "cm", 1000.0: "mm"}.get(scale, f"1/{scale:g} m")
+    comment = f"eventcap: {describe(up_axis, unit)}"
+    if t0_us is not None:
+        comment += f"; first frame at t = {int(t0_us)} us on the run's time axis, then every {frame_time_s * 1e6:g} us"
+    header = (hierarchy_text(rest, scale, decimals, up_axis, comment)
+              + f"MOTION\nFrames: {S.shape[0]}\nFrame Time: {frame_time_s!r}\n")
     tmp = _partial(path)
     _remove(tmp)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -324,7 +350,7 @@ def write_bvh(path, poses, rest_joints, frame_time_s: float = 0.001, scale: floa
             fh.write(header)
             previous = None
             for a in range(0, S.shape[0], _CHUNK_FRAMES):
-                rows = bvh_channels(S[a:a + _CHUNK_FRAMES], rest, scale, unwrap, previous)
+                rows = bvh_channels(S[a:a + _CHUNK_FRAMES], rest, scale, unwrap, previous, up_axis)
                 np.savetxt(fh, np.round(rows, decimals) + 0.0, fmt=f"%.{int(decimals)}f", delimiter=" ")
                 previous = rows[-1]
         os.replace(tmp, path)

@@ -1,17 +1,31 @@
-"""C3D export of a motion: the 3D joints (and the template's landmarks) as labelled markers, in millimetres.
+"""C3D export of a motion: the 3D joint centres and the template's surface markers, for mocap software.
 
-C3D is the file mocap pipelines exchange (Vicon Nexus, Motive, Visual3D, OpenSim read it). The file is written with
-``ezc3d`` (a kept C++ library with Python bindings, on PyPI):
+C3D is the file mocap pipelines exchange (Vicon Nexus, Motive, Visual3D, OpenSim read it). It is written with the
+pure-Python ``c3d`` package (MIT, on PyPI), and read back in the tests by it and by ``ezc3d`` (a C++ library):
 
-- one point per joint, labelled with the skeleton's joint names (``pelvis``, ``l_hip``, ... in SMPL order), then,
-  when given, one per template landmark labelled ``lm_<name>`` (``lm_nose``, ``lm_r_eye``, ...: the BODY_25 points
-  the detectors report; the prefix keeps labels unique where a landmark shares a joint's name);
-- ``POINT:RATE`` the tracking frame rate (1000 Hz by default), ``POINT:UNITS`` ``mm``, ``POINT:DESCRIPTIONS`` what each
-  point is; the world frame is the run's own (metres there, y up; ``POINT:X_SCREEN = +X``, ``POINT:Y_SCREEN = +Y``
-  tell C3D viewers which axis is up);
-- C3D needs a constant rate: the frames lie on the grid ``t_us[0] + k * step``; grid frames the run did not estimate
-  (failed or unselected batches) are *invalid* points (residual -1, the C3D convention for a gap), not interpolated,
-  and the log says how many. ``EVENTCAP:T0_US`` holds the time of the first frame on the run's time axis.
+- one point per joint centre, labelled with the skeleton's joint names (``pelvis``, ``l_hip``, ... in SMPL order),
+  then, when given, one per surface marker (the 39 Plug-in Gait markers placed on the template's mesh,
+  :mod:`eventcap.body.markers`: ``LFHD``, ``C7``, ``LASI``, ``LKNE``, ...); ``POINT:DESCRIPTIONS`` says what each
+  point is. (Earlier files carried BODY_25 landmarks, 13 of which were joint centres again: they are gone.)
+- ``POINT:RATE`` the tracking frame rate (1000 Hz by default); lengths in ``units`` (``POINT:UNITS``: m, cm or
+  mm), axes as ``up_axis`` says (:mod:`eventcap.worldframe`), and ``POINT:X_SCREEN`` / ``POINT:Y_SCREEN`` tell
+  viewers which axis is up (``+X``/``+Y`` for y up, ``+X``/``+Z`` for z up).
+- C3D needs a constant rate: the frames lie on the grid ``t_us[0] + k * step``; grid frames the run did not
+  estimate are *invalid* points (residual -1, the C3D convention for a gap), never interpolated, and the log says
+  how many. The residual column comes from :func:`point_residuals` (0 for an estimated point today; the per-point
+  confidence of the trust work goes there, -1 where nothing was observed).
+- Time origin: the first frame's number is its time on the run's time axis in frames, plus one (C3D counts from 1:
+  frame n lies at ``(n - 1) / rate``): the header's first-frame word and ``TRIAL:ACTUAL_START_FIELD`` hold it,
+  so a viewer's time axis shows the run's times. ``EVENTCAP:T0_US`` holds the first frame's time in microseconds
+  exactly (a string: floats lose microseconds).
+- Any length. The header's frame words and ``POINT:FRAMES`` are 16-bit; past frame 65,535 the file follows the
+  compatibility rules of the C3D user guide ("Maintaining C3D frame count compatibility"): header frame range
+  capped at 65,535, ``POINT:FRAMES`` 65,535, the real count in ``POINT:LONG_FRAMES`` (float) and the last frame
+  in ``TRIAL:ACTUAL_END_FIELD`` (two 16-bit words, least significant first). Measured here: the ``c3d`` package
+  honours ACTUAL_END_FIELD and LONG_FRAMES; ``ezc3d`` 1.7.2 honours neither but reads such a file to its end, so
+  the file ends right after its last frame when the usual padding to a 512-byte block could hold a whole frame
+  (fewer than 32 points), or ezc3d would read the padding as frames of zeros. (ezc3d itself writes a 16-bit frame
+  count, and its own long files read back as 65,535 frames: why it no longer writes them.)
 
 The file appears atomically (``<stem>.partial.c3d``, then renamed); on error nothing is left behind.
 """
@@ -20,39 +34,61 @@ from __future__ import annotations
 
 import logging
 import os
+import warnings
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from .body.skeleton import JOINT_NAMES, LANDMARK_NAMES
+from .body.skeleton import JOINT_NAMES
+from .worldframe import check_frame, to_export
 
 log = logging.getLogger("eventcap.c3d")
 
-#: Prefix of the template landmarks' labels (BODY_25 names; several equal joint names).
-LANDMARK_PREFIX = "lm_"
+#: Frame numbers past this need the long-file parameters (16-bit header words and POINT:FRAMES).
+MAX_SHORT_FRAME = 65535
+#: Bytes of one point in a float C3D frame (x, y, z, residual word).
+_POINT_BYTES = 16
 
 
-def c3d_labels(with_landmarks: bool) -> list[str]:
-    """The point labels of an exported file: the joints, then (optionally) the landmarks."""
-    return list(JOINT_NAMES) + ([LANDMARK_PREFIX + n for n in LANDMARK_NAMES] if with_landmarks else [])
+def c3d_labels(marker_names: Sequence[str] = ()) -> list[str]:
+    """The point labels of an exported file: the joint centres, then the markers."""
+    return list(JOINT_NAMES) + list(marker_names)
 
 
-def _ezc3d():
-    try:
-        import ezc3d
-    except ImportError:
-        raise ImportError("C3D export needs the ezc3d package (an eventcap dependency): pip install ezc3d") from None
-    return ezc3d
+def point_residuals(valid: np.ndarray, confidence: np.ndarray | None = None) -> np.ndarray:
+    """The C3D residual of every point in every frame, (frames, points): -1 marks a point that is not there.
 
-
-def write_c3d(path, t_us, joints, landmarks=None, step_us: int | None = None) -> Path:
-    """Write the markers of a motion as a C3D file; returns the path.
-
-    t_us: (T,) int64 microseconds, strictly increasing (the estimated frames). joints: (T, 24, 3) metres.
-    landmarks: optional (T, L, 3) metres in ``skeleton.LANDMARK_NAMES`` order. step_us: the frame step (default:
-    the median step of ``t_us``; 1000 us -> 1000 Hz). Times off the grid ``t_us[0] + k * step_us`` are refused.
+    valid: (frames, points) bool, the points the run estimated. confidence: optional (frames, points) in [0, 1]
+    (NaN: not observed). Without it every valid point has residual 0 (the C3D value of a point with no error
+    estimate). With it, a point whose confidence is 0 or NaN (nothing observed) is invalid (-1), the rest keep 0
+    until the confidence comes with a calibrated error in length units.
     """
-    path = Path(path)
+    valid = np.asarray(valid, dtype=bool)
+    out = np.where(valid, 0.0, -1.0)
+    if confidence is None:
+        return out
+    c = np.asarray(confidence, dtype=np.float64)
+    if c.shape != valid.shape:
+        raise ValueError(f"confidence: expected shape {valid.shape} (frames, points), got {c.shape}")
+    finite = c[np.isfinite(c)]
+    if finite.size and (finite.min() < 0.0 or finite.max() > 1.0):
+        raise ValueError(f"confidence: expected values in [0, 1] (NaN: not observed), got [{finite.min():g}, "
+                         f"{finite.max():g}]")
+    unobserved = ~np.isfinite(c) | (c <= 0.0)
+    out[unobserved] = -1.0
+    return out
+
+
+def _c3d():
+    try:
+        import c3d
+    except ImportError:
+        raise ImportError("C3D export needs the c3d package (an eventcap dependency): pip install c3d") from None
+    return c3d
+
+
+def _check_times(t_us, step_us: int | None) -> tuple[np.ndarray, int, np.ndarray]:
     t = np.asarray(t_us)
     if t.ndim != 1 or t.size < 1 or not np.issubdtype(t.dtype, np.integer):
         raise ValueError(f"t_us: expected integer microseconds of shape (T,), T >= 1, got {t.dtype} {t.shape}")
@@ -60,19 +96,6 @@ def write_c3d(path, t_us, joints, landmarks=None, step_us: int | None = None) ->
     if t.size > 1 and np.any(np.diff(t) <= 0):
         i = int(np.argmax(np.diff(t) <= 0)) + 1
         raise ValueError(f"t_us: expected strictly increasing times, frame {i} is at {t[i]} us after {t[i - 1]} us")
-    J = np.asarray(joints, dtype=np.float64)
-    if J.shape != (t.size, len(JOINT_NAMES), 3):
-        raise ValueError(f"joints: expected shape ({t.size}, {len(JOINT_NAMES)}, 3) (T, joints, xyz metres), "
-                         f"got {J.shape}")
-    points = [J]
-    if landmarks is not None:
-        L = np.asarray(landmarks, dtype=np.float64)
-        if L.shape != (t.size, len(LANDMARK_NAMES), 3):
-            raise ValueError(f"landmarks: expected shape ({t.size}, {len(LANDMARK_NAMES)}, 3), got {L.shape}")
-        points.append(L)
-    P = np.concatenate(points, axis=1)
-    if not np.all(np.isfinite(P)):
-        raise ValueError("joints/landmarks: expected finite values, got NaN or inf")
     if step_us is None:
         step_us = int(np.median(np.diff(t))) if t.size > 1 else 1000
     step_us = int(step_us)
@@ -83,43 +106,118 @@ def write_c3d(path, t_us, joints, landmarks=None, step_us: int | None = None) ->
         i = int(np.argmax(off != 0))
         raise ValueError(f"t_us: frame {i} ({t[i]} us) is not on the {step_us} us grid starting at {t[0]} us; "
                          f"C3D needs a constant frame rate")
-    k = (t - t[0]) // step_us
-    n_frames = int(k[-1]) + 1
-    labels = c3d_labels(landmarks is not None)
-    n = len(labels)
+    return t, step_us, (t - t[0]) // step_us
 
-    ezc3d = _ezc3d()
-    data = np.zeros((4, n, n_frames))
-    data[3] = 1.0
-    data[:3, :, k] = np.transpose(P * 1000.0, (2, 1, 0))  # (xyz, point, frame), mm
-    residuals = np.full((1, n, n_frames), -1.0)  # -1: not estimated (the C3D convention for an invalid point)
-    residuals[:, :, k] = 0.0
+
+def _points(t: np.ndarray, joints, markers, marker_names) -> np.ndarray:
+    J = np.asarray(joints, dtype=np.float64)
+    if J.shape != (t.size, len(JOINT_NAMES), 3):
+        raise ValueError(f"joints: expected shape ({t.size}, {len(JOINT_NAMES)}, 3) (T, joints, xyz metres), "
+                         f"got {J.shape}")
+    parts = [J]
+    if markers is not None:
+        M = np.asarray(markers, dtype=np.float64)
+        if M.shape != (t.size, len(marker_names), 3):
+            raise ValueError(f"markers: expected shape ({t.size}, {len(marker_names)}, 3) (T, markers named by "
+                             f"marker_names, xyz metres), got {M.shape}")
+        parts.append(M)
+    elif marker_names:
+        raise ValueError("marker_names given without markers")
+    P = np.concatenate(parts, axis=1)
+    if not np.all(np.isfinite(P)):
+        raise ValueError("joints/markers: expected finite values, got NaN or inf")
+    return P
+
+
+def write_c3d(path, t_us, joints, markers=None, step_us: int | None = None, *, marker_names: Sequence[str] = (),
+              marker_descriptions: Sequence[str] | None = None, up_axis: str = "y", units: str = "mm",
+              confidence: np.ndarray | None = None) -> Path:
+    """Write the points of a motion as a C3D file; returns the path.
+
+    t_us: (T,) int64 microseconds, strictly increasing (the estimated frames), on the grid ``t_us[0] + k * step_us``
+    (default step: the median step; 1000 us -> 1000 Hz). joints: (T, 24, 3) metres, internal world frame (y up).
+    markers: optional (T, M, 3) metres named by ``marker_names`` (M,), described by ``marker_descriptions``.
+    up_axis ``y | z`` and units ``m | cm | mm``: the file's frame (:mod:`eventcap.worldframe`). confidence:
+    optional (T, 24 + M) per point, passed to :func:`point_residuals`.
+    """
+    path = Path(path)
+    check_frame(up_axis, units)
+    t, step_us, k = _check_times(t_us, step_us)
+    marker_names = list(marker_names)
+    P = _points(t, joints, markers, marker_names)
+    labels = c3d_labels(marker_names)
+    n_frames, n = int(k[-1]) + 1, len(labels)
+    valid = np.zeros((n_frames, n), dtype=bool)
+    valid[k] = True
+    conf = None
+    if confidence is not None:
+        c = np.asarray(confidence, dtype=np.float64)
+        if c.shape != (t.size, n):
+            raise ValueError(f"confidence: expected shape ({t.size}, {n}) (T, points), got {c.shape}")
+        conf = np.full((n_frames, n), np.nan)
+        conf[k] = c
+    residuals = point_residuals(valid, conf)
     gaps = n_frames - t.size
     if gaps:
         log.warning("c3d: %d of %d frames (at %g Hz) were not estimated (gaps between batches); they are marked "
                     "invalid (residual -1)", gaps, n_frames, 1e6 / step_us)
-    c = ezc3d.c3d()
-    c["parameters"]["POINT"]["RATE"]["value"] = [1e6 / step_us]
-    c["parameters"]["POINT"]["LABELS"]["value"] = labels
-    c["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
-    descriptions = [f"SMPL joint {name}" for name in JOINT_NAMES]
-    if landmarks is not None:
-        descriptions += [f"template landmark {name} (BODY_25)" for name in LANDMARK_NAMES]
-    c.add_parameter("POINT", "DESCRIPTIONS", descriptions)
-    c.add_parameter("POINT", "X_SCREEN", ["+X"])
-    c.add_parameter("POINT", "Y_SCREEN", ["+Y"])
-    c.add_parameter("EVENTCAP", "T0_US", [str(int(t[0]))])  # a string: floats lose microseconds
-    c["data"]["points"] = data
-    c["data"]["meta_points"]["residuals"] = residuals
-    c["data"]["meta_points"]["camera_masks"] = np.zeros((7, n, n_frames), dtype=bool)
-
-    tmp = path.with_name(path.stem + ".partial.c3d")  # ezc3d appends .c3d to any other name
+    frames = np.zeros((n_frames, n, 5), np.float32)  # x, y, z, residual, cameras (c3d's layout)
+    frames[k, :, :3] = to_export(P, up_axis, units)
+    frames[..., 3] = residuals
+    descriptions = [f"SMPL joint centre {name}" for name in JOINT_NAMES] + list(
+        marker_descriptions if marker_descriptions is not None else [f"marker {m}" for m in marker_names])
+    if len(descriptions) != n:
+        raise ValueError(f"marker_descriptions: expected {len(marker_names)} descriptions, got "
+                         f"{len(descriptions) - len(JOINT_NAMES)}")
+    first_frame = _first_frame_number(int(t[0]), step_us)
+    writer = _writer(frames, labels, descriptions, 1e6 / step_us, units, up_axis, first_frame, int(t[0]))
+    tmp = path.with_name(path.stem + ".partial.c3d")
     tmp.unlink(missing_ok=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        c.write(str(tmp))
+        with open(tmp, "wb") as fh, warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the package's notes about analog-free files
+            writer.write(fh)
+        if first_frame + n_frames - 1 > MAX_SHORT_FRAME and n * _POINT_BYTES < 512:
+            os.truncate(tmp, _data_end(tmp, n_frames, n))  # see the module docstring: ezc3d reads to the end
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def _first_frame_number(t0_us: int, step_us: int) -> int:
+    """C3D frame number of the first frame: its time in frames plus one, when that is a whole number of frames up to
+    65,535 (readers disagree on how ACTUAL_START_FIELD's high word counts); else 1, and EVENTCAP:T0_US has the time."""
+    if t0_us >= 0 and t0_us % step_us == 0 and t0_us // step_us + 1 <= MAX_SHORT_FRAME:
+        return t0_us // step_us + 1
+    log.info("c3d: the first frame (t = %d us) is not a whole number (up to 65,535) of %d us frames from time zero; "
+             "it is frame 1 (EVENTCAP:T0_US holds its time)", t0_us, step_us)
+    return 1
+
+
+def _writer(frames: np.ndarray, labels, descriptions, rate: float, units: str, up_axis: str, first_frame: int,
+            t0_us: int):
+    c3d = _c3d()
+    w = c3d.Writer(point_rate=float(rate), point_scale=-1.0, point_units=units)
+    empty = np.zeros((0, 0), np.float32)
+    w.add_frames([(f, empty) for f in frames])
+    w.set_point_labels(labels)
+    text, width = c3d.Writer.pack_labels(descriptions)
+    w.point_group.add_str("DESCRIPTIONS", "What each point is.", text, width, len(descriptions))
+    w.set_screen_axis("+X", "+Z" if up_axis == "z" else "+Y")
+    w.set_start_frame(first_frame)
+    g = w.add_group(w.numeric_key_next, "EVENTCAP", "EventCap export")
+    g.add_str("T0_US", "Time of the first frame on the run's time axis, microseconds", str(t0_us), len(str(t0_us)))
+    g.add_str("UP_AXIS", "Vertical axis of the world frame", up_axis, 1)
+    return w
+
+
+def _data_end(path: Path, n_frames: int, n_points: int) -> int:
+    """Byte offset just past the last frame of a C3D file written by :func:`_writer` (header word 9: the first
+    data block, 1-based, of 512 bytes)."""
+    with open(path, "rb") as fh:
+        head = fh.read(20)
+    data_block = int(np.frombuffer(head[16:18], "<u2")[0])
+    return (data_block - 1) * 512 + n_frames * n_points * _POINT_BYTES

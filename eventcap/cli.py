@@ -58,8 +58,15 @@ def _run_job(cfg) -> bool:
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf
 
-    logging.getLogger().setLevel(str(cfg.get("log_level", "INFO")).upper())
+    from .config import ConfigError, log_level_number
+
     run_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        logging.getLogger().setLevel(log_level_number(cfg.get("log_level", "INFO")))
+    except ConfigError as exc:  # refused before anything runs, as every other setting
+        log.error("%s", exc)
+        _RUN_FAILURES.append(f"{run_dir}: {exc}")
+        return False
     data = OmegaConf.to_container(cfg, resolve=True)
     overrides = list(HydraConfig.get().overrides.task)
     log.info("run folder: %s%s", run_dir, f" (overrides: {' '.join(overrides)})" if overrides else "")
@@ -551,6 +558,69 @@ def _pin_threads() -> None:
         os.environ.setdefault(var, "1")
 
 
+#: Top-level run settings also taken in the ``--option value`` style by the Hydra subcommands (run, simulate,
+#: benchmark), as the other subcommands take ``key=value``.
+_RUN_OPTIONS = {"--cache-dir": "cache_dir", "--log-level": "log_level", "--batches": "batches"}
+
+
+def run_options_as_overrides(argv: list[str]) -> list[str]:
+    """``--cache-dir X`` / ``--cache-dir=X`` -> ``cache_dir=X`` (and the other :data:`_RUN_OPTIONS`), for Hydra."""
+    out, i = [], 0
+    while i < len(argv):
+        flag, eq, value = argv[i].partition("=")
+        if flag in _RUN_OPTIONS:
+            if not eq:
+                if i + 1 >= len(argv):
+                    raise SystemExit(f"eventcap: {flag} needs a value")
+                i, value = i + 1, argv[i + 1]
+            out.append(f"{_RUN_OPTIONS[flag]}={value}")
+        else:
+            out.append(argv[i])
+        i += 1
+    return out
+
+
+def settings_as_options(subparsers, argv: list[str]) -> list[str]:
+    """``key=value`` -> ``--key value`` for the options of the chosen argparse subcommand (``cache_dir=X`` as
+    ``--cache-dir X``, ``all=true`` as ``--all``), so every subcommand takes both styles. A ``word=...`` that names
+    no option of the subcommand is refused with the ones it has; other arguments (paths) pass unchanged."""
+    import difflib
+    import re
+
+    if not argv or argv[0] not in subparsers.choices:
+        return argv
+    sub = subparsers.choices[argv[0]]
+    options = {}
+    for action in sub._actions:
+        for opt in action.option_strings:
+            if opt.startswith("--") and opt != "--help":
+                options[opt[2:].replace("-", "_")] = (opt, action)
+    out = [argv[0]]
+    for arg in argv[1:]:
+        m = re.fullmatch(r"([A-Za-z][A-Za-z0-9_-]*)=(.*)", arg, flags=re.S)
+        if m is None or arg.startswith("-"):
+            out.append(arg)
+            continue
+        key, value = m.group(1).replace("-", "_"), m.group(2)
+        if key not in options:
+            close = difflib.get_close_matches(key, list(options), n=1, cutoff=0.6)
+            if close or not Path(arg).exists():
+                known = ", ".join(sorted(options)) or "none"
+                hint = f"; did you mean {close[0]}=...?" if close else ""
+                raise SystemExit(f"eventcap {argv[0]}: unknown setting {key!r} (settings: {known}){hint}")
+            out.append(arg)
+            continue
+        opt, action = options[key]
+        if action.nargs == 0:  # a flag: true / false
+            if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                raise SystemExit(f"eventcap {argv[0]}: {key}: expected true or false, got {value!r}")
+            if value.lower() in ("true", "1", "yes"):
+                out.append(opt)
+        else:
+            out += [opt, *(value.split(",") if action.nargs not in (None, "?") else [value])]
+    return out
+
+
 def _add_preview_parser(sub) -> None:
     p = sub.add_parser("preview", help="PNG of a recording: frame (or image from events), sharp image, events, "
                                        "ground-truth skeleton")
@@ -576,8 +646,9 @@ def _add_preview_parser(sub) -> None:
     p.add_argument("--rate", type=float, default=25.0, help="event-only recordings: image times every 1/rate s")
 
 
-def _parser() -> argparse.ArgumentParser:
-    """The command line of the subcommands argparse handles (run, simulate and benchmark take Hydra overrides)."""
+def _parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
+    """The command line of the subcommands argparse handles (run, simulate and benchmark take Hydra overrides), and
+    its subparsers."""
     parser = argparse.ArgumentParser(prog="eventcap", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("run", help="run the pipeline (hydra overrides follow; see `eventcap run --help`)")
@@ -635,20 +706,22 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--chunk-events", type=int, default=1 << 20, metavar="N",
                    help="events decoded per chunk (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
-    return parser
+    return parser, sub
 
 
 def main(argv: list[str] | None = None) -> int:
     _pin_threads()  # before anything imports numpy
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in ("run", "simulate", "benchmark"):
+        argv = [argv[0], *run_options_as_overrides(argv[1:])]
     if argv and argv[0] == "run":
         return cmd_run(argv[1:])
     if argv and argv[0] == "simulate":
         return cmd_simulate(argv[1:])
     if argv and argv[0] == "benchmark" and not ({"-h", "--help"} & set(argv[1:])):
         return cmd_benchmark(argv[1:])
-    parser = _parser()
-    args = parser.parse_args(argv)
+    parser, sub = _parser()
+    args = parser.parse_args(settings_as_options(sub, argv))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.command == "stages":
         return cmd_stages(args)

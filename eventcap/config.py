@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import hashlib
 from collections.abc import Mapping
 from pathlib import Path
@@ -13,11 +14,17 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from .registry import unknown_name_message
-from .stage import StageSpec
+from .stage import StageSpec, allowed_values, check_value
 
 
 class ConfigError(ValueError):
     """A config key or value is wrong; the message names the full key and what was expected."""
+
+
+@functools.lru_cache(maxsize=128)
+def _structured(config_class: type):
+    """The config class as an OmegaConf schema, built once (merge copies it, never changes it)."""
+    return OmegaConf.structured(config_class)
 
 
 def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
@@ -29,11 +36,15 @@ def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
                 f"{where}.{key}: " + unknown_name_message("config key", key, known, f"the config of stage {spec.name!r}")
             )
     try:
-        merged = OmegaConf.merge(OmegaConf.structured(spec.config), OmegaConf.create(dict(values)))
+        merged = OmegaConf.merge(_structured(spec.config), OmegaConf.create(dict(values)))
         obj = OmegaConf.to_object(merged)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", "") or ""
         msg = str(exc).splitlines()[0]
+        field = next((f for f in dataclasses.fields(spec.config) if f.name == key.split(".")[0].split("[")[0]), None)
+        allowed = allowed_values(field) if field is not None else None
+        if allowed:  # a value of the wrong type: say what the field takes
+            msg = f"expected {allowed}, got {values.get(field.name)!r}"
         raise ConfigError(f"{where}{'.' + key if key else ''}: {msg} (stage {spec.name!r})") from None
     missing = [f.name for f in dataclasses.fields(obj) if getattr(obj, f.name) is dataclasses.MISSING]
     if missing:
@@ -46,7 +57,24 @@ def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
             hint = f"; did you mean {close[0]!r}?" if close else ""
             raise ConfigError(f"{where}.{f.name}: expected one of {' | '.join(str(c) for c in choices)}, got "
                               f"{value!r} (stage {spec.name!r}){hint}")
+        problem = check_value(f, value)
+        if problem:
+            raise ConfigError(f"{where}.{f.name}: {problem} (stage {spec.name!r})")
     return obj
+
+
+#: The values ``log_level`` takes (case-insensitive).
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+
+
+def log_level_number(value: Any) -> int:
+    """The logging level of the top-level ``log_level`` setting, or a ConfigError naming the key and the levels."""
+    import logging
+
+    name = str(value).upper() if isinstance(value, str) else None
+    if name not in LOG_LEVELS:
+        raise ConfigError(f"log_level: expected one of {' | '.join(LOG_LEVELS)}, got {value!r}")
+    return getattr(logging, name)
 
 
 #: The Hydra config group holding every installed stage's config (``/stage/<name>``), filled by

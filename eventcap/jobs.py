@@ -27,7 +27,10 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     from .registry import UnknownStageError
     from .runner import Runner
 
+    from .config import log_level_number
+
     try:
+        log_level_number(data.get("log_level", "INFO"))
         runner = Runner(data)
         outputs_cfg = check_outputs_config(runner)
         result = runner.run(run_dir)

@@ -15,8 +15,11 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
   (green) of the estimate projected into the camera, the ground-truth skeleton (grey) when the recording has one,
   and beside it an orthographic side view of the 3D skeleton. ``overlay_frames/`` keeps ``video_png_frames`` of its
   frames as PNG. The file appears atomically (written as ``overlay.partial.mp4``, then renamed).
-- ``motion.c3d`` (``c3d: true``): the joints and the template's landmarks in millimetres at the tracking rate, for
-  mocap tools (:mod:`eventcap.c3d`).
+- ``motion.c3d`` (``c3d: true``): the joint centres and the template's surface markers (Plug-in Gait) at the
+  tracking rate, for mocap tools (:mod:`eventcap.c3d`).
+- ``up_axis`` (y | z) and ``units`` (m | cm | mm; null: BVH in m, C3D in mm) set the frame of motion.bvh and
+  motion.c3d (:mod:`eventcap.worldframe`); motion.npz stays in the internal frame (y up, metres) and says so in its
+  ``world_frame`` field. Each file states the time of its first frame (``t0_us``).
 - ``plausibility.json``: speeds beyond human limits, joints behind the camera, sudden flips, the head below the
   pelvis, each with its frames (:mod:`eventcap.plausibility`); also logged, one line per kind.
 - ``capture.rrd`` (``rerun: true``): a Rerun recording of everything the run saw and produced (:mod:`eventcap.viewer`;
@@ -45,6 +48,7 @@ from .artifacts.pose import PoseSequence
 from .motion import JOIN_RULES, frame_step_us, join_batches, on_grid, uniform_motion
 from .plausibility import write_plausibility
 from .viz import label as _label
+from .worldframe import check_frame
 
 log = logging.getLogger("eventcap.outputs")
 
@@ -71,7 +75,9 @@ class OutputsConfig:
     video_scale: int = 2  # image pixels per sensor pixel
     video_events_ms: float = 5.0  # events of the last ... ms are drawn
     video_png_frames: int = 4  # frames of the video also saved as PNG in overlay_frames/
-    c3d: bool = False  # motion.c3d: joints + template landmarks, mm, at the tracking rate (eventcap/c3d.py)
+    c3d: bool = False  # motion.c3d: joint centres + surface markers at the tracking rate (eventcap/c3d.py)
+    up_axis: str = "y"  # motion.bvh / motion.c3d: y | z (eventcap/worldframe.py)
+    units: str | None = None  # motion.bvh / motion.c3d: m | cm | mm; null: BVH m, C3D mm
     rerun: bool = False  # capture.rrd: a Rerun recording of the whole run (eventcap/viewer.py; eventcap view)
     rerun_events_ms: float = 1.0  # each event image shows the events of the last ... ms
     rerun_every_ms: float = 1.0  # motion time between event images
@@ -91,6 +97,7 @@ class OutputsConfig:
             raise ValueError(f"outputs.poses: expected '<node>.<port>' (e.g. solve.poses) or null, got {cfg.poses!r}")
         if cfg.join not in JOIN_RULES:
             raise ValueError(f"outputs.join: expected one of {', '.join(JOIN_RULES)}, got {cfg.join!r}")
+        check_frame(cfg.up_axis, cfg.units if cfg.units is not None else "m", "outputs.")
         for name in ("bvh", "npz", "video", "c3d", "rerun"):
             if not isinstance(getattr(cfg, name), bool):
                 raise ValueError(f"outputs.{name}: expected true or false, got {getattr(cfg, name)!r}")
@@ -113,7 +120,7 @@ def check_outputs_config(runner) -> OutputsConfig:
     import importlib.util
 
     for key, module, install in (("rerun", "rerun", "rerun-sdk (or: pip install -e \".[viewer]\")"),
-                                 ("c3d", "ezc3d", "ezc3d")):
+                                 ("c3d", "c3d", "c3d")):
         if getattr(cfg, key) and importlib.util.find_spec(module) is None:  # refused before anything runs
             raise ValueError(f"outputs.{key}=true needs the {module if module != 'rerun' else 'rerun-sdk'} package: "
                              f"pip install {install}, or set outputs.{key}=false")
@@ -213,12 +220,14 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     step = frame_step_us(t_us) or 1000
     jobs = []
     if cfg.bvh:
-        jobs.append(("bvh", lambda: _write_bvh(run_dir / "motion.bvh", t_us, poses, template, step)))
+        jobs.append(("bvh", lambda: _write_bvh(run_dir / "motion.bvh", t_us, poses, template, step, cfg)))
     if cfg.npz:
         from .bvh import write_motion_npz
+        from .worldframe import describe
 
-        jobs.append(("npz", lambda: write_motion_npz(run_dir / "motion.npz", t_us, poses, joints,
-                                                     extra={"source_output": np.array(cfg.poses)})))
+        extra = {"source_output": np.array(cfg.poses), "t0_us": np.int64(t_us[0]),
+                 "world_frame": np.array(describe("y", "m"))}
+        jobs.append(("npz", lambda: write_motion_npz(run_dir / "motion.npz", t_us, poses, joints, extra=extra)))
     if cfg.video:
         if rec is None:
             summary["skipped"]["video"] = "no recording in this run (the video needs its camera)"
@@ -228,7 +237,7 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
             jobs.append(("video", lambda: write_overlay_video(run_dir, rec, template, t_us, poses, joints, cfg,
                                                               latent=latent)))
     if cfg.c3d:
-        jobs.append(("c3d", lambda: _write_c3d(run_dir / "motion.c3d", t_us, poses, joints, template, step)))
+        jobs.append(("c3d", lambda: _write_c3d(run_dir / "motion.c3d", t_us, poses, joints, template, step, cfg)))
     if cfg.rerun:
         jobs.append(("rerun", lambda: _write_rerun(run_dir, runner, result, t_us, poses, joints, rec, template,
                                                    cfg, summary)))
@@ -246,24 +255,28 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     return summary
 
 
-def _write_bvh(path: Path, t_us, poses, template, step_us: int) -> Path:
+def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConfig) -> Path:
     from .bvh import write_bvh
+    from .worldframe import unit_scale
 
     grid, S, filled = uniform_motion(t_us, poses, step_us)
     if filled.any():
         log.warning("outputs: motion.bvh: %d of %d frames (at %g fps) were not estimated (gaps between batches); "
                     "they are interpolated linearly; motion.npz holds the estimated frames only",
                     int(filled.sum()), grid.size, 1e6 / step_us)
-    return write_bvh(path, S, template.rest_joints, frame_time_s=step_us * 1e-6)
+    return write_bvh(path, S, template.rest_joints, frame_time_s=step_us * 1e-6, scale=unit_scale(cfg.units or "m"),
+                     up_axis=cfg.up_axis, t0_us=int(grid[0]))
 
 
-def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int) -> Path:
-    from .body.kinematics import landmark_positions
+def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int, cfg: OutputsConfig) -> Path:
+    from .body.markers import plug_in_gait_markers
     from .c3d import write_c3d
 
     keep = on_grid(t_us, step_us)  # C3D has one frame rate: intensity frames between two grid times stay in motion.npz
+    markers = plug_in_gait_markers(template)
     return write_c3d(path, np.asarray(t_us)[keep], np.asarray(joints)[keep],
-                     landmark_positions(np.asarray(poses)[keep], template), step_us)
+                     markers.positions(np.asarray(poses)[keep], template), step_us, marker_names=markers.names,
+                     marker_descriptions=markers.descriptions, up_axis=cfg.up_axis, units=cfg.units or "mm")
 
 
 def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, template, cfg: OutputsConfig,
@@ -445,9 +458,69 @@ class OverlayRenderer:
         return np.concatenate([img, self.side_view(joints, truth)], axis=1)
 
 
+class _Encoder:
+    """The overlay's video encoder: H.264 in MP4 through PyAV (FFmpeg's libx264, bundled in the ``av`` wheel), which
+    browsers play; OpenCV's MPEG-4 Part 2 (FourCC ``mp4v``), which they do not, when PyAV or its encoder is missing.
+    ``codec`` says which one writes."""
+
+    def __init__(self, path: Path, fps: float, size: tuple[int, int]):
+        self.path, self.size = path, size
+        self._av = self._cv = None
+        try:
+            import av
+
+            av.codec.Codec("libx264", "w")
+        except Exception as exc:  # noqa: BLE001 - ImportError, or a PyAV built without libx264
+            self._fallback(fps, f"{type(exc).__name__}: {exc}")
+            return
+        from fractions import Fraction
+
+        self._av = av.open(str(path), mode="w", format="mp4", options={"movflags": "+faststart"})
+        stream = self._av.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+        # yuv420p, the pixel format browsers decode, needs even sizes: the frame is padded by a pixel if needed
+        stream.width, stream.height = size[0] + size[0] % 2, size[1] + size[1] % 2
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"crf": "20", "preset": "medium"}
+        self._stream = stream
+        self.codec = "H.264 (libx264 through PyAV)"
+
+    def _fallback(self, fps: float, why: str) -> None:
+        import cv2
+
+        self._cv = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), self.size)
+        if not self._cv.isOpened():
+            raise RuntimeError(f"OpenCV cannot write an 'mp4v' video to {self.path} (no encoder in this OpenCV build?)")
+        self.codec = f"MPEG-4 Part 2 (OpenCV mp4v; browsers do not play it: H.264 needs PyAV, pip install av; {why})"
+
+    def write(self, bgr: np.ndarray) -> None:
+        if self._cv is not None:
+            self._cv.write(bgr)
+            return
+        import av
+
+        h, w = self._stream.height, self._stream.width
+        if bgr.shape[:2] != (h, w):
+            bgr = np.pad(bgr, ((0, h - bgr.shape[0]), (0, w - bgr.shape[1]), (0, 0)), mode="edge")
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(bgr), format="bgr24")
+        for packet in self._stream.encode(frame):
+            self._av.mux(packet)
+
+    def close(self, flush: bool = True) -> None:
+        if self._cv is not None:
+            self._cv.release()
+        elif self._av is not None:
+            try:
+                if flush:
+                    for packet in self._stream.encode():
+                        self._av.mux(packet)
+            finally:
+                self._av.close()
+
+
 def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, poses: np.ndarray, joints: np.ndarray,
                         cfg: OutputsConfig, latent=None, name: str = "overlay.mp4") -> Path:
-    """Write ``<run_dir>/overlay.mp4`` (and PNGs of a few of its frames in ``overlay_frames/``); returns its path."""
+    """Write ``<run_dir>/overlay.mp4`` (and PNGs of a few of its frames in ``overlay_frames/``); returns its path.
+    The log names the codec (:class:`_Encoder`)."""
     import cv2
 
     run_dir = Path(run_dir)
@@ -462,13 +535,11 @@ def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, po
     shutil.rmtree(png_dir, ignore_errors=True)
     pngs = set(np.unique(np.linspace(0, idx.size - 1, cfg.video_png_frames).round().astype(int)).tolist()) \
         if cfg.video_png_frames else set()
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(cfg.video_fps), size)
-    if not writer.isOpened():
-        raise RuntimeError(f"OpenCV cannot write an 'mp4v' video to {tmp} (no encoder in this OpenCV build?)")
+    writer = _Encoder(tmp, float(cfg.video_fps), size)
     t0 = time.perf_counter()
     every_log = max(1, min(100, idx.size // 5))
-    log.info("outputs: rendering %d video frames (%dx%d, %g fps) to %s", idx.size, size[0], size[1],
-             cfg.video_fps, out)
+    log.info("outputs: rendering %d video frames (%dx%d, %g fps) to %s, codec %s", idx.size, size[0], size[1],
+             cfg.video_fps, out, writer.codec)
     try:
         for n, i in enumerate(idx):
             img = r.frame(int(t_us[i]), poses[i], joints[i], f"frame {n + 1}/{idx.size}")
@@ -478,10 +549,11 @@ def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, po
                 cv2.imwrite(str(png_dir / f"frame{n:04d}_t{t_us[i] / 1000:09.3f}ms.png"), img)
             if (n + 1) % every_log == 0 or n + 1 == idx.size:
                 log.info("outputs: video %d/%d frames (%.1f s)", n + 1, idx.size, time.perf_counter() - t0)
-        writer.release()
+        writer.close()
         os.replace(tmp, out)
     except BaseException:
-        writer.release()
+        writer.close(flush=False)
         tmp.unlink(missing_ok=True)
         raise
+    log.info("outputs: overlay video codec: %s", writer.codec)
     return out

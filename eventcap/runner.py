@@ -244,6 +244,53 @@ class ExecutorConfig:
     address: str | None = None  # dask: scheduler address (tcp://host:8786); None starts a LocalCluster
     retries: int = 2  # dask: resubmissions of a task whose worker raised an infrastructure error
 
+    #: seconds to wait for a TCP connection to ``address`` before the run is refused
+    CONNECT_TIMEOUT_S = 3.0
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any] | None) -> ExecutorConfig:
+        """Checked executor settings: every key and value named as ``executor.<key>`` with what it takes, before
+        anything runs (a dask scheduler that cannot be reached included)."""
+        values = dict(values or {})
+        known = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ValueError(f"executor.{unknown[0]}: unknown key; known: {', '.join(sorted(known))}")
+        cfg = cls(**values)
+        if cfg.kind not in ("serial", "processes", "dask"):
+            raise ValueError(f"executor.kind: expected one of serial | processes | dask, got {cfg.kind!r}")
+        for name, low in (("workers", 1), ("threads_per_worker", 1), ("retries", 0)):
+            v = getattr(cfg, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ValueError(f"executor.{name}: expected an integer >= {low}, got {v!r}")
+        if cfg.address is not None:
+            if not isinstance(cfg.address, str) or not cfg.address.strip():
+                raise ValueError(f"executor.address: expected a scheduler address such as tcp://host:8786, or null, "
+                                 f"got {cfg.address!r}")
+            if cfg.kind == "dask":
+                _check_reachable(cfg.address, cfg.CONNECT_TIMEOUT_S)
+        return cfg
+
+
+def _check_reachable(address: str, timeout_s: float) -> None:
+    """Refuse a Dask scheduler address that is malformed or does not accept a TCP connection within timeout_s."""
+    import socket
+    from urllib.parse import urlsplit
+
+    url = urlsplit(address if "://" in address else f"tcp://{address}")
+    try:
+        host, port = url.hostname, url.port
+    except ValueError:
+        host, port = None, None
+    if url.scheme not in ("tcp", "tls") or not host or port is None:
+        raise ValueError(f"executor.address: expected tcp://host:port (e.g. tcp://scheduler:8786), got {address!r}")
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ValueError(f"executor.address: no Dask scheduler reachable at {address} ({exc.strerror or exc}; "
+                         f"waited at most {timeout_s:g} s); start one (dask scheduler) or set executor.address=null "
+                         f"for a LocalCluster") from None
+
 
 class _DaskPool:
     """A dask.distributed client that looks like an executor to the runner (submit + as_completed)."""
@@ -401,12 +448,7 @@ class Runner:
         self.nodes = build_pipeline(cfg, self.registry)
         self.by_name = {n.name: n for n in self.nodes}
         self.cache = Cache(cfg.get("cache_dir") or "runs/cache")
-        ex = cfg.get("executor") or {}
-        known = {f.name for f in dataclasses.fields(ExecutorConfig)}
-        unknown = sorted(set(ex) - known)
-        if unknown:
-            raise ValueError(f"executor.{unknown[0]}: unknown key; known: {', '.join(sorted(known))}")
-        self.executor = ExecutorConfig(**dict(ex))
+        self.executor = ExecutorConfig.from_mapping(cfg.get("executor"))
         self.selection = _parse_selection(cfg.get("batches"))
 
     def _base_doc(self, node: Node) -> dict[str, Any]:

@@ -29,19 +29,92 @@ from .artifacts import Artifact, Batch
 
 
 def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True, file: bool = False,
-          default_factory: Any = dataclasses.MISSING, choices: tuple[Any, ...] | None = None):
+          default_factory: Any = dataclasses.MISSING, choices: tuple[Any, ...] | None = None,
+          ge: float | None = None, gt: float | None = None, le: float | None = None, lt: float | None = None,
+          finite: bool = True, odd: bool = False):
     """A config field. ``affects_result=False`` keeps it out of the cache key (e.g. logging, sleeps, workers).
 
     ``file=True`` marks a path whose *content digest* enters the cache key (input recordings, templates).
-    ``choices`` lists the only values the field takes: any other value is refused when the pipeline is built,
-    before anything runs (not once per batch by the stage).
+    ``choices`` lists the only values the field takes. A number (or each number of a list) is bounded by
+    ``ge`` (>=), ``gt`` (>), ``le`` (<=), ``lt`` (<); ``finite=False`` lets it be inf (NaN never passes); ``odd``
+    asks for an odd integer. Integers are integers by the field's type. Any other value is refused when the
+    pipeline is built, before anything runs (not once per batch by the stage), with the key and what is allowed
+    (:func:`check_value`).
     """
     meta = {"help": help, "affects_result": affects_result, "file": file}
     if choices is not None:
         meta["choices"] = tuple(choices)
+    bounds = {k: v for k, v in (("ge", ge), ("gt", gt), ("le", le), ("lt", lt)) if v is not None}
+    if bounds:
+        meta["bounds"] = bounds
+    if not finite:
+        meta["finite"] = False
+    if odd:
+        meta["odd"] = True
     if default_factory is not dataclasses.MISSING:
         return field(default_factory=default_factory, metadata=meta)
     return field(default=default, metadata=meta)
+
+
+def _allowed(meta: Mapping[str, Any], integer: bool) -> str:
+    """What a bounded field allows, in words: 'an integer >= 1', 'a finite number in (0, 1]', ..."""
+    b = meta.get("bounds", {})
+    kind = ("an odd integer" if meta.get("odd") else "an integer") if integer else \
+        ("a number" if meta.get("finite", True) is False else "a finite number")
+    lo = ("[", b["ge"]) if "ge" in b else ("(", b["gt"]) if "gt" in b else None
+    hi = ("]", b["le"]) if "le" in b else (")", b["lt"]) if "lt" in b else None
+    if lo and hi:
+        return f"{kind} in {lo[0]}{lo[1]:g}, {hi[1]:g}{hi[0]}"
+    if lo:
+        return f"{kind} {'>=' if lo[0] == '[' else '>'} {lo[1]:g}"
+    if hi:
+        return f"{kind} {'<=' if hi[0] == ']' else '<'} {hi[1]:g}"
+    return kind
+
+
+def _is_integer_field(f: dataclasses.Field) -> bool:
+    t = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    return t in ("int", "list[int]", "int | None", "tuple[int, ...]")
+
+
+def allowed_values(f: dataclasses.Field) -> str | None:
+    """What a numeric or boolean config field takes, in words (None for other fields)."""
+    t = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    if t in ("bool", "bool | None"):
+        return "true or false"
+    if t in ("int", "float", "int | None", "float | None"):
+        return _allowed(f.metadata, _is_integer_field(f)) + (" or null" if "None" in t else "")
+    if t in ("list[int]", "list[float]"):
+        return "a list of " + _allowed(f.metadata, _is_integer_field(f)).replace("an ", "").replace("a ", "") + "s"
+    return None
+
+
+def check_value(f: dataclasses.Field, value: Any) -> str | None:
+    """Why ``value`` is not allowed in config field ``f`` (declared with :func:`param`), or None when it is.
+
+    Numbers (and the numbers of a list) must be finite (unless ``finite=False``; NaN never passes), integers when
+    the field is an integer, and within the field's declared bounds. Booleans, strings and None are left to the
+    field's type and choices."""
+    meta = f.metadata
+    if isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            problem = check_value(f, v)
+            if problem:
+                return f"[{i}] {problem}"
+        return None
+    if value is None or isinstance(value, (bool, str)) or not isinstance(value, (int, float)):
+        return None
+    integer = _is_integer_field(f)
+    bounds = meta.get("bounds", {})
+    bad = (value != value  # NaN
+           or (meta.get("finite", True) and value in (float("inf"), float("-inf")))
+           or (integer and float(value) != int(value))
+           or (meta.get("odd") and int(value) % 2 == 0)
+           or ("ge" in bounds and not value >= bounds["ge"]) or ("gt" in bounds and not value > bounds["gt"])
+           or ("le" in bounds and not value <= bounds["le"]) or ("lt" in bounds and not value < bounds["lt"]))
+    if bad:
+        return f"expected {_allowed(meta, integer)}, got {value!r}"
+    return None
 
 
 @dataclass(frozen=True)
@@ -94,6 +167,10 @@ class StageSpec:
             if choices is not None and f.default is not dataclasses.MISSING and f.default not in choices:
                 raise StageSpecError(f"{where}: config field {f.name!r}: default {f.default!r} is not one of its "
                                      f"choices {choices}")
+            if f.default is not dataclasses.MISSING and (f.metadata.get("bounds") or f.metadata.get("odd")):
+                problem = check_value(f, f.default)
+                if problem:
+                    raise StageSpecError(f"{where}: config field {f.name!r}: its default {problem}")
         if ":" not in self.run:
             raise StageSpecError(f"{where}: run must be 'module:function', got {self.run!r}")
         for direction, ports in (("input", self.inputs), ("output", self.outputs)):

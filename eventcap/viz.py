@@ -63,6 +63,21 @@ def image_times(rec, rate_hz: float = 25.0) -> tuple[np.ndarray, str]:
         "image"
 
 
+#: Pixels of one enlarged panel beyond which a picture is refused (a 4096 x 4096 panel; six of them are ~300 MB).
+MAX_PANEL_PIXELS = 4096 * 4096
+
+
+def check_picture_size(width: int, height: int, scale: int) -> None:
+    """Refuse a picture whose panels would be enormous (a declared sensor of 65,535 px would ask for gigabytes)."""
+    if not (isinstance(scale, int) and scale >= 1):
+        raise ValueError(f"scale: expected an integer >= 1, got {scale!r}")
+    px = int(width) * int(height) * scale * scale
+    if px > MAX_PANEL_PIXELS:
+        raise ValueError(f"a {width} × {height} sensor at scale {scale} makes {width * scale} × {height * scale} "
+                         f"panels ({px * 3 / 2**30:.1f} GiB each): larger than any event camera's; use a smaller "
+                         f"scale, or check the recording's declared size")
+
+
 def most_active_time(events: np.ndarray, window_us: int = 20_000) -> tuple[int, int]:
     """The centre (µs) of the ``window_us`` window holding the most events, and that count: the recording's most
     active moment (windows start every ``window_us / 8``). ``(0, 0)`` without events."""
@@ -104,6 +119,7 @@ def recording_overview(rec, frame_index: int | None = 1, scale: int = 2, window_
     from eventcap.reconstruct import DEFAULT_BASELINE, DEFAULT_CUTOFF_RAD_S, reconstruct as events_to_images
     from eventcap.reconstruct import to_intensity, to_log_images
 
+    check_picture_size(rec.width, rec.height, scale)
     times, what = image_times(rec, rate_hz)
     has_frames = what == "frame"
     if reconstruct is None:

@@ -17,6 +17,8 @@ import pytest  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
+#: The real DAVIS346 recording (MIT, 1.2 MB) shipped with the tests; origin and licence in tests/data/real/SOURCE.md.
+REAL_DAVIS346 = TESTS / "data" / "real" / "davis346_lab_aps.aedat4"
 
 TOY_PIPELINE = {
     "nodes": {

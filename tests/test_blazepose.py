@@ -330,7 +330,7 @@ def test_stage_at_latent_and_tracking_uses_the_edi_images():
     nose = LANDMARK_INDEX["nose"]
     assert np.all(np.hypot(*(trk.keypoints_2d[:, nose] - HAND_CHECKED["nose"]).T) < 30)
     assert np.all(trk.confidence_2d[:, nose] > 0.5)
-    with pytest.raises(ValueError, match="tracking_step_us: expected a positive step"):
+    with pytest.raises(ValueError, match=r"tracking_step_us: expected an integer > 0, got 0"):
         run(at="tracking", tracking_step_us=0)
 
 

@@ -283,3 +283,31 @@ def test_motion_npz(tmp_path):
     with pytest.raises(ValueError, match=r"extra: array name 'poses' is taken"):
         write_motion_npz(tmp_path / "bad.npz", t, S, J, extra={"poses": S})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["motion.npz"]
+
+
+@pytest.mark.parametrize("up_axis, scale", [("y", 100.0), ("z", 1000.0)])
+def test_up_axis_units_and_time_origin_read_by_both_parsers(tmp_path, up_axis, scale):
+    """z up: every position rotated (x, y, z) -> (x, -z, y); the head above the pelvis along the file's up axis; the
+    first line states the frame and the time of the first frame, and both parsers still read the file."""
+    S = random_poses(12, seed=4)
+    S[:, 30:33] *= 0.3
+    rest = odd_skeleton()
+    path = write_bvh(tmp_path / "f.bvh", S, rest, scale=scale, up_axis=up_axis, t0_us=5000)
+    first = open(path).readline()
+    assert first.startswith("HIERARCHY  # eventcap: right-handed, " + up_axis + " up, lengths in "
+                            + {100.0: "cm", 1000.0: "mm"}[scale])
+    assert "first frame at t = 5000 us on the run's time axis, then every 1000 us" in first
+    want = joint_positions(S, rest)
+    if up_axis == "z":
+        want = np.stack([want[..., 0], -want[..., 2], want[..., 1]], axis=-1)
+    got = stacked(positions_via_bvh_package(path)) / scale
+    assert np.abs(got - want).max() < TOL_M
+    root = bvhio.readAsHierarchy(str(path))
+    joints = {j.Name: j for j, _, _ in root.layout()}
+    root.loadPose(0)
+    head = np.array(list(joints["head"].PositionWorld)) / scale
+    assert np.abs(head - want[0, JOINT_NAMES.index("head")]).max() < 5e-5
+    rest_up = np.zeros((1, 33))
+    upright = stacked(positions_via_bvh_package(write_bvh(tmp_path / "r.bvh", rest_up, rest, up_axis=up_axis)))
+    axis = "xyz".index(up_axis)
+    assert upright[0, JOINT_NAMES.index("head"), axis] - upright[0, 0, axis] > 0.4

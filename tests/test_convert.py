@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from fuzz_readers import synthetic_recording
 
 ROOT = Path(__file__).resolve().parents[1]
-REAL = ROOT.parent / "shared" / "data" / "real" / "davis346_lab_aps.aedat4"
+REAL = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # shipped (tests/data/real/SOURCE.md)
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +107,6 @@ def test_round_trip_each_format(synth, tmp_path, small_chunks, fmt):
 
 
 def test_real_davis346(tmp_path):
-    if not REAL.is_file():
-        pytest.skip(f"real recording not found at {REAL}")
     stats = convert_recording(REAL, tmp_path / "real.zarr", chunk_events=20_000)
     rec = _read_back(tmp_path / "real.zarr")
     assert (rec.width, rec.height) == (346, 260)

@@ -225,7 +225,7 @@ def test_occluded_and_out_of_image_keypoints_have_zero_confidence():
 def test_simulated_errors():
     with pytest.raises(ValueError, match=r"recording 'posed-stand' has no ground truth.*detect=file"):
         detect("simulated", posed_recording("stand", 2, ground_truth=False))
-    with pytest.raises(ValueError, match=r"outlier_prob: expected a value in \[0, 1\], got 1.5"):
+    with pytest.raises(ValueError, match=r"outlier_prob: expected a finite number in \[0, 1\], got 1.5"):
         detect("simulated", posed_recording("stand", 2), outlier_prob=1.5)
     with pytest.raises(ValueError, match=r"sigma_px: expected a finite number >= 0"):
         DetectorErrorModel(sigma_px=-1.0)

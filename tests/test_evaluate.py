@@ -279,7 +279,7 @@ def test_bad_input():
         late = [PoseSequence(t_us=s.t_us + 200_000 - 5_000, poses=s.poses) for s in batch_sequences(rec)[:1]]
         evaluate(rec, late)
     assert e.value.status == "no_overlap"
-    with pytest.raises(ValueError, match=r"stages.evaluate.every: expected an int >= 1, got 0"):
+    with pytest.raises(ValueError, match=r"stages.evaluate.every: expected an integer >= 1, got 0"):
         evaluate(rec, batch_sequences(rec), every=0)
     with pytest.raises(ValueError, match=r"stages.evaluate.align: expected one of procrustes, none, got 'scale'"):
         evaluate(rec, batch_sequences(rec), align="scale")

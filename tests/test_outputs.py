@@ -84,9 +84,43 @@ def test_bvh_npz_and_video_of_a_tiny_run(tmp_path):
         assert img.shape == (180 * 2, 240 * 2 + 180 * 2, 3)
     cap.release()
     assert frames == n
+    assert video_codec(run_dir / "overlay.mp4") == ("h264", "yuv420p", n)  # plays in a browser
     assert len(list((run_dir / "overlay_frames").glob("*.png"))) == 3
     assert not list(run_dir.glob("*.partial*"))
     assert json.loads((run_dir / "run.json").read_text())["outputs"]["written"]["bvh"].endswith("motion.bvh")
+
+
+def video_codec(path) -> tuple[str, str, int]:
+    """(codec, pixel format, decoded frames) of a video's first stream, as FFmpeg (through PyAV) reads it."""
+    import av
+
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        frames = sum(1 for _ in container.decode(stream))
+        return stream.codec_context.name, stream.codec_context.pix_fmt, frames
+
+
+def test_overlay_falls_back_to_opencv_without_pyav_and_says_so(tmp_path, caplog, monkeypatch):
+    """Without PyAV the video is OpenCV's MPEG-4 Part 2, and the log says which codec and why."""
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_av(name, *args, **kwargs):
+        if name == "av":
+            raise ImportError("No module named 'av'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_av)
+    with caplog.at_level(logging.INFO, logger="eventcap.outputs"):
+        _, result, summary = run(config(tmp_path / "cache", bvh=False, npz=False, video_every_ms=10,
+                                        video_png_frames=0), tmp_path / "run")
+    monkeypatch.setattr(builtins, "__import__", real_import)
+    assert summary["problems"] == [] and set(summary["written"]) == {"video"}
+    assert "codec MPEG-4 Part 2 (OpenCV mp4v; browsers do not play it: H.264 needs PyAV, pip install av; " \
+           "ImportError: No module named 'av')" in caplog.text
+    codec, _, frames = video_codec(tmp_path / "run" / "overlay.mp4")
+    assert codec == "mpeg4" and frames == 9
 
 
 def test_outputs_are_skipped_with_a_log_line_when_the_poses_node_failed(tmp_path, caplog):

@@ -24,14 +24,12 @@ from eventcap.io.recording import Frames
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from fuzz_readers import synthetic_recording
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "davis346_lab_aps.aedat4"
+REAL = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # shipped (tests/data/real/SOURCE.md)
 T0 = 1_633_000_000_000_000  # a plausible epoch-µs offset, as DV writes
 
 
 @pytest.fixture(scope="module")
 def real():
-    if not REAL.is_file():
-        pytest.skip(f"real recording not found at {REAL}")
     return read_recording(REAL)
 
 

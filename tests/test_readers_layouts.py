@@ -130,10 +130,13 @@ def test_inferred_sensor_size_ignores_a_few_far_outliers_and_says_so(tmp_path):
         convert_recording(p, tmp_path / "o.zarr", chunk_events=3000)
     assert not (tmp_path / "o.zarr").exists()
     assert convert_recording(p, tmp_path / "o.zarr", roi=(0, 0, 64, 48))["events"] == 19_998
-    # Many events far out are the data, not outliers: the size covers them.
+    # Many events far out: not outliers, and not a plausible sensor either (issue 38): refused with the count,
+    # unless the user says how big the sensor is.
     ev["x"][:100] = 60_000
     np.savez(p, t=ev["t"], x=ev["x"], y=ev["y"], p=ev["p"])
-    assert read_recording(p).width == 60_001
+    with pytest.raises(RecordingError, match=r"102 of 20,000 events \(0.51 %\) lie outside every known event sensor"):
+        read_recording(p)
+    assert read_recording(p, width=60_001, height=H).width == 60_001
 
 
 def test_random_bytes_after_an_evt3_header_are_rejected(tmp_path):

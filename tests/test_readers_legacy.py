@@ -91,7 +91,7 @@ def test_aedat2_global_shutter_aps_frames(tmp_path):
                          "of interest, or a frame cut short): left out",)
 
 
-AEDAT4_REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "davis346_lab_aps.aedat4"
+AEDAT4_REAL = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # shipped (tests/data/real/SOURCE.md)
 CONVERTED = os.environ.get("EVENTCAP_AEDAT2_OF_DAVIS346", "")
 
 

@@ -55,12 +55,19 @@ def committed_entries(cache_dir) -> list:
 def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cache, caplog):
     caplog.set_level(logging.INFO)
     run_dir = tmp_path / "neg"
-    code, log_text = run_main(run_dir, *SMALL, "source.duration_s=-1", f"cache_dir={shared_cache}", caplog=caplog)
+    # a value outside its declared range is refused before anything runs (issue 38): no run, no summary
+    code, log_text = run_main(tmp_path / "refused", *SMALL, "source.duration_s=-1", f"cache_dir={shared_cache}",
+                              caplog=caplog)
+    assert code == 1 and "source.duration_s: expected a finite number > 0, got -1" in log_text
+    assert not (tmp_path / "refused" / "run.json").exists()
+    # a source that fails while it runs: every node after it is skipped with that cause
+    code, log_text = run_main(run_dir, *SMALL, "source.motion=no_such_motion", f"cache_dir={shared_cache}",
+                              caplog=caplog)
     assert code == 1
-    assert (run_dir / "config.yaml").is_file() and "duration_s: -1" in (run_dir / "config.yaml").read_text()
+    assert (run_dir / "config.yaml").is_file() and "motion: no_such_motion" in (run_dir / "config.yaml").read_text()
     s = summary(run_dir)
     [fail] = s["nodes"]["source"]["failed"]
-    assert fail["error"] == "ValueError: source.duration_s: expected the capture's length in seconds, > 0, got -1.0"
+    assert fail["error"].startswith("ValueError: ") and "no_such_motion" in fail["error"]
     cause = f"upstream failed: source: {fail['error']}"
     for n in DOWNSTREAM:
         assert s["nodes"][n]["skip_causes"] == [{"batch": None, "cause": cause}], n

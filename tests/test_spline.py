@@ -617,7 +617,7 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     off, ctx_off = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=30.0)
     assert "context_pull_frames" not in ctx_off.stats
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
-    with pytest.raises(StageFailed, match=r"stages.spline.lambda_context: expected a number >= 0, got -1.0"):
+    with pytest.raises(ValueError, match=r"stages.solve.lambda_context: expected a finite number >= 0, got -1.0"):
         _run_stage(inputs, b, lambda_context=-1.0)
     # the gate's floor, with a body busy with events everywhere (the scene has none): the events alone (floor 0)
     # hold nothing, a floor of 0.1 holds a tenth of what no gate (1) holds
@@ -641,7 +641,8 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     assert frames[1.0].max() > 0.5
     np.testing.assert_allclose(frames[0.0], 0.0, atol=1e-6)
     np.testing.assert_allclose(frames[0.1], 0.1 * frames[1.0], rtol=1e-6, atol=1e-9)
-    with pytest.raises(StageFailed, match=r"stages.spline.context_gate_floor: expected a number in \[0, 1\], got 2"):
+    with pytest.raises(ValueError, match=r"stages.solve.context_gate_floor: expected a finite number in \[0, 1\], "
+                                         r"got 2"):
         _run_stage(inputs, b, context_gate_floor=2)
     # what `eventcap run` composes (measured on the suite at 25 fps: 0.01 / 0.03 / 0.1 / 0.3 gave MPJVE 198 / 196 /
     # 202 / 213 mm/s against 241 without)
@@ -662,32 +663,33 @@ def test_a_failed_window_raises_with_the_solver_status():
 def test_bad_config_and_missing_detections_are_named():
     inputs = stage_inputs()
     b = inputs["batches"].batch(0)
-    with pytest.raises(StageFailed, match="stages.spline.knot_ms"):
-        _run_stage(inputs, b, knot_ms=0.0)
-    with pytest.raises(StageFailed, match=r"stages.spline.still_hold_ms: expected milliseconds >= 0, got nan"):
-        _run_stage(inputs, b, still_hold_ms=float("nan"))
+    # every value outside a field's declared range is refused when the config is built, before the stage runs
+    for change, message in (
+            ({"knot_ms": 0.0}, r"stages.solve.knot_ms: expected a finite number > 0, got 0.0"),
+            ({"still_hold_ms": float("nan")}, r"stages.solve.still_hold_ms: expected a finite number >= 0, got nan"),
+            ({"lambda_sil": -1.0}, r"stages.solve.lambda_sil: expected a finite number >= 0, got -1.0"),
+            ({"sil_step_ms": 0.0}, r"stages.solve.sil_step_ms: expected a finite number > 0, got 0.0"),
+            ({"robust_cor_px": -0.5}, r"stages.solve.robust_cor_px: expected a finite number >= 0, got -0.5"),
+            ({"prior_inertia": -1.0}, r"stages.solve.prior_inertia: expected a finite number >= 0, got -1.0"),
+            ({"prior_inertia_cap": 0.5}, r"stages.solve.prior_inertia_cap: expected a number >= 1, got 0.5"),
+            ({"prior_inertia_floor": 2.0}, r"stages.solve.prior_inertia_floor: expected a finite number in \[0, 1\], "
+                                           r"got 2.0"),
+            ({"prior_gain_min_fps": -1.0}, r"stages.solve.prior_gain_min_fps: expected a finite number >= 0, got -1.0"),
+            ({"still_rate_hz": 0.0}, r"stages.solve.still_rate_hz: expected a finite number > 0, got 0.0"),
+            ({"still_radius_px": -1}, r"stages.solve.still_radius_px: expected an integer >= 0, got -1"),
+            ({"still_radius_px": 2.5}, r"stages.solve.still_radius_px: expected an integer >= 0, got 2.5")):
+        with pytest.raises(ValueError, match=message):
+            _run_stage(inputs, b, **change)
+    # the stage keeps its own checks for configs built without the declarations (a library caller)
+    import dataclasses
+
+    from eventcap.config import build_config
+    from eventcap.registry import load_registry
+
+    spec = load_registry().get("spline")
+    bad = dataclasses.replace(build_config(spec, FAST, "stages.spline"), lambda_sil=-1.0)
     with pytest.raises(StageFailed, match=r"stages.spline.lambda_sil: expected a number >= 0, got -1.0"):
-        _run_stage(inputs, b, lambda_sil=-1.0)
-    with pytest.raises(StageFailed, match=r"stages.spline.sil_step_ms: expected milliseconds > 0, got 0.0"):
-        _run_stage(inputs, b, sil_step_ms=0.0)
-    with pytest.raises(StageFailed, match=r"stages.spline.robust_cor_px: expected pixels >= 0, got -0.5"):
-        _run_stage(inputs, b, robust_cor_px=-0.5)
-    with pytest.raises(StageFailed, match=r"stages.spline.prior_inertia: expected an exponent >= 0, got -1.0"):
-        _run_stage(inputs, b, prior_inertia=-1.0)
-    with pytest.raises(StageFailed, match=r"stages.spline.prior_inertia_cap: expected a gain >= 1 \(or .inf\), "
-                                          r"got 0.5"):
-        _run_stage(inputs, b, prior_inertia=1.0, prior_inertia_cap=0.5)
-    with pytest.raises(StageFailed, match=r"stages.spline.prior_inertia_floor: expected a gain in \[0, 1\], got 2.0"):
-        _run_stage(inputs, b, prior_inertia=1.0, prior_inertia_floor=2.0)
-    with pytest.raises(StageFailed, match=r"stages.spline.prior_gain_min_fps: expected frames per second >= 0, "
-                                          r"got -1.0"):
-        _run_stage(inputs, b, prior_gain_min_fps=-1.0)
-    with pytest.raises(StageFailed, match=r"stages.spline.still_rate_hz: expected a number > 0, got 0.0"):
-        _run_stage(inputs, b, still_rate_hz=0.0)
-    with pytest.raises(StageFailed, match=r"stages.spline.still_radius_px: expected an integer >= 0, got -1"):
-        _run_stage(inputs, b, still_radius_px=-1)
-    with pytest.raises(ValueError, match=r"still_radius_px: Value '2.5' of type 'float' could not be converted"):
-        _run_stage(inputs, b, still_radius_px=2.5)  # refused when the config is built
+        spec.load_run()(inputs, bad, StageContext(node="solve", stage="spline", batch=b))
     # an unknown prior is refused when the config is built, before anything runs
     with pytest.raises(ValueError, match=r"\.prior: expected one of acceleration \| jerk, got 'snap'"):
         _run_stage(inputs, b, prior="snap")

@@ -9,14 +9,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 import zarr
 
 from eventcap.artifacts.recording import Recording
 from eventcap.body.procedural import procedural_template
 from eventcap.testing import StageConformance
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "davis346_lab_aps.aedat4"
+REAL = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # shipped (tests/data/real/SOURCE.md)
 
 
 @functools.lru_cache(maxsize=1)
@@ -49,7 +48,6 @@ class TestSynthetic(StageConformance):
         assert rec.ground_truth.joints.shape == (91, 24, 3) and rec.template is not None
 
 
-@pytest.mark.skipif(not REAL.exists(), reason="shared/data/real not present")
 class TestRecordingReal(StageConformance):
     stage_name = "recording"
     config_overrides = {"path": str(REAL)}

@@ -32,8 +32,12 @@ event index, packet, dataset) and the problem:
   (unwrapped), a truncated tail (the complete part kept: AEDAT4 packets, npy rows, a text line, a partial
   EVT/DAT word), a missing sensor size (inferred from the events), unnamed (N, 4) columns (recognised by the
   time-ordered column), colour frames (to grey), unsorted or repeated frame times, a few far outlier events when
-  the sensor size is inferred (dropped), a corrupt compressed AEDAT4 packet (skipped, like a truncated tail);
-- rejected: empty or unrecognised files, missing datasets or keys, coordinates outside a declared sensor,
+  the sensor size is inferred (dropped; also up to 0.1 % of events outside every known sensor), a corrupt
+  compressed AEDAT4 packet (skipped, like a truncated tail); noted: an EVT3 file that ends inside an event group
+  (cut on a word boundary; EVT2 and DAT cannot show such a cut);
+- rejected: empty or unrecognised files (a file whose extension promises a signature it lacks: "not an AEDAT4
+  file"), an inferred sensor that is not plausible (more events outside every known sensor, or all coordinates
+  zero: pass width and height), missing datasets or keys, coordinates outside a declared sensor,
   negative or non-integer coordinates, non-finite times, polarity values outside {0, 1} / {-1, +1} or mixing
   them, corrupted containers (whatever the decoding library reports), EVT data whose words carry event types
   the format does not define (random bytes after a valid header), corrupted AEDAT 3.1 packet headers.

@@ -28,7 +28,17 @@ from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.events import EVENT_DTYPE
 from eventcap.cache import pid_alive
-from eventcap.io.readers import Roi, _finish_frames, iter_event_chunks, largest_values, open_source, outlier_limit
+from eventcap.io.readers import (
+    PLAUSIBLE_HEIGHT,
+    PLAUSIBLE_WIDTH,
+    Roi,
+    _finish_frames,
+    implausible_sensor,
+    iter_event_chunks,
+    largest_values,
+    open_source,
+    outlier_limit,
+)
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS
 
@@ -247,7 +257,7 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
     appenders = {n: ArrayAppender(columns, n, EVENT_DTYPE.fields[n][0], units=units) for n in EVENT_DTYPE.names}
     check = _StreamCheck(roi.width if roi is not None else full_w, roi.height if roi is not None else full_h)
 
-    read = in_window = 0
+    read = in_window = outside = 0
     max_x = max_y = -1
     tops = {"x": np.empty(0, np.int64), "y": np.empty(0, np.int64)}  # the largest coordinates (outlier check)
     last_t_before = first_t_after = None
@@ -257,6 +267,7 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
         read += len(chunk)
         if infer:
             max_x, max_y = max(max_x, int(chunk["x"].max())), max(max_y, int(chunk["y"].max()))
+            outside += int(((chunk["x"] >= PLAUSIBLE_WIDTH) | (chunk["y"] >= PLAUSIBLE_HEIGHT)).sum())
             for axis in tops:
                 tops[axis] = largest_values(np.concatenate([tops[axis], largest_values(chunk[axis])]))
         if window is not None:
@@ -297,6 +308,10 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
         full_w, full_h = max_x + 1, max_y + 1
         if roi is None:
             _refuse_outliers(path, tops, read)
+            err = implausible_sensor(path, read, outside, max_x, max_y, "pass --width and --height, or crop with "
+                                                                        "--roi")
+            if err is not None:
+                raise err
         if roi is not None:
             _check_roi_inside(roi, full_w, full_h)
     if check.rows == 0:  # only a crop can leave nothing (an empty file or window was refused above)

@@ -18,6 +18,11 @@ _EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".hdf": "hdf
                ".npy": "npy", ".npz": "npz", ".txt": "rpg", ".csv": "rpg"}
 
 
+#: Formats whose files start with a signature: what a file with their extension but not their signature lacks.
+_MAGICS = {"aedat4": ("an AEDAT4", AEDAT4_MAGIC), "hdf5": ("an HDF5", HDF5_MAGIC), "npy": ("a NumPy .npy", NPY_MAGIC),
+           "npz": ("a NumPy .npz (zip)", ZIP_MAGICS[0])}
+
+
 def detect_format(path) -> str:
     """The format name of ``path`` (one of ``READ_FORMATS``, or ``"evt"`` for a RAW file whose header names no
     version); raises :class:`RecordingError` for missing, empty or unrecognised files."""
@@ -59,6 +64,10 @@ def detect_format(path) -> str:
             return ext
     elif ext is not None and ext not in ("aedat4", "hdf5", "npy", "npz"):
         return ext
+    if ext in _MAGICS:  # the extension promises a format whose signature the file lacks: say that, not "unknown"
+        name, magic = _MAGICS[ext]
+        raise RecordingError(path, f"not {name} file: a {path.suffix} file starts with {magic!r}, this one with "
+                                   f"{head[:16]!r} (a different or damaged file, or a wrong extension)", "file header")
     expected = ", ".join(sorted(_EXTENSIONS))
     raise RecordingError(path, f"unrecognised format: first bytes {head[:16]!r}, extension {path.suffix!r} "
                                f"(expected {expected}, an rpg folder, or format=…)")

@@ -4,6 +4,11 @@ Events only. ``faery`` unwraps the formats' short time counters (EVT3: 24 bit, E
 clamps a time stamp that goes backwards to the previous one, so out-of-order events in these formats come out
 in order without a repair note. It rejects an event outside the header's sensor size (a
 :class:`RecordingError` here naming the event index after which decoding stopped).
+
+Truncated files: a cut inside a word (EVT2: 4 bytes, EVT3: 2, DAT: 8) is noted. A cut on a word boundary is
+noted only where the format shows it: an EVT3 file whose last word opens an event group (ADDR_Y, VECT_BASE_X)
+that never comes. EVT2 words and DAT events each stand alone, and none of the three formats stores its length or
+an end marker, so a file cut between two of them reads as a shorter recording, with no way to tell.
 """
 
 from __future__ import annotations
@@ -123,6 +128,9 @@ class EvtSource(Source):
         if extra:
             self.notes.append(f"the file ends with a partial {self._word}-byte EVT word ({extra} byte(s), truncated "
                               f"file?): ignored")
+        dangling = self._dangling_group(extra)
+        if dangling:
+            self.notes.append(dangling)
 
         def columns():
             dims = (self.width, self.height) if self.width else _NO_SIZE
@@ -133,6 +141,23 @@ class EvtSource(Source):
                         yield ev["t"], ev["x"], ev["y"], ev["on"]
 
         yield from numbered_chunks(_guarded(columns(), self.path, "EVT decoder (faery)"), chunk_events)
+
+
+    def _dangling_group(self, extra: int) -> str | None:
+        """EVT3 only: a note when the last whole word opens an event group that never comes (ADDR_Y announces the
+        row of the ADDR_X / vector words that follow it, VECT_BASE_X the column of the VECT words): the file was
+        cut, on a word boundary. EVT2 words (and DAT events) each stand alone: a cut between them cannot be told."""
+        if self.version != "evt3" or file_size(self.path) - self._header_length - extra < 2:
+            return None
+        with open(self.path, "rb") as f:
+            f.seek(file_size(self.path) - extra - 2)
+            word = int(np.frombuffer(f.read(2), "<u2")[0])
+        kind = {0x0: "EVT_ADDR_Y (the row of events that follow it)",
+                0x3: "VECT_BASE_X (the first column of event vectors that follow it)"}.get(word >> 12)
+        if kind is None:
+            return None
+        return (f"the file ends inside an EVT3 event group: its last word is an {kind}, with nothing after it "
+                f"(truncated file?): the events it announced are missing")
 
 
 class DatSource(Source):

@@ -136,7 +136,7 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
     frame_data = source.frames()
     repairs = [*source.notes, *conv.repairs(), *order.repairs()]
     if width is None:
-        events, width, height, note = infer_sensor_size(events)
+        events, width, height, note = infer_sensor_size(events, path)
         repairs.append(note)
         if len(events) == 0:
             raise RecordingError(path, "the recording contains no events inside the inferred sensor")
@@ -177,13 +177,48 @@ def outlier_limit(top: np.ndarray, n: int) -> tuple[int, int]:
     return budget, max(bulk + 16, int(bulk * 1.25))
 
 
-def infer_sensor_size(events: np.ndarray) -> tuple[np.ndarray, int, int, str]:
+#: Resolutions (width, height) of event sensors on the market, from their makers' datasheets.
+KNOWN_SENSORS: dict[str, tuple[int, int]] = {
+    "DVS128": (128, 128), "DAVIS240C": (240, 180), "DAVIS346": (346, 260), "DVXplorer": (640, 480),
+    "Prophesee Gen3 VGA": (640, 480), "Prophesee EVK4 / Sony IMX636": (1280, 720), "CelePixel CeleX-V": (1280, 800),
+    "Samsung DVS Gen4": (1280, 960),
+}
+#: No known sensor is wider or taller: an inferred size beyond it is not a plausible sensor.
+PLAUSIBLE_WIDTH = max(w for w, _ in KNOWN_SENSORS.values())
+PLAUSIBLE_HEIGHT = max(h for _, h in KNOWN_SENSORS.values())
+#: Events outside every known sensor beyond this share of a recording (and beyond the outlier budget) are refused.
+MAX_OUTSIDE_SHARE = 0.001
+#: An inferred sensor narrower or lower than this is not a camera's (e.g. all-zero coordinates).
+MIN_INFERRED_SIDE = 8
+
+
+def implausible_sensor(path, n: int, outside: int, max_x: int, max_y: int, how: str) -> RecordingError | None:
+    """The error for a recording without a declared size whose events do not fit a plausible sensor, or None.
+
+    n: events; outside: those with x >= PLAUSIBLE_WIDTH or y >= PLAUSIBLE_HEIGHT; max_x, max_y: the largest
+    coordinates (of the events kept); how: how to set the size (the API's or the CLI's words)."""
+    if outside > max(OUTLIER_BUDGET_MAX, MAX_OUTSIDE_SHARE * n) or (outside and "--" in how):
+        return RecordingError(path, f"{outside:,} of {n:,} events ({100 * outside / n:.2g} %) lie outside every known "
+                                    f"event sensor (the largest: {PLAUSIBLE_WIDTH} × {PLAUSIBLE_HEIGHT} px; x up to "
+                                    f"{max_x}, y up to {max_y}): the file does not declare its size and "
+                                    f"{max_x + 1} × {max_y + 1} is not a plausible sensor (corrupt events, or the "
+                                    f"wrong column order?). If the sensor is that large, {how}")
+    if max_x + 1 < MIN_INFERRED_SIDE or max_y + 1 < MIN_INFERRED_SIDE:
+        return RecordingError(path, f"the {n:,} events span only x <= {max_x} and y <= {max_y}, a {max_x + 1} × "
+                                    f"{max_y + 1} sensor: not a camera's (all coordinates zero? a broken decode or "
+                                    f"the wrong columns); the file does not declare its size: {how}")
+    return None
+
+
+def infer_sensor_size(events: np.ndarray, path=None) -> tuple[np.ndarray, int, int, str]:
     """The sensor size of events whose file does not declare one: the largest coordinates + 1, ignoring a few
     outliers (events, then the note saying what was inferred and what was dropped).
 
     An outlier is one of at most 0.01 % of the events (and at most 100) whose coordinate lies beyond a gap: more
     than 25 % (and 16 px) past the largest coordinate of the other events (a corrupted or mis-decoded event
-    would otherwise make a 60000-pixel-wide sensor)."""
+    would otherwise make a 60000-pixel-wide sensor), or one of at most 0.1 % that lie outside every known sensor
+    (:data:`KNOWN_SENSORS`). More events outside every known sensor, or a sensor narrower than 8 px (all-zero
+    coordinates), is a :class:`RecordingError` with the count: pass width and height to read such a file."""
     n = len(events)
     keep = np.ones(n, bool)
     sizes = {}
@@ -196,11 +231,24 @@ def infer_sensor_size(events: np.ndarray) -> tuple[np.ndarray, int, int, str]:
             sizes[axis] = (int(v[~far].max()) + 1, int(far.sum()), int(v[far].max()))
         else:
             sizes[axis] = (int(v.max()) + 1, 0, 0)
-    width, height = sizes["x"][0], sizes["y"][0]
+    outside = keep & ((events["x"] >= PLAUSIBLE_WIDTH) | (events["y"] >= PLAUSIBLE_HEIGHT))
+    k_out = int(outside.sum())
+    how = "pass width= and height= (source.width, source.height)"
+    err = implausible_sensor(path, n, k_out, int(events["x"][keep].max()), int(events["y"][keep].max()), how)
+    if err is not None and k_out:
+        raise err
+    if k_out:
+        keep &= ~outside
+    width, height = int(events["x"][keep].max()) + 1, int(events["y"][keep].max()) + 1
+    err = implausible_sensor(path, n, 0, width - 1, height - 1, how)
+    if err is not None:
+        raise err
     note = (f"sensor size not in the file: inferred {width} × {height} from the largest event coordinates (pass "
             f"width= and height= to set it)")
     dropped = [f"{k} event(s) with {axis} up to {far_max} (beyond {axis} = {size - 1} of the others)"
                for axis, (size, k, far_max) in sizes.items() if k]
+    if k_out:
+        dropped.append(f"{k_out} event(s) outside every known sensor ({PLAUSIBLE_WIDTH} × {PLAUSIBLE_HEIGHT} px)")
     if dropped:
         note += f"; ignored and dropped {int((~keep).sum())} outlier event(s): " + "; ".join(dropped)
         events = events[keep]

@@ -38,25 +38,25 @@ class ViewChecksConfig:
 
 @dataclass
 class SimulatedDetectorConfig:
-    seed: int = param(0, help="seed of the simulated detector's errors (with the run's ctx.rng)")
-    sigma_px: float = param(2.0, help="std of the Gaussian 2D error per image axis, pixels (before blur scaling)")
-    outlier_prob: float = param(0.02, help="probability that a 2D keypoint is an outlier (a wrong location)")
-    outlier_radius_px: float = param(30.0, help="outliers lie uniformly within this radius of the true point")
-    flip_prob: float = param(0.02, help="probability that a left/right keypoint pair is swapped (per frame and pair)")
-    blur_gain: float = param(0.1, help="2D error grows as 1 + blur_gain * (image motion during the exposure, px)")
-    sigma_m: float = param(0.025, help="std of the per-frame 3D joint error per axis, metres")
-    bias_m: float = param(0.04, help="std of a fixed random 3D offset per joint, drawn once per sequence, metres")
-    confidence: float = param(0.9, help="2D confidence of a sharp, correct keypoint (divided by the blur factor)")
-    outlier_confidence: float = param(0.3, help="factor on the confidence of outliers")
-    confidence_3d: float = param(0.9, help="3D confidence of a sharp joint inside the image (divided by the blur "
+    seed: int = param(0, ge=0, help="seed of the simulated detector's errors (with the run's ctx.rng)")
+    sigma_px: float = param(2.0, ge=0, help="std of the Gaussian 2D error per image axis, pixels (before blur scaling)")
+    outlier_prob: float = param(0.02, ge=0, le=1, help="probability that a 2D keypoint is an outlier (a wrong location)")
+    outlier_radius_px: float = param(30.0, ge=0, help="outliers lie uniformly within this radius of the true point")
+    flip_prob: float = param(0.02, ge=0, le=1, help="probability that a left/right keypoint pair is swapped (per frame and pair)")
+    blur_gain: float = param(0.1, ge=0, help="2D error grows as 1 + blur_gain * (image motion during the exposure, px)")
+    sigma_m: float = param(0.025, ge=0, help="std of the per-frame 3D joint error per axis, metres")
+    bias_m: float = param(0.04, ge=0, help="std of a fixed random 3D offset per joint, drawn once per sequence, metres")
+    confidence: float = param(0.9, gt=0, le=1, help="2D confidence of a sharp, correct keypoint (divided by the blur factor)")
+    outlier_confidence: float = param(0.3, ge=0, le=1, help="factor on the confidence of outliers")
+    confidence_3d: float = param(0.9, gt=0, le=1, help="3D confidence of a sharp joint inside the image (divided by the blur "
                                            "factor)")
     at: str = param("frames", help="frames: at the intensity frames (the method) | tracking: at every tracking "
                                    "frame, as if detected on sharp latent images (for the *_all baseline, "
                                    "stages/solve=all)", choices=("frames", "tracking"))
-    tracking_step_us: int = param(1000, help="with at=tracking: the tracking frame step, us")
+    tracking_step_us: int = param(1000, gt=0, help="with at=tracking: the tracking frame step, us")
     occlusion: bool = param(True, help="keypoints hidden by the body (z-buffer of the recording's template) get "
                                        "confidence 0")
-    occlusion_margin_m: float = param(0.15, help="a keypoint is hidden when the surface in front of it is nearer "
+    occlusion_margin_m: float = param(0.15, ge=0, help="a keypoint is hidden when the surface in front of it is nearer "
                                                  "than its depth minus this margin (joints lie inside the body)")
     min_found: float = param(0.5, help="the stage stops when fewer than this share of the images hold a detection",
                              affects_result=False)
@@ -76,9 +76,9 @@ class DetectionsFileConfig(ViewChecksConfig):
     match: str = param("order", help="OpenPose folders: order (n-th file in natural order = n-th frame) | number "
                                      "(the last number in the file name is the frame number)",
                        choices=("order", "number"))
-    first_frame: int = param(0, help="frame number (file names, 'frame' arrays/columns) of the recording's first "
+    first_frame: int = param(0, ge=0, help="frame number (file names, 'frame' arrays/columns) of the recording's first "
                                      "intensity frame")
-    time_tolerance_us: int = param(500, help="rows with t_us are matched to the frame within this distance")
+    time_tolerance_us: int = param(500, ge=0, help="rows with t_us are matched to the frame within this distance")
     path_3d: str = param("", help="optional npz/csv whose 3D joints replace those of `path` (e.g. VNect output "
                                    "next to OpenPose JSON)", file=True)
     frame_3d: str = param("world", help="axes of the root-relative 3D joints in the files: world | camera "
@@ -95,17 +95,17 @@ class BlazePoseConfig(ViewChecksConfig):
                                    "*_linear) | latent (EDI latent images at the frame times: the method) | "
                                    "tracking (EDI latent images every tracking_step_us: the paper's *_all)",
                    choices=("frames", "latent", "tracking"))
-    tracking_step_us: int = param(1000, help="with at=tracking: the step between images, us")
+    tracking_step_us: int = param(1000, gt=0, help="with at=tracking: the step between images, us")
     track: bool = param(True, help="take each image's crop from the previous pose (the model's own auxiliary "
                                    "points); false: find the person anew in every image")
     find: str = param("detector", help="how a lost person is found: detector (BlazePose's person detector, then "
                                        "the events if it sees nobody) | events (the box of the moving pixels); "
                                        "last, the landmark model on the whole image")
-    events_window_us: int = param(20000, help="events within this window around an image make its event box, us")
-    detector_threshold: float = param(0.5, help="minimum score of a person-detector box")
-    presence_threshold: float = param(0.5, help="minimum pose flag of the landmark model: below it, the person "
+    events_window_us: int = param(20000, gt=0, help="events within this window around an image make its event box, us")
+    detector_threshold: float = param(0.5, ge=0, le=1, help="minimum score of a person-detector box")
+    presence_threshold: float = param(0.5, ge=0, le=1, help="minimum pose flag of the landmark model: below it, the person "
                                                 "is lost")
-    gamma: float = param(1.0, help="the networks get linear intensity ** (1 / gamma) (1: linear, as measured "
+    gamma: float = param(1.0, gt=0, help="the networks get linear intensity ** (1 / gamma) (1: linear, as measured "
                                    "best on our captures)")
     landmark_presence: float = param(0.5, help="a landmark is in view when the network's presence output (that "
                                                "it lies in the image) is at least this, and it lies in the image")

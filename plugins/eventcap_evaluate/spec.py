@@ -14,16 +14,16 @@ from eventcap.stage import Port, StageSpec, param
 
 @dataclass
 class EvaluateConfig:
-    every: int = param(10, help="AE and STD over every n-th tracking frame of the joined motion (paper: 10)")
+    every: int = param(10, ge=1, help="AE and STD over every n-th tracking frame of the joined motion (paper: 10)")
     align: str = param("procrustes", help="procrustes: rigid (rotation + translation) alignment to the truth per "
                                           "frame, as the paper | none: raw world-space distances")
     join: str = param("later", help="a tracking frame two batches share (their boundary): later (the later "
                                     "batch's pose) | mean (the average of the batches' poses)")
-    velocity_window_ms: float = param(10.0, help="MPJVE and acceleration error: central differences over this "
+    velocity_window_ms: float = param(10.0, gt=0, help="MPJVE and acceleration error: central differences over this "
                                                  "window (x(t+h) - x(t-h)) / 2h, h = half of it, ms")
     end_effectors: list[str] = param(default_factory=lambda: list(END_EFFECTORS),
                                      help="joints whose peak speed per batch is measured (feet, wrists, hands)")
-    peak_min_speed_mps: float = param(0.5, help="a (batch, end effector) pair counts in the peak-speed error only "
+    peak_min_speed_mps: float = param(0.5, ge=0, help="a (batch, end effector) pair counts in the peak-speed error only "
                                                 "if its true peak speed exceeds this, m/s: a relative error of a "
                                                 "joint that does not move is not defined")
 

@@ -16,12 +16,12 @@ class RecordingConfig:
                                ".raw, DAT, npy/npz, csv/txt, or an rpg dataset folder", file=True)
     format: str = param("", help="force a format (aedat4, aedat2, aedat3, hdf5, evt2, evt3, dat, npy, npz, rpg, "
                                  "eventcap); empty = detect from content/extension")
-    t_start_s: float = param(0.0, help="start of the time window, seconds from the first event")
-    t_end_s: float = param(0.0, help="end of the time window (0 = to the end)")
-    roi: list[int] = param(default_factory=list, help="region of interest [x0, y0, x1, y1] (external formats)")
+    t_start_s: float = param(0.0, ge=0, help="start of the time window, seconds from the first event")
+    t_end_s: float = param(0.0, ge=0, help="end of the time window (0 = to the end)")
+    roi: list[int] = param(default_factory=list, ge=0, help="region of interest [x0, y0, x1, y1] (external formats)")
     calibration: str = param("", help="rpg calib.txt overriding the file's calibration", file=True)
-    width: int = param(0, help="sensor width for formats that do not store it (0 = from the file)")
-    height: int = param(0, help="sensor height for formats that do not store it (0 = from the file)")
+    width: int = param(0, ge=0, help="sensor width for formats that do not store it (0 = from the file)")
+    height: int = param(0, ge=0, help="sensor height for formats that do not store it (0 = from the file)")
     time_unit: str = param("", help="unit of array/text time columns when the default (integers us, floats s) is "
                                     "wrong: s | ms | us | ns")
     columns: list[str] = param(default_factory=list, help="column order of unnamed array/text columns, e.g. "
@@ -30,7 +30,7 @@ class RecordingConfig:
     y_up: bool = param(False, help="the file's y axis points up (origin bottom-left): events are flipped")
     frames: bool = param(True, help="false: leave the file's intensity frames out (use it as an event-only "
                                     "recording)")
-    batch_rate_hz: float = param(25.0, help="without intensity frames: batches of 1/rate from the first event (the "
+    batch_rate_hz: float = param(25.0, gt=0, help="without intensity frames: batches of 1/rate from the first event (the "
                                             "times images are reconstructed at, pipeline=events_only)")
     up: str = param("level", help="world frame of a recording whose camera has no extrinsics: level (y up: the "
                                   "camera assumed level, at the origin, looking along -z; tilted by camera_pitch_deg "

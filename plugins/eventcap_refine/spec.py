@@ -12,30 +12,30 @@ from eventcap.stage import Port, StageSpec, param
 
 @dataclass
 class SilhouetteRefineConfig:
-    icp_iterations: int = param(4, help="ICP iterations: render the estimate, find the closest event of every "
+    icp_iterations: int = param(4, ge=1, help="ICP iterations: render the estimate, find the closest event of every "
                                         "silhouette boundary pixel, solve (paper Sec. 3.3)")
-    lambda_sil: float = param(1.0, help="weight of E_sil, the point-to-line distances of boundary points to their "
+    lambda_sil: float = param(1.0, ge=0, help="weight of E_sil, the point-to-line distances of boundary points to their "
                                         "events (image residuals in focal-normalised units, as the solve)")
-    lambda_stab: float = param(5.0, help="weight of E_stab, joints held near the batch solve's (metres)")
-    sil_dist: float = param(4.0, help="λ_dist of the closest event search (Eq. 12): weight of the squared time "
-                                      "offset in batch durations against the squared distance in pixels")
-    sil_patch_px: int = param(8, help="side of the square searched around each boundary pixel, pixels (centred on "
-                                      "the pixel: offsets -sil_patch_px/2..sil_patch_px/2)")
-    denoise_us: int = param(5000, help="drop events without another event in their 3x3 pixel neighbourhood within "
-                                       "this many microseconds before searching (background-activity filter, not "
-                                       "in the paper; 0 = search all events)")
+    lambda_stab: float = param(5.0, ge=0, help="weight of E_stab, joints held near the batch solve's (metres)")
+    sil_dist: float = param(4.0, ge=0, help="λ_dist of the closest event search (Eq. 12): weight of the squared time "
+                                            "offset in batch durations against the squared distance in pixels")
+    sil_patch_px: int = param(8, ge=1, help="side of the square searched around each boundary pixel, pixels (centred "
+                                            "on the pixel: offsets -sil_patch_px/2..sil_patch_px/2)")
+    denoise_us: int = param(5000, ge=0, help="drop events without another event in their 3x3 pixel neighbourhood "
+                                             "within this many microseconds before searching (background-activity "
+                                             "filter, not in the paper; 0 = search all events)")
     sil_loss: str = param("l2", help="loss on the point-to-line residuals: l2 (the paper) | huber",
                           choices=("l2", "huber"))
-    sil_huber_px: float = param(1.0, help="Huber threshold in pixels (sil_loss=huber): beyond it residuals count "
-                                          "linearly")
+    sil_huber_px: float = param(1.0, gt=0, help="Huber threshold in pixels (sil_loss=huber): beyond it residuals "
+                                                "count linearly")
     limits: dict[str, list[float]] = param(
         default_factory=dict, help="joint-limit overrides {parameter name: [min, max]} in radians (metres for "
                                    "root_t*), as in the solve stage; default skeleton.pose_bounds()")
-    max_iter: int = param(100, affects_result=False,
+    max_iter: int = param(100, ge=1, affects_result=False,
                           help="IPOPT iteration limit per solve; reaching it fails the batch. Not part of the cache "
                                "key (failures are never cached)")
-    tol: float = param(1e-4, help="IPOPT convergence tolerance (scaled NLP error)")
-    mumps_pivot_order: int = param(0, help="MUMPS ordering (0 AMD ... 7 auto), pinned for reproducibility")
+    tol: float = param(1e-4, gt=0, help="IPOPT convergence tolerance (scaled NLP error)")
+    mumps_pivot_order: int = param(0, ge=0, le=7, help="MUMPS ordering (0 AMD ... 7 auto), pinned for reproducibility")
 
 
 SILHOUETTE = StageSpec(

@@ -12,7 +12,7 @@ from eventcap.stage import Port, StageSpec, param
 class SmoothConfig:
     pool: str = param("group", help="one smoothing parameter per group of pose parameters (group: all angles, "
                                     "root translation) | per parameter (parameter)", choices=("group", "parameter"))
-    lam: float = param(0.0, help="smoothing parameter in s³ for every group (0 = chosen from the fits alone by "
+    lam: float = param(0.0, ge=0, help="smoothing parameter in s³ for every group (0 = chosen from the fits alone by "
                                  "the criterion)")
     criterion: str = param("gcv", help="how lam is chosen from the fits alone: gcv (generalised cross-validation) | "
                                        "reml (restricted likelihood). GCV measured better on the 2 s suite (REML "

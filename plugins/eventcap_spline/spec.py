@@ -14,25 +14,25 @@ from eventcap.stage import Port, StageSpec, param
 
 @dataclass
 class SplineSolveConfig:
-    half_window: int = param(2, help="batches on each side of the batch being solved: the window spans "
+    half_window: int = param(2, ge=0, help="batches on each side of the batch being solved: the window spans "
                                      "2·half_window + 1 batches (shifted inwards at the ends of the recording)")
-    knot_ms: float = param(10.0, help="knot spacing of the cubic B-spline, ms (control points every knot_ms)")
+    knot_ms: float = param(10.0, gt=0, help="knot spacing of the cubic B-spline, ms (control points every knot_ms)")
     prior: str = param("acceleration", help="motion prior: acceleration | jerk (∫‖S''‖² or ∫‖S'''‖² dt)",
                        choices=("acceleration", "jerk"))
-    lambda_prior: float = param(1e-4, help="weight of the motion prior, the integral of the squared acceleration "
+    lambda_prior: float = param(1e-4, ge=0, help="weight of the motion prior, the integral of the squared acceleration "
                                           "(or jerk) of the poses (rad and m, time in s); 5e-4 until the event-"
                                           "silence term held the resting joints, 1e-4 measured better with it "
                                           "(README: 'A continuous-time solve')")
-    prior_inertia: float = param(1.5, help="exponent of the motion prior's gain per rotation, (I_p / mean I)^x, "
+    prior_inertia: float = param(1.5, ge=0, help="exponent of the motion prior's gain per rotation, (I_p / mean I)^x, "
                                            "I_p the inertia of the body that pose parameter turns (de Leva's "
                                            "segments on the actor's bones, eventcap.body.segments): light parts "
                                            "(forearm, foot) may accelerate more than the trunk; 0 = λ_prior for all")
-    prior_inertia_cap: float = param(1.0, help="largest of those gains (1: parts lighter than the mean are held "
+    prior_inertia_cap: float = param(1.0, ge=1, finite=False, help="largest of those gains (1: parts lighter than the mean are held "
                                                "less, none more; .inf: the gains' geometric mean is 1)")
-    prior_inertia_floor: float = param(0.04, help="smallest of those gains (0.04: the ankles, ~0.002 by their "
+    prior_inertia_floor: float = param(0.04, ge=0, le=1, help="smallest of those gains (0.04: the ankles, ~0.002 by their "
                                                   "inertia, are held like the elbows; their jitter was most of the "
                                                   "25 fps velocity error the lighter prior added)")
-    prior_gain_max: float = param(10.0, help="largest gain of the motion prior per pose parameter, chosen per window "
+    prior_gain_max: float = param(10.0, ge=1, help="largest gain of the motion prior per pose parameter, chosen per window "
                                              "from the per-frame fits around it (each parameter's smoothing by "
                                              "prior_gain_criterion, scaled by the detections' curvature; see "
                                              "solve.prior_gain): static parameters get up to this much more "
@@ -40,43 +40,43 @@ class SplineSolveConfig:
     prior_gain_criterion: str = param("gcv", choices=("reml", "gcv"),
                                       help="how each parameter's fits choose its smoothing for those gains: gcv | "
                                            "reml (eventcap.smoothing; REML held fast_wave's waving arm at 25 fps)")
-    prior_gain_min_fps: float = param(20.0, help="choose those gains (and the context pull) only when the intensity "
+    prior_gain_min_fps: float = param(20.0, ge=0, help="choose those gains (and the context pull) only when the intensity "
                                                  "frames come at least this often (frames per second; 0 = always): "
                                                  "at 10 fps the fits undersample the punches and kicks, whose "
                                                  "parameters would be held as if at rest")
-    prior_context_s: float = param(1.0, help="seconds of intensity frames on each side of the window whose fits "
+    prior_context_s: float = param(1.0, ge=0, help="seconds of intensity frames on each side of the window whose fits "
                                              "choose the prior's gains and the context pull")
-    lambda_context: float = param(0.03, help="weight of the context pull: each pose parameter held near the "
+    lambda_context: float = param(0.03, ge=0, help="weight of the context pull: each pose parameter held near the "
                                              "smoothing spline through its per-frame fits around the window "
                                              "(smoothing as for the gains), as much as those fits know more than the "
                                              "frame's own (solve.prior_gain) and as still as the events show the "
                                              "bones it turns (solve.still_gate): a static part does not drift within "
                                              "a window; 0 = off; only from prior_gain_min_fps, like the gains")
-    context_gate_floor: float = param(0.1, help="the context pull's event gate never below this: a part the events "
+    context_gate_floor: float = param(0.1, ge=0, le=1, help="the context pull's event gate never below this: a part the events "
                                                 "show moving is still held this fraction of what its fits know (0 = "
                                                 "the events alone gate, the default before; 1 = no gate)")
-    lambda_still: float = param(0.1, help="weight of the event-silence term: the squared image velocity (px/s) of "
+    lambda_still: float = param(0.1, ge=0, help="weight of the event-silence term: the squared image velocity (px/s) of "
                                          "every joint whose bone made no more events than the background, per knot "
                                          "interval, weighted by that stillness (eventcap.energy.silence); 0 = off")
-    still_radius_px: int = param(6, help="half side of the box of pixels whose events are counted around each "
+    still_radius_px: int = param(6, ge=0, help="half side of the box of pixels whose events are counted around each "
                                          "sample along a bone (event silence)")
-    still_rate_hz: float = param(2.0, help="events per pixel per second above the background at which a joint's "
+    still_rate_hz: float = param(2.0, gt=0, help="events per pixel per second above the background at which a joint's "
                                            "stillness falls to 1/e (event silence)")
-    still_hold_ms: float = param(20.0, help="a joint counts as still only as much as in its least still moment "
+    still_hold_ms: float = param(20.0, ge=0, help="a joint counts as still only as much as in its least still moment "
                                            "within ± this many ms (rounded to knot intervals): brief silences of a "
                                            "moving limb the estimate misplaces do not hold it (event silence)")
-    still_sweep_ms: float = param(50.0, help="a knot interval's events are counted around the bones wherever the "
+    still_sweep_ms: float = param(50.0, ge=0, help="a knot interval's events are counted around the bones wherever the "
                                              "estimate puts them within ± this many ms (rounded to knot intervals), "
                                              "the most active place counting: a limb the estimate has at the right "
                                              "place at the wrong time is not called still (event silence; 0 = only "
                                              "the interval's own place)")
-    lambda_2d: float = param(200.0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
-    robust_2d_px: float = param(2.0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
-    lambda_3d: float = param(1.0, help="weight of E_3D at every intensity frame of the window (metres)")
-    lambda_cor: float = param(500.0, help="weight of E_cor, the event correspondences of this batch's tracks "
+    lambda_2d: float = param(200.0, ge=0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
+    robust_2d_px: float = param(2.0, ge=0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
+    lambda_3d: float = param(1.0, ge=0, help="weight of E_3D at every intensity frame of the window (metres)")
+    lambda_cor: float = param(500.0, ge=0, help="weight of E_cor, the event correspondences of this batch's tracks "
                                           "(measured on karate_kick, 25 fps, with cor_step 5: EKLT 50 / 500 / 2000 "
                                           "gave AE 26.0 / 25.8 / 26.0 mm, exact tracks 25.8 / 24.5 / 24.1 mm)")
-    cor_step: int = param(5, help="tracking frames between the two frames of a correspondence (1 = adjacent "
+    cor_step: int = param(5, ge=1, help="tracking frames between the two frames of a correspondence (1 = adjacent "
                                   "frames, as the batch solve; 5 measured better and 5x cheaper: larger "
                                   "displacements against the same pixel noise)")
     tracks: str = param("own", choices=("window", "own"),
@@ -85,31 +85,35 @@ class SplineSolveConfig:
                              "at 10 fps: with EKLT tracks window is no better (lambda_cor 100: a wash; 500: worse), "
                              "with exact tracks (stages/track=oracle) it cut MPJVE 210 -> 184 mm/s and the median "
                              "peak-speed error 16% -> 12% (README: 'A continuous-time solve')")
-    robust_cor_px: float = param(0.0, help="Cauchy scale (px) of E_cor's residuals: from the second ICP round on, "
+    robust_cor_px: float = param(0.0, ge=0, help="Cauchy scale (px) of E_cor's residuals: from the second ICP round on, "
                                            "each correspondence is weighted 1 / (1 + (e/σ)²) by its residual e at the "
                                            "previous round's solution (0 = least squares)")
-    lambda_sil: float = param(10.0, help="weight of E_sil (paper Sec. 3.3, not in its batch solve): the silhouette "
+    lambda_sil: float = param(10.0, ge=0, help="weight of E_sil (paper Sec. 3.3, not in its batch solve): the silhouette "
                                          "boundary of the estimate at the batch's frames every sil_step_ms against "
                                          "its closest events, point-to-line, focal-normalised (0 = off). Full suite, "
                                          "10 fps: 0 / 10 gave AE 27.0 / 25.5 mm, MPJVE 248 / 235 mm/s; 25 fps: "
                                          "23.8 / 22.8 mm, 265 / 247 mm/s; 3 and 20 on karate and boxing no better")
-    sil_step_ms: float = param(5.0, help="E_sil at the batch's tracking frames this many ms apart (ends included)")
-    sil_window_ms: float = param(10.0, help="E_sil: a boundary pixel's closest event within ± half this of its frame")
-    sil_patch_px: int = param(8, help="E_sil: ... and within a square of this side around it (paper: 8)")
+    sil_step_ms: float = param(5.0, gt=0, help="E_sil at the batch's tracking frames this many ms apart (ends "
+                                               "included)")
+    sil_window_ms: float = param(10.0, gt=0, help="E_sil: a boundary pixel's closest event within ± half this of its "
+                                                  "frame")
+    sil_patch_px: int = param(8, ge=1, help="E_sil: ... and within a square of this side around it (paper: 8)")
     sil_loss: str = param("huber", choices=("l2", "huber"),
                           help="E_sil: loss on the point-to-line residuals: l2 (the paper) | huber")
-    sil_huber_px: float = param(1.0, help="E_sil: Huber loss threshold, px")
-    sil_dist: float = param(4.0, help="E_sil: λ_dist of the closest event search (paper Eq. 12): the squared time "
-                                      "offset in window lengths against the squared distance in pixels")
-    icp_rounds: int = param(2, help="alternations of correspondence search and solve (ICP)")
-    edge_margin_px: float = param(1.0, help="tracks nearer than this to a silhouette edge give no correspondence")
-    lambda_damp: float = param(1e-4, help="proximal pull of the control points towards each solve's start")
+    sil_huber_px: float = param(1.0, gt=0, help="E_sil: Huber loss threshold, px")
+    sil_dist: float = param(4.0, ge=0, help="E_sil: λ_dist of the closest event search (paper Eq. 12): the squared "
+                                            "time offset in window lengths against the squared distance in pixels")
+    icp_rounds: int = param(2, ge=0, help="alternations of correspondence search and solve (ICP; 0: one solve of the "
+                                          "detections and the prior, no events)")
+    edge_margin_px: float = param(1.0, ge=0, help="tracks nearer than this to a silhouette edge give no "
+                                                  "correspondence")
+    lambda_damp: float = param(1e-4, ge=0, help="proximal pull of the control points towards each solve's start")
     limits: dict[str, list[float]] = param(
         default_factory=dict, help="joint-limit overrides {parameter name: [min, max]} (radians; metres for root_t*)")
-    max_iter: int = param(200, affects_result=False, help="IPOPT iteration limit per solve; reaching it fails the "
+    max_iter: int = param(200, ge=1, affects_result=False, help="IPOPT iteration limit per solve; reaching it fails the "
                                                           "window (failures are never cached)")
-    tol: float = param(1e-6, help="IPOPT convergence tolerance")
-    mumps_pivot_order: int = param(0, help="MUMPS ordering (0 AMD ... 7 auto), pinned for reproducibility")
+    tol: float = param(1e-6, gt=0, help="IPOPT convergence tolerance")
+    mumps_pivot_order: int = param(0, ge=0, le=7, help="MUMPS ordering (0 AMD ... 7 auto), pinned for reproducibility")
 
 
 SPLINE = StageSpec(
@@ -132,7 +136,7 @@ SPLINE = StageSpec(
 
 @dataclass
 class StitchConfig:
-    taper: float = param(0.5, help="fraction of a window's length over which its blending weight rises from 0 to 1 "
+    taper: float = param(0.5, gt=0, le=0.5, help="fraction of a window's length over which its blending weight rises from 0 to 1 "
                                    "at each of its ends (0.5: a bump over the whole window); a window's end at the "
                                    "start or end of the recording is not tapered")
 

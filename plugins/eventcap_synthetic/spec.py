@@ -12,9 +12,9 @@ from eventcap.stage import Port, StageSpec, param
 
 @dataclass
 class ProceduralConfig:
-    seed: int = param(0, help="varies body proportions details and the clothing texture")
-    height_m: float = param(1.75, help="stature of the actor in metres")
-    target_faces: int = param(12000, help="approximate triangle count of the mesh")
+    seed: int = param(0, ge=0, help="varies body proportions details and the clothing texture")
+    height_m: float = param(1.75, gt=0, help="stature of the actor in metres")
+    target_faces: int = param(12000, ge=100, help="approximate triangle count of the mesh")
 
 
 @dataclass
@@ -31,11 +31,11 @@ class MeshConfig:
 
 @dataclass
 class AnnyConfig:
-    height_m: float = param(1.75, help="stature of the actor in metres (1.2-2.3)")
-    build: float = param(0.0, help="thin (-1) to heavy (+1): ANNY's weight phenotype")
-    muscle: float = param(0.0, help="-1 to +1: ANNY's muscle phenotype")
-    sex: float = param(0.0, help="-1 female, 0 ANNY's mean body, +1 male")
-    seed: int = param(0, help="outfit tones and prints")
+    height_m: float = param(1.75, gt=0, help="stature of the actor in metres (1.2-2.3)")
+    build: float = param(0.0, ge=-1, le=1, help="thin (-1) to heavy (+1): ANNY's weight phenotype")
+    muscle: float = param(0.0, ge=-1, le=1, help="-1 to +1: ANNY's muscle phenotype")
+    sex: float = param(0.0, ge=-1, le=1, help="-1 female, 0 ANNY's mean body, +1 male")
+    seed: int = param(0, ge=0, help="outfit tones and prints")
 
 
 @dataclass
@@ -43,29 +43,29 @@ class SyntheticConfig:
     motion: str = param("karate_kick", help="motion name, or comma-separated names played in sequence "
                                             "(karate_kick, boxing_combo, javelin_throw, dance_spin, fast_wave, "
                                             "jumping_jack)")
-    duration_s: float = param(1.0, help="capture length in seconds (split equally between listed motions)")
-    seed: int = param(0, help="varies the performance (timing, amplitudes, side) and the sensor noise")
-    speed: float = param(1.0, help="tempo multiplier of the motions")
-    amplitude: float = param(1.0, help="excursion multiplier of the motions")
-    fps: float = param(25.0, help="intensity frame rate (DAVIS APS: 7-25 fps)")
-    exposure_us: int = param(10_000, help="intensity frame exposure in microseconds")
-    contrast_threshold: float = param(0.2, help="mean contrast threshold C (log intensity)")
-    threshold_sigma: float = param(0.03, help="per-pixel spread of the threshold")
-    refractory_us: int = param(100, help="pixel refractory period in microseconds")
-    noise_rate_hz: float = param(0.2, help="background-activity noise events per pixel per second")
-    hot_pixel_fraction: float = param(0.0, help="fraction of hot pixels")
-    min_step_us: int = param(200, help="smallest render step of the adaptive sampling (caps renders per second)")
-    supersample: int = param(3, help="odd s: s×s samples per pixel (anti-aliasing)")
+    duration_s: float = param(1.0, gt=0, help="capture length in seconds (split equally between listed motions)")
+    seed: int = param(0, ge=0, help="varies the performance (timing, amplitudes, side) and the sensor noise")
+    speed: float = param(1.0, gt=0, help="tempo multiplier of the motions")
+    amplitude: float = param(1.0, ge=0, help="excursion multiplier of the motions")
+    fps: float = param(25.0, gt=0, help="intensity frame rate (DAVIS APS: 7-25 fps)")
+    exposure_us: int = param(10_000, ge=0, help="intensity frame exposure in microseconds")
+    contrast_threshold: float = param(0.2, gt=0, help="mean contrast threshold C (log intensity)")
+    threshold_sigma: float = param(0.03, ge=0, help="per-pixel spread of the threshold")
+    refractory_us: int = param(100, ge=0, help="pixel refractory period in microseconds")
+    noise_rate_hz: float = param(0.2, ge=0, help="background-activity noise events per pixel per second")
+    hot_pixel_fraction: float = param(0.0, ge=0, le=1, help="fraction of hot pixels")
+    min_step_us: int = param(200, ge=1, help="smallest render step of the adaptive sampling (caps renders per second)")
+    supersample: int = param(3, ge=1, odd=True, help="odd s: s×s samples per pixel (anti-aliasing)")
     calibration: str = param("", help="rpg calib.txt (fx fy cx cy k1 k2 p1 p2 k3); empty = DAVIS240C default",
                              file=True)
-    width: int = param(240, help="sensor width in pixels (with a calibration file)")
-    height: int = param(180, help="sensor height in pixels (with a calibration file)")
+    width: int = param(240, ge=1, help="sensor width in pixels (with a calibration file)")
+    height: int = param(180, ge=1, help="sensor height in pixels (with a calibration file)")
     distortion: bool = param(True, help="use the lens distortion of the calibration")
-    camera_distance_m: float = param(3.0, help="distance of the camera from the actor (on +z)")
+    camera_distance_m: float = param(3.0, gt=0, help="distance of the camera from the actor (on +z)")
     camera_height_m: float = param(1.0, help="height of the camera and of its look-at point")
-    background_seed: int = param(0, help="texture of the static background")
-    gt_rate_hz: float = param(1000.0, help="rate of the ground-truth poses, joints and tracks")
-    n_track_points: int = param(300, help="surface points whose ground-truth 2D tracks are recorded")
+    background_seed: int = param(0, ge=0, help="texture of the static background")
+    gt_rate_hz: float = param(1000.0, gt=0, help="rate of the ground-truth poses, joints and tracks")
+    n_track_points: int = param(300, ge=0, help="surface points whose ground-truth 2D tracks are recorded")
     frames: bool = param(True, help="false: an event-only camera. The capture is simulated exactly as with frames "
                                     "(the same events) and its intensity frames are left out of the recording; "
                                     "batches keep the frame clock (fps), and the ground truth keeps the true sharp "

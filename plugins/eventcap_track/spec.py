@@ -13,10 +13,10 @@ from eventcap.stage import Port, StageSpec, param
 
 @dataclass
 class EdiConfig:
-    contrast: float = param(0.0, help="contrast threshold C; 0 = estimate one C for the recording (Pan et al.)")
-    c_min: float = param(0.05, help="lower end of the automatic search for C")
-    c_max: float = param(0.5, help="upper end of the automatic search for C")
-    eps: float = param(1e-3, help="offset of the log image, L = log(I + eps)")
+    contrast: float = param(0.0, ge=0, help="contrast threshold C; 0 = estimate one C for the recording (Pan et al.)")
+    c_min: float = param(0.05, gt=0, help="lower end of the automatic search for C")
+    c_max: float = param(0.5, gt=0, help="upper end of the automatic search for C")
+    eps: float = param(1e-3, gt=0, help="offset of the log image, L = log(I + eps)")
 
 
 @dataclass
@@ -25,23 +25,23 @@ class FeatureRegionConfig:
 
     roi: str = param("actor", help="where features are detected: actor (around the 2D detections of the batch's "
                                    "frames, if the node gets detections) | image (everywhere)")
-    roi_margin_px: float = param(12.0, help="the actor region: bounding box of the confident 2D keypoints grown by "
+    roi_margin_px: float = param(12.0, ge=0, help="the actor region: bounding box of the confident 2D keypoints grown by "
                                             "this margin")
 
 
 @dataclass
 class EkltStageConfig(FeatureRegionConfig):
-    patch_px: int = param(25, help="side of the feature patch (odd)")
-    max_features: int = param(100, help="Shi-Tomasi corners detected per start image")
-    min_distance_px: float = param(10.0, help="minimum distance between corners")
-    quality_level: float = param(0.01, help="relative corner quality threshold")
+    patch_px: int = param(25, ge=5, odd=True, help="side of the feature patch (odd)")
+    max_features: int = param(100, ge=1, help="Shi-Tomasi corners detected per start image")
+    min_distance_px: float = param(10.0, ge=0, help="minimum distance between corners")
+    quality_level: float = param(0.01, gt=0, le=1, help="relative corner quality threshold")
     warp: str = param("rotation", help="patch warp: translation | rotation | affine",
                      choices=("translation", "rotation", "affine"))
-    update_every: int = param(60, help="events in a patch between two updates")
-    max_cost: float = param(0.8, help="drop a track when 1 - cos(predicted, measured increments) exceeds this")
-    lag_gain: float = param(0.45, help="compensation of the DVS threshold lag (0 = off)")
-    stitch_px: float = param(4.0, help="forward/backward tracks are stitched at mid-batch within this distance")
-    relocate_radius_px: int = param(6, help="half-side of the patch that finds forward points on the end image "
+    update_every: int = param(60, ge=1, help="events in a patch between two updates")
+    max_cost: float = param(0.8, gt=0, help="drop a track when 1 - cos(predicted, measured increments) exceeds this")
+    lag_gain: float = param(0.45, ge=0, help="compensation of the DVS threshold lag (0 = off)")
+    stitch_px: float = param(4.0, ge=0, help="forward/backward tracks are stitched at mid-batch within this distance")
+    relocate_radius_px: int = param(6, ge=0, help="half-side of the patch that finds forward points on the end image "
                                     "(backward starts); keep it inside a limb")
     direction: str = param("both", help="both (forward + backward, stitched) | forward | backward",
                           choices=("both", "forward", "backward"))
@@ -49,27 +49,27 @@ class EkltStageConfig(FeatureRegionConfig):
 
 @dataclass
 class KltStageConfig(FeatureRegionConfig):
-    max_features: int = param(100, help="Shi-Tomasi corners detected on the start image")
-    min_distance_px: float = param(10.0, help="minimum distance between corners")
-    quality_level: float = param(0.01, help="relative corner quality threshold")
-    step_us: int = param(1000, help="spacing of the EDI latent images LK runs on")
-    window_px: int = param(21, help="Lucas-Kanade window")
-    max_level: int = param(3, help="pyramid levels")
+    max_features: int = param(100, ge=1, help="Shi-Tomasi corners detected on the start image")
+    min_distance_px: float = param(10.0, ge=0, help="minimum distance between corners")
+    quality_level: float = param(0.01, gt=0, le=1, help="relative corner quality threshold")
+    step_us: int = param(1000, gt=0, help="spacing of the EDI latent images LK runs on")
+    window_px: int = param(21, ge=3, help="Lucas-Kanade window")
+    max_level: int = param(3, ge=0, help="pyramid levels")
 
 
 @dataclass
 class OracleTrackConfig:
-    max_tracks: int = param(300, help="at most this many of the recording's ground-truth surface points")
-    noise_px: float = param(0.0, help="std of Gaussian noise added to every sample, px (0 = exact)")
-    seed: int = param(0, help="seed of the noise")
+    max_tracks: int = param(300, ge=1, help="at most this many of the recording's ground-truth surface points")
+    noise_px: float = param(0.0, ge=0, help="std of Gaussian noise added to every sample, px (0 = exact)")
+    seed: int = param(0, ge=0, help="seed of the noise")
 
 
 @dataclass
 class SliceConfig:
-    rate_hz: float = param(1000.0, help="tracking frame rate (samples per second)")
-    sigma_px: float = param(0.2, help="expected noise of the tracked positions (weights the data term)")
-    accel_px_s2: float = param(1e5, help="expected acceleration scale (weights the smoothness penalty)")
-    knot_spacing_us: int = param(2000, help="largest spacing of the spline knots")
+    rate_hz: float = param(1000.0, gt=0, help="tracking frame rate (samples per second)")
+    sigma_px: float = param(0.2, gt=0, help="expected noise of the tracked positions (weights the data term)")
+    accel_px_s2: float = param(1e5, gt=0, help="expected acceleration scale (weights the smoothness penalty)")
+    knot_spacing_us: int = param(2000, gt=0, help="largest spacing of the spline knots")
 
 
 EDI = StageSpec(
