@@ -40,7 +40,6 @@ from typing import Any
 import numpy as np
 
 from .jobs import save_figure, write_csv  # noqa: F401 (also this module's API, as before)
-from .config import register_stage_configs
 
 log = logging.getLogger("eventcap.benchmark")
 
@@ -125,7 +124,6 @@ def compose_run(config_dir: Path, overrides: Sequence[str]) -> tuple[dict[str, A
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    register_stage_configs()
     with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
         cfg = compose(config_name="config", overrides=list(overrides))
     return OmegaConf.to_container(cfg, resolve=True), OmegaConf.to_yaml(cfg, resolve=True)

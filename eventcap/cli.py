@@ -78,11 +78,8 @@ def _run_job(cfg) -> bool:
 def cmd_run(argv: list[str]) -> int:
     import hydra
 
-    from .config import register_stage_configs
-
     cdir = str(config_dir())
     _RUN_FAILURES.clear()
-    register_stage_configs()
 
     @hydra.main(version_base="1.3", config_path=cdir, config_name="config")
     def _main(cfg) -> None:
@@ -99,7 +96,7 @@ def cmd_run(argv: list[str]) -> int:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         return code
     except Exception as exc:
-        msg = unknown_override_message(exc, argv, cdir)
+        msg = unknown_override_message(exc, argv, cdir) or typed_override_message(exc, argv)
         if msg is not None:
             print(f"eventcap run: {msg}", file=sys.stderr)
             return 1
@@ -159,6 +156,35 @@ def unknown_override_message(exc: BaseException, argv: list[str], cdir: str | Pa
     return msg
 
 
+def typed_override_message(exc: BaseException, argv: list[str]) -> str | None:
+    """Hydra's "Error merging override k=v ... could not be converted" for a stage's key as the project's message
+    (what the key takes, as eventcap.stage.allowed_values says it), or None for any other error."""
+    import dataclasses
+
+    from omegaconf.errors import ValidationError
+
+    cause = exc.__cause__
+    if not (type(exc).__name__ == "ConfigCompositionException" and isinstance(cause, ValidationError)):
+        return None
+    full_key = str(getattr(cause, "full_key", "") or "")
+    node_type = getattr(getattr(cause, "object_type", None), "__name__", "")
+    if not (full_key and node_type.endswith("Node")):
+        return None
+    from .registry import load_registry
+    from .stage import allowed_values
+
+    key = full_key.rpartition(".")[2]
+    for spec in load_registry().specs():
+        if spec.config.__name__ == node_type[:-len("Node")]:
+            field = next((f for f in dataclasses.fields(spec.config) if f.name == key), None)
+            allowed = allowed_values(field) if field is not None else None
+            if allowed:
+                value = next((a.partition("=")[2] for a in argv if a.partition("=")[0].lstrip("+") == full_key),
+                             "?")
+                return f"{full_key}: expected {allowed}, got {value!r} (stage {spec.name!r})"
+    return None
+
+
 def _known_keys(parent: str, override_key: str, argv: list[str], cdir) -> tuple[list[str], list[str], str, str]:
     """Keys at ``parent`` of the config composed without the failing override, the stage's config fields when
     ``parent`` is a stage node's config, that stage's name, and the file (config group choice) ``parent`` comes
@@ -171,10 +197,7 @@ def _known_keys(parent: str, override_key: str, argv: list[str], cdir) -> tuple[
     rest = [a for a in argv if "=" in a and not a.startswith("-") and a.partition("=")[0].lstrip("+~") != override_key]
     from hydra.core.global_hydra import GlobalHydra
 
-    from .config import register_stage_configs
-
     GlobalHydra.instance().clear()  # a failed hydra.main may leave it initialised
-    register_stage_configs()
     cfg = None
     for overrides in (rest, [a for a in rest if not a.startswith("hydra.") or a.startswith("hydra.searchpath")], []):
         try:

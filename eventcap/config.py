@@ -85,7 +85,7 @@ STAGE_GROUP = "stage"
 
 def register_stage_configs() -> list[str]:
     """Store every installed stage's config dataclass (plus its ``stage`` key) in Hydra's ConfigStore under
-    ``/stage/<name>`` (once per process): the stage's spec is the one place its defaults are stated, and a
+    ``/stage/<name>`` (the Hydra plugin hydra_plugins/eventcap_stage_configs does so before every composition): the stage's spec is the one place its defaults are stated, and a
     composed config still holds every key (``eventcap run --cfg job`` shows them, a run's config.yaml records
     them, and an override ``stages.<node>.<key>=...`` needs no '+'). Returns the registered names."""
     from hydra.core.config_store import ConfigStore
