@@ -28,11 +28,14 @@ import numpy as np
 from .artifacts import Artifact, Batch
 
 
-def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True, file: bool = False,
+def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True,
+          file: bool | Callable[[Any], list[str]] = False,
           default_factory: Any = dataclasses.MISSING, choices: tuple[Any, ...] | None = None):
     """A config field. ``affects_result=False`` keeps it out of the cache key (e.g. logging, sleeps, workers).
 
     ``file=True`` marks a path whose *content digest* enters the cache key (input recordings, templates).
+    ``file=<function>`` is for a field whose value only sometimes names files (a motion name or a clip's path):
+    the function maps the value to the paths it refers to ([] for none), and their digests enter the key.
     ``choices`` lists the only values the field takes: any other value is refused when the pipeline is built,
     before anything runs (not once per batch by the stage).
     """
