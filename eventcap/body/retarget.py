@@ -2,20 +2,23 @@
 
 A BVH skeleton has free 3-DOF joints, other bone lengths and another rest pose than ours (27 bounded joint angles
 about fixed axes + root rotation and translation, :mod:`eventcap.body.skeleton`), so its rotations cannot be copied.
-Each sample is fitted instead, by a bounded Levenberg-Marquardt least-squares solve over S:
+Each sample is fitted instead, a bounded least-squares problem over S:
 
-- **directions** of anatomically equivalent segments, compared as unit vectors (so bone lengths and proportions do
-  not matter): thighs, shanks, feet (ankle to ball), upper arms, forearms, the hip line, the shoulder line, the
-  trunk (mid-hip to neck) and neck-to-shoulder lines (shrugs);
-- **orientations** where directions leave a twist open: the head's forward and up axes and each foot's lateral
-  axis, taken from the clip's own segment rotations (relative to its rest pose, which is taken as neutral);
+- **directions** of lines that are the same anatomical line on any skeleton, compared as unit vectors (so bone
+  lengths and proportions do not matter): thighs, shanks, upper arms, forearms, the hip line, the shoulder line,
+  and (weakly) neck-to-shoulder lines for shrugs;
+- **orientations** of segments whose joints sit at skeleton-specific places, and of twists that lines leave open:
+  pelvis, chest and head (forward and up axes), each foot (its left axis and ankle-to-ball line) and each upper
+  arm (forward axis, weakly), taken from the clip's own segment rotations relative to its rest pose, which is taken
+  as neutral (standing, T- or A-pose);
 - **position** of the mid-hip point (the clip's, scaled to our leg length and placed, see below);
-- a weak pull towards the warm start resolves what the data leaves undetermined (an upper arm's twist while the
-  elbow is straight) by keeping it where it was, instead of letting it drift.
+- a weak pull towards the warm start, which keeps what the data leaves undetermined (an upper arm's twist while the
+  elbow is straight) where it was.
 
 Twists the data determines are matched: the upper arm's by the bent forearm, the thigh's by the shank and foot,
-the spine's by the shoulder and hip lines. The joint limits (THETA_LOWER/UPPER) bound every step (projected
-steps); samples that end with a joint held at a bound are counted and logged as clipped.
+the spine's by the shoulder and hip lines and the chest. The joint limits (THETA_LOWER/UPPER) bound every step
+(projected steps). A sample counts as clipped when the limits cost its fit as much as a segment 2 degrees off the
+clip (:data:`CLIP_COST`); the log gives their number and the joints held.
 
 Placement: lengths are scaled by ``s = our leg length / the clip's leg length`` (hip to ankle, rest poses). The
 file's up axis (+y, +z, ...) is read from its rest pose (hips to head) and turned into +y. At the clip's first
@@ -25,12 +28,14 @@ same way (else the file's left and right are swapped and it is refused). The flo
 feet reach in the whole file: the retargeted motion is shifted vertically so that our soles touch y = 0 at that
 moment.
 
-Resampling: the clip's local joint rotations are interpolated by slerp and its root position linearly
-(:func:`eventcap.body.bvh_clip.resample`) onto the sample times, a grid at ``rate_hz`` (the ground-truth rate,
-1 kHz by default). The fit runs in two passes: first at the clip's own frames in the played window, one after the
-other, each warm-started from the previous one; then at every grid sample at once (vectorised), each started from
-the first pass's poses interpolated linearly to its time. Residuals and their Jacobians come from the CasADi forward
-kinematics of :mod:`eventcap.body.kinematics`, evaluated for many samples per call.
+Resampling and the two passes: the clip's local joint rotations are interpolated by slerp and its root position
+linearly (:func:`eventcap.body.bvh_clip.resample`) onto the sample times, a grid at ``rate_hz`` (the ground-truth
+rate, 1 kHz by default). Pass 1 fits the clip's own frames in the played window one after the other, each
+warm-started from the previous one (Levenberg-Marquardt; residuals and Jacobians from the CasADi forward kinematics
+of :mod:`eventcap.body.kinematics`). Its poses, interpolated linearly to the grid, start pass 2: every grid sample at
+once, the fit plus a penalty on the poses' acceleration (a banded Gauss-Newton over the whole grid), because
+samples fitted on their own jump between near-equivalent poses (see :func:`_smooth`). The capture then
+interpolates the grid's poses linearly (it tabulates them every 50 us).
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ import logging
 import re
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -116,9 +121,12 @@ _ROTATED = (("pelvis", "forward", 0.7), ("pelvis", "up", 0.7), ("spine3", "forwa
 _BODY_AXES = {"left": (1.0, 0.0, 0.0), "up": (0.0, 1.0, 0.0), "forward": (0.0, 0.0, 1.0)}
 _POSITION_WEIGHT = 10.0  # per metre of mid-hip error (10 cm weighs like 0.1 rad of a segment's direction)
 _PRIOR_WEIGHT = 0.1  # per radian away from the warm start (joint angles, root rotation): resolves what data leaves open
-#: Weight (s^2) of the acceleration penalty of pass 2: a joint accelerating at 5000 rad/s^2 costs like a segment
-#: 0.6 degrees off the clip; a jump of 50 degrees within a millisecond like one 100 degrees off.
+#: Weight (s^2) of the acceleration penalty of pass 2: a joint accelerating at 1000 rad/s^2 (a fast punch's elbow)
+#: costs like a segment 0.6 degrees off the clip; a jump of 50 degrees within a millisecond like 8 radians off.
 _ACCEL_S2 = 1e-5
+#: The whole body turns and moves more slowly than a limb: its rotation and translation weigh 20 times more (a dancer
+#: whose leg is beyond its limits otherwise swaps hip rotation for pelvis yaw within a few milliseconds).
+_ACCEL_SCALE = np.r_[np.ones(27), np.full(6, 20.0)]
 _SOLE_LANDMARKS = ("l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel")
 
 
@@ -232,7 +240,6 @@ class ClipTargets:
     directions: np.ndarray
     axes: np.ndarray
     direction_weight: np.ndarray  # (D,) weights, 0 where the clip lacks the segment
-    info: dict = field(default_factory=dict)
 
     def flat(self) -> np.ndarray:
         """(T, 3 + 3D + 3A): the fit's target vector per sample."""
@@ -494,8 +501,8 @@ def _second_difference_gram(T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return d0, d1, d2
 
 
-def _banded_system(JtJ: np.ndarray, gram, w2: float, mu: float, held: np.ndarray) -> np.ndarray:
-    """Upper banded form (u = 66) of blockdiag(JtJ) + w2 * (D^T D kron I) + mu * diag, held variables decoupled."""
+def _banded_system(JtJ: np.ndarray, gram, w2: np.ndarray, mu: float, held: np.ndarray) -> np.ndarray:
+    """Upper banded form (u = 66) of blockdiag(JtJ) + D^T D kron diag(w2) + mu * diag, held variables decoupled."""
     T, n = JtJ.shape[0], NUM_POSE_PARAMS
     u = 2 * n
     ab = np.zeros((u + 1, T * n))
@@ -504,7 +511,7 @@ def _banded_system(JtJ: np.ndarray, gram, w2: float, mu: float, held: np.ndarray
         for b in range(a, n):
             ab[u + a - b, cols + b] = JtJ[:, a, b]
     for off, dk in enumerate(gram):
-        ab[u - off * n, off * n:] += w2 * np.repeat(dk[:T - off], n)
+        ab[u - off * n, off * n:] += (dk[:T - off, None] * w2[None, :]).ravel()
     ab[u] += mu * (ab[u] + 1e-9)
     idx = np.flatnonzero(held.ravel())
     for k in range(1, u + 1):  # zero the held variables' rows and columns, keep them on the diagonal
@@ -529,7 +536,7 @@ def _smooth(res, S: np.ndarray, tgt: np.ndarray, dt: float, iters: int = 4, chun
     T, n = S.shape
     if T < 3:
         return S
-    w2 = (_ACCEL_S2 / dt ** 2) ** 2
+    w2 = (_ACCEL_S2 * _ACCEL_SCALE / dt ** 2) ** 2
     gram = _second_difference_gram(T)
 
     def evaluate(S_):
@@ -537,7 +544,7 @@ def _smooth(res, S: np.ndarray, tgt: np.ndarray, dt: float, iters: int = 4, chun
         r = np.concatenate([p[0] for p in parts])
         J = np.concatenate([p[1] for p in parts])
         acc = S_[2:] - 2 * S_[1:-1] + S_[:-2]
-        return r, J, float(np.sum(r * r) + w2 * np.sum(acc * acc))
+        return r, J, float(np.sum(r * r) + np.sum(w2 * acc * acc))
 
     def smooth_gradient(S_):
         acc = S_[2:] - 2 * S_[1:-1] + S_[:-2]
