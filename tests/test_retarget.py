@@ -98,7 +98,8 @@ def test_written_clip_comes_back_to_the_same_poses(clip_path):
     moved = np.linalg.norm((J - J[:1]) - (J0 - J0[:1]) @ Rotation.from_euler("y", dyaw[0], degrees=True).as_matrix().T,
                            axis=-1)
     assert moved.max() < 0.01, moved.max()  # every joint's path since the first frame, to 1 cm
-    assert out.stats["units"] == "cm" and out.stats["up_axis"] == "+y" and out.stats["clipped_samples"] == 0
+    assert out.stats["units"] == "cm" and out.stats["up_axis"] == "+y (from the rest pose)"
+    assert out.stats["clipped_samples"] == 0
 
 
 def test_first_sample_faces_the_camera_at_the_origin_feet_on_the_floor(clip_path):
@@ -120,7 +121,7 @@ def test_z_up_and_other_units_give_the_same_motion(tmp_path, clip_path, variant)
         A, scale, unit, axis = np.eye(3), 0.01, "m", "+y"
     path = write_variant(tmp_path / f"{variant}.bvh", clip, A=A, scale=scale)
     out, ref = fitted(str(path)), fitted(str(clip_path))
-    assert out.stats["units"] == unit and out.stats["up_axis"] == axis
+    assert out.stats["units"] == unit and out.stats["up_axis"] == f"{axis} (from the rest pose)"
     assert np.abs(out.poses - ref.poses).max() < 1e-4
 
 
@@ -233,7 +234,7 @@ def test_a_cmu_clip_keeps_the_joint_limits_and_says_what_it_clipped():
     c, out = cmu_fit()
     theta = out.poses[:, :27]
     assert np.all(theta >= THETA_LOWER - 1e-9) and np.all(theta <= THETA_UPPER + 1e-9)
-    assert out.stats["units"] == "cmu" and out.stats["up_axis"] == "+y"
+    assert out.stats["units"] == "cmu" and out.stats["up_axis"] == "+y (from the rest pose)"
     assert 0 < out.stats["clipped_samples"] <= out.stats["samples"] and out.stats["clipped_dofs"]
     # the dancer's elbows are matched: the forearm's direction of the truth against the clip's own
     pos, rot = forward_kinematics(c, c.rotations[:60], c.root_positions[:60])
@@ -294,5 +295,5 @@ def test_simulate_cli_films_a_cmu_clip(tmp_path):
     p = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
     log = (tmp_path / "runs" / "sim" / "eventcap.log").read_text()
-    assert "motion cmu/135_06: 301 frames at 120.0 fps, units cmu" in log and "up axis +y" in log
+    assert "motion cmu/135_06: 301 frames at 120.0 fps, units cmu" in log and "up axis +y (from the rest pose)" in log
     assert "played from 0.500 s for 0.050 s" in log and "joint limits clipped" in log

@@ -106,6 +106,9 @@ _DIRECTIONS = (
     ("l_shoulder", "l_elbow", 1.0), ("r_shoulder", "r_elbow", 1.0), ("l_elbow", "l_wrist", 1.0),
     ("r_elbow", "r_wrist", 1.0), ("r_hip", "l_hip", 1.0), ("r_shoulder", "l_shoulder", 1.0),
     ("neck", "l_shoulder", 0.2), ("neck", "r_shoulder", 0.2),
+    # shoulder to wrist: where a hanging arm's direction lies beyond the elevation bound (next to the shoulder's
+    # gimbal pole), near-equivalent poses differ in where they put the hand; this keeps it where the clip's is
+    ("l_shoulder", "l_wrist", 1.0), ("r_shoulder", "r_wrist", 1.0),
 )
 #: (our joint, vector, weight): the joint's rotation since the rest pose applied to a vector of our rest body frame,
 #: matched against the clip's segment rotation applied to the same vector (both rest poses taken as neutral). This
@@ -269,9 +272,16 @@ def _toe_points(clip, mapping, pos, rot, side):
 
 
 def _rest_frame(clip: BvhClip, mapping: dict[str, int]) -> tuple[str, np.ndarray, np.ndarray]:
-    """Up axis, the rotation A to y up and the rest body frame (columns left, up, forward) after A."""
+    """Up axis (and what told it), the rotation A to y up and the rest body frame (columns left, up, forward) after
+    A. The up axis is where the rest pose's hips-to-head line points, or the first frame's if the rest pose's is
+    not clearly along one axis."""
     rest = clip.rest_positions()
-    axis = up_axis(rest[mapping["head"]] - rest[mapping["pelvis"]])
+    v = rest[mapping["head"]] - rest[mapping["pelvis"]]
+    source = "the rest pose"
+    if np.max(np.abs(v)) < 0.8 * np.linalg.norm(v):  # a rest pose lying or leaning: ask the first frame
+        pos, _ = forward_kinematics(clip, clip.rotations[:1], clip.root_positions[:1])
+        v, source = pos[0, mapping["head"]] - pos[0, mapping["pelvis"]], "the first frame"
+    axis = up_axis(v)
     A = to_y_up(axis)
     left = A @ (rest[mapping["l_hip"]] - rest[mapping["r_hip"]])
     left[1] = 0.0
@@ -279,7 +289,7 @@ def _rest_frame(clip: BvhClip, mapping: dict[str, int]) -> tuple[str, np.ndarray
         raise BvhError(f"{clip.path}: the rest pose's hips coincide; cannot tell left from right")
     left /= np.linalg.norm(left)
     up = np.array([0.0, 1.0, 0.0])
-    return axis, A, np.stack([left, up, np.cross(left, up)], axis=1)
+    return f"{axis} (from {source})", A, np.stack([left, up, np.cross(left, up)], axis=1)
 
 
 def _leg_length(clip: BvhClip, mapping: dict[str, int]) -> float:
@@ -670,5 +680,4 @@ def clip_motion(name: str, template: Template | None, duration_s: float, start_s
         tt = np.clip(np.asarray(t_s, dtype=np.float64), 0.0, grid[-1])
         return np.stack([np.interp(tt, grid, S_grid[:, k]) for k in range(NUM_POSE_PARAMS)], axis=1)
 
-    poses.stats = st  # type: ignore[attr-defined]
     return poses
