@@ -72,7 +72,7 @@ def measure(name: str, rate_hz: float) -> dict:
     return {"flex_mean": float(np.mean(list(diffs.values()))), "flex_worst": max(diffs, key=diffs.get),
             "flex_worst_deg": float(max(diffs.values())), "wrist_truth": wrist(ours, JOINT_INDEX),
             "wrist_clip": wrist(theirs, m), "clipped": out.stats["clipped_samples"], "samples": t.size,
-            "seconds": seconds}
+            "most": ", ".join(list(out.stats["clipped_dofs"])[:2]), "seconds": seconds}
 
 
 def main() -> None:
@@ -87,13 +87,13 @@ def main() -> None:
         print(f"{n:12s} {row['frames']:5d} {row['fps']:5.0f} {row['duration']:5.2f} {row['wrist']:9.1f} "
               f"{row['ankle']:10.1f}")
     print(f"\nretargeted on a {a.rate:.0f} Hz grid (the machine is shared: times are indicative)")
-    print("clip         elbow/knee flexion |diff| deg   peak wrist m/s      clipped samples   retarget")
+    print("clip         elbow/knee flexion |diff| deg   peak wrist m/s      clipped samples   retarget   most held")
     print("             mean   (worst joint)            truth   clip")
     for n in names:
         r = measure(n, a.rate)
         print(f"{n:12s} {r['flex_mean']:5.1f}  ({r['flex_worst']} {r['flex_worst_deg']:4.1f})      "
               f"{r['wrist_truth']:6.1f} {r['wrist_clip']:6.1f}      {r['clipped']:5d} of {r['samples']:5d}   "
-              f"{r['seconds']:5.1f} s")
+              f"{r['seconds']:5.1f} s    {r['most']}")
 
 
 if __name__ == "__main__":
