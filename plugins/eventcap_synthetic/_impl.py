@@ -102,6 +102,7 @@ def run_synthetic(inputs, config, ctx):
         name=f"synthetic-{'+'.join(Path(n).stem if n.endswith('.bvh') else n.replace('/', '_') for n in names)}"
              f"-seed{config.seed}",
         source=f"synthetic: motion={config.motion} duration_s={config.duration_s} seed={config.seed} "
-               f"speed={config.speed} amplitude={config.amplitude}" + ("" if config.frames else " frames=false"),
+               f"speed={config.speed} amplitude={config.amplitude}" + ("" if config.frames else " frames=false")
+               + (f" motion_start_s={config.motion_start_s}" if config.motion_start_s else ""),
     )
     return {"recording": rec, "batches": BatchPlan.between_frames(cap.frame_t_us)}
