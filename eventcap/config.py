@@ -144,14 +144,21 @@ def file_digest(path: str | Path, chunk: int = 1 << 22) -> str:
 
 
 def file_digests(spec: StageSpec, config: Any, where: str) -> dict[str, str]:
-    """Digest of every ``file=True`` config field that is set (empty string / None means unused)."""
+    """Digest of every file config field that is set (empty string / None means unused): ``file=True`` fields by
+    their path, ``file=<function>`` fields by the paths the function finds in the value (none: no entry)."""
     out = {}
+    kinds = {f.name: f.metadata.get("file") for f in dataclasses.fields(config)}
     for name in spec.file_fields():
         value = getattr(config, name)
         if value in (None, ""):
             continue
+        paths = [value] if kinds.get(name) is True else list(kinds[name](value))
         try:
-            out[name] = file_digest(value)
-        except ConfigError:
-            raise ConfigError(f"{where}.{name}: file not found: {value}") from None
+            digests = [file_digest(p) for p in paths]
+        except ConfigError as exc:
+            raise ConfigError(f"{where}.{name}: {exc}") from None
+        if kinds.get(name) is True:
+            out[name] = digests[0]
+        elif digests:  # several files or a value that only sometimes names one: one digest of all, in order
+            out[name] = hashlib.sha256("".join(digests).encode()).hexdigest()
     return out

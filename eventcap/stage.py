@@ -28,13 +28,16 @@ import numpy as np
 from .artifacts import Artifact, Batch
 
 
-def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True, file: bool = False,
+def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True,
+          file: bool | Callable[[Any], list[str]] = False,
           default_factory: Any = dataclasses.MISSING, choices: tuple[Any, ...] | None = None,
           ge: float | None = None, gt: float | None = None, le: float | None = None, lt: float | None = None,
           finite: bool = True, odd: bool = False):
     """A config field. ``affects_result=False`` keeps it out of the cache key (e.g. logging, sleeps, workers).
 
     ``file=True`` marks a path whose *content digest* enters the cache key (input recordings, templates).
+    ``file=<function>`` is for a field whose value only sometimes names files (a motion name or a clip's path):
+    the function maps the value to the paths it refers to ([] for none), and their digests enter the key.
     ``choices`` lists the only values the field takes. A number (or each number of a list) is bounded by
     ``ge`` (>=), ``gt`` (>), ``le`` (<=), ``lt`` (<); ``finite=False`` lets it be inf (NaN never passes); ``odd``
     asks for an odd integer. Integers are integers by the field's type. Any other value is refused when the

@@ -35,8 +35,11 @@ POSE_GRID_US = 50
 class CaptureConfig:
     """What to film and how (all simulated)."""
 
-    # (motion name, duration in seconds) in order; see eventcap.body.motions.MOTIONS.
+    # (motion name, duration in seconds) in order; see eventcap.body.motions.MOTIONS. Or a single recorded clip: a
+    # BVH file or a shipped CMU clip "cmu/<subject_trial>" (eventcap.body.clips), retargeted onto the template.
     motions: tuple[tuple[str, float], ...] = (("karate_kick", 1.0),)
+    motion_start_s: float = 0.0  # a clip plays from this time into it
+    motion_map: str = ""  # a clip's joint-name mapping file (YAML/JSON: BVH joint name -> our joint name); "" = none
     seed: int = 0  # varies the performance (timing, amplitudes, side)
     speed: float = 1.0  # tempo multiplier of the motions
     amplitude: float = 1.0  # excursion multiplier of the motions
@@ -75,10 +78,25 @@ class SyntheticCapture:
 
 
 def motion_function(config: CaptureConfig, template: Template) -> Callable[[np.ndarray], np.ndarray]:
-    """Pose S (T, 33) at times t (seconds) for the configured motion sequence (feet placed for this template)."""
+    """Pose S (T, 33) at times t (seconds) for the configured motion sequence (feet placed for this template).
+
+    A recorded clip (BVH file or ``cmu/<subject_trial>``) plays alone: retargeted once onto the template on a grid
+    at the ground-truth rate (:func:`eventcap.body.retarget.clip_motion`), its first played frame at the origin facing
+    the camera. Clips are not mixed with built-in motions in a sequence: the cross-fade of simulated motions assumes
+    performances that start where the actor stands, which a recorded clip does not."""
+    from eventcap.body.clips import is_clip
     from eventcap.body.motions import sequence_poses
 
     motions = [(str(n), float(d)) for n, d in config.motions]
+    clips = [n for n, _ in motions if is_clip(n)]
+    if clips:
+        if len(motions) != 1:
+            raise ValueError(f"motion: a recorded clip ({clips[0]}) plays alone; it cannot be combined with other "
+                             f"motions in a sequence (got {', '.join(n for n, _ in motions)}): film one at a time")
+        from eventcap.body.retarget import clip_motion
+
+        return clip_motion(motions[0][0], template, duration_s=config.duration_s, start_s=config.motion_start_s,
+                           mapping_path=config.motion_map or None, rate_hz=config.gt_rate_hz)
 
     def poses(t_s: np.ndarray) -> np.ndarray:
         return sequence_poses(motions, np.asarray(t_s, dtype=np.float64), seed=config.seed, speed=config.speed,

