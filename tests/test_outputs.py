@@ -116,7 +116,7 @@ def test_overlay_falls_back_to_opencv_without_pyav_and_says_so(tmp_path, caplog,
         _, result, summary = run(config(tmp_path / "cache", bvh=False, npz=False, video_every_ms=10,
                                         video_png_frames=0), tmp_path / "run")
     monkeypatch.setattr(builtins, "__import__", real_import)
-    assert summary["problems"] == [] and set(summary["written"]) == {"video"}
+    assert summary["problems"] == [] and set(summary["written"]) == {"video", "plausibility"}
     assert "codec MPEG-4 Part 2 (OpenCV mp4v; browsers do not play it: H.264 needs PyAV, pip install av; " \
            "ImportError: No module named 'av')" in caplog.text
     codec, _, frames = video_codec(tmp_path / "run" / "overlay.mp4")
