@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from .artifacts import Artifact
+from .processes import pid_alive
 
 log = logging.getLogger(__name__)
 
@@ -466,17 +467,6 @@ def clean_stale_locks(root: str | Path) -> int:
             lock.release()
             n += 1
     return n
-
-
-def pid_alive(pid: int) -> bool:
-    """Whether a process with this pid exists on this host."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _fsync_dir(path: Path) -> None:

@@ -320,8 +320,10 @@ def cmd_view(args) -> int:
     """Open a run's Rerun recording (``capture.rrd``; built from the run folder when missing), or say how."""
     import subprocess
 
-    from .viewer import RRD_NAME, ViewError, build_run_recording, has_display, how_to_view, require_rerun, \
-        rerun_command, web_viewer_command, web_viewer_url
+    from .outputs import build_run_recording
+    from .runrecord import RunRecordError
+    from .viewer import RRD_NAME, ViewError, has_display, how_to_view, require_rerun, rerun_command, \
+        web_viewer_command, web_viewer_url
 
     try:
         require_rerun()
@@ -340,7 +342,7 @@ def cmd_view(args) -> int:
                 rrd = build_run_recording(target, recompute=args.recompute)
         else:
             raise ViewError(f"{target}: expected a run folder (runs/<name>/<timestamp>/) or an .rrd file")
-    except ViewError as exc:
+    except (ViewError, RunRecordError) as exc:
         print(f"eventcap view: {exc}", file=sys.stderr)
         return 2
     cmd = [*rerun_command(), str(rrd)]

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from .artifacts import Artifact, Batch
+from .errors import ComputationFailed
 
 
 def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True, file: bool = False,
@@ -147,10 +148,8 @@ class StageContext:
             self.progress(done, total)
 
 
-class StageFailed(RuntimeError):
-    """Raised by a stage whose computation did not succeed (e.g. a solver status); recorded, never cached."""
+class StageFailed(ComputationFailed):
+    """Raised by a stage whose computation did not succeed (e.g. a solver status); recorded, never cached.
 
-    def __init__(self, message: str, status: str = "failed", details: dict[str, Any] | None = None):
-        super().__init__(message)
-        self.status = status
-        self.details = details or {}
+    The domain library raises its own subclasses of :class:`eventcap.errors.ComputationFailed`, which the runner
+    records the same way."""

@@ -28,10 +28,10 @@ from eventcap.artifacts.base import ArrayAppender, ArtifactError
 from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.events import EVENT_DTYPE
-from eventcap.cache import pid_alive
 from eventcap.io.readers import Roi, _finish_frames, iter_event_chunks, largest_values, open_source, outlier_limit
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS
+from eventcap.processes import pid_alive
 
 #: End of an open time window ("to the end"), µs; far beyond any recording, with room for offsets.
 OPEN_END_US = np.iinfo(np.int64).max // 2
