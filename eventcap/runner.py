@@ -9,7 +9,6 @@ again: every committed node and batch is a cache hit.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import logging
 import os
@@ -27,6 +26,7 @@ from .artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
 from .cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
 from .config import ConfigError, build_config, config_to_dict, file_digests, result_config
 from .errors import ComputationFailed
+from .memo import clear_process_caches, memoize
 from .pipeline import Node, build_pipeline
 from .registry import Registry, load_registry
 from .runrecord import NodeReport, RunRecord, RunRecordError
@@ -34,7 +34,8 @@ from .stage import StageContext, StageSpec
 
 log = logging.getLogger("eventcap.runner")
 
-#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines costs 10-30x (NOTES.md).
+#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines costs 10-30x (a dense
+#: Cholesky took 1.4 s instead of 49 ms with two threads fighting on a busy 2-core machine).
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
@@ -96,12 +97,12 @@ class BatchSequence(Sequence):
         return _load(str(self._cache.root), self._ref.stage, self._ref.keys[i], self._ref.port, self._cls)
 
 
-@functools.lru_cache(maxsize=16)
+@memoize("runner.cache_at", maxsize=16)
 def _cache_at(root: str) -> Cache:
     return Cache(root)
 
 
-@functools.lru_cache(maxsize=8)
+@memoize("runner.inputs", maxsize=8)
 def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact]) -> Artifact:
     cache = _cache_at(root)
     entry = cache.lookup(stage, key)
@@ -110,7 +111,7 @@ def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact]) -> Ar
     return cache.load(entry, port, cls)
 
 
-@functools.lru_cache(maxsize=1)
+@memoize("runner.registry", maxsize=1)
 def _registry() -> Registry:
     return load_registry()
 
@@ -863,7 +864,6 @@ def load_finished_run(run_dir: str | Path) -> tuple[Runner, RunResult]:
 
 
 def reset_process_caches() -> None:
-    """Forget memoised registry, caches and loaded inputs (after changing EVENTCAP_STAGES or files on disk)."""
-    _registry.cache_clear()
-    _cache_at.cache_clear()
-    _load.cache_clear()
+    """Forget every process cache (eventcap.memo): the registry, caches and loaded inputs, the stages' built problems
+    (after changing EVENTCAP_STAGES or files on disk)."""
+    clear_process_caches()
