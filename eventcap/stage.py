@@ -7,7 +7,7 @@ string imported only when the stage runs (so listing stages imports no solver)::
     SPEC = StageSpec(
         name="edi", kind="sharpen", version=1, description="EDI deblurring of intensity frames (Eq. 2)",
         config=EdiConfig, inputs={"recording": Port(Recording)}, outputs={"latent": Port(LatentFrames)},
-        run="eventcap_sharpen._edi:run",
+        run="eventcap_sharpen._impl:run_edi",
     )
 
 The run function is pure: ``run(inputs: dict[str, Artifact], config, ctx: StageContext) -> dict[str, Artifact]``.
