@@ -500,8 +500,12 @@ def _build_event_frame(ring, ring_pos, nb, ev_tau, ev_x, ev_y, ev_p, ox, oy, hei
 # process, missed that cache: its key pickles the jitted functions a closure captures, which differ per process,
 # so every process compiled the tracker again, 7-20 s, and the cache folder grew by one entry per process.)
 #
-# The tracker's state travels in named tuples of arrays (numba passes them as structs): _Features (per feature),
-# _Workspace (scratch of one update) and _Samples (the output, grown by doubling).
+# The tracker's state travels in named tuples of arrays (numba passes them as structs): _Features (per feature k:
+# warp parameters params (K, M); alive, inited (flow angle bootstrapped); the ring buffer of the patch's event
+# indices ring (K, n_max) with its fill ring_n and write position ring_pos; since (events since the last update);
+# nbatch (events per event frame); velocity vel (px/us), vel_ok; the velocity's reference sample ref_xy, t_ref,
+# ref_ok; t_prev, the time of the last update), _Workspace (scratch of one update) and _Samples (the output, grown
+# by doubling).
 _Features = namedtuple("_Features", "params alive inited ring ring_n ring_pos since nbatch vel vel_ok ref_xy t_ref "
                                     "ref_ok t_prev")
 _Workspace = namedtuple("_Workspace", "efr valid jtj jtr jtj_n jtr_n jj jpp jpe jp lhs rhs step pn p")
