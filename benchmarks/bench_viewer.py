@@ -29,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from eventcap.bvh import read_motion_npz
     from eventcap.outputs import check_outputs_config, write_run_outputs
-    from eventcap.viewer import load_finished_run
+    from eventcap.runner import load_finished_run
 
     runner, result = load_finished_run(args.run_dir)
     base = check_outputs_config(runner)

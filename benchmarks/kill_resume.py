@@ -1,4 +1,5 @@
-"""Kill a multi-batch run with SIGKILL at random moments, resume it, and check the result (DESIGN §8).
+"""Kill a multi-batch run with SIGKILL at random moments, resume it, and check the result: a run killed at any
+moment and started again must end with the outputs of an uninterrupted run (eventcap/cache.py: atomic commits).
 
 For each trial: start `eventcap run` on the toy pipeline (tests/toy_stages.py) in a fresh cache, SIGKILL its whole
 process group (``--kill group``) or the driver alone (``--kill driver``: its pool / Dask workers must then die on their

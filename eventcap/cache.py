@@ -1,4 +1,5 @@
-"""Content-addressed stage cache with atomic commits (DESIGN §4).
+"""Content-addressed stage cache with atomic commits: a run killed at any moment resumes without recomputing what
+it committed.
 
 Layout under the cache root::
 
@@ -38,6 +39,8 @@ from pathlib import Path
 from typing import Any
 
 from .artifacts import Artifact
+from .memo import ProcessCache
+from .processes import pid_alive
 
 log = logging.getLogger(__name__)
 
@@ -343,7 +346,8 @@ def _local_root(root: str | Path) -> Path:
     return Path(text).expanduser().resolve()
 
 
-_RENAME_CHECKED: set[Path] = set()
+#: cache roots whose filesystem renames directories (checked once per process and root)
+_RENAME_CHECKED = ProcessCache("cache.rename_checked")
 
 
 #: errors that mean "you may not write here", not "this filesystem cannot do it"
@@ -379,8 +383,11 @@ def _rename_probe_paths(root: Path, pid: int, nonce: str) -> tuple[Path, Path]:
 
 def _check_atomic_rename(root: Path) -> None:
     """Refuse a filesystem that cannot rename a directory (some FUSE mounts), once per process and root."""
-    if root in _RENAME_CHECKED:
-        return
+    _RENAME_CHECKED.get(root, lambda: _probe_atomic_rename(root))
+
+
+def _probe_atomic_rename(root: Path) -> bool:
+    """Rename a probe directory under ``root``: True, or CacheError saying why the cache cannot live there."""
     probe, done = _rename_probe_paths(root, os.getpid(), uuid.uuid4().hex[:8])
     try:
         (probe / "x").mkdir(parents=True)
@@ -395,7 +402,7 @@ def _check_atomic_rename(root: Path) -> None:
     finally:
         shutil.rmtree(probe, ignore_errors=True)
         shutil.rmtree(done, ignore_errors=True)
-    _RENAME_CHECKED.add(root)
+    return True
 
 
 class EntryLock:
@@ -466,17 +473,6 @@ def clean_stale_locks(root: str | Path) -> int:
             lock.release()
             n += 1
     return n
-
-
-def pid_alive(pid: int) -> bool:
-    """Whether a process with this pid exists on this host."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _fsync_dir(path: Path) -> None:

@@ -1,6 +1,6 @@
 """The event camera's geometry: pinhole + OpenCV distortion, projection in numpy and CasADi, calibration I/O.
 
-Conventions (DESIGN §2):
+Conventions (the project's, everywhere):
 
 - World: metres, y up; the synthetic actor stands on y = 0 facing +z.
 - Camera axes as in OpenCV: x right, y down, z forward. ``x_cam = R @ x_world + t``.

@@ -1,4 +1,4 @@
-"""The project's one event representation (DESIGN §2) and small helpers around it."""
+"""The project's one event representation (every reader converts to it) and small helpers around it."""
 
 from __future__ import annotations
 

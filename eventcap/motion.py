@@ -10,15 +10,20 @@ leave gaps; :func:`uniform_motion` fills them for formats that need a constant f
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.body.skeleton import ROOT_ROTATION_SLICE
-from eventcap.stage import StageFailed
+from eventcap.errors import ComputationFailed
 
 JOIN_RULES = ("later", "mean")
+
+
+class MotionError(ComputationFailed):
+    """Per-batch poses that cannot be joined into one motion (status ``bad_poses`` or ``no_poses``)."""
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -30,7 +35,7 @@ def join_batches(parts: Sequence[PoseSequence], rule: str = "later") -> tuple[np
     """One motion from per-batch pose sequences: times (T,) int64 µs (increasing, unique), poses (T, 33) and the
     number of tracking frames that more than one batch held (resolved by ``rule``: later | mean).
 
-    Raises StageFailed (status ``bad_poses``) when a batch's times do not increase, (``no_poses``) when no batch has
+    Raises MotionError (status ``bad_poses``) when a batch's times do not increase, (``no_poses``) when no batch has
     a frame, and ValueError for an unknown rule.
     """
     if rule not in JOIN_RULES:
@@ -43,12 +48,12 @@ def join_batches(parts: Sequence[PoseSequence], rule: str = "later") -> tuple[np
             continue
         if t.size > 1 and np.any(np.diff(t) <= 0):
             k = int(np.argmax(np.diff(t) <= 0)) + 1
-            raise StageFailed(f"poses of batch {i}: tracking frame times must increase; frame {k} is at {t[k]} us "
+            raise MotionError(f"poses of batch {i}: tracking frame times must increase; frame {k} is at {t[k]} us "
                               f"after {t[k - 1]} us", status="bad_poses")
         ts.append(t)
         Ss.append(np.asarray(p.poses, dtype=np.float64))
     if not ts:
-        raise StageFailed(f"no poses to join: {len(parts)} batch(es), none with a tracking frame",
+        raise MotionError(f"no poses to join: {len(parts)} batch(es), none with a tracking frame",
                           status="no_poses")
     perm = np.argsort([t[0] for t in ts], kind="stable")  # batch order = time order; later batches last
     t = np.concatenate([ts[k] for k in perm])
@@ -127,3 +132,19 @@ def uniform_motion(t_us: np.ndarray, poses: np.ndarray, step_us: int) -> tuple[n
                    axis=1)
     out[exact] = S[k[exact]]
     return grid, out, ~exact
+
+
+def frames_every(t_us: np.ndarray, every_ms: float, max_frames: int) -> tuple[np.ndarray, int]:
+    """Indices into the increasing frame times ``t_us`` of one frame every ``every_ms`` of motion time (the first
+    frame at or after each step), at most ``max_frames``: when more would be needed, the step widens evenly to cover
+    the whole motion. Returns (indices, the step used in µs). The overlay video and the Rerun recording thin their
+    frames with it."""
+    t = np.asarray(t_us, dtype=np.int64)
+    every_us = max(1, int(round(every_ms * 1000)))
+    span = int(t[-1] - t[0])
+    n = span // every_us + 1
+    if n > max_frames:
+        every_us = int(math.ceil(span / max(1, max_frames - 1))) if max_frames > 1 else span + 1
+    targets = t[0] + every_us * np.arange(span // every_us + 1, dtype=np.int64)
+    idx = np.unique(np.clip(np.searchsorted(t, targets), 0, t.size - 1))
+    return idx[:max_frames], every_us

@@ -31,7 +31,6 @@ A run whose poses node committed nothing (it failed or was skipped) gets none of
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import os
@@ -45,8 +44,9 @@ from typing import Any
 import numpy as np
 
 from .artifacts.pose import PoseSequence
-from .motion import JOIN_RULES, frame_step_us, join_batches, on_grid, uniform_motion
+from .motion import JOIN_RULES, frame_step_us, frames_every, join_batches, on_grid, uniform_motion
 from .plausibility import write_plausibility
+from .runrecord import note_outputs
 from .viz import label as _label
 from .worldframe import check_frame
 
@@ -172,7 +172,7 @@ def write_run_outputs(runner, result, run_dir: str | Path, cfg: OutputsConfig | 
     except Exception as exc:  # noqa: BLE001 - e.g. an unreadable cache entry: reported, the run's results stay
         summary["problems"].append(f"{type(exc).__name__}: {exc}")
         log.error("outputs: %s: %s", type(exc).__name__, exc)
-    _note_in_run_json(run_dir, summary, merge)
+    note_outputs(run_dir, summary, merge)
     return summary
 
 
@@ -293,39 +293,19 @@ def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, templa
     return run_dir / RRD_NAME
 
 
-def _note_in_run_json(run_dir: Path, summary: dict[str, Any], merge: bool = False) -> None:
-    p = run_dir / "run.json"
-    if not p.is_file():
-        return
-    data = json.loads(p.read_text())
-    if merge and isinstance(data.get("outputs"), dict):
-        old = data["outputs"]
-        summary = {**old, **summary, "written": {**old.get("written", {}), **summary["written"]},
-                   "skipped": {**old.get("skipped", {}), **summary["skipped"]},
-                   "problems": old.get("problems", []) + summary["problems"]}
-    data["outputs"] = summary
-    tmp = p.with_name(".run.json.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, p)
-
-
 # ---------------------------------------------------------------------------------------------------------------------
 # The overlay video
 # ---------------------------------------------------------------------------------------------------------------------
 def video_frame_indices(t_us: np.ndarray, every_ms: float, max_frames: int) -> np.ndarray:
     """Indices of the motion frames shown: one every ``every_ms`` of motion time (the nearest estimated frame at or
     after each step), at most ``max_frames`` (the step widens evenly to cover the whole motion)."""
-    t = np.asarray(t_us, dtype=np.int64)
-    every_us = max(1, int(round(every_ms * 1000)))
-    span = int(t[-1] - t[0])
-    n = span // every_us + 1
-    if n > max_frames:
-        every_us = int(math.ceil(span / max(1, max_frames - 1))) if max_frames > 1 else span + 1
+    idx, every_us = frames_every(t_us, every_ms, max_frames)
+    wanted_us = max(1, int(round(every_ms * 1000)))
+    if every_us != wanted_us:
+        t = np.asarray(t_us, dtype=np.int64)
         log.info("outputs: video: %d frames at one per %g ms exceed video_max_frames=%d; one frame per %.1f ms",
-                 n, every_ms, max_frames, every_us / 1000)
-    targets = t[0] + every_us * np.arange(span // every_us + 1, dtype=np.int64)
-    idx = np.unique(np.clip(np.searchsorted(t, targets), 0, t.size - 1))
-    return idx[:max_frames]
+                 int(t[-1] - t[0]) // wanted_us + 1, every_ms, max_frames, every_us / 1000)
+    return idx
 
 
 class OverlayRenderer:
@@ -557,3 +537,37 @@ def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, po
         raise
     log.info("outputs: overlay video codec: %s", writer.codec)
     return out
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# eventcap view: the recording of a finished run
+# ---------------------------------------------------------------------------------------------------------------------
+def build_run_recording(run_dir: Path, recompute: bool = False) -> Path:
+    """Write ``RUN_DIR/capture.rrd`` from a finished run (config + cache) through the same path as
+    ``outputs.rerun=true``; ``recompute`` runs the pipeline again first (cache hits, recomputing what is gone).
+    ViewError (:mod:`eventcap.viewer`) when there is nothing to show; RunRecordError when the folder is not a
+    finished run or its cache entries are gone."""
+    import yaml
+
+    from .runner import Runner, load_finished_run
+    from .runrecord import find_cache_dir
+    from .viewer import ViewError
+
+    run_dir = Path(run_dir)
+    if recompute:
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
+        cfg["cache_dir"] = str(find_cache_dir(run_dir, cfg.get("cache_dir") or "runs/cache"))
+        runner = Runner(cfg)
+        result = runner.run(None)
+    else:
+        runner, result = load_finished_run(run_dir)
+    cfg = check_outputs_config(runner)
+    if cfg.poses is None:
+        raise ViewError(f"{run_dir}: this run has no motion to show (outputs.poses is null or names no node of its "
+                        f"pipeline, e.g. pipeline=simulate); `eventcap preview RECORDING.zarr` shows a recording")
+    only = dataclasses.replace(cfg, bvh=False, npz=False, video=False, c3d=False, rerun=True)
+    summary = write_run_outputs(runner, result, run_dir, only, merge=True)
+    if "rerun" not in summary["written"]:
+        why = summary["skipped"].get("rerun") or "; ".join(summary["problems"]) or "nothing to show"
+        raise ViewError(f"{run_dir}: no recording written: {why}")
+    return Path(summary["written"]["rerun"])

@@ -69,7 +69,27 @@ def build_pipeline(cfg: Mapping[str, Any], registry: Registry) -> list[Node]:
     raw_nodes = pipe.get("nodes") if isinstance(pipe, Mapping) else None
     if not isinstance(raw_nodes, Mapping) or not raw_nodes:
         raise PipelineError(["pipeline.nodes: expected a mapping of node name -> {config, inputs}, found none"])
+    specs, configs, paths, raw_inputs = _read_nodes(cfg, raw_nodes, registry, problems)
+    refs = {name: _wire_inputs(name, spec, raw_inputs[name], raw_nodes, specs, problems)
+            for name, spec in specs.items()}
+    order = _toposort(refs, problems)
+    if problems:
+        raise PipelineError(problems)
+    plans = _batch_plans(order, specs, refs, problems)
+    if problems:
+        raise PipelineError(problems)
+    return [
+        Node(
+            name=n, spec=specs[n], config=configs[n], config_path=paths[n], inputs=refs[n],
+            plan_node=(plans[n] or (None, None))[0], plan_port=(plans[n] or (None, None))[1],
+        )
+        for n in order
+    ]
 
+
+def _read_nodes(cfg: Mapping[str, Any], raw_nodes: Mapping[str, Any], registry: Registry, problems: list[str]):
+    """Each node's stage spec, typed config, config path and raw ``inputs`` mapping (nodes whose stage cannot be
+    resolved have no spec; every problem is appended to ``problems``)."""
     specs: dict[str, StageSpec] = {}
     configs: dict[str, Any] = {}
     paths: dict[str, str] = {}
@@ -102,63 +122,76 @@ def build_pipeline(cfg: Mapping[str, Any], registry: Registry) -> list[Node]:
             configs[name] = build_config(spec, {k: v for k, v in values.items() if k != "stage"}, path)
         except ConfigError as exc:
             problems.append(f"node {name!r}: {exc}")
+    return specs, configs, paths, raw_inputs
 
-    refs: dict[str, dict[str, InputRef]] = {}
-    for name, spec in specs.items():
-        refs[name] = {}
-        given = raw_inputs[name]
-        for port, src in given.items():
-            if port not in spec.inputs:
-                problems.append(
-                    f"node {name!r}: " + unknown_name_message("input port", port, list(spec.inputs), f"stage {spec.name!r}")
-                )
-                continue
-            if not isinstance(src, str) or src.count(".") != 1:
-                problems.append(f"node {name!r}: input {port!r} must be '<node>.<port>', got {src!r}")
-                continue
-            up, up_port = src.split(".")
-            if up not in raw_nodes:
-                problems.append(f"node {name!r}: input {port!r} <- {src!r}: " + unknown_name_message("node", up, list(raw_nodes)))
-                continue
-            if up not in specs:
-                continue  # already reported
-            up_spec = specs[up]
-            if up_port not in up_spec.outputs:
-                problems.append(
-                    f"node {name!r}: input {port!r} <- {src!r}: "
-                    + unknown_name_message("output port", up_port, list(up_spec.outputs), f"node {up!r} (stage {up_spec.name!r})")
-                )
-                continue
-            want, have = spec.inputs[port], up_spec.outputs[up_port]
-            if not issubclass(have.type, want.type):
-                problems.append(
-                    f"node {name!r}: input {port!r} expects {want.type.__name__}, but {src} is a {have.type.__name__}"
-                )
-                continue
-            if up_spec.per_batch and not spec.per_batch and not want.all_batches:
-                problems.append(
-                    f"node {name!r}: input {port!r} <- {src} is produced per batch, but stage {spec.name!r} runs on the "
-                    f"whole recording and its port is not declared all_batches=True"
-                )
-                continue
-            if want.all_batches and not up_spec.per_batch:
-                problems.append(
-                    f"node {name!r}: input {port!r} is declared all_batches, so it must come from a per-batch node; "
-                    f"{src} is whole-recording"
-                )
-                continue
-            refs[name][port] = InputRef(up, up_port)
-        for port, p in spec.inputs.items():
-            if port not in given and not p.optional:
-                problems.append(
-                    f"node {name!r}: required input {port!r} ({p.type.__name__}) is not connected; "
-                    f"add inputs: {{{port}: <node>.<port>}}"
-                )
 
-    order = _toposort(refs, problems)
-    if problems:
-        raise PipelineError(problems)
+def _wire_inputs(name: str, spec: StageSpec, given: Mapping[str, Any], raw_nodes: Mapping[str, Any],
+                 specs: Mapping[str, StageSpec], problems: list[str]) -> dict[str, InputRef]:
+    """Node ``name``'s input ports -> their upstream outputs, each checked; problems are appended."""
+    refs: dict[str, InputRef] = {}
+    for port, src in given.items():
+        ref = _wire_input(name, spec, port, src, raw_nodes, specs, problems)
+        if ref is not None:
+            refs[port] = ref
+    for port, p in spec.inputs.items():
+        if port not in given and not p.optional:
+            problems.append(
+                f"node {name!r}: required input {port!r} ({p.type.__name__}) is not connected; "
+                f"add inputs: {{{port}: <node>.<port>}}"
+            )
+    return refs
 
+
+def _wire_input(name: str, spec: StageSpec, port: str, src: Any, raw_nodes: Mapping[str, Any],
+                specs: Mapping[str, StageSpec], problems: list[str]) -> InputRef | None:
+    """The upstream output ``src`` ('<node>.<port>') of input ``port``, or None with the problem appended (nothing
+    is appended for an upstream node whose own problem was already reported)."""
+    if port not in spec.inputs:
+        problems.append(
+            f"node {name!r}: " + unknown_name_message("input port", port, list(spec.inputs), f"stage {spec.name!r}")
+        )
+        return None
+    if not isinstance(src, str) or src.count(".") != 1:
+        problems.append(f"node {name!r}: input {port!r} must be '<node>.<port>', got {src!r}")
+        return None
+    up, up_port = src.split(".")
+    if up not in raw_nodes:
+        problems.append(f"node {name!r}: input {port!r} <- {src!r}: " + unknown_name_message("node", up, list(raw_nodes)))
+        return None
+    if up not in specs:
+        return None  # already reported
+    up_spec = specs[up]
+    if up_port not in up_spec.outputs:
+        problems.append(
+            f"node {name!r}: input {port!r} <- {src!r}: "
+            + unknown_name_message("output port", up_port, list(up_spec.outputs), f"node {up!r} (stage {up_spec.name!r})")
+        )
+        return None
+    want, have = spec.inputs[port], up_spec.outputs[up_port]
+    if not issubclass(have.type, want.type):
+        problems.append(
+            f"node {name!r}: input {port!r} expects {want.type.__name__}, but {src} is a {have.type.__name__}"
+        )
+        return None
+    if up_spec.per_batch and not spec.per_batch and not want.all_batches:
+        problems.append(
+            f"node {name!r}: input {port!r} <- {src} is produced per batch, but stage {spec.name!r} runs on the "
+            f"whole recording and its port is not declared all_batches=True"
+        )
+        return None
+    if want.all_batches and not up_spec.per_batch:
+        problems.append(
+            f"node {name!r}: input {port!r} is declared all_batches, so it must come from a per-batch node; "
+            f"{src} is whole-recording"
+        )
+        return None
+    return InputRef(up, up_port)
+
+
+def _batch_plans(order: list[str], specs: Mapping[str, StageSpec], refs: Mapping[str, Mapping[str, InputRef]],
+                 problems: list[str]) -> dict[str, tuple[str, str] | None]:
+    """For each per-batch node, the (node, port) of the BatchPlan that cuts its batches (None for whole nodes);
+    a per-batch node with no plan or with two different plans is a problem."""
     plans: dict[str, tuple[str, str] | None] = {}
     for name in order:
         spec = specs[name]
@@ -182,16 +215,7 @@ def build_pipeline(cfg: Mapping[str, Any], registry: Registry) -> list[Node]:
                 + ", ".join(f"{n}.{p}" for n, p in sorted(candidates))
             )
         plans[name] = next(iter(candidates)) if len(candidates) == 1 else None
-    if problems:
-        raise PipelineError(problems)
-
-    return [
-        Node(
-            name=n, spec=specs[n], config=configs[n], config_path=paths[n], inputs=refs[n],
-            plan_node=(plans[n] or (None, None))[0], plan_port=(plans[n] or (None, None))[1],
-        )
-        for n in order
-    ]
+    return plans
 
 
 def _toposort(refs: dict[str, dict[str, InputRef]], problems: list[str]) -> list[str]:

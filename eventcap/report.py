@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from .jobs import save_figure, write_csv
+from .runrecord import RUN_JSON, RunRecord
 
 log = logging.getLogger("eventcap.report")
 
@@ -43,7 +44,7 @@ class Job:
     path: Path
     overrides: list[str] | None
     config: dict[str, Any]
-    run: dict[str, Any] | None
+    run: RunRecord | None
     metrics: dict[str, Any]
     values: dict[str, str] = field(default_factory=dict)  # the varying keys -> value (filled by group)
 
@@ -51,7 +52,7 @@ class Job:
     def status(self) -> str:
         if self.run is None:
             return "not run"
-        return "ok" if self.run.get("ok") else "incomplete"
+        return "ok" if self.run.ok else "incomplete"
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, str]:
@@ -85,9 +86,9 @@ def find_jobs(root: Path) -> list[Job]:
         try:
             overrides = [str(o) for o in _load_yaml(ov_file) or []] if ov_file.is_file() else None
             config = _load_yaml(d / "config.yaml") if (d / "config.yaml").is_file() else {}
-            run = json.loads((d / "run.json").read_text()) if (d / "run.json").is_file() else None
+            run = RunRecord.read(d) if (d / RUN_JSON).is_file() else None
             metrics = json.loads((d / "metrics.json").read_text()) if (d / "metrics.json").is_file() else {}
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError) as exc:  # RunRecordError is a ValueError
             raise ReportError(f"{d}: cannot read the job: {exc}") from exc
         jobs.append(Job(d, overrides, config or {}, run, metrics or {}))
 

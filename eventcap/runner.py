@@ -9,7 +9,6 @@ again: every committed node and batch is a cache hit.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import logging
 import os
@@ -26,13 +25,17 @@ from typing import Any
 from .artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
 from .cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
 from .config import ConfigError, build_config, config_to_dict, file_digests, result_config
+from .errors import ComputationFailed
+from .memo import clear_process_caches, memoize
 from .pipeline import Node, build_pipeline
 from .registry import Registry, load_registry
+from .runrecord import NodeReport, RunRecord, RunRecordError
 from .stage import StageContext, StageSpec
 
 log = logging.getLogger("eventcap.runner")
 
-#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines costs 10-30x (NOTES.md).
+#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines costs 10-30x (a dense
+#: Cholesky took 1.4 s instead of 49 ms with two threads fighting on a busy 2-core machine).
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
@@ -94,12 +97,12 @@ class BatchSequence(Sequence):
         return _load(str(self._cache.root), self._ref.stage, self._ref.keys[i], self._ref.port, self._cls)
 
 
-@functools.lru_cache(maxsize=16)
+@memoize("runner.cache_at", maxsize=16)
 def _cache_at(root: str) -> Cache:
     return Cache(root)
 
 
-@functools.lru_cache(maxsize=8)
+@memoize("runner.inputs", maxsize=8)
 def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact]) -> Artifact:
     cache = _cache_at(root)
     entry = cache.lookup(stage, key)
@@ -108,7 +111,7 @@ def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact]) -> Ar
     return cache.load(entry, port, cls)
 
 
-@functools.lru_cache(maxsize=1)
+@memoize("runner.registry", maxsize=1)
 def _registry() -> Registry:
     return load_registry()
 
@@ -182,8 +185,9 @@ def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
         cache.commit(task.stage, task.key, task.doc, outputs, info)
         return TaskResult(task.node, task.key, bidx, "computed", time.perf_counter() - t0)
     except Exception as exc:  # recorded, reported, never cached as success
-        # A stage's own failure, or a library error that names its cause (eventcap.energy.errors), keeps its status.
-        status = exc.status if isinstance(getattr(exc, "status", None), str) else type(exc).__name__
+        # a stage's StageFailed and the library's own ComputationFailed errors (eventcap.errors, the energy's
+        # SolveFailed and EnergyError among them) carry their status
+        status = exc.status if isinstance(exc, ComputationFailed) else type(exc).__name__
         record = {"node": task.node, "batch": task.batch.as_key() if task.batch else None, "status": status,
                   "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc(),
                   "details": getattr(exc, "details", {})}
@@ -394,22 +398,6 @@ def _dask(cfg: ExecutorConfig) -> Iterator[_DaskPool]:
 # ---------------------------------------------------------------------------------------------------------------------
 # The run
 # ---------------------------------------------------------------------------------------------------------------------
-@dataclass
-class NodeReport:
-    node: str
-    stage: str
-    per_batch: bool
-    keys: list[str] = field(default_factory=list)
-    computed_keys: list[str] = field(default_factory=list)
-    cached: int = 0
-    computed: int = 0
-    failed: list[dict[str, Any]] = field(default_factory=list)
-    skipped: int = 0
-    #: why each skipped unit was skipped: {"batch": index or None, "cause": "upstream failed: <node>[batch k]: ..."}
-    skip_causes: list[dict[str, Any]] = field(default_factory=list)
-    elapsed_s: float = 0.0
-
-
 @dataclass
 class RunResult:
     nodes: dict[str, NodeReport]
@@ -805,20 +793,9 @@ class Runner:
 
     def _write_summary(self, run_dir: Path, result: RunResult, node_keys, batch_keys) -> None:
         run_dir.mkdir(parents=True, exist_ok=True)
-        summary = {
-            "ok": result.ok,
-            "cache_dir": str(self.cache.root),
-            "nodes": {
-                n: {"stage": r.stage, "per_batch": r.per_batch, "cached": r.cached, "computed": r.computed,
-                    "skipped": r.skipped, "skip_causes": r.skip_causes, "failed": r.failed, "elapsed_s": round(r.elapsed_s, 3),
-                    "keys": r.keys, "computed_keys": r.computed_keys}
-                for n, r in result.nodes.items()
-            },
-        }
-        (run_dir / "run.json").write_text(json.dumps(summary, indent=1))
+        RunRecord(result.ok, str(self.cache.root), dict(result.nodes)).write(run_dir)
         self._export(run_dir, node_keys, batch_keys, result)
         (run_dir / "metrics.json").write_text(json.dumps(result.metrics, indent=1, default=str))
-
 
     def _export(self, run_dir: Path, node_keys, batch_keys, result: RunResult) -> None:
         """Copy the outputs named in ``export`` (``node.port``) into the run folder as standalone zarr groups:
@@ -877,8 +854,59 @@ def _parse_selection(value) -> tuple[int | None, int | None] | None:
     return sel
 
 
+def load_finished_run(run_dir: str | Path) -> tuple[Runner, RunResult]:
+    """``(runner, result)`` of a finished run folder, rebuilt from its ``config.yaml`` and ``run.json`` without
+    running anything: every committed output the run recorded is read back from the cache. RunRecordError (naming
+    the file and what to do) when the folder is not a finished run or its cache entries are gone."""
+    import yaml
+
+    run_dir = Path(run_dir)
+    cfg_path, summary_path = run_dir / "config.yaml", run_dir / "run.json"
+    for p in (cfg_path, summary_path):
+        if not p.is_file():
+            raise RunRecordError(f"{run_dir}: not a finished run folder (no {p.name}; `eventcap run` writes it)")
+    cfg = yaml.safe_load(cfg_path.read_text()) or {}
+    record = RunRecord.read(run_dir)
+    cache_dir = record.cache_path(run_dir, cfg.get("cache_dir") or "runs/cache")
+    cfg["cache_dir"] = str(cache_dir)
+    try:
+        runner = Runner(cfg)
+    except Exception as exc:  # noqa: BLE001 - e.g. a stage no longer installed
+        raise RunRecordError(f"{cfg_path}: cannot rebuild the run's pipeline: {exc}") from exc
+    cache = Cache(cache_dir)
+    node_keys, batch_keys, missing = {}, {}, []
+    for name, rep in record.nodes.items():
+        if name not in runner.by_name:
+            raise RunRecordError(f"{summary_path}: node {name!r} is not in the pipeline of {cfg_path}")
+        failed_keys = {f.get("key") for f in rep.failed}
+        if not rep.per_batch:
+            if rep.keys and not rep.failed and not rep.skipped:
+                node_keys[name] = rep.keys[0]
+                if cache.lookup(rep.stage, rep.keys[0]) is None:
+                    missing.append(name)
+            continue
+        committed = {}
+        for key in rep.keys:
+            if key in failed_keys:
+                continue
+            entry = cache.lookup(rep.stage, key)
+            if entry is None:
+                missing.append(f"{name} ({key[:12]})")
+                continue
+            committed[int(entry.manifest["batch"]["index"])] = key
+        batch_keys[name] = dict(sorted(committed.items()))
+    if missing:
+        raise RunRecordError(f"{run_dir}: {len(missing)} of the run's cache entries are gone from {cache_dir} "
+                             f"({', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''}); run the same command "
+                             f"again to restore them (the overrides are in {run_dir / '.hydra' / 'overrides.yaml'}), "
+                             f"or use `eventcap view {run_dir} --recompute`")
+    metrics = {}
+    if (run_dir / "metrics.json").is_file():
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+    return runner, RunResult(record.nodes, metrics, node_keys, batch_keys)
+
+
 def reset_process_caches() -> None:
-    """Forget memoised registry, caches and loaded inputs (after changing EVENTCAP_STAGES or files on disk)."""
-    _registry.cache_clear()
-    _cache_at.cache_clear()
-    _load.cache_clear()
+    """Forget every process cache (eventcap.memo): the registry, caches and loaded inputs, the stages' built problems
+    (after changing EVENTCAP_STAGES or files on disk)."""
+    clear_process_caches()

@@ -7,7 +7,7 @@ string imported only when the stage runs (so listing stages imports no solver)::
     SPEC = StageSpec(
         name="edi", kind="sharpen", version=1, description="EDI deblurring of intensity frames (Eq. 2)",
         config=EdiConfig, inputs={"recording": Port(Recording)}, outputs={"latent": Port(LatentFrames)},
-        run="eventcap_sharpen._edi:run",
+        run="eventcap_sharpen._impl:run_edi",
     )
 
 The run function is pure: ``run(inputs: dict[str, Artifact], config, ctx: StageContext) -> dict[str, Artifact]``.
@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from .artifacts import Artifact, Batch
+from .errors import ComputationFailed
 
 
 def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True,
@@ -227,10 +228,8 @@ class StageContext:
             self.progress(done, total)
 
 
-class StageFailed(RuntimeError):
-    """Raised by a stage whose computation did not succeed (e.g. a solver status); recorded, never cached."""
+class StageFailed(ComputationFailed):
+    """Raised by a stage whose computation did not succeed (e.g. a solver status); recorded, never cached.
 
-    def __init__(self, message: str, status: str = "failed", details: dict[str, Any] | None = None):
-        super().__init__(message)
-        self.status = status
-        self.details = details or {}
+    The domain library raises its own subclasses of :class:`eventcap.errors.ComputationFailed`, which the runner
+    records the same way."""

@@ -32,15 +32,14 @@ the viewer shows the latest outline until the next) are drawn at most ``rerun_ma
 evenly over the run, as the overlay video's frames do); the 3D skeleton, the projected skeleton, the tracks and the
 speeds are kept at every tracking frame.
 
-This module is an app layer, like :mod:`eventcap.outputs`: it reads a finished run through the runner
-(:meth:`Runner.load_output`) and never imports a plugin. Rerun is an optional dependency (``rerun-sdk``, ~500 MB
+This module is an app layer below :mod:`eventcap.outputs`, which calls it (``outputs.rerun=true``, and
+:func:`eventcap.outputs.build_run_recording` for ``eventcap view``): it is handed a runner and its result, reads the
+run's outputs through them (:meth:`Runner.load_output`), and imports neither the outputs, the runner nor a plugin. Rerun is an optional dependency (``rerun-sdk``, ~500 MB
 with its viewer): without it, :func:`require_rerun` says what to install.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import logging
 import os
 import shutil
@@ -149,9 +148,9 @@ def _set_time(rec_stream, t_us: int) -> None:
 def decimated(t_us: np.ndarray, every_ms: float, max_frames: int) -> np.ndarray:
     """Indices into the motion frames ``t_us``: one every ``every_ms`` of motion time, at most ``max_frames`` (the step
     widens evenly over the whole motion); the same rule as the overlay video's frames."""
-    from .outputs import video_frame_indices
+    from .motion import frames_every
 
-    return video_frame_indices(t_us, every_ms, max_frames)
+    return frames_every(t_us, every_ms, max_frames)[0]
 
 
 def speeds(t_us: np.ndarray, joints: np.ndarray, half_window_us: int = SPEED_HALF_WINDOW_US
@@ -548,105 +547,6 @@ def _log_batches(rr, s, c: RunContent, counts) -> None:
 # ---------------------------------------------------------------------------------------------------------------------
 class ViewError(Exception):
     """A run folder that cannot be shown (the message says why and what to do)."""
-
-
-def load_finished_run(run_dir: Path):
-    """``(runner, result)`` of a finished run folder, rebuilt from its ``config.yaml`` and ``run.json`` without
-    running anything: every committed output the run recorded is read back from the cache."""
-    import yaml
-
-    from .cache import Cache
-    from .runner import NodeReport, Runner, RunResult
-
-    run_dir = Path(run_dir)
-    cfg_path, summary_path = run_dir / "config.yaml", run_dir / "run.json"
-    for p in (cfg_path, summary_path):
-        if not p.is_file():
-            raise ViewError(f"{run_dir}: not a finished run folder (no {p.name}; `eventcap run` writes it)")
-    cfg = yaml.safe_load(cfg_path.read_text()) or {}
-    summary = json.loads(summary_path.read_text())
-    cache_dir = _find_cache_dir(run_dir, summary.get("cache_dir") or cfg.get("cache_dir") or "runs/cache")
-    cfg["cache_dir"] = str(cache_dir)
-    try:
-        runner = Runner(cfg)
-    except Exception as exc:  # noqa: BLE001 - e.g. a stage no longer installed
-        raise ViewError(f"{cfg_path}: cannot rebuild the run's pipeline: {exc}") from exc
-    cache = Cache(cache_dir)
-    reports, node_keys, batch_keys, missing = {}, {}, {}, []
-    for name, n in (summary.get("nodes") or {}).items():
-        if name not in runner.by_name:
-            raise ViewError(f"{summary_path}: node {name!r} is not in the pipeline of {cfg_path}")
-        rep = NodeReport(name, n["stage"], bool(n["per_batch"]), list(n.get("keys") or []),
-                         list(n.get("computed_keys") or []), int(n.get("cached", 0)), int(n.get("computed", 0)),
-                         list(n.get("failed") or []), int(n.get("skipped", 0)), float(n.get("elapsed_s", 0.0)))
-        reports[name] = rep
-        failed_keys = {f.get("key") for f in rep.failed}
-        if not rep.per_batch:
-            if rep.keys and not rep.failed and not rep.skipped:
-                node_keys[name] = rep.keys[0]
-                if cache.lookup(rep.stage, rep.keys[0]) is None:
-                    missing.append(name)
-            continue
-        committed = {}
-        for key in rep.keys:
-            if key in failed_keys:
-                continue
-            entry = cache.lookup(rep.stage, key)
-            if entry is None:
-                missing.append(f"{name} ({key[:12]})")
-                continue
-            committed[int(entry.manifest["batch"]["index"])] = key
-        batch_keys[name] = dict(sorted(committed.items()))
-    if missing:
-        raise ViewError(f"{run_dir}: {len(missing)} of the run's cache entries are gone from {cache_dir} "
-                        f"({', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''}); run the same command "
-                        f"again to restore them (the overrides are in {run_dir / '.hydra' / 'overrides.yaml'}), "
-                        f"or use `eventcap view {run_dir} --recompute`")
-    metrics = {}
-    if (run_dir / "metrics.json").is_file():
-        metrics = json.loads((run_dir / "metrics.json").read_text())
-    return runner, RunResult(reports, metrics, node_keys, batch_keys)
-
-
-def _find_cache_dir(run_dir: Path, cache_dir: str) -> Path:
-    """The run's cache: as recorded (absolute, or relative to the current folder), else relative to the folder the
-    run was started from (the run folder is ``runs/<name>/<timestamp>/`` below it by default)."""
-    p = Path(cache_dir)
-    if p.is_absolute() or (p / "entries").is_dir():
-        return p
-    for base in list(run_dir.resolve().parents)[:4]:
-        if (base / p / "entries").is_dir():
-            return base / p
-    return p
-
-
-def build_run_recording(run_dir: Path, recompute: bool = False) -> Path:
-    """Write ``RUN_DIR/capture.rrd`` from a finished run (config + cache) through the same path as
-    ``outputs.rerun=true``; ``recompute`` runs the pipeline again first (cache hits, recomputing what is gone)."""
-    from .outputs import check_outputs_config, write_run_outputs
-
-    run_dir = Path(run_dir)
-    if recompute:
-        import yaml
-
-        from .runner import Runner
-
-        cfg = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
-        cfg["cache_dir"] = str(_find_cache_dir(run_dir, cfg.get("cache_dir") or "runs/cache"))
-        runner = Runner(cfg)
-        result = runner.run(None)
-    else:
-        runner, result = load_finished_run(run_dir)
-    cfg = check_outputs_config(runner)
-    if cfg.poses is None:
-        raise ViewError(f"{run_dir}: this run has no motion to show (outputs.poses is null or names no node of its "
-                        f"pipeline, e.g. pipeline=simulate); `eventcap preview RECORDING.zarr` shows a recording")
-    only = dataclasses.replace(cfg, bvh=False, npz=False, video=False, c3d=False, rerun=True)
-    summary = write_run_outputs(runner, result, run_dir, only, merge=True)
-    if "rerun" not in summary["written"]:
-        why = summary["skipped"].get("rerun") or "; ".join(summary["problems"]) or "nothing to show"
-        raise ViewError(f"{run_dir}: no recording written: {why}")
-    return Path(summary["written"]["rerun"])
 
 
 def has_display() -> bool:

@@ -33,7 +33,7 @@ try:
 except ImportError:  # not installed yet: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))
 
-from eventcap.motion import join_batches  # noqa: E402  (moved to the core; the plugin imports it from there)
+from eventcap.motion import MotionError, join_batches  # noqa: E402  (moved to the core; the plugin imports it from there)
 
 STAGES = "eventcap_evaluate.spec:EVALUATE"
 FRAME_STEP_US = 40_000  # 25 fps intensity frames
@@ -173,10 +173,11 @@ def test_join_keeps_one_pose_per_shared_boundary_frame():
 
 
 def test_join_errors():
-    with pytest.raises(StageFailed, match=r"batch 1: tracking frame times must increase; frame 1") as e:
+    # the library's own error; the runner records its status as a stage's (test_join_failure_is_recorded_by_the_runner)
+    with pytest.raises(MotionError, match=r"batch 1: tracking frame times must increase; frame 1") as e:
         join_batches([_seq([0, 1000], 0, 0), _seq([2000, 2000], 0, 0)])
     assert e.value.status == "bad_poses"
-    with pytest.raises(StageFailed, match=r"no poses to join: 2 batch\(es\)") as e:
+    with pytest.raises(MotionError, match=r"no poses to join: 2 batch\(es\)") as e:
         join_batches([_seq([], 0, 0), _seq([], 0, 0)])
     assert e.value.status == "no_poses"
     with pytest.raises(ValueError, match=r"join: expected one of later, mean, got 'first'"):

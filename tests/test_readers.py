@@ -431,9 +431,11 @@ def test_flipped_bits_in_checksummed_data_are_rejected(synth, tmp_path):
         read_recording(q)
 
 
-def test_corrupted_aedat4_header_is_rejected_before_the_native_decoder(tmp_path):
+def test_corrupted_aedat4_header_is_rejected_before_the_native_decoder(synth, tmp_path):
     """Invalid UTF-8 in the stream description aborts the Rust decoders: it must be caught in Python first."""
-    data = bytearray(REAL.read_bytes())
+    # an AEDAT4 file of our writer (the real recording is not in the repository)
+    data = bytearray(write_events(tmp_path / "w.aedat4", synth.events, width=64, height=48).read_bytes())
+    assert data.find(b"<dv") < 200 < data.find(b"</dv>")
     data[200] = 0xD6  # inside the XML description
     p = tmp_path / "h.aedat4"
     p.write_bytes(bytes(data))

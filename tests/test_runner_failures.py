@@ -89,3 +89,25 @@ def test_missing_recording_fails_the_source_node_and_run_json_is_written(tmp_pat
     [fail] = s["nodes"]["source"]["failed"]
     assert fail["batch"] is None and fail["error"] == f"ConfigError: source.path: file not found: {tmp_path / 'nope.aedat4'}"
     assert s["nodes"]["template"]["computed"] + s["nodes"]["template"]["cached"] == 1
+
+
+def test_a_library_error_is_recorded_with_its_own_status(toy, tmp_path, monkeypatch):
+    # The domain library raises errors of its own (eventcap.errors.ComputationFailed subclasses such as MotionError),
+    # not the framework's StageFailed; the runner records their status as it does a stage's.
+    import toy_stages
+
+    from eventcap.motion import join_batches
+
+    real = toy_stages.run_smooth
+
+    def run_smooth(inputs, config, ctx):
+        if ctx.batch.index == 1:
+            join_batches([])  # nothing to join: MotionError(status="no_poses")
+        return real(inputs, config, ctx)
+
+    monkeypatch.setattr(toy_stages, "run_smooth", run_smooth)
+    code, s, _ = run_cli(tmp_path, "lib")
+    assert code == 1 and not s["ok"]
+    [fail] = s["nodes"]["smooth"]["failed"]
+    assert fail["batch"] == 1 and fail["status"] == "no_poses"
+    assert fail["error"] == "MotionError: no poses to join: 0 batch(es), none with a tracking frame"

@@ -25,6 +25,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from eventcap.memo import ProcessCache
+
 
 class ArtifactError(ValueError):
     """An artifact does not match its declared schema."""
@@ -76,13 +78,12 @@ def _dtype_str(dt: np.dtype) -> str:
     return dt.str
 
 
-_TYPE_CACHE: dict[type, dict[str, Any]] = {}
+#: the resolved type hints of each artifact class
+_TYPE_HINTS = ProcessCache("artifacts.type_hints")
 
 
 def _hints(cls) -> dict[str, Any]:
-    if cls not in _TYPE_CACHE:
-        _TYPE_CACHE[cls] = typing.get_type_hints(cls)
-    return _TYPE_CACHE[cls]
+    return _TYPE_HINTS.get(cls, lambda: typing.get_type_hints(cls))[0]
 
 
 def _child_type(hint) -> type[Artifact] | None:

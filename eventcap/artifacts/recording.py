@@ -20,7 +20,7 @@ from .base import Artifact, ArtifactError, array, attr
 
 @dataclass(frozen=True, eq=False)
 class EventStream(Artifact):
-    """Events of one sensor, sorted by time, inside the sensor, polarity ±1 (DESIGN §2)."""
+    """Events of one sensor, sorted by time, inside the sensor, polarity ±1 (``EVENT_DTYPE``, eventcap/events.py)."""
 
     schema_version: ClassVar[int] = 1
     events: np.ndarray = array(EVENT_DTYPE, ("n",), units="t: us, x/y: px, p: ±1")

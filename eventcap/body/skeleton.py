@@ -1,8 +1,8 @@
 """The fixed skeleton every body template shares: SMPL's 24 joints, 27 bounded joint angles, landmarks.
 
-World frame (DESIGN §2): metres, y up. In the rest pose the actor stands at the origin with the feet on y=0,
-faces +z, and the actor's left is +x. The rest pose is a T-pose (arms horizontal along ±x) and all-zero
-parameters reproduce it exactly.
+World frame (the same everywhere in eventcap; camera axes in eventcap/camera.py): right-handed, metres, y up. In
+the rest pose the actor stands at the origin with the feet on y=0, faces +z, and the actor's left is +x. The rest
+pose is a T-pose (arms horizontal along ±x) and all-zero parameters reproduce it exactly.
 
 Pose vector ``S`` (33 values per frame, the paper's S = [θ, R, t]):
 

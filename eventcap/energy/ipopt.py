@@ -157,7 +157,8 @@ def block_tridiagonal_triu(n_blocks: int, size: int):
 
 
 class _BoundsError(EnergyError):
-    status = "invalid_bounds"
+    def __init__(self, message: str):
+        super().__init__(message, status="invalid_bounds")
 
 
 def checked_bounds(lower, upper, who: str) -> tuple[np.ndarray, np.ndarray]:

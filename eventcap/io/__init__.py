@@ -1,4 +1,5 @@
-"""Reading and writing event-camera recordings, robust to bad input (DESIGN §8).
+"""Reading and writing event-camera recordings, robust to bad input: an error names the file, the row or offset
+and what was expected (the shared checks and repairs are in :mod:`eventcap.io.checks`).
 
 Formats (detected from the content, then the extension; or ``format=``):
 

@@ -1,7 +1,7 @@
 """Legacy AEDAT files, decoded by us: 2.0 (jAER: DVS128, DAVIS, DHP19) and 3.1 (cAER / DV before AEDAT4).
 
-No package on PyPI decodes these correctly (NOTES.md: transposed x/y, a missing x flip, inverted polarity, kept
-invalid and special events, ignored timestamp overflow), so this module follows the formats' specifications:
+No package on PyPI decodes these correctly (checked: tonic and aermanager transpose x/y, miss the x flip, invert
+polarity, keep invalid and special events and ignore the 3.1 timestamp overflow; evlib, aerpy and bimvee fail), so this module follows the formats' specifications:
 
 AEDAT 2.0 (big-endian ``int32 address, int32 timestamp µs`` after ``#`` header lines; the chip from the
 ``# AEChip:`` line):

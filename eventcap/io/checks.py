@@ -1,4 +1,4 @@
-"""Decoded event columns → ``EVENT_DTYPE``, with the checks and repairs of DESIGN §8 shared by every reader.
+"""Decoded event columns → ``EVENT_DTYPE``, with the checks and repairs shared by every reader.
 
 Policy, the same for every format (the module docstring of :mod:`eventcap.io` says it to users):
 

@@ -19,6 +19,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,6 @@ from eventcap.artifacts.base import ArrayAppender, ArtifactError
 from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.events import EVENT_DTYPE
-from eventcap.cache import pid_alive
 from eventcap.io.readers import (
     PLAUSIBLE_HEIGHT,
     PLAUSIBLE_WIDTH,
@@ -41,6 +41,7 @@ from eventcap.io.readers import (
 )
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS
+from eventcap.processes import pid_alive
 
 #: End of an open time window ("to the end"), µs; far beyond any recording, with room for offsets.
 OPEN_END_US = np.iinfo(np.int64).max // 2
@@ -230,6 +231,24 @@ def _check_roi_inside(r: Roi, width: int, height: int) -> None:
         raise ValueError(f"roi {r} does not lie inside the {width} × {height} sensor")
 
 
+@dataclass
+class _Pass:
+    """What one streaming pass over the file saw (counts, the window's neighbours, the largest coordinates)."""
+
+    read: int = 0  # events decoded
+    in_window: int = 0  # of those, inside the time window
+    outside: int = 0  # of those, outside every known sensor (an inferred size is refused beyond a few)
+    max_x: int = -1
+    max_y: int = -1
+    #: the largest coordinates per axis (outlier check of an inferred sensor size)
+    tops: dict = field(default_factory=lambda: {"x": np.empty(0, np.int64), "y": np.empty(0, np.int64)})
+    last_t_before: int | None = None  # the last event before the window
+    first_t_after: int | None = None  # the first event after it
+    stopped_early: bool = False  # decoding stopped at the window's end
+    first_t: int | None = None  # first and last event written
+    last_t: int | None = None
+
+
 def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, width, height, window, roi, time_unit,
                  progress, columns=None, y_up=False) -> dict:
     """Write the Recording group ``root`` from ``in_path``; returns the statistics of the conversion."""
@@ -243,45 +262,77 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
     # largest coordinates at the end, as read_recording does.
     chunks = iter_event_chunks(in_path, chunk_events, format, width=65536 if infer else width,
                                height=65536 if infer else height, time_unit=time_unit, columns=columns, y_up=y_up)
-    source = chunks._source  # the same decoder object read_recording would ask for frames and calibration
     path = chunks.path
     full_w, full_h = (None, None) if infer else (chunks.width, chunks.height)
     if roi is not None and not infer:
         _check_roi_inside(roi, full_w, full_h)
-    start, end = window if window is not None else (None, None)
 
     events_group = root.create_group("events")
-    columns = events_group.create_group("events")
-    columns.attrs["structured"] = [[n, EVENT_DTYPE.fields[n][0].str] for n in EVENT_DTYPE.names]
+    cols = events_group.create_group("events")
+    cols.attrs["structured"] = [[n, EVENT_DTYPE.fields[n][0].str] for n in EVENT_DTYPE.names]
     units = EventStream.array_fields()["events"].units
-    appenders = {n: ArrayAppender(columns, n, EVENT_DTYPE.fields[n][0], units=units) for n in EVENT_DTYPE.names}
+    appenders = {n: ArrayAppender(cols, n, EVENT_DTYPE.fields[n][0], units=units) for n in EVENT_DTYPE.names}
     check = _StreamCheck(roi.width if roi is not None else full_w, roi.height if roi is not None else full_h)
+    seen = _copy_events(chunks, appenders, check, window, roi, infer, progress, t_begin)
 
-    read = in_window = outside = 0
-    max_x = max_y = -1
-    tops = {"x": np.empty(0, np.int64), "y": np.empty(0, np.int64)}  # the largest coordinates (outlier check)
-    last_t_before = first_t_after = None
-    stopped_early = False
-    first_t = last_t = None
+    if window is not None and seen.in_window == 0:
+        start, end = window
+        span = (f"the recording's events span 0..{seen.last_t_before} µs" if seen.first_t_after is None else
+                f"the last event before it is at {seen.last_t_before} µs and the next at {seen.first_t_after} µs")
+        shown = f"[{start}, {end}) µs" if end < OPEN_END_US else f"from {start} µs on"
+        raise RecordingError(path, f"no events in the time window {shown}: {span}")
+    if infer:
+        full_w, full_h = seen.max_x + 1, seen.max_y + 1
+        if roi is None:
+            _refuse_outliers(path, seen.tops, seen.read)
+            err = implausible_sensor(path, seen.read, seen.outside, seen.max_x, seen.max_y,
+                                     "pass --width and --height, or crop with --roi")
+            if err is not None:
+                raise err
+        if roi is not None:
+            _check_roi_inside(roi, full_w, full_h)
+    if check.rows == 0:  # only a crop can leave nothing (an empty file or window was refused above)
+        raise RecordingError(path, f"no events inside the region of interest {roi}")
+    for app in appenders.values():
+        app.close()
+    w, h, stack, note, repairs = _write_frames_and_camera(root, chunks, seen, window, roi, infer, full_w, full_h,
+                                                          calibration)
+    events_group.attrs.update(_header(EventStream, {"width": w, "height": h}))
+    root.attrs.update(_header(Recording, {"name": path.stem,
+                                          "source": source_description(chunks.format, path, chunks.t_offset_us,
+                                                                       note, repairs)}))
+    seconds = time.perf_counter() - t_begin
+    return {"format": chunks.format, "events": check.rows, "events_read": seen.read, "frames": 0 if stack is None
+            else len(stack.t_us), "width": w, "height": h, "t_offset_us": chunks.t_offset_us,
+            "t_first_us": seen.first_t, "t_last_us": seen.last_t, "camera": note, "repairs": repairs,
+            "stopped_at_window_end": seen.stopped_early, "seconds": seconds,
+            "events_per_s": seen.read / seconds if seconds > 0 else float("inf")}
+
+
+def _copy_events(chunks, appenders, check: _StreamCheck, window, roi, infer: bool, progress, t_begin: float) -> _Pass:
+    """Append the events of every chunk inside the time window and the ROI (shifted to the ROI's corner) to the
+    event columns, checked chunk by chunk; stops after the window's end when the sensor size is declared."""
+    seen = _Pass()
+    start, end = window if window is not None else (None, None)
     for chunk in chunks:
-        read += len(chunk)
+        seen.read += len(chunk)
         if infer:
-            max_x, max_y = max(max_x, int(chunk["x"].max())), max(max_y, int(chunk["y"].max()))
-            outside += int(((chunk["x"] >= PLAUSIBLE_WIDTH) | (chunk["y"] >= PLAUSIBLE_HEIGHT)).sum())
-            for axis in tops:
-                tops[axis] = largest_values(np.concatenate([tops[axis], largest_values(chunk[axis])]))
+            seen.max_x, seen.max_y = max(seen.max_x, int(chunk["x"].max())), max(seen.max_y, int(chunk["y"].max()))
+            seen.outside += int(((chunk["x"] >= PLAUSIBLE_WIDTH) | (chunk["y"] >= PLAUSIBLE_HEIGHT)).sum())
+            for axis in seen.tops:
+                seen.tops[axis] = largest_values(np.concatenate([seen.tops[axis], largest_values(chunk[axis])]))
         if window is not None:
             t = chunk["t"]
             a, b = np.searchsorted(t, [start, end], side="left")
             if a > 0:
-                last_t_before = int(t[a - 1])
-            if b < len(t) and first_t_after is None:
-                first_t_after = int(t[b])
+                seen.last_t_before = int(t[a - 1])
+            if b < len(t) and seen.first_t_after is None:
+                seen.first_t_after = int(t[b])
             chunk = chunk[a:b]
-            in_window += len(chunk)
+            seen.in_window += len(chunk)
             if b < len(t) and not infer:
                 # Past the window's end: the rest of the file cannot contribute (the size is declared).
-                stopped_early = True
+                seen.stopped_early = True
         if roi is not None and len(chunk):
             keep = ((chunk["x"] >= roi.x) & (chunk["x"] < roi.x + roi.width)
                     & (chunk["y"] >= roi.y) & (chunk["y"] < roi.y + roi.height))
@@ -292,48 +343,35 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
             check(chunk)
             for n, app in appenders.items():
                 app.append(np.ascontiguousarray(chunk[n]))
-            first_t = int(chunk["t"][0]) if first_t is None else first_t
-            last_t = int(chunk["t"][-1])
+            seen.first_t = int(chunk["t"][0]) if seen.first_t is None else seen.first_t
+            seen.last_t = int(chunk["t"][-1])
         if progress is not None:
-            progress(check.rows, read, time.perf_counter() - t_begin)
-        if stopped_early:
+            progress(check.rows, seen.read, time.perf_counter() - t_begin)
+        if seen.stopped_early:
             break
+    return seen
 
-    if window is not None and in_window == 0:
-        span = (f"the recording's events span 0..{last_t_before} µs" if first_t_after is None else
-                f"the last event before it is at {last_t_before} µs and the next at {first_t_after} µs")
-        shown = f"[{start}, {end}) µs" if end < OPEN_END_US else f"from {start} µs on"
-        raise RecordingError(path, f"no events in the time window {shown}: {span}")
-    if infer:
-        full_w, full_h = max_x + 1, max_y + 1
-        if roi is None:
-            _refuse_outliers(path, tops, read)
-            err = implausible_sensor(path, read, outside, max_x, max_y, "pass --width and --height, or crop with "
-                                                                        "--roi")
-            if err is not None:
-                raise err
-        if roi is not None:
-            _check_roi_inside(roi, full_w, full_h)
-    if check.rows == 0:  # only a crop can leave nothing (an empty file or window was refused above)
-        raise RecordingError(path, f"no events inside the region of interest {roi}")
-    n_events = check.rows
-    for app in appenders.values():
-        app.close()
+
+def _write_frames_and_camera(root, chunks, seen: _Pass, window, roi, infer: bool, full_w: int, full_h: int,
+                             calibration):
+    """The frames (windowed, cropped) and the camera of the converted recording, written into ``root``; logs the
+    repairs the pass did not log. Returns (width, height, frame stack or None, camera note, repairs)."""
+    path = chunks.path
+    source = chunks._source  # the same decoder object read_recording would ask for frames and calibration
     # A completed pass has logged its own repairs; log the rest (frames, inferred size) once here.
-    logged = set() if stopped_early else set(chunks.repairs)
-
+    logged = set() if seen.stopped_early else set(chunks.repairs)
     frame_data = source.frames()
     repairs = list(chunks.repairs)  # after frames(): it may add notes, as in read_recording
-    if stopped_early:
+    if seen.stopped_early:
         logger.info("%s: stopped decoding at the end of the time window (%d µs); repairs and errors after it are "
-                    "not looked for", path, end)
+                    "not looked for", path, window[1])
     if infer:
         repairs.append(f"sensor size not in the file: inferred {full_w} × {full_h} from the largest event "
                        f"coordinates (pass width= and height= to set it)")
     frames = _finish_frames(frame_data, path, chunks.t_offset_us, full_w, full_h, repairs)
     calib = source.calibration(full_w, full_h)
     if window is not None:
-        frames = _window_frames(frames, start, end)
+        frames = _window_frames(frames, *window)
     if roi is not None:
         frames = _crop_frames(frames, roi)
         if calib is not None:
@@ -343,8 +381,6 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
     for repair in repairs:
         if repair not in logged:
             logger.warning("%s: %s", path, repair)
-
-    events_group.attrs.update(_header(EventStream, {"width": w, "height": h}))
     cam, note = choose_camera(w, h, file_calibration=calib, calibration=calibration, roi=roi)
     cam.to_zarr(root.create_group("camera"))
     stack = frame_stack(frames)
@@ -352,15 +388,7 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
         if (stack.width, stack.height) != (w, h):
             raise ArtifactError(f"Recording: frames are {stack.width}x{stack.height}, camera {w}x{h}")
         stack.to_zarr(root.create_group("frames"))
-    root.attrs.update(_header(Recording, {"name": path.stem,
-                                          "source": source_description(chunks.format, path, chunks.t_offset_us,
-                                                                       note, repairs)}))
-    seconds = time.perf_counter() - t_begin
-    return {"format": chunks.format, "events": n_events, "events_read": read, "frames": 0 if stack is None else
-            len(stack.t_us), "width": w, "height": h, "t_offset_us": chunks.t_offset_us,
-            "t_first_us": first_t, "t_last_us": last_t, "camera": note, "repairs": repairs,
-            "stopped_at_window_end": stopped_early, "seconds": seconds,
-            "events_per_s": read / seconds if seconds > 0 else float("inf")}
+    return w, h, stack, note, repairs
 
 
 # ------------------------------------------------------------------------------------------- atomic output folder

@@ -86,7 +86,7 @@ class Frames:
 
 @dataclass(frozen=True, eq=False)
 class RawRecording:
-    """One decoded event-camera recording, in the project's conventions (DESIGN §2).
+    """One decoded event-camera recording, in the project's conventions (``EVENT_DTYPE``, eventcap/events.py).
 
     - ``events``: (N,) ``EVENT_DTYPE``, sorted by time, no exact duplicates, inside the sensor, polarity ±1.
       Time is in microseconds since the recording's first event: ``t + t_offset_us`` is the file's own time.

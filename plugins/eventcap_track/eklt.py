@@ -85,6 +85,7 @@ from __future__ import annotations
 
 import math
 import operator
+from collections import namedtuple
 from dataclasses import dataclass
 
 import cv2
@@ -491,329 +492,400 @@ def _build_event_frame(ring, ring_pos, nb, ev_tau, ev_x, ev_y, ev_p, ox, oy, hei
     return (t_sum / t_cnt if t_cnt else 0.0), t_cnt, ne
 
 
-def _make_tracker(mode: int):
-    """The numba tracking kernel for one warp model, with the parameter count a compile-time constant.
+# The warp model is a compile-time constant of the kernels below: each takes ``mode`` (0 translation, 1 rotation,
+# 2 affine) and calls ``numba.literally(mode)``, so numba compiles one specialisation per model, with the parameter
+# count M a constant that unrolls the normal-equation loops (2x faster than a runtime M, measured). Parameters
+# p = [cx, cy, warp..., phi]: M = 3 (translation), 4 (+ rotation angle), 7 (+ 4 affine entries). Every kernel is
+# a module-level function, so numba's disk cache serves later processes. (Closures over the mode, built per
+# process, missed that cache: its key pickles the jitted functions a closure captures, which differ per process,
+# so every process compiled the tracker again, 7-20 s, and the cache folder grew by one entry per process.)
+#
+# The tracker's state travels in named tuples of arrays (numba passes them as structs): _Features (per feature k:
+# warp parameters params (K, M); alive, inited (flow angle bootstrapped); the ring buffer of the patch's event
+# indices ring (K, n_max) with its fill ring_n and write position ring_pos; since (events since the last update);
+# nbatch (events per event frame); velocity vel (px/us), vel_ok; the velocity's reference sample ref_xy, t_ref,
+# ref_ok; t_prev, the time of the last update), _Workspace (scratch of one update) and _Samples (the output, grown
+# by doubling).
+_Features = namedtuple("_Features", "params alive inited ring ring_n ring_pos since nbatch vel vel_ok ref_xy t_ref "
+                                    "ref_ok t_prev")
+_Workspace = namedtuple("_Workspace", "efr valid jtj jtr jtj_n jtr_n jj jpp jpe jp lhs rhs step pn p")
+_Samples = namedtuple("_Samples", "k t x y c")
+#: Velocities are measured over at least this span, so that the position noise of single updates does not dominate.
+_VEL_SPAN_US = 500.0
 
-    Parameters p = [cx, cy, warp..., phi]: M = 3 (translation), 4 (+ rotation angle), 7 (+ 4 affine entries).
-    A constant M lets numba unroll the normal-equation loops (2x faster than a runtime M, measured).
+
+@numba.njit(inline="always")
+def _n_params(mode):
+    return 3 if mode == 0 else (4 if mode == 1 else 7)
+
+
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _warp_matrix(p, mode):
+    """A of the patch warp W(u) = x0 + A (u - c) as (a00, a01, a10, a11)."""
+    if mode == 0:
+        return 1.0, 0.0, 0.0, 1.0
+    if mode == 1:
+        c = math.cos(p[2])
+        s = math.sin(p[2])
+        return c, -s, s, c
+    return 1.0 + p[2], p[3], p[4], 1.0 + p[5]
+
+
+@numba.njit(cache=True, fastmath=True)
+def _evaluate(p, x0, y0, der, efr, valid, ox, oy, jtj, jtr, jj, jpp, jpe, jp, mode):
+    """Cost 1 - cos(P, E) at p, the LM normal equations (jtj, jtr), sum |P| and sum P^2.
+
+    P(u) = -grad L0(W(u)) . (cos phi, sin phi) on the grid of the unit-norm event frame ``efr``. With
+    n = |P|, r = P/n - E, the normalised residual's Jacobian is J = (JP - P s^T / n) / n, s = JP^T P / n;
+    J^T J and J^T r then follow from sums over the patch alone, so one pass suffices.
     """
-    M = (3, 4, 7)[mode]
+    numba.literally(mode)
+    M = _n_params(mode)
+    h = der.shape[0]
+    w = der.shape[1]
+    size = efr.shape[0]
+    cx = p[0]
+    cy = p[1]
+    phi = p[M - 1]
+    cphi = math.cos(phi)
+    sphi = math.sin(phi)
+    a00, a01, a10, a11 = _warp_matrix(p, mode)
+    ct = math.cos(p[2]) if mode == 1 else 1.0
+    st = math.sin(p[2]) if mode == 1 else 0.0
+    spp = 0.0
+    spe = 0.0
+    sabs = 0.0
+    jj[:, :] = 0.0
+    jpp[:] = 0.0
+    jpe[:] = 0.0
+    for i in range(size):
+        dy = oy + i - cy
+        for j in range(size):
+            if not valid[i, j]:
+                continue
+            dx = ox + j - cx
+            wx = x0 + a00 * dx + a01 * dy
+            wy = y0 + a10 * dx + a11 * dy
+            e = efr[i, j]
+            if not (0.0 <= wx < w - 1 and 0.0 <= wy < h - 1):
+                continue  # no template there: P = 0 and no gradient
+            ix = int(wx)
+            iy = int(wy)
+            fx = wx - ix
+            fy = wy - iy
+            w00 = (1.0 - fx) * (1.0 - fy)
+            w01 = fx * (1.0 - fy)
+            w10 = (1.0 - fx) * fy
+            w11 = fx * fy
+            r0 = der[iy]
+            r1 = der[iy + 1]
+            jx = ix + 1
+            g0 = w00 * r0[ix, 0] + w01 * r0[jx, 0] + w10 * r1[ix, 0] + w11 * r1[jx, 0]
+            g1 = w00 * r0[ix, 1] + w01 * r0[jx, 1] + w10 * r1[ix, 1] + w11 * r1[jx, 1]
+            g2 = w00 * r0[ix, 2] + w01 * r0[jx, 2] + w10 * r1[ix, 2] + w11 * r1[jx, 2]
+            g3 = w00 * r0[ix, 3] + w01 * r0[jx, 3] + w10 * r1[ix, 3] + w11 * r1[jx, 3]
+            g4 = w00 * r0[ix, 4] + w01 * r0[jx, 4] + w10 * r1[ix, 4] + w11 * r1[jx, 4]
+            pv = -(g0 * cphi + g1 * sphi)
+            sx = -(g2 * cphi + g3 * sphi)  # dP/dw: the Hessian of L0 along the flow
+            sy = -(g3 * cphi + g4 * sphi)
+            jp[0] = -(sx * a00 + sy * a10)
+            jp[1] = -(sx * a01 + sy * a11)
+            if mode == 1:
+                jp[2] = sx * (-st * dx - ct * dy) + sy * (ct * dx - st * dy)
+            elif mode == 2:
+                jp[2] = sx * dx
+                jp[3] = sx * dy
+                jp[4] = sy * dx
+                jp[5] = sy * dy
+            jp[M - 1] = g0 * sphi - g1 * cphi
+            spp += pv * pv
+            spe += pv * e
+            sabs += abs(pv)
+            for a in range(M):
+                ja = jp[a]
+                jpp[a] += ja * pv
+                jpe[a] += ja * e
+                for b in range(a + 1):
+                    jj[a, b] += ja * jp[b]
+    if spp <= 1e-20:
+        return 2.0, 0.0, 0.0
+    n_p = math.sqrt(spp)
+    cos = spe / n_p
+    for a in range(M):
+        sa = jpp[a] / n_p
+        jtr[a] = (sa * cos - jpe[a]) / n_p
+        for b in range(a + 1):
+            v = (jj[a, b] - sa * jpp[b] / n_p) / spp
+            jtj[a, b] = v
+            jtj[b, a] = v
+    return 1.0 - cos, sabs, spp
 
-    @numba.njit(cache=True, fastmath=True, inline="always")
-    def warp_matrix(p):
-        if mode == 0:
-            return 1.0, 0.0, 0.0, 1.0
-        if mode == 1:
-            c = math.cos(p[2])
-            s = math.sin(p[2])
-            return c, -s, s, c
-        return 1.0 + p[2], p[3], p[4], 1.0 + p[5]
 
-    @numba.njit(cache=True, fastmath=True)
-    def evaluate(p, x0, y0, der, efr, valid, ox, oy, jtj, jtr, jj, jpp, jpe, jp):
-        """Cost 1 - cos(P, E) at p, the LM normal equations (jtj, jtr), sum |P| and sum P^2.
+@numba.njit(cache=True)
+def _bootstrap_flow_angle(p, x0, y0, der, efr, valid, ox, oy, mode):
+    """Flow angle from linear least squares grad L . v = -E at the current warp (reference's "events" bootstrap)."""
+    numba.literally(mode)
+    M = _n_params(mode)
+    size = efr.shape[0]
+    h = der.shape[0]
+    w = der.shape[1]
+    a00, a01, a10, a11 = _warp_matrix(p, mode)
+    mxx = mxy = myy = bx = by = 0.0
+    for a in range(size):
+        for b in range(size):
+            if not valid[a, b]:
+                continue
+            dx = ox + b - p[0]
+            dy = oy + a - p[1]
+            wx = x0 + a00 * dx + a01 * dy
+            wy = y0 + a10 * dx + a11 * dy
+            if not (0.0 <= wx < w - 1 and 0.0 <= wy < h - 1):
+                continue
+            ix = int(wx)
+            iy = int(wy)
+            fx = wx - ix
+            fy = wy - iy
+            gx = ((1 - fx) * (1 - fy) * der[iy, ix, 0] + fx * (1 - fy) * der[iy, ix + 1, 0]
+                  + (1 - fx) * fy * der[iy + 1, ix, 0] + fx * fy * der[iy + 1, ix + 1, 0])
+            gy = ((1 - fx) * (1 - fy) * der[iy, ix, 1] + fx * (1 - fy) * der[iy, ix + 1, 1]
+                  + (1 - fx) * fy * der[iy + 1, ix, 1] + fx * fy * der[iy + 1, ix + 1, 1])
+            mxx += gx * gx
+            mxy += gx * gy
+            myy += gy * gy
+            bx += gx * efr[a, b]
+            by += gy * efr[a, b]
+    det = mxx * myy - mxy * mxy
+    if det <= 1e-18:
+        return p[M - 1]
+    vx = -(myy * bx - mxy * by) / det
+    vy = -(-mxy * bx + mxx * by) / det
+    return math.atan2(vy, vx)
 
-        P(u) = -grad L0(W(u)) . (cos phi, sin phi) on the grid of the unit-norm event frame ``efr``. With
-        n = |P|, r = P/n - E, the normalised residual's Jacobian is J = (JP - P s^T / n) / n, s = JP^T P / n;
-        J^T J and J^T r then follow from sums over the patch alone, so one pass suffices.
-        """
-        h = der.shape[0]
-        w = der.shape[1]
-        size = efr.shape[0]
-        cx = p[0]
-        cy = p[1]
-        phi = p[M - 1]
-        cphi = math.cos(phi)
-        sphi = math.sin(phi)
-        a00, a01, a10, a11 = warp_matrix(p)
-        ct = math.cos(p[2]) if mode == 1 else 1.0
-        st = math.sin(p[2]) if mode == 1 else 0.0
-        spp = 0.0
-        spe = 0.0
-        sabs = 0.0
-        jj[:, :] = 0.0
-        jpp[:] = 0.0
-        jpe[:] = 0.0
-        for i in range(size):
-            dy = oy + i - cy
-            for j in range(size):
-                if not valid[i, j]:
-                    continue
-                dx = ox + j - cx
-                wx = x0 + a00 * dx + a01 * dy
-                wy = y0 + a10 * dx + a11 * dy
-                e = efr[i, j]
-                if not (0.0 <= wx < w - 1 and 0.0 <= wy < h - 1):
-                    continue  # no template there: P = 0 and no gradient
-                ix = int(wx)
-                iy = int(wy)
-                fx = wx - ix
-                fy = wy - iy
-                w00 = (1.0 - fx) * (1.0 - fy)
-                w01 = fx * (1.0 - fy)
-                w10 = (1.0 - fx) * fy
-                w11 = fx * fy
-                r0 = der[iy]
-                r1 = der[iy + 1]
-                jx = ix + 1
-                g0 = w00 * r0[ix, 0] + w01 * r0[jx, 0] + w10 * r1[ix, 0] + w11 * r1[jx, 0]
-                g1 = w00 * r0[ix, 1] + w01 * r0[jx, 1] + w10 * r1[ix, 1] + w11 * r1[jx, 1]
-                g2 = w00 * r0[ix, 2] + w01 * r0[jx, 2] + w10 * r1[ix, 2] + w11 * r1[jx, 2]
-                g3 = w00 * r0[ix, 3] + w01 * r0[jx, 3] + w10 * r1[ix, 3] + w11 * r1[jx, 3]
-                g4 = w00 * r0[ix, 4] + w01 * r0[jx, 4] + w10 * r1[ix, 4] + w11 * r1[jx, 4]
-                pv = -(g0 * cphi + g1 * sphi)
-                sx = -(g2 * cphi + g3 * sphi)  # dP/dw: the Hessian of L0 along the flow
-                sy = -(g3 * cphi + g4 * sphi)
-                jp[0] = -(sx * a00 + sy * a10)
-                jp[1] = -(sx * a01 + sy * a11)
-                if mode == 1:
-                    jp[2] = sx * (-st * dx - ct * dy) + sy * (ct * dx - st * dy)
-                elif mode == 2:
-                    jp[2] = sx * dx
-                    jp[3] = sx * dy
-                    jp[4] = sy * dx
-                    jp[5] = sy * dy
-                jp[M - 1] = g0 * sphi - g1 * cphi
-                spp += pv * pv
-                spe += pv * e
-                sabs += abs(pv)
-                for a in range(M):
-                    ja = jp[a]
-                    jpp[a] += ja * pv
-                    jpe[a] += ja * e
-                    for b in range(a + 1):
-                        jj[a, b] += ja * jp[b]
-        if spp <= 1e-20:
-            return 2.0, 0.0, 0.0
-        n_p = math.sqrt(spp)
-        cos = spe / n_p
+
+@numba.njit(cache=True)
+def _levenberg_marquardt(p, x0, y0, der, ws, ox, oy, max_iter, mode):
+    """Minimise the cost over p in place (Levenberg-Marquardt from p) -> (cost, sum |P|, sum P^2, evaluations)."""
+    numba.literally(mode)
+    M = _n_params(mode)
+    efr, valid, jtj, jtr, jtj_n, jtr_n = ws.efr, ws.valid, ws.jtj, ws.jtr, ws.jtj_n, ws.jtr_n
+    lhs, rhs, step, pn = ws.lhs, ws.rhs, ws.step, ws.pn
+    n_evals = 1
+    cost, sabs, spp = _evaluate(p, x0, y0, der, efr, valid, ox, oy, jtj, jtr, ws.jj, ws.jpp, ws.jpe, ws.jp, mode)
+    lam = 1e-3
+    for _ in range(max_iter):
         for a in range(M):
-            sa = jpp[a] / n_p
-            jtr[a] = (sa * cos - jpe[a]) / n_p
-            for b in range(a + 1):
-                v = (jj[a, b] - sa * jpp[b] / n_p) / spp
-                jtj[a, b] = v
-                jtj[b, a] = v
-        return 1.0 - cos, sabs, spp
+            for b in range(M):
+                lhs[a, b] = jtj[a, b]
+            lhs[a, a] += lam * jtj[a, a] + 1e-9
+            rhs[a] = -jtr[a]
+        if not _solve_spd(lhs, rhs, step):
+            lam *= 10.0
+            continue
+        # A step this small moves the feature far less than one frame's noise: converged.
+        small = abs(step[0]) < 2e-3 and abs(step[1]) < 2e-3
+        for a in range(2, M):
+            small = small and abs(step[a]) < 1e-3
+        if small:
+            break
+        for a in range(M):
+            pn[a] = p[a] + step[a]
+        n_evals += 1
+        cost_n, sabs_n, spp_n = _evaluate(pn, x0, y0, der, efr, valid, ox, oy, jtj_n, jtr_n, ws.jj, ws.jpp, ws.jpe,
+                                          ws.jp, mode)
+        if cost_n < cost:
+            p[:] = pn
+            cost = cost_n
+            sabs = sabs_n
+            spp = spp_n
+            jtj[:, :] = jtj_n
+            jtr[:] = jtr_n
+            lam = max(lam / 3.0, 1e-7)
+            # Accepted steps shrink quadratically near the minimum: after one this small, the next would be below
+            # the noise.
+            done = abs(step[0]) < 0.02 and abs(step[1]) < 0.02
+            for a in range(2, M):
+                done = done and abs(step[a]) < 2e-3
+            if done:
+                break
+        else:
+            # Below ~0.05 px the cost is not smooth (bilinear template): a rejected step that small means we are
+            # at the minimum to within the frame's noise.
+            tiny = abs(step[0]) < 0.05 and abs(step[1]) < 0.05
+            for a in range(2, M):
+                tiny = tiny and abs(step[a]) < 5e-3
+            lam *= 4.0
+            if tiny or lam > 1e4:
+                break
+    return cost, sabs, spp, n_evals
 
-    @numba.njit(cache=True)
-    def bootstrap_flow_angle(p, x0, y0, der, efr, valid, ox, oy):
-        """Flow angle from linear least squares grad L . v = -E at the current warp (reference's "events" bootstrap)."""
-        size = efr.shape[0]
-        h = der.shape[0]
-        w = der.shape[1]
-        a00, a01, a10, a11 = warp_matrix(p)
-        mxx = mxy = myy = bx = by = 0.0
-        for a in range(size):
-            for b in range(size):
-                if not valid[a, b]:
-                    continue
-                dx = ox + b - p[0]
-                dy = oy + a - p[1]
-                wx = x0 + a00 * dx + a01 * dy
-                wy = y0 + a10 * dx + a11 * dy
-                if not (0.0 <= wx < w - 1 and 0.0 <= wy < h - 1):
-                    continue
-                ix = int(wx)
-                iy = int(wy)
-                fx = wx - ix
-                fy = wy - iy
-                gx = ((1 - fx) * (1 - fy) * der[iy, ix, 0] + fx * (1 - fy) * der[iy, ix + 1, 0]
-                      + (1 - fx) * fy * der[iy + 1, ix, 0] + fx * fy * der[iy + 1, ix + 1, 0])
-                gy = ((1 - fx) * (1 - fy) * der[iy, ix, 1] + fx * (1 - fy) * der[iy, ix + 1, 1]
-                      + (1 - fx) * fy * der[iy + 1, ix, 1] + fx * fy * der[iy + 1, ix + 1, 1])
-                mxx += gx * gx
-                mxy += gx * gy
-                myy += gy * gy
-                bx += gx * efr[a, b]
-                by += gy * efr[a, b]
-        det = mxx * myy - mxy * mxy
-        if det <= 1e-18:
-            return p[M - 1]
-        vx = -(myy * bx - mxy * by) / det
-        vy = -(-mxy * bx + mxx * by) / det
-        return math.atan2(vy, vx)
 
-    @numba.njit(cache=True)
-    def track_kernel(ev_tau, ev_x, ev_y, ev_p, der, feats, half, n_min, n_max, update_every, disp_over_c,
-                     max_cost, max_iter, lag_px_per_grad):
-        """Track all features through the events (in tracking-time order) -> samples, alive flags, counters."""
-        h = der.shape[0]
-        w = der.shape[1]
-        K = feats.shape[0]
-        size = 2 * half + 1
-        params = np.zeros((K, M))
+@numba.njit(cache=True)
+def _new_state(feats, half, n_min, n_max, mode):
+    """The tracker's state for features at ``feats`` (K, 2), the scratch of one update and an empty sample buffer."""
+    numba.literally(mode)
+    M = _n_params(mode)
+    K = feats.shape[0]
+    size = 2 * half + 1
+    params = np.zeros((K, M))
+    for k in range(K):
+        params[k, 0] = feats[k, 0]
+        params[k, 1] = feats[k, 1]
+    st = _Features(params, np.ones(K, np.bool_), np.zeros(K, np.bool_), np.zeros((K, n_max), np.int64),
+                   np.zeros(K, np.int64), np.zeros(K, np.int64), np.zeros(K, np.int64), np.full(K, n_min, np.int64),
+                   np.zeros((K, 2)), np.zeros(K, np.bool_), np.zeros((K, 2)), np.zeros(K), np.zeros(K, np.bool_),
+                   np.zeros(K))
+    ws = _Workspace(np.zeros((size, size)), np.zeros((size, size), np.bool_), np.zeros((M, M)), np.zeros(M),
+                    np.zeros((M, M)), np.zeros(M), np.zeros((M, M)), np.zeros(M), np.zeros(M), np.zeros(M),
+                    np.zeros((M, M)), np.zeros(M), np.zeros(M), np.zeros(M), np.zeros(M))
+    cap = 1024
+    out = _Samples(np.zeros(cap, np.int32), np.zeros(cap, np.int64), np.zeros(cap), np.zeros(cap), np.zeros(cap))
+    return st, ws, out
+
+
+@numba.njit(cache=True)
+def _update_feature(st, ws, k, ev_tau, ev_x, ev_y, ev_p, der, feats, half, max_cost, max_iter, mode):
+    """One update of feature k from the newest events of its patch: event frame, prediction, LM fit, keep or drop.
+
+    Returns (accepted, evaluations, mean event time, cost, sum |P|, sum P^2); the new parameters are in ws.p and
+    st.params[k] when accepted, and st.alive[k] is False when the track was dropped.
+    """
+    numba.literally(mode)
+    M = _n_params(mode)
+    h = der.shape[0]
+    w = der.shape[1]
+    cx0 = st.params[k, 0]
+    cy0 = st.params[k, 1]
+    ox = cx0 - half
+    oy = cy0 - half
+    t_mean, t_cnt, ne = _build_event_frame(st.ring[k], st.ring_pos[k], st.nbatch[k], ev_tau, ev_x, ev_y, ev_p, ox,
+                                           oy, h, w, ws.efr, ws.valid)
+    if t_cnt == 0 or ne <= 0.0:
+        return False, 0, t_mean, 0.0, 0.0, 0.0
+    x0 = feats[k, 0]
+    y0 = feats[k, 1]
+    p = ws.p
+    p[:] = st.params[k]
+    # Constant-velocity prediction of the position at this frame's time: starts LM near the answer.
+    if st.vel_ok[k]:
+        p[0] += st.vel[k, 0] * (t_mean - st.t_prev[k])
+        p[1] += st.vel[k, 1] * (t_mean - st.t_prev[k])
+    if not st.inited[k]:
+        p[M - 1] = _bootstrap_flow_angle(p, x0, y0, der, ws.efr, ws.valid, ox, oy, mode)
+        st.inited[k] = True
+    cost, sabs, spp, n_evals = _levenberg_marquardt(p, x0, y0, der, ws, ox, oy, max_iter, mode)
+    jump = math.hypot(p[0] - cx0, p[1] - cy0)
+    if cost > max_cost or jump > half or not (0.0 <= p[0] <= w - 1 and 0.0 <= p[1] <= h - 1):
+        st.alive[k] = False
+        return False, n_evals, t_mean, cost, sabs, spp
+    p[M - 1] = math.atan2(math.sin(p[M - 1]), math.cos(p[M - 1]))
+    st.params[k] = p
+    if t_mean - st.t_ref[k] >= _VEL_SPAN_US:
+        if st.ref_ok[k]:
+            st.vel[k, 0] = (p[0] - st.ref_xy[k, 0]) / (t_mean - st.t_ref[k])
+            st.vel[k, 1] = (p[1] - st.ref_xy[k, 1]) / (t_mean - st.t_ref[k])
+            st.vel_ok[k] = True
+        st.ref_xy[k, 0] = p[0]
+        st.ref_xy[k, 1] = p[1]
+        st.t_ref[k] = t_mean
+        st.ref_ok[k] = True
+    st.t_prev[k] = t_mean
+    return True, n_evals, t_mean, cost, sabs, spp
+
+
+@numba.njit(cache=True)
+def _record_sample(out, ns, k, p, t_mean, cost, sabs, spp, lag_px_per_grad, mode):
+    """Store sample ns of feature k (position p moved forward along the flow by the hysteresis lag); -> the buffer,
+    doubled when full."""
+    numba.literally(mode)
+    M = _n_params(mode)
+    cap = out.k.shape[0]
+    if ns == cap:
+        cap *= 2
+        out = _Samples(_grow(out.k, cap), _grow(out.t, cap), _grow(out.x, cap), _grow(out.y, cap), _grow(out.c, cap))
+    # Pixels fire only after their log change reaches C, so the events trail the true pattern by about
+    # C / (2 |grad L . v_hat|) px along the motion (the pixel's hysteresis); report the position moved forward by
+    # that trail, averaged over the patch with the fit's weights.
+    lag = lag_px_per_grad * sabs / spp if spp > 0 else 0.0
+    a00, a01, a10, a11 = _warp_matrix(p, mode)
+    vx = math.cos(p[M - 1])
+    vy = math.sin(p[M - 1])
+    det = a00 * a11 - a01 * a10
+    mx = (a11 * vx - a01 * vy) / det  # the flow direction in the current frame: A^-1 v_hat
+    my = (-a10 * vx + a00 * vy) / det
+    mn = math.hypot(mx, my)
+    out.k[ns] = k
+    out.t[ns] = int(round(t_mean))
+    out.x[ns] = p[0] + lag * mx / mn
+    out.y[ns] = p[1] + lag * my / mn
+    out.c[ns] = cost
+    return out
+
+
+@numba.njit(cache=True)
+def _collect_event(st, k, i, ex, ey, half, n_max, update_every):
+    """Add event i at (ex, ey) to feature k's ring buffer if it falls into its patch; True when an update is due
+    (every ``update_every`` new events once the buffer holds the event frame's number of events)."""
+    if not st.alive[k] or abs(ex - st.params[k, 0]) > half or abs(ey - st.params[k, 1]) > half:
+        return False
+    st.ring[k, st.ring_pos[k]] = i
+    st.ring_pos[k] = (st.ring_pos[k] + 1) % n_max
+    if st.ring_n[k] < n_max:
+        st.ring_n[k] += 1
+    st.since[k] += 1
+    nb = st.nbatch[k]
+    if st.ring_n[k] < nb or st.since[k] < min(update_every, nb):
+        return False
+    st.since[k] = 0
+    return True
+
+
+@numba.njit(cache=True)
+def _track_kernel(ev_tau, ev_x, ev_y, ev_p, der, feats, settings, mode):
+    """Track all features through the events (in tracking-time order) -> samples, alive flags, counters."""
+    numba.literally(mode)
+    half, n_min, n_max, update_every, disp_over_c, max_cost, max_iter, lag_px_per_grad = settings
+    K = feats.shape[0]
+    st, ws, out = _new_state(feats, half, n_min, n_max, mode)
+    ns = 0
+    n_updates = 0
+    n_evals = 0
+    for i in range(ev_tau.shape[0]):
+        ex = ev_x[i]
+        ey = ev_y[i]
         for k in range(K):
-            params[k, 0] = feats[k, 0]
-            params[k, 1] = feats[k, 1]
-        alive = np.ones(K, np.bool_)
-        inited = np.zeros(K, np.bool_)
-        ring = np.zeros((K, n_max), np.int64)
-        ring_n = np.zeros(K, np.int64)
-        ring_pos = np.zeros(K, np.int64)
-        since = np.zeros(K, np.int64)
-        nbatch = np.full(K, n_min, np.int64)
-        cap = 1024
-        s_k = np.zeros(cap, np.int32)
-        s_t = np.zeros(cap, np.int64)
-        s_x = np.zeros(cap)
-        s_y = np.zeros(cap)
-        s_c = np.zeros(cap)
-        ns = 0
-        efr = np.zeros((size, size))
-        valid = np.zeros((size, size), np.bool_)
-        jtj = np.zeros((M, M))
-        jtr = np.zeros(M)
-        jtj_n = np.zeros((M, M))
-        jtr_n = np.zeros(M)
-        jj = np.zeros((M, M))
-        jpp = np.zeros(M)
-        jpe = np.zeros(M)
-        jp = np.zeros(M)
-        lhs = np.zeros((M, M))
-        rhs = np.zeros(M)
-        step = np.zeros(M)
-        pn = np.zeros(M)
-        p = np.zeros(M)
-        vel = np.zeros((K, 2))
-        vel_ok = np.zeros(K, np.bool_)
-        ref_xy = np.zeros((K, 2))
-        t_ref = np.zeros(K)
-        ref_ok = np.zeros(K, np.bool_)
-        t_prev = np.zeros(K)
-        vel_span_us = 500.0
-        n_updates = 0
-        n_evals = 0
-        for i in range(ev_tau.shape[0]):
-            ex = ev_x[i]
-            ey = ev_y[i]
-            for k in range(K):
-                if not alive[k]:
-                    continue
-                if abs(ex - params[k, 0]) > half or abs(ey - params[k, 1]) > half:
-                    continue
-                ring[k, ring_pos[k]] = i
-                ring_pos[k] = (ring_pos[k] + 1) % n_max
-                if ring_n[k] < n_max:
-                    ring_n[k] += 1
-                since[k] += 1
-                nb = nbatch[k]
-                if ring_n[k] < nb or since[k] < min(update_every, nb):
-                    continue
-                since[k] = 0
-                n_updates += 1
-                cx0 = params[k, 0]
-                cy0 = params[k, 1]
-                ox = cx0 - half
-                oy = cy0 - half
-                t_mean, t_cnt, ne = _build_event_frame(ring[k], ring_pos[k], nb, ev_tau, ev_x, ev_y, ev_p, ox, oy,
-                                                       h, w, efr, valid)
-                if t_cnt == 0 or ne <= 0.0:
-                    continue
-                x0 = feats[k, 0]
-                y0 = feats[k, 1]
-                p[:] = params[k]
-                # Constant-velocity prediction of the position at this frame's time: starts LM near the answer.
-                if vel_ok[k]:
-                    p[0] += vel[k, 0] * (t_mean - t_prev[k])
-                    p[1] += vel[k, 1] * (t_mean - t_prev[k])
-                if not inited[k]:
-                    p[M - 1] = bootstrap_flow_angle(p, x0, y0, der, efr, valid, ox, oy)
-                    inited[k] = True
-                # ---- Levenberg-Marquardt
-                n_evals += 1
-                cost, sabs, spp = evaluate(p, x0, y0, der, efr, valid, ox, oy, jtj, jtr, jj, jpp, jpe, jp)
-                lam = 1e-3
-                for _ in range(max_iter):
-                    for a in range(M):
-                        for b in range(M):
-                            lhs[a, b] = jtj[a, b]
-                        lhs[a, a] += lam * jtj[a, a] + 1e-9
-                        rhs[a] = -jtr[a]
-                    if not _solve_spd(lhs, rhs, step):
-                        lam *= 10.0
-                        continue
-                    # A step this small moves the feature far less than one frame's noise: converged.
-                    small = abs(step[0]) < 2e-3 and abs(step[1]) < 2e-3
-                    for a in range(2, M):
-                        small = small and abs(step[a]) < 1e-3
-                    if small:
-                        break
-                    for a in range(M):
-                        pn[a] = p[a] + step[a]
-                    n_evals += 1
-                    cost_n, sabs_n, spp_n = evaluate(pn, x0, y0, der, efr, valid, ox, oy, jtj_n, jtr_n, jj, jpp,
-                                                     jpe, jp)
-                    if cost_n < cost:
-                        p[:] = pn
-                        cost = cost_n
-                        sabs = sabs_n
-                        spp = spp_n
-                        jtj[:, :] = jtj_n
-                        jtr[:] = jtr_n
-                        lam = max(lam / 3.0, 1e-7)
-                        # Accepted steps shrink quadratically near the minimum: after one this small, the next
-                        # would be below the noise.
-                        done = abs(step[0]) < 0.02 and abs(step[1]) < 0.02
-                        for a in range(2, M):
-                            done = done and abs(step[a]) < 2e-3
-                        if done:
-                            break
-                    else:
-                        # Below ~0.05 px the cost is not smooth (bilinear template): a rejected step that small
-                        # means we are at the minimum to within the frame's noise.
-                        tiny = abs(step[0]) < 0.05 and abs(step[1]) < 0.05
-                        for a in range(2, M):
-                            tiny = tiny and abs(step[a]) < 5e-3
-                        lam *= 4.0
-                        if tiny or lam > 1e4:
-                            break
-                # ---- keep or drop
-                jump = math.hypot(p[0] - cx0, p[1] - cy0)
-                if cost > max_cost or jump > half or not (0.0 <= p[0] <= w - 1 and 0.0 <= p[1] <= h - 1):
-                    alive[k] = False
-                    continue
-                p[M - 1] = math.atan2(math.sin(p[M - 1]), math.cos(p[M - 1]))
-                params[k] = p
-                # Velocity over at least vel_span_us, so that position noise of single updates does not dominate.
-                if t_mean - t_ref[k] >= vel_span_us:
-                    if ref_ok[k]:
-                        vel[k, 0] = (p[0] - ref_xy[k, 0]) / (t_mean - t_ref[k])
-                        vel[k, 1] = (p[1] - ref_xy[k, 1]) / (t_mean - t_ref[k])
-                        vel_ok[k] = True
-                    ref_xy[k, 0] = p[0]
-                    ref_xy[k, 1] = p[1]
-                    t_ref[k] = t_mean
-                    ref_ok[k] = True
-                t_prev[k] = t_mean
-                if ns == cap:
-                    cap *= 2
-                    s_k = _grow(s_k, cap)
-                    s_t = _grow(s_t, cap)
-                    s_x = _grow(s_x, cap)
-                    s_y = _grow(s_y, cap)
-                    s_c = _grow(s_c, cap)
-                # Pixels fire only after their log change reaches C, so the events trail the true pattern by
-                # about C / (2 |grad L . v_hat|) px along the motion (the pixel's hysteresis); report the
-                # position moved forward by that trail, averaged over the patch with the fit's weights.
-                lag = lag_px_per_grad * sabs / spp if spp > 0 else 0.0
-                a00, a01, a10, a11 = warp_matrix(p)
-                vx = math.cos(p[M - 1])
-                vy = math.sin(p[M - 1])
-                det = a00 * a11 - a01 * a10
-                mx = (a11 * vx - a01 * vy) / det  # the flow direction in the current frame: A^-1 v_hat
-                my = (-a10 * vx + a00 * vy) / det
-                mn = math.hypot(mx, my)
-                s_k[ns] = k
-                s_t[ns] = int(round(t_mean))
-                s_x[ns] = p[0] + lag * mx / mn
-                s_y[ns] = p[1] + lag * my / mn
-                s_c[ns] = cost
-                ns += 1
-                nbatch[k] = min(n_max, max(n_min, int(round(sabs * disp_over_c))))
-        return s_k[:ns], s_t[:ns], s_x[:ns], s_y[:ns], s_c[:ns], alive, params, n_updates, n_evals
+            if not _collect_event(st, k, i, ex, ey, half, n_max, update_every):
+                continue
+            n_updates += 1
+            ok, n_ev, t_mean, cost, sabs, spp = _update_feature(st, ws, k, ev_tau, ev_x, ev_y, ev_p, der, feats, half,
+                                                                max_cost, max_iter, mode)
+            n_evals += n_ev
+            if not ok:
+                continue
+            out = _record_sample(out, ns, k, ws.p, t_mean, cost, sabs, spp, lag_px_per_grad, mode)
+            ns += 1
+            st.nbatch[k] = min(n_max, max(n_min, int(round(sabs * disp_over_c))))
+    return out.k[:ns], out.t[:ns], out.x[:ns], out.y[:ns], out.c[:ns], st.alive, st.params, n_updates, n_evals
 
-    return track_kernel
+
+# One entry point per warp model, each calling the kernel with its model as a literal constant: called from Python
+# with a plain int, the literal kernel would go through numba's compiler on every call (tens of ms, measured).
+@numba.njit(cache=True)
+def _track_translation(ev_tau, ev_x, ev_y, ev_p, der, feats, settings):
+    return _track_kernel(ev_tau, ev_x, ev_y, ev_p, der, feats, settings, 0)
+
+
+@numba.njit(cache=True)
+def _track_rotation(ev_tau, ev_x, ev_y, ev_p, der, feats, settings):
+    return _track_kernel(ev_tau, ev_x, ev_y, ev_p, der, feats, settings, 1)
+
+
+@numba.njit(cache=True)
+def _track_affine(ev_tau, ev_x, ev_y, ev_p, der, feats, settings):
+    return _track_kernel(ev_tau, ev_x, ev_y, ev_p, der, feats, settings, 2)
+
+
+#: the tracking kernel of each warp model, by the index of _WARPS
+_TRACK_KERNELS = (_track_translation, _track_rotation, _track_affine)
 
 
 @numba.njit(cache=True)
@@ -821,16 +893,6 @@ def _grow(a, cap):
     out = np.zeros(cap, a.dtype)
     out[: a.shape[0]] = a
     return out
-
-
-_TRACKERS: dict[int, object] = {}
-
-
-def _tracker(mode: int):
-    """The (lazily built, numba-compiled on first call, disk-cached) kernel of a warp model."""
-    if mode not in _TRACKERS:
-        _TRACKERS[mode] = _make_tracker(mode)
-    return _TRACKERS[mode]
 
 
 # ------------------------------------------------------------------------------------------------ public API
@@ -880,12 +942,13 @@ def _track(log_image, events, t_start_us, t_end_us, direction, config, features,
         ex, ey, ep = ev["x"], ev["y"], -ev["p"].astype(np.float64)
         t_det = t1
     der = _derivatives(img, config.blur_sigma_px)
-    k, ts, xs, ys, cs, alive, params, n_upd, n_ev = _tracker(_WARPS[config.warp])(
+    settings = (config.half_px, config.n_events_min, config.n_events_max, config.update_every,
+                config.displacement_px / config.contrast_threshold, config.max_cost, config.max_iterations,
+                direction * config.lag_gain * 0.5 * config.contrast_threshold)
+    k, ts, xs, ys, cs, alive, params, n_upd, n_ev = _TRACK_KERNELS[_WARPS[config.warp]](
         np.ascontiguousarray(tau, np.int64), np.ascontiguousarray(ex, np.float64),
         np.ascontiguousarray(ey, np.float64), np.ascontiguousarray(ep), der,
-        np.ascontiguousarray(feats, np.float64), config.half_px, config.n_events_min, config.n_events_max,
-        config.update_every, config.displacement_px / config.contrast_threshold, config.max_cost,
-        config.max_iterations, direction * config.lag_gain * 0.5 * config.contrast_threshold,
+        np.ascontiguousarray(feats, np.float64), settings,
     )
     if stats is not None:
         stats.update(n_events=int(tau.size), n_updates=int(n_upd), n_evaluations=int(n_ev))

@@ -1,4 +1,5 @@
-"""Specs of the Sec. 3.1 stages: sharpen (EDI), track (EKLT, KLT on latent images), slice (B-spline)."""
+"""Specs of the Sec. 3.1 stages track (EKLT, KLT on latent images, the oracle) and slice (B-spline); sharpen (EDI)
+is in eventcap_sharpen."""
 
 from __future__ import annotations
 
@@ -9,14 +10,6 @@ from eventcap.artifacts.pose import Detections
 from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import LatentFrames, SlicedTracks, Tracks
 from eventcap.stage import Port, StageSpec, param
-
-
-@dataclass
-class EdiConfig:
-    contrast: float = param(0.0, ge=0, help="contrast threshold C; 0 = estimate one C for the recording (Pan et al.)")
-    c_min: float = param(0.05, gt=0, help="lower end of the automatic search for C")
-    c_max: float = param(0.5, gt=0, help="upper end of the automatic search for C")
-    eps: float = param(1e-3, gt=0, help="offset of the log image, L = log(I + eps)")
 
 
 @dataclass
@@ -72,19 +65,12 @@ class SliceConfig:
     knot_spacing_us: int = param(2000, gt=0, help="largest spacing of the spline knots")
 
 
-EDI = StageSpec(
-    name="edi", kind="sharpen", version=1,
-    description="EDI: latent sharp log images at frame times from blurry frames + events (Eq. 2)",
-    config=EdiConfig, inputs={"recording": Port(Recording)}, outputs={"latent": Port(LatentFrames)},
-    run="eventcap_track._stages:run_edi",
-)
-
 BSPLINE = StageSpec(
     name="bspline", kind="slice", version=2,  # 2: the batch end and one grid for the recording (tracking_times_us)
     description="smoothing B-spline per track, sampled at every tracking frame (1 ms)",
     config=SliceConfig, inputs={"tracks": Port(Tracks), "batches": Port(BatchPlan)},
     outputs={"sliced": Port(SlicedTracks)}, per_batch=True,
-    run="eventcap_track._stages:run_bspline",
+    run="eventcap_track._impl:run_bspline",
 )
 
 EKLT = StageSpec(
@@ -94,7 +80,7 @@ EKLT = StageSpec(
     inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan),
             "detections": Port(Detections, optional=True, doc="2D keypoints that place the actor region")},
     outputs={"tracks": Port(Tracks)}, per_batch=True,
-    run="eventcap_track._stages:run_eklt",
+    run="eventcap_track._impl:run_eklt",
 )
 
 KLT_LATENT = StageSpec(
@@ -104,7 +90,7 @@ KLT_LATENT = StageSpec(
     inputs={"recording": Port(Recording), "latent": Port(LatentFrames), "batches": Port(BatchPlan),
             "detections": Port(Detections, optional=True, doc="2D keypoints that place the actor region")},
     outputs={"tracks": Port(Tracks)}, per_batch=True,
-    run="eventcap_track._stages:run_klt_latent",
+    run="eventcap_track._impl:run_klt_latent",
 )
 
 ORACLE = StageSpec(
@@ -117,5 +103,5 @@ ORACLE = StageSpec(
     inputs={"recording": Port(Recording), "latent": Port(LatentFrames, optional=True), "batches": Port(BatchPlan),
             "detections": Port(Detections, optional=True, doc="unused (accepted so the default pipeline wires it)")},
     outputs={"tracks": Port(Tracks)}, per_batch=True,
-    run="eventcap_track._stages:run_oracle",
+    run="eventcap_track._impl:run_oracle",
 )

@@ -1,0 +1,21 @@
+"""What the core asks about operating-system processes (shared by the cache and the recording converter).
+
+A folder or entry named after the process that writes it (``<name>.partial-<pid>``, the cache's ``tmp/`` entries)
+is a leftover once that process is gone. This module imports nothing of eventcap, so the domain library (``io``)
+and the orchestration (``cache``) can both use it.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process with this pid exists on this host."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
