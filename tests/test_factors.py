@@ -16,7 +16,8 @@ from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS, pose_bounds
 from eventcap.energy.correspondences import find_correspondences
 from eventcap.energy.errors import EnergyError
 from eventcap.energy.event_search import EventIndex
-from eventcap.energy.factor import FACTORS, Factor, Layout, Linearization, Window, factors_from_config
+from eventcap.energy.factor import FACTORS, Factor, Layout, Linearization, Window
+from eventcap.energy.terms import factors_from_config
 from eventcap.energy.ipopt import IpoptSettings
 from eventcap.energy.problem import FactorProblem, FramePoses, SplinePoses, coupling_band
 from eventcap.energy.sil import find_silhouette_correspondences

@@ -2,7 +2,7 @@
 
 Every term is a factor (:mod:`.factor`): one class with one weight (``lambda_<name>`` in a solve's config), which
 takes its data for a window and gives its value, gradient and Hessian blocks in pose space at its own sample times.
-A solve is a list of factors built from its config (:func:`.factor.factors_from_config`) summed over a
+A solve is a list of factors built from its config (:func:`.terms.factors_from_config`) summed over a
 parametrisation of the poses (:mod:`.problem`: a cubic B-spline's control points, or one pose per frame) and
 handed to IPOPT. The terms (the table in :mod:`.terms`):
 

@@ -7,7 +7,7 @@ parametrised (a B-spline's control points, or one pose per frame): :class:`event
 maps the poses at every factor's samples to the decision variables and sums the factors. A new term is one class
 (a subclass of :class:`Factor` registers itself by its ``name``) and one config entry, its weight
 ``lambda_<name>`` in the config of a solve: every solve uses the registered factors whose weight its config
-states and is > 0.
+states and is > 0 (:func:`eventcap.energy.terms.factors_from_config`).
 
 Hessian layout of one factor with n samples (each sample a 33-vector of pose parameters, or its derivative):
 ``diag`` (n, 33, 33) the blocks of each sample with itself, ``upper`` (n-1, 33, 33) the blocks of sample k with
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -30,7 +30,7 @@ from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 
-from .errors import EnergyError, SolveFailed
+from .errors import EnergyError
 
 _NP = NUM_POSE_PARAMS
 
@@ -161,34 +161,4 @@ def weight_key(name: str) -> str:
     return f"lambda_{name}"
 
 
-def factors_from_config(config: Any, template: Template, camera: Camera, layout: Layout,
-                        allowed: tuple[str, ...] | None = None,
-                        overrides: Mapping[str, float] | None = None) -> list[Factor]:
-    """The factors of a solve: every registered factor whose weight ``lambda_<name>`` the config states and is > 0
-    (this package's in the order of :data:`eventcap.energy.terms.ORDER`, then others by name; ``allowed`` restricts them to these names), each built with the config (its settings)
-    and the layout. overrides: weights to use instead of the config's (e.g. a mode that turns a term off)."""
-    from .terms import ORDER  # registers this package's factors
-
-    out = []
-    names = sorted(FACTORS, key=lambda n: (ORDER.index(n) if n in ORDER else len(ORDER), n))
-    for name in names:
-        cls = FACTORS[name]
-        if allowed is not None and name not in allowed:
-            continue
-        key = weight_key(name)
-        if overrides and name in overrides:
-            w = overrides[name]
-        elif hasattr(config, key):
-            w = getattr(config, key)
-        else:
-            continue
-        if cls.size(layout) < 1:  # no samples in this layout (e.g. E_sil without silhouette frames)
-            continue
-        if isinstance(w, (int, float)) and not isinstance(w, bool) and w == 0:  # off (and nothing to build)
-            continue
-        out.append(cls(w, config, template, camera, layout))
-    return out
-
-
-__all__ = ["EnergyError", "FACTORS", "SolveFailed", "Factor", "Layout", "Linearization", "Window", "factors_from_config",
-           "weight_key"]
+__all__ = ["FACTORS", "Factor", "Layout", "Linearization", "Window", "weight_key"]

@@ -119,7 +119,7 @@ def coupling_band(poses: SplinePoses | FramePoses, t_us: np.ndarray) -> int:
 class FactorProblem:
     """The NLP of a sum of factors over a pose parametrisation (module doc), built once.
 
-    factors: built for the layout this problem serves (:func:`eventcap.energy.factor.factors_from_config`);
+    factors: built for the layout this problem serves (:func:`eventcap.energy.terms.factors_from_config`);
     damp: λ_damp; damp_aux: whether the proximal pull also holds the auxiliary variables; lower/upper: the pose
     parameters' bounds (33,), applied to every unit (exact for a spline: its basis is a convex combination);
     band: how many units apart the Hessian's blocks reach (default: the parametrisation's, :func:`coupling_band`

@@ -58,7 +58,8 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.energy.errors import EnergyError
 from eventcap.energy.event_search import EventIndex
-from eventcap.energy.factor import Layout, Window, factors_from_config
+from eventcap.energy.factor import Layout, Window
+from eventcap.energy.terms import factors_from_config
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
 from eventcap.energy.problem import FactorProblem, FramePoses
 from eventcap.energy.sil import SilhouetteCorrespondences, find_silhouette_correspondences

@@ -116,7 +116,8 @@ from eventcap.energy.detections import (
     unwrap_root,
 )
 from eventcap.energy.errors import EnergyError
-from eventcap.energy.factor import Layout, Window, factors_from_config
+from eventcap.energy.factor import Layout, Window
+from eventcap.energy.terms import factors_from_config
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
 from eventcap.energy.problem import FactorProblem, FramePoses
 

@@ -43,7 +43,8 @@ from eventcap.energy.correspondences import Correspondences, find_correspondence
 from eventcap.energy.detections import FIT_DAMP, FrameDetections, FrameFitter, unwrap_root
 from eventcap.energy.errors import EnergyError, SolveFailed
 from eventcap.energy.event_search import DENOISE_US, EventIndex
-from eventcap.energy.factor import Layout, Window, factors_from_config
+from eventcap.energy.factor import Layout, Window
+from eventcap.energy.terms import factors_from_config
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
 from eventcap.energy.prior import PriorGain, choose_prior_gains, still_gate
 from eventcap.energy.problem import FactorProblem, SplinePoses
