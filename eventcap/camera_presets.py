@@ -59,6 +59,7 @@ def load_preset(name: str) -> CameraPreset:
         raise ValueError(f"camera preset {name!r}: unknown; expected one of {', '.join(preset_names())}")
     data = yaml.safe_load(path.read_text()) or {}
     names = [f.name for f in fields(CameraPreset) if f.name != "name"]
+    data.setdefault("calibration", None)  # optional: most presets are a pinhole from lens_mm
     missing = [k for k in names if k not in data]
     extra = [k for k in data if k not in names]
     if missing or extra:

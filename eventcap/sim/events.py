@@ -28,6 +28,20 @@ Pixel model (per pixel u, natural-log units)
   not a change of the memorised level), so a static scene produces noise at exactly the configured rate.
   Noise times are drawn uniformly in integer microseconds, i.e. an exact Poisson process on the µs grid.
 
+Sensor realism (both off by default, so the default capture is the ideal pixel above)
+--------------------------------------------------------------------------------------
+- Photoreceptor bandwidth (``photoreceptor_cutoff_hz``): the change detector sees a first-order low-pass of ``L``
+  whose cutoff is proportional to the pixel's photocurrent, ``f_c = f_white (I + 20/255) / (275/255)`` (v2e's
+  model, Delbruck et al. 2021; the caller scales ``f_white`` with the scene illuminance: the DVS128's 3 kHz at
+  1 klux falls to 30 Hz at 10 lux). Dim pixels lag: a fast limb's events come late and smeared in time, and small
+  fast changes are lost. The filter is integrated exactly for ``L`` linear between samples (no stability limit on
+  the step); the crossings inside a step are interpolated linearly, and :meth:`EventSimulator.max_step_us` bounds
+  the next step so the filter's own relaxation moves at most ``max_log_change`` per step (see there).
+- Leak events (``leak_rate_hz``): each pixel's reference drifts down by ``leak_rate_hz * C_on`` per second, as the
+  reset switch's junction leakage does, so a static pixel fires ON events at its leak rate (per-pixel rates
+  log-normal with ``leak_rate_spread_decades``, random phases). Unlike background activity these events do move
+  the reference, and they come only ON and periodically.
+
 Time sampling
 -------------
 Renders are the expensive part, so the driver (:func:`render_samples`) picks each next sample time adaptively:
@@ -37,8 +51,10 @@ growing at most 2x); a candidate that changes too much is kept as a future sampl
 (a render at an earlier time), so every render becomes a sample and none is wasted. Steps are bounded by
 ``[min_step_us, max_step_us]``; at the minimum step a larger change is accepted and counted as a forced step.
 
-Not modelled: the photoreceptor's finite bandwidth (low-pass at low light), slow threshold drift, intensity-
-dependent noise rates, readout bus saturation and timestamp jitter.
+Not modelled: the photoreceptor's second pole and its noise (v2e's ``photoreceptor_noise``), shot-noise rates
+that grow in the dark (background activity here has one rate for every pixel and light level), the dark current's
+growing share of the log signal in dim light (``log_eps`` is fixed), slow threshold drift, readout bus saturation
+and event-rate controllers, and timestamp jitter.
 """
 
 from __future__ import annotations
