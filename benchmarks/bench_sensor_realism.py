@@ -14,7 +14,7 @@ wrist or an ankle, "the limb") causes:
   model's on the same pixels (0.25 ms bins).
 
 Part ``presets``: CPU time per second of capture of the synthetic source for every preset (a short capture,
-extrapolated), and the EVK4 with a region of interest. The machine is shared (2 cores, several users): wall times
+extrapolated), and the EVK4 with a region of interest and with one sample per pixel. The machine is shared (2 cores, several users): wall times
 run far above CPU times there, and both are indicative only.
 
     python3 benchmarks/bench_sensor_realism.py [--part realism|presets|all] [--motion boxing_combo] [--duration 1.0]
@@ -156,12 +156,16 @@ def part_presets(args):
     print("|---|---|---|---|---|---|---|---|")
     capture(tpl, motion=args.motion, duration_s=0.02, n_track_points=10)  # numba's compilation, not timed below
     runs = [(name, {}) for name in ("davis240c", "davis346", "dvxplorer", "dvs128")]
-    runs += [("evk4", {"roi": [320, 40, 640, 640]}), ("evk4", {})]
+    runs += [("evk4", {"roi": [320, 40, 640, 640]}), ("evk4", {"roi": [320, 40, 640, 640], "supersample": 1}),
+             ("evk4", {})]
+    if args.only:
+        runs = [r for r in runs if r[0] == args.only]
     for name, extra in runs:
         dur = args.preset_duration if name != "evk4" or extra else args.evk4_duration
         rec, renders, secs = capture(tpl, camera=name, motion=args.motion, duration_s=dur, n_track_points=10,
                                      **extra)
-        size = f"{rec.width}x{rec.height}" + (" (ROI of 1280x720)" if extra else "")
+        size = f"{rec.width}x{rec.height}" + (" (ROI of 1280x720)" if "roi" in extra else "") + (
+            f", supersample {extra['supersample']}" if "supersample" in extra else "")
         real = "ideal" if name == "davis240c" else "bandwidth + leak"
         print(f"| {name} | {size} | {real} | {rec.events.events.size} | {renders} | {secs:.1f} | "
               f"{capture.cpu_s:.1f} | {capture.cpu_s / dur:.0f} |",
@@ -179,6 +183,7 @@ def main() -> None:
     ap.add_argument("--template", default="anny", choices=("anny", "procedural"))
     ap.add_argument("--preset-duration", type=float, default=0.2)
     ap.add_argument("--evk4-duration", type=float, default=0.05)
+    ap.add_argument("--only", default="", help="presets part: only this camera's rows")
     args = ap.parse_args()
     if args.part in ("realism", "all"):
         part_realism(args)
