@@ -43,8 +43,9 @@ def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
         msg = str(exc).splitlines()[0]
         field = next((f for f in dataclasses.fields(spec.config) if f.name == key.split(".")[0].split("[")[0]), None)
         allowed = allowed_values(field) if field is not None else None
-        if allowed:  # a value of the wrong type: say what the field takes
+        if allowed:  # a value of the wrong type: say what the field takes (the field, not an item of a list)
             msg = f"expected {allowed}, got {values.get(field.name)!r}"
+            key = field.name
         raise ConfigError(f"{where}{'.' + key if key else ''}: {msg} (stage {spec.name!r})") from None
     missing = [f.name for f in dataclasses.fields(obj) if getattr(obj, f.name) is dataclasses.MISSING]
     if missing:

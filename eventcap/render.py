@@ -352,6 +352,27 @@ def pick_surface_points(camera: Camera, vertices, faces, rendered: Render, pixel
     return tri, bary
 
 
+#: Backdrops of the synthetic capture (:func:`background`).
+BACKGROUNDS = ("textured", "low_texture", "plain")
+
+
+def background(kind: str, height: int, width: int, seed: int = 0) -> np.ndarray:
+    """A static backdrop (H,W) float32 of linear intensity: ``textured`` (:func:`textured_background`),
+    ``low_texture`` (the same room at a quarter of its contrast around its mean: faint edges, few events) or
+    ``plain`` (a seamless studio backdrop: one uniform grey, no edge at all)."""
+    if kind == "textured":
+        return textured_background(height, width, seed)
+    if kind == "low_texture":
+        img = textured_background(height, width, seed)
+        mean = np.float32(img.mean())
+        return (mean + np.float32(0.25) * (img - mean)).astype(np.float32)
+    if kind == "plain":
+        if int(height) != height or int(width) != width or height < 1 or width < 1:
+            raise ValueError(f"background: expected integer height, width ≥ 1, got {height}, {width}")
+        return np.full((int(height), int(width)), 0.35, np.float32)
+    raise ValueError(f"background: expected one of {' | '.join(BACKGROUNDS)}, got {kind!r}")
+
+
 def textured_background(height: int, width: int, seed: int = 0) -> np.ndarray:
     """A static synthetic backdrop (H,W) float32, linear intensity ~0.05–0.75: a textured wall with framed
     panels and a door, a dark skirting board, and a tiled floor in perspective below a horizon."""

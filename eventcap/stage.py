@@ -89,7 +89,7 @@ def allowed_values(f: dataclasses.Field) -> str | None:
     if t in ("int", "float", "int | None", "float | None"):
         return _allowed(f.metadata, _is_integer_field(f)) + (" or null" if "None" in t else "")
     if t in ("list[int]", "list[float]"):
-        return "a list of " + _allowed(f.metadata, _is_integer_field(f)).replace("an ", "").replace("a ", "") + "s"
+        return "a list, each item " + _allowed(f.metadata, _is_integer_field(f))
     return None
 
 
@@ -104,7 +104,7 @@ def check_value(f: dataclasses.Field, value: Any) -> str | None:
         for i, v in enumerate(value):
             problem = check_value(f, v)
             if problem:
-                return f"[{i}] {problem}"
+                return f"{problem} (item {i} of {list(value)!r})"
         return None
     if value is None or isinstance(value, (bool, str)) or not isinstance(value, (int, float)):
         return None

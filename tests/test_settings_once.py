@@ -1,6 +1,7 @@
 """Every setting is stated once: a stage's config dataclass (its spec.py) is the one source of its defaults.
 
-- The YAML of a stage variant (conf/stages/<node>/<variant>.yaml) states only what differs from those defaults.
+- The YAML of a stage variant (conf/stages/<node>/<variant>.yaml, conf/source/*.yaml, conf/template/*.yaml) states
+  only what differs from those defaults.
 - No library code of a stage (its plugin package, and the energy library the solves share) gives a default of its
   own to a setting of the same name that differs from the config's: tests and benchmarks that call the library
   directly then run the pipeline's settings, not others that drifted.
@@ -42,7 +43,9 @@ def _stage_of(path: Path, data: dict) -> tuple[str, dict]:
 def test_stage_yaml_states_only_what_differs_from_the_spec():
     reg = load_registry()
     restated = []
-    for path in sorted((ROOT / "conf" / "stages").glob("*/*.yaml")):
+    files = [*(ROOT / "conf" / "stages").glob("*/*.yaml"), *(ROOT / "conf" / "source").glob("*.yaml"),
+             *(ROOT / "conf" / "template").glob("*.yaml")]
+    for path in sorted(files):
         data = yaml.safe_load(path.read_text()) or {}
         stage, node = _stage_of(path, data)
         d = _defaults(reg.get(stage))

@@ -28,6 +28,20 @@ Pixel model (per pixel u, natural-log units)
   not a change of the memorised level), so a static scene produces noise at exactly the configured rate.
   Noise times are drawn uniformly in integer microseconds, i.e. an exact Poisson process on the µs grid.
 
+Sensor realism (both off by default, so the default capture is the ideal pixel above)
+--------------------------------------------------------------------------------------
+- Photoreceptor bandwidth (``photoreceptor_cutoff_hz``): the change detector sees a first-order low-pass of ``L``
+  whose cutoff is proportional to the pixel's photocurrent, ``f_c = f_white (I + 20/255) / (275/255)`` (v2e's
+  model, Delbruck et al. 2021; the caller scales ``f_white`` with the scene illuminance: the DVS128's 3 kHz at
+  1 klux falls to 30 Hz at 10 lux). Dim pixels lag: a fast limb's events come late and smeared in time, and small
+  fast changes are lost. The filter is integrated exactly for ``L`` linear between samples (no stability limit on
+  the step); the crossings inside a step are interpolated linearly, and :meth:`EventSimulator.max_step_us` bounds
+  the next step so the filter's own relaxation moves at most ``max_log_change`` per step (see there).
+- Leak events (``leak_rate_hz``): each pixel's reference drifts down by ``leak_rate_hz * C_on`` per second, as the
+  reset switch's junction leakage does, so a static pixel fires ON events at its leak rate (per-pixel rates
+  log-normal with ``leak_rate_spread_decades``, random phases). Unlike background activity these events do move
+  the reference, and they come only ON and periodically.
+
 Time sampling
 -------------
 Renders are the expensive part, so the driver (:func:`render_samples`) picks each next sample time adaptively:
@@ -37,8 +51,10 @@ growing at most 2x); a candidate that changes too much is kept as a future sampl
 (a render at an earlier time), so every render becomes a sample and none is wasted. Steps are bounded by
 ``[min_step_us, max_step_us]``; at the minimum step a larger change is accepted and counted as a forced step.
 
-Not modelled: the photoreceptor's finite bandwidth (low-pass at low light), slow threshold drift, intensity-
-dependent noise rates, readout bus saturation and timestamp jitter.
+Not modelled: the photoreceptor's second pole and its noise (v2e's ``photoreceptor_noise``), shot-noise rates
+that grow in the dark (background activity here has one rate for every pixel and light level), the dark current's
+growing share of the log signal in dim light (``log_eps`` is fixed), slow threshold drift, readout bus saturation
+and event-rate controllers, and timestamp jitter.
 """
 
 from __future__ import annotations
@@ -54,6 +70,8 @@ import numpy as np
 from eventcap.events import EVENT_DTYPE, empty_events, make_events
 
 _NEVER_US = np.iinfo(np.int64).min // 4  # "last event time" of a pixel that has not fired yet
+#: Dark-current floor of the photoreceptor's cutoff, in intensity units: v2e's (255 I + 20) / 275 scaling.
+_DARK_FLOOR = 20.0 / 255.0
 
 
 @dataclass(frozen=True)
@@ -92,6 +110,18 @@ class SensorConfig:
     # Largest step between render samples, µs: a static scene is still re-rendered this often, so a change that
     # starts there is noticed at most this late.
     max_step_us: int = 5_000
+    # Leak events per pixel per second (Hz), ON polarity: the memorised reference drifts down by
+    # leak_rate_hz * C_on per second, as the reset switch's junction leakage does (v2e's model; v2e's "noisy" preset
+    # uses 0.1 Hz). Each pixel's rate is drawn once, log-normal with leak_rate_spread_decades (v2e:
+    # noise_rate_cov_decades 0.1), and its phase at random. 0 disables leak (the default: the ideal pixel).
+    leak_rate_hz: float = 0.0
+    leak_rate_spread_decades: float = 0.1
+    # Photoreceptor bandwidth: 3 dB cutoff (Hz) of a white pixel (I = 1) in the scene's light, or None for an ideal,
+    # infinitely fast photoreceptor (the default). A pixel of intensity I low-passes its log intensity with a first-
+    # order filter of cutoff photoreceptor_cutoff_hz * (I + 20/255) / (275/255): proportional to its photocurrent,
+    # with v2e's floor for dark pixels (v2ecore/emulator_utils.py rescale_intensity_frame). The caller scales the
+    # white cutoff with the scene illuminance (the bandwidth is proportional to the light).
+    photoreceptor_cutoff_hz: float | None = None
     # Seed of the per-pixel thresholds, the hot-pixel choice and the noise.
     seed: int = 0
 
@@ -100,7 +130,15 @@ class SensorConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"SensorConfig.{name}: expected a finite number > 0, got {value!r}")
-        for name in ("threshold_sigma", "noise_rate_hz", "hot_pixel_rate_hz"):
+        if self.photoreceptor_cutoff_hz is not None and not (
+            math.isfinite(self.photoreceptor_cutoff_hz) and self.photoreceptor_cutoff_hz > 0
+        ):
+            raise ValueError(
+                "SensorConfig.photoreceptor_cutoff_hz: expected None (ideal photoreceptor) or a finite number > 0, "
+                f"got {self.photoreceptor_cutoff_hz!r}"
+            )
+        for name in ("threshold_sigma", "noise_rate_hz", "hot_pixel_rate_hz", "leak_rate_hz",
+                     "leak_rate_spread_decades"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"SensorConfig.{name}: expected a finite number >= 0, got {value!r}")
@@ -136,10 +174,11 @@ def _require_int(what: str, value: object) -> int:
         raise ValueError(f"{what}: expected an integer, got {value!r}") from None
 
 
-def _rngs(config: SensorConfig) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
-    """Independent generators for thresholds, hot-pixel choice and noise, so changing one leaves the others."""
-    seeds = np.random.SeedSequence(config.seed).spawn(3)
-    return tuple(np.random.default_rng(s) for s in seeds)  # type: ignore[return-value]
+def _rngs(config: SensorConfig) -> tuple[np.random.Generator, ...]:
+    """Independent generators for thresholds, hot-pixel choice, noise and leak, so changing one leaves the others
+    (spawned children depend only on their index: adding the fourth left the first three unchanged)."""
+    seeds = np.random.SeedSequence(config.seed).spawn(4)
+    return tuple(np.random.default_rng(s) for s in seeds)
 
 
 def pixel_thresholds(config: SensorConfig, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -254,7 +293,24 @@ class EventSimulator:
         self._c_on = c_on.ravel()
         self._c_off = c_off.ravel()
         self._hot = hot_pixels(config, height, width)
-        self._noise_rng = _rngs(config)[2]
+        rngs = _rngs(config)
+        self._noise_rng = rngs[2]
+        # Sensor realism (off by default): the photoreceptor's low-pass and the reference's leak act on the signal
+        # the change detector sees; the kernel then treats it exactly like the ideal pixel's log intensity.
+        self._lowpass = config.photoreceptor_cutoff_hz is not None
+        self._realistic = self._lowpass or config.leak_rate_hz > 0
+        self._leak_per_us = np.zeros(height * width)  # log units per µs added to the signal (= reference drift)
+        self._leak_phase = np.zeros(height * width)
+        if config.leak_rate_hz > 0:
+            leak_rng = rngs[3]
+            rate = config.leak_rate_hz * 10.0 ** (config.leak_rate_spread_decades * leak_rng.standard_normal(
+                height * width))
+            self._leak_per_us = rate * self._c_on * 1e-6
+            # Pixels were last reset at random times: each starts a random fraction of C_on towards its leak event.
+            self._leak_phase = leak_rng.uniform(0.0, 1.0, height * width) * self._c_on
+        self._raw_prev: np.ndarray | None = None  # float64 log intensity of the last sample
+        self._filtered: np.ndarray | None = None  # float64 photoreceptor output (low-passed log intensity)
+        self._leak = np.zeros(0)
         self._ref: np.ndarray | None = None
         self._last_t = np.full(height * width, _NEVER_US, np.int64)
         self._l_prev: np.ndarray | None = None
@@ -272,6 +328,11 @@ class EventSimulator:
         flat = self._check_log(log_intensity)
         self._ref = flat.astype(np.float64)
         self._l_prev = flat.astype(np.float32, copy=True)
+        if self._realistic:
+            self._raw_prev = flat.astype(np.float64)
+            self._filtered = self._raw_prev.copy()  # steady state: the photoreceptor has settled
+            self._leak = self._leak_phase.copy()
+            self._l_prev = (self._filtered + self._leak).astype(np.float32)
         self._last_t.fill(_NEVER_US)
         self._t_prev = int(t_us)
         self.n_refractory_dropped = 0
@@ -285,6 +346,8 @@ class EventSimulator:
         if t_us <= self._t_prev:
             raise ValueError(f"EventSimulator.step: expected t_us > {self._t_prev} (the previous sample), got {t_us}")
         flat = self._check_log(log_intensity).astype(np.float32, copy=False)
+        if self._realistic:
+            flat = self._pixel_signal(flat, t_us - self._t_prev)
         noise_pix, noise_t, noise_p = self._draw_noise(self._t_prev, t_us)
         t, pix, p, dropped = _emit_kernel(
             self._l_prev, flat, self._ref, self._c_on, self._c_off, self._last_t, self._t_prev, t_us,
@@ -298,6 +361,58 @@ class EventSimulator:
         order = np.argsort(t, kind="stable")
         pix = pix[order]
         return make_events(t[order], pix % self.width, pix // self.width, p[order])
+
+    def _cutoff_hz(self, intensity_plus_eps: np.ndarray) -> np.ndarray:
+        """Per-pixel photoreceptor cutoff (Hz) at linear intensity (+ log_eps): proportional to the photocurrent."""
+        intensity = intensity_plus_eps - self.config.log_eps
+        return self.config.photoreceptor_cutoff_hz * (intensity + _DARK_FLOOR) / (1.0 + _DARK_FLOOR)
+
+    def _pixel_signal(self, flat: np.ndarray, dt_us: int) -> np.ndarray:
+        """What the change detector compares with its reference: the photoreceptor's low-pass of the log intensity
+        plus the accumulated leak (a reference drifting down is a signal drifting up). Float32 like the input.
+
+        The low-pass is integrated exactly for a log intensity linear between the samples (the simulator's own
+        assumption), with the cutoff of the step's mean photocurrent: y_b = x_b - s tau + (y_a - x_a + s tau) e^(-dt/tau)
+        with s the slope. Exact at every sample whatever the step, so no step is too long for stability; the crossing
+        times inside a step are interpolated linearly like the input's, which :meth:`max_step_us` keeps accurate.
+        """
+        raw = flat.astype(np.float64)
+        if self._lowpass:
+            assert self._raw_prev is not None and self._filtered is not None
+            dt = float(dt_us) * 1e-6
+            tau = 1.0 / (2.0 * np.pi * self._cutoff_hz(0.5 * (np.exp(self._raw_prev) + np.exp(raw))))
+            slope_tau = (raw - self._raw_prev) / dt * tau
+            self._filtered = raw - slope_tau + (self._filtered - self._raw_prev + slope_tau) * np.exp(-dt / tau)
+        else:
+            self._filtered = raw
+        self._raw_prev = raw
+        if self._leak_per_us.any():
+            self._leak = self._leak + self._leak_per_us * dt_us
+        return (self._filtered + self._leak).astype(np.float32)
+
+    def max_step_us(self) -> int:
+        """Longest next render step that keeps the photoreceptor's own relaxation below the sampling bound.
+
+        Between samples the filtered signal moves by (its input's change, at most the sampler's bound) plus its
+        relaxation towards the input, at most |x - y| / tau per unit time at the step's start (the gap only shrinks
+        while the input holds). Bounding the relaxation by ``config.max_log_change`` keeps each step's change of the
+        detector's signal within twice the bound (one threshold by default), so crossings stay as exactly timed as
+        the ideal pixel's. Never below ``min_step_us`` (the sampler's floor); unbounded without the low-pass.
+        """
+        if not self._lowpass or self._raw_prev is None or self._filtered is None:
+            return np.iinfo(np.int64).max
+        rate = np.abs(self._raw_prev - self._filtered) * (2.0 * np.pi * 1e-6) * self._cutoff_hz(np.exp(self._raw_prev))
+        worst = float(rate.max()) if rate.size else 0.0
+        if worst <= 0.0:
+            return np.iinfo(np.int64).max
+        return max(self.config.min_step_us, int(self.config.max_log_change / worst))
+
+    @property
+    def photoreceptor_output(self) -> np.ndarray | None:
+        """(height, width) float64 low-passed log intensity at the last sample (None for the ideal pixel)."""
+        if not self._lowpass or self._filtered is None:
+            return None
+        return self._filtered.reshape(self.height, self.width).copy()
 
     def _check_log(self, log_intensity: np.ndarray) -> np.ndarray:
         arr = np.asarray(log_intensity)
@@ -461,9 +576,12 @@ def simulate(
     forced = 0
     dropped_before = 0
     chunk_start = int(t0_us)
-    for sample in render_samples(
-        render, t0_us, t1_us, config, required_t_us=required_t_us, max_step_us_at=max_step_us_at
-    ):
+    def step_bound(t_us: int) -> int:
+        own = sim.max_step_us() if sim is not None else np.iinfo(np.int64).max
+        return own if max_step_us_at is None else min(own, max_step_us_at(t_us))
+
+    bound = max_step_us_at if config.photoreceptor_cutoff_hz is None else step_bound
+    for sample in render_samples(render, t0_us, t1_us, config, required_t_us=required_t_us, max_step_us_at=bound):
         if sim is None:
             sim = EventSimulator(config, *sample.intensity.shape)
             sim.reset(sample.log_intensity, sample.t_us)

@@ -12,7 +12,9 @@ a 10 ms exposure), so a moving edge blurs into a smooth ramp, not a row of ghost
 whose adaptive step would otherwise span the whole exposure.
 
 Sensor readout (documented model, not a calibrated one): the average intensity is taken as a fraction of the
-full well, so a pixel collects ``I * full_well_electrons`` photo-electrons (auto-exposure: white saturates);
+full well, so a pixel collects ``I * full_well_electrons`` photo-electrons (auto-exposure: white saturates) in a
+scene lit at ``full_well_lux`` or brighter, and proportionally fewer in dimmer light (``illuminance_lux``), with the
+gain raised so that white stays at 255;
 shot noise is Poisson in electrons; read noise is Gaussian with ``read_noise_dn`` digital numbers std; the result
 is quantised linearly (no gamma: the DAVIS APS readout is linear) to 8 bits with clipping.
 """
@@ -45,6 +47,13 @@ class FrameConfig:
     full_well_electrons: float | None = 5000.0
     # Std of the Gaussian read noise in 8-bit digital numbers (DN); 0 disables it.
     read_noise_dn: float = 1.0
+    # Scene illuminance (lux) and the illuminance at which a white pixel collects full_well_electrons (auto exposure
+    # and gain hold white at full scale from there up: brighter scenes look the same). Below it a white pixel
+    # collects proportionally fewer electrons and the gain rises to keep white at 255: shot noise grows as
+    # 1/sqrt(light) relative to the signal and the read noise, fixed in electrons, grows as 1/light in DN. The
+    # exposure time stays exposure_us (set it longer for a dim scene, as an auto-exposure would, with more blur).
+    illuminance_lux: float = 500.0
+    full_well_lux: float = 500.0
     # Seed of the readout noise (frame k uses a generator derived from (seed, k)).
     seed: int = 0
 
@@ -70,8 +79,17 @@ class FrameConfig:
             raise ValueError(
                 f"FrameConfig.full_well_electrons: expected None or a finite number > 0, got {self.full_well_electrons!r}"
             )
+        for name in ("illuminance_lux", "full_well_lux"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"FrameConfig.{name}: expected a finite number > 0, got {value!r}")
         if not (math.isfinite(self.read_noise_dn) and self.read_noise_dn >= 0):
             raise ValueError(f"FrameConfig.read_noise_dn: expected a finite number >= 0, got {self.read_noise_dn!r}")
+
+    @property
+    def light_fraction(self) -> float:
+        """Fraction of the full well a white pixel collects in this light (1 at full_well_lux and above)."""
+        return min(1.0, self.illuminance_lux / self.full_well_lux)
 
     @property
     def period_us(self) -> float:
@@ -117,11 +135,13 @@ def sensor_readout(
     if rng is None:
         rng = np.random.default_rng(config.seed)
     signal = np.clip(np.asarray(mean_intensity, np.float64), 0.0, 1.0)
+    light = config.light_fraction  # exactly 1.0 at and above full_well_lux: the arithmetic below is then unchanged
     if config.full_well_electrons is not None:
-        signal = rng.poisson(signal * config.full_well_electrons) / config.full_well_electrons
+        electrons = config.full_well_electrons * light
+        signal = rng.poisson(signal * electrons) / electrons
     dn = signal * 255.0
     if config.read_noise_dn > 0:
-        dn = dn + rng.normal(0.0, config.read_noise_dn, size=dn.shape)
+        dn = dn + rng.normal(0.0, config.read_noise_dn / light, size=dn.shape)
     return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
 
 

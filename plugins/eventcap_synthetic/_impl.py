@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
+from eventcap import camera as camera_module
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import EventStream, FrameStack, GroundTruth, Recording
-from eventcap.camera import davis240c_default, look_at, read_rpg_calibration
-from eventcap.render import textured_background
+from eventcap.camera import Camera, look_at, read_rpg_calibration
+from eventcap.camera_presets import CameraPreset, load_preset
+from eventcap.render import background
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic
 from eventcap.sim.events import SensorConfig
 from eventcap.sim.frames import FrameConfig
@@ -48,15 +51,129 @@ def run_mesh(inputs, config, ctx):
     return {"template": load_mesh_template(config.mesh_path, config.rig_path)}
 
 
-def camera_for(config):
-    """The simulated camera: DAVIS240C-like default or a calibration file, looking at the actor from +z."""
-    eye = (0.0, config.camera_height_m, config.camera_distance_m)
-    target = (0.0, config.camera_height_m, 0.0)
+#: Keys of the synthetic source that default to the camera preset's value when null.
+FROM_PRESET = ("width", "height", "lens_mm", "frames", "contrast_threshold", "threshold_sigma", "refractory_us",
+               "noise_rate_hz", "leak_rate_hz", "bandwidth", "cutoff_hz_at_1klux")
+
+
+def resolve_camera(config) -> tuple[CameraPreset, dict, list[str]]:
+    """The camera preset, the effective value of every preset key (explicit keys win over the preset; null means
+    "the preset's"), and the keys given explicitly. Every numeric key is checked here, in one place."""
+    preset = load_preset(config.camera)
+    eff, given = {}, []
+    for key in FROM_PRESET:
+        value = getattr(config, key)
+        eff[key] = getattr(preset, key) if value is None else value
+        if value is not None:
+            given.append(key)
+    eff["camera_distance_m"] = preset.distance_m if config.camera_distance_m is None else config.camera_distance_m
+    if config.camera_distance_m is not None:
+        given.append("camera_distance_m")
+    _check_values(config, eff)
+    return preset, eff, given
+
+
+def _check_values(config, eff: dict) -> None:
+    """Refuse NaN, inf, zero and negative values where they mean nothing, naming the key (source.<key>)."""
+    def refuse(key, expected, value):
+        raise ValueError(f"source.{key}: expected {expected}, got {value!r}")
+
+    values = {**{k: getattr(config, k) for k in ("illuminance_lux", "camera_height_m", "camera_tilt_deg", "fps",
+                                                  "exposure_us", "hot_pixel_fraction", "min_step_us", "supersample",
+                                                  "gt_rate_hz", "n_track_points", "background_seed")}, **eff}
+    for key in ("contrast_threshold", "cutoff_hz_at_1klux", "lens_mm", "camera_distance_m", "illuminance_lux",
+                "camera_height_m", "fps", "gt_rate_hz"):
+        v = values[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            refuse(key, "a finite number > 0", v)
+    for key in ("threshold_sigma", "noise_rate_hz", "leak_rate_hz", "hot_pixel_fraction"):
+        v = values[key]
+        if not (math.isfinite(v) and v >= 0):
+            refuse(key, "a finite number >= 0", v)
+    if values["hot_pixel_fraction"] > 1:
+        refuse("hot_pixel_fraction", "a fraction in [0, 1]", values["hot_pixel_fraction"])
+    if not (math.isfinite(values["camera_tilt_deg"]) and -90 < values["camera_tilt_deg"] < 90):
+        refuse("camera_tilt_deg", "degrees in (-90, 90) (positive looks down)", values["camera_tilt_deg"])
+    for key, low in (("width", 1), ("height", 1), ("exposure_us", 1), ("min_step_us", 1), ("supersample", 1),
+                     ("refractory_us", 0), ("n_track_points", 0)):
+        if values[key] < low:
+            refuse(key, f"an integer >= {low}", values[key])
+    for key in ("width", "height"):
+        if values[key] > 65535:
+            refuse(key, "at most 65535 pixels", values[key])
+    if values["supersample"] % 2 == 0:
+        refuse("supersample", "an odd integer (samples centred on the pixel)", values["supersample"])
+    roi = list(config.roi)
+    if roi and (len(roi) != 4 or roi[0] < 0 or roi[1] < 0 or roi[2] < 1 or roi[3] < 1
+                or roi[0] + roi[2] > eff["width"] or roi[1] + roi[3] > eff["height"]):
+        refuse("roi", f"[x, y, width, height] inside the {eff['width']}x{eff['height']} sensor", roi)
+
+
+def camera_for(config, resolved=None) -> Camera:
+    """The simulated camera: the preset's (or a calibration file's) intrinsics, looking at the actor from +z.
+
+    The camera stands camera_distance_m in front of the actor at camera_height_m and pitches down by
+    camera_tilt_deg; with a ``roi`` it is that region of the sensor, principal point shifted to the region.
+    """
+    preset, eff, _ = resolve_camera(config) if resolved is None else resolved
+    d, h = eff["camera_distance_m"], config.camera_height_m
+    eye = (0.0, h, d)
+    target = (0.0, h - d * math.tan(math.radians(config.camera_tilt_deg)), 0.0)  # (0, h, 0) when level
     R, t = look_at(eye, target)
+    w, hh = int(eff["width"]), int(eff["height"])
     if config.calibration:
-        cam = read_rpg_calibration(config.calibration, config.width, config.height, R=R, t=t)
-        return cam if config.distortion else cam.without_distortion()
-    return davis240c_default(distortion=config.distortion, eye=eye, target=target)
+        cam = read_rpg_calibration(config.calibration, w, hh, R=R, t=t)
+        cam = cam if config.distortion else cam.without_distortion()
+    elif preset.calibration is not None and config.lens_mm is None:
+        if (w, hh) != (preset.width, preset.height):
+            raise ValueError(f"source.width, source.height: the {preset.name} preset's calibration "
+                             f"({preset.calibration}) is for {preset.width}x{preset.height} pixels, got {w}x{hh}; "
+                             "give source.lens_mm (a pinhole lens) or source.calibration for another size")
+        fx, fy, cx, cy, *dist = getattr(camera_module, preset.calibration)
+        cam = Camera(w, hh, fx, fy, cx, cy, np.array(dist) if config.distortion else np.zeros(5), R, t)
+    else:
+        f = eff["lens_mm"] * 1000.0 / preset.pixel_pitch_um
+        cam = Camera(w, hh, f, f, (w - 1) / 2.0, (hh - 1) / 2.0, np.zeros(5), R, t)
+    if config.roi:
+        x0, y0, rw, rh = (int(v) for v in config.roi)
+        cam = Camera(rw, rh, cam.fx, cam.fy, cam.cx - x0, cam.cy - y0, cam.dist, cam.R, cam.t)
+    return cam
+
+
+def _scene_background(config, cam: Camera, eff: dict) -> np.ndarray:
+    """The backdrop of the whole sensor (cropped to the ROI, so a region sees what the full sensor would)."""
+    full = background(config.background, int(eff["height"]), int(eff["width"]), seed=config.background_seed)
+    if not config.roi:
+        return full
+    x0, y0, rw, rh = (int(v) for v in config.roi)
+    return np.ascontiguousarray(full[y0:y0 + rh, x0:x0 + rw])
+
+
+def _log_camera(ctx, config, preset: CameraPreset, eff: dict, given: list[str], cam: Camera, cutoff) -> None:
+    roi = f", ROI {list(config.roi)} of {eff['width']}x{eff['height']}" if config.roi else ""
+    ctx.log.info(
+        "camera %s (%s): %dx%d px%s, fx %.1f fy %.1f px, %s; C %.3g (sigma %.3g), refractory %d us, noise %.3g Hz, "
+        "leak %.3g Hz, photoreceptor bandwidth %s", preset.name, preset.sensor, cam.width, cam.height, roi, cam.fx,
+        cam.fy, "frames" if eff["frames"] else "no frames (event-only)", eff["contrast_threshold"],
+        eff["threshold_sigma"], eff["refractory_us"], eff["noise_rate_hz"], eff["leak_rate_hz"],
+        f"on (white pixel {cutoff:.0f} Hz at {config.illuminance_lux:g} lux)" if cutoff else "ideal (off)")
+    ctx.log.info("scene: camera %.2f m away, %.2f m high, tilted %.1f deg down; %g lux; %s background (seed %d). "
+                 "Given explicitly: %s; the rest from the %s preset", eff["camera_distance_m"], config.camera_height_m,
+                 config.camera_tilt_deg, config.illuminance_lux, config.background, config.background_seed,
+                 ", ".join(given) or "nothing", preset.name)
+
+
+def sensor_settings(config, eff: dict) -> tuple[SensorConfig, FrameConfig]:
+    """The event sensor's and the frames' settings from the effective values (bandwidth scales with the light)."""
+    cutoff = eff["cutoff_hz_at_1klux"] * config.illuminance_lux / 1000.0 if eff["bandwidth"] else None
+    sensor = SensorConfig(threshold_pos=eff["contrast_threshold"], threshold_neg=eff["contrast_threshold"],
+                          threshold_sigma=eff["threshold_sigma"], refractory_us=int(eff["refractory_us"]),
+                          noise_rate_hz=eff["noise_rate_hz"], hot_pixel_fraction=config.hot_pixel_fraction,
+                          min_step_us=config.min_step_us, seed=config.seed, leak_rate_hz=eff["leak_rate_hz"],
+                          photoreceptor_cutoff_hz=cutoff)
+    frames = FrameConfig(fps=config.fps, exposure_us=config.exposure_us, seed=config.seed,
+                         illuminance_lux=config.illuminance_lux)
+    return sensor, frames
 
 
 def run_synthetic(inputs, config, ctx):
@@ -66,20 +183,18 @@ def run_synthetic(inputs, config, ctx):
         raise ValueError("source.motion: give at least one motion name")
     if not config.duration_s * 1e6 >= 1:  # also NaN
         raise ValueError(f"source.duration_s: expected the capture's length in seconds, > 0, got {config.duration_s}")
-    cam = camera_for(config)
-    sensor = SensorConfig(threshold_pos=config.contrast_threshold, threshold_neg=config.contrast_threshold,
-                          threshold_sigma=config.threshold_sigma, refractory_us=config.refractory_us,
-                          noise_rate_hz=config.noise_rate_hz, hot_pixel_fraction=config.hot_pixel_fraction,
-                          min_step_us=config.min_step_us, seed=config.seed)
-    frames = FrameConfig(fps=config.fps, exposure_us=config.exposure_us, seed=config.seed)
+    preset, eff, given = resolved = resolve_camera(config)
+    cam = camera_for(config, resolved)
+    sensor, frames = sensor_settings(config, eff)
+    _log_camera(ctx, config, preset, eff, given, cam, sensor.photoreceptor_cutoff_hz)
+    with_frames = bool(eff["frames"])
     capture = CaptureConfig(
         motions=tuple((n, config.duration_s / len(names)) for n in names), motion_start_s=config.motion_start_s,
         motion_map=config.motion_map, seed=config.seed, speed=config.speed,
         amplitude=config.amplitude, sensor=sensor, frames=frames, gt_rate_hz=config.gt_rate_hz,
         n_track_points=config.n_track_points, supersample=config.supersample,
     )
-    background = textured_background(cam.height, cam.width, seed=config.background_seed)
-    cap = simulate_synthetic(template, cam, background, capture, progress=ctx.report)
+    cap = simulate_synthetic(template, cam, _scene_background(config, cam, eff), capture, progress=ctx.report)
     ctx.log.info("synthetic capture: %d events (%.2f M/s), %d frames, %d renders in %.1f s", cap.stats["events"],
                  cap.stats["events_per_s"] / 1e6, len(cap.frame_t_us), cap.stats["renders"], cap.stats["total_s"])
     h, w = cam.height, cam.width
@@ -89,12 +204,12 @@ def run_synthetic(inputs, config, ctx):
         track_tri=cap.track_tri, track_bary=cap.track_bary, track_px=cap.track_px, track_visible=cap.track_visible,
         height=h, width=w,
         # Without frames the sharp images and frame poses no longer sit at the recording's frame times: say when.
-        frame_t_us=None if config.frames else cap.frame_t_us.copy(),
+        frame_t_us=None if with_frames else cap.frame_t_us.copy(),
     )
     frame_stack = FrameStack(images=cap.frame_images.astype(np.float32) / np.float32(255.0), t_us=cap.frame_t_us,
-                        exposure_us=cap.frame_exposure_us, height=h, width=w) if config.frames else None
-    if not config.frames:
-        ctx.log.info("source.frames=false: an event-only recording (the %d simulated frames are left out; batches "
+                        exposure_us=cap.frame_exposure_us, height=h, width=w) if with_frames else None
+    if not with_frames:
+        ctx.log.info("frames=false (source.frames or the camera preset): an event-only recording (the %d simulated frames are left out; batches "
                      "keep their clock)", len(cap.frame_t_us))
     rec = Recording(
         events=EventStream(events=cap.events, width=w, height=h), camera=cam,
@@ -102,7 +217,8 @@ def run_synthetic(inputs, config, ctx):
         name=f"synthetic-{'+'.join(Path(n).stem if n.endswith('.bvh') else n.replace('/', '_') for n in names)}"
              f"-seed{config.seed}",
         source=f"synthetic: motion={config.motion} duration_s={config.duration_s} seed={config.seed} "
-               f"speed={config.speed} amplitude={config.amplitude}" + ("" if config.frames else " frames=false")
-               + (f" motion_start_s={config.motion_start_s}" if config.motion_start_s else ""),
+               f"speed={config.speed} amplitude={config.amplitude}" + ("" if with_frames else " frames=false")
+               + (f" motion_start_s={config.motion_start_s}" if config.motion_start_s else "")
+               + f" camera={config.camera}",
     )
     return {"recording": rec, "batches": BatchPlan.between_frames(cap.frame_t_us)}

@@ -8,6 +8,7 @@ from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import Recording
 from eventcap.body.clips import motion_files
 from eventcap.body.template import Template
+from eventcap.camera_presets import preset_names
 from eventcap.stage import Port, StageSpec, param
 
 
@@ -57,27 +58,54 @@ class SyntheticConfig:
     amplitude: float = param(1.0, ge=0, help="excursion multiplier of the motions")
     fps: float = param(25.0, gt=0, help="intensity frame rate (DAVIS APS: 7-25 fps)")
     exposure_us: int = param(10_000, ge=0, help="intensity frame exposure in microseconds")
-    contrast_threshold: float = param(0.2, gt=0, help="mean contrast threshold C (log intensity)")
-    threshold_sigma: float = param(0.03, ge=0, help="per-pixel spread of the threshold")
-    refractory_us: int = param(100, ge=0, help="pixel refractory period in microseconds")
-    noise_rate_hz: float = param(0.2, ge=0, help="background-activity noise events per pixel per second")
+    # --- the camera: a preset (eventcap/assets/cameras/<name>.yaml, figures cited there); null = the preset's value
+    camera: str = param("davis240c", help="camera preset: resolution, lens, frames, thresholds, noise, realism",
+                        choices=preset_names())
+    contrast_threshold: float | None = param(None, gt=0, help="mean contrast threshold C (log intensity); null = "
+                                                              "preset")
+    threshold_sigma: float | None = param(None, ge=0, help="per-pixel spread of the threshold; null = preset")
+    refractory_us: int | None = param(None, ge=0, help="pixel refractory period in microseconds; null = preset")
+    noise_rate_hz: float | None = param(None, ge=0, help="background-activity noise events per pixel per second; "
+                                                         "null = preset")
+    leak_rate_hz: float | None = param(None, ge=0, help="leak events (ON) per pixel per second, 0 = none; null = "
+                                                        "preset")
+    bandwidth: bool | None = param(None, help="photoreceptor bandwidth model (a low-pass whose cutoff falls with the "
+                                              "light: smears fast limbs in dim light); null = preset")
+    cutoff_hz_at_1klux: float | None = param(None, gt=0, help="photoreceptor cutoff of a white pixel at 1000 lux "
+                                                              "(scales with illuminance_lux); null = preset")
     hot_pixel_fraction: float = param(0.0, ge=0, le=1, help="fraction of hot pixels")
     min_step_us: int = param(200, ge=1, help="smallest render step of the adaptive sampling (caps renders per second)")
     supersample: int = param(3, ge=1, odd=True, help="odd s: s×s samples per pixel (anti-aliasing)")
-    calibration: str = param("", help="rpg calib.txt (fx fy cx cy k1 k2 p1 p2 k3); empty = DAVIS240C default",
+    calibration: str = param("", help="rpg calib.txt (fx fy cx cy k1 k2 p1 p2 k3); empty = the preset's lens",
                              file=True)
-    width: int = param(240, ge=1, help="sensor width in pixels (with a calibration file)")
-    height: int = param(180, ge=1, help="sensor height in pixels (with a calibration file)")
+    width: int | None = param(None, ge=1, help="sensor width in pixels; null = preset (give it with a calibration "
+                                               "file or lens_mm)")
+    height: int | None = param(None, ge=1, help="sensor height in pixels; null = preset")
+    lens_mm: float | None = param(None, gt=0, help="focal length in mm: fx = fy = lens_mm / pixel pitch, principal "
+                                                   "point at the centre, no distortion; null = the preset's lens or "
+                                                   "calibration")
+    roi: list[int] = param(default_factory=list, ge=0, help="[x, y, width, height]: simulate only this region of the "
+                                                            "sensor (as the IMX636's ROI does), intrinsics shifted to "
+                                                            "it; empty = the whole sensor")
     distortion: bool = param(True, help="use the lens distortion of the calibration")
-    camera_distance_m: float = param(3.0, gt=0, help="distance of the camera from the actor (on +z)")
-    camera_height_m: float = param(1.0, help="height of the camera and of its look-at point")
+    frames: bool | None = param(None, help="false: an event-only camera. The capture is simulated exactly as with "
+                                           "frames (the same events) and its intensity frames are left out of the "
+                                           "recording; batches keep the frame clock (fps), and the ground truth keeps "
+                                           "the true sharp images at those times (frame_t_us); null = preset")
+    # --- the scene
+    camera_distance_m: float | None = param(None, gt=0, help="distance of the camera from the actor (on +z); null = "
+                                                             "the preset's (the actor fills the image height alike)")
+    camera_height_m: float = param(1.0, help="height of the camera above the floor")
+    camera_tilt_deg: float = param(0.0, ge=-89, le=89, help="pitch of the camera, degrees down from horizontal (0: "
+                                                            "looks level at the point camera_height_m above the "
+                                                            "actor's feet)")
+    illuminance_lux: float = param(500.0, gt=0, help="scene illuminance: drives the photoreceptor bandwidth and the "
+                                                     "frames' noise (500 office, 50 dim room, 5 night-time interior)")
+    background: str = param("textured", help="static backdrop: textured | low_texture | plain",
+                            choices=("textured", "low_texture", "plain"))  # eventcap.render.BACKGROUNDS
     background_seed: int = param(0, ge=0, help="texture of the static background")
     gt_rate_hz: float = param(1000.0, gt=0, help="rate of the ground-truth poses, joints and tracks")
     n_track_points: int = param(300, ge=0, help="surface points whose ground-truth 2D tracks are recorded")
-    frames: bool = param(True, help="false: an event-only camera. The capture is simulated exactly as with frames "
-                                    "(the same events) and its intensity frames are left out of the recording; "
-                                    "batches keep the frame clock (fps), and the ground truth keeps the true sharp "
-                                    "images at those times (frame_t_us)")
 
 
 PROCEDURAL = StageSpec(name="procedural", kind="template", version=1,
