@@ -360,13 +360,15 @@ def write_bvh(path, poses, rest_joints, frame_time_s: float = 0.001, scale: floa
     return path
 
 
-def write_motion_npz(path, t_us, poses, joints, extra: Mapping[str, Any] | None = None) -> Path:
+def write_motion_npz(path, t_us, poses, joints, extra: Mapping[str, Any] | None = None,
+                     estimated: np.ndarray | None = None) -> Path:
     """Write a skeletal motion as an npz file; returns the path.
 
     Arrays: ``t_us`` (T,) int64 microseconds, strictly increasing; ``poses`` (T, 33) float64 (S = [θ, root
     rotation, root translation], radians and metres); ``joints`` (T, 24, 3) float64 metres; ``param_names`` (33,)
     and ``joint_names`` (24,) strings naming the columns; plus any ``extra`` arrays (names must not clash).
-    Written atomically (``<name>.partial``, then renamed).
+    ``estimated`` (T,) bool: the frames that have an estimate; the others (gaps) are NaN, every estimated frame
+    finite (None: every frame is estimated). Written atomically (``<name>.partial``, then renamed).
     """
     path = Path(path)
     t = np.asarray(t_us)
@@ -379,15 +381,22 @@ def write_motion_npz(path, t_us, poses, joints, extra: Mapping[str, Any] | None 
     if t.size > 1 and np.any(np.diff(t) <= 0):
         i = int(np.argmax(np.diff(t) <= 0)) + 1
         raise ValueError(f"t_us: expected strictly increasing times, frame {i} is at {t[i]} us after {t[i - 1]} us")
-    S = check_poses(poses)
+    est = np.ones(t.shape[0], dtype=bool) if estimated is None else np.asarray(estimated, dtype=bool)
+    if est.shape != t.shape or not est.any():
+        raise ValueError(f"estimated: expected one flag per time ({t.shape[0]}), at least one true, got "
+                         f"{int(est.sum())} of shape {est.shape}")
+    S = np.asarray(poses, dtype=np.float64)
+    if S.ndim != 2 or S.shape[0] != t.shape[0]:
+        check_poses(S)  # names the shape it expected
+    check_poses(S[est])  # a gap is NaN; every estimated frame finite
     J = np.asarray(joints, dtype=np.float64)
     if S.shape[0] != t.shape[0]:
         raise ValueError(f"poses: expected one row per time ({t.shape[0]}), got shape {S.shape}")
     if J.shape != (t.shape[0], NUM_JOINTS, 3):
         raise ValueError(f"joints: expected shape ({t.shape[0]}, {NUM_JOINTS}, 3) (T, SMPL joints, xyz metres), "
                          f"got {J.shape}")
-    if not np.all(np.isfinite(J)):
-        raise ValueError("joints: expected finite values, got NaN or inf")
+    if not np.all(np.isfinite(J[est])):
+        raise ValueError("joints: expected finite values at every estimated frame, got NaN or inf")
     arrays: dict[str, np.ndarray] = {"t_us": t, "poses": S, "joints": J, "param_names": np.array(_PARAM_NAMES),
                                      "joint_names": np.array(JOINT_NAMES)}
     for k, v in (extra or {}).items():

@@ -70,9 +70,29 @@ def _run_job(cfg) -> bool:
     data = OmegaConf.to_container(cfg, resolve=True)
     overrides = list(HydraConfig.get().overrides.task)
     log.info("run folder: %s%s", run_dir, f" (overrides: {' '.join(overrides)})" if overrides else "")
+    cfg, data = _pipeline_for_recording(cfg, data, overrides)
     before = len(_RUN_FAILURES)
     run_job(data, run_dir, OmegaConf.to_yaml(cfg, resolve=True), _RUN_FAILURES)
     return len(_RUN_FAILURES) == before
+
+
+def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
+    """The default command on a recording without intensity frames: when no pipeline was chosen, the run takes
+    pipeline=events_only (images reconstructed from the events) and the log says why. Returns (cfg, data)."""
+    from hydra import compose
+    from omegaconf import OmegaConf
+
+    from .jobs import FRAMELESS_PIPELINE, frameless_source
+
+    if any(o.partition("=")[0].lstrip("+~") == "pipeline" for o in overrides):
+        return cfg, data
+    why = frameless_source(data)
+    if why is None:
+        return cfg, data
+    log.info("%s: running pipeline=%s (images reconstructed from the events stand in for frames; give pipeline=... "
+             "to choose another)", why, FRAMELESS_PIPELINE)
+    cfg = compose(config_name="config", overrides=[*overrides, f"pipeline={FRAMELESS_PIPELINE}"])
+    return cfg, OmegaConf.to_container(cfg, resolve=True)
 
 
 def cmd_run(argv: list[str]) -> int:

@@ -53,6 +53,37 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     return runner, result
 
 
+#: The pipeline a recording without intensity frames runs when the user chose none (conf/pipeline/events_only.yaml).
+FRAMELESS_PIPELINE = "events_only"
+
+
+def frameless_source(data: Mapping[str, Any]) -> str | None:
+    """Why the composed config's source yields no intensity frames (a sentence for the log), or None when it has
+    them or cannot tell (then the run says so itself). A synthetic camera without frames (its preset's, or
+    source.frames=false), a recording asked to leave its frames out, or a file without any."""
+    src = data.get("source") or {}
+    stage = src.get("stage")
+    if src.get("frames") is False:
+        return "source.frames=false: the recording's intensity frames are left out"
+    if stage == "synthetic" and src.get("frames") is None and src.get("camera"):
+        from .camera_presets import load_preset
+
+        try:
+            preset = load_preset(str(src["camera"]))
+        except ValueError:
+            return None  # refused with its reason when the source runs
+        return None if preset.frames else f"camera {preset.name} ({preset.sensor}) has no intensity frames"
+    if stage == "recording" and src.get("path") not in (None, "", "???"):
+        from .io.readers import recording_has_frames
+
+        try:
+            has = recording_has_frames(src["path"], src.get("format") or None)
+        except (OSError, ValueError):
+            return None  # the source stage reports what is wrong with the file
+        return None if has else f"{src['path']} holds no intensity frames (an event-only recording)"
+    return None
+
+
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
     cols = list(dict.fromkeys(k for r in rows for k in r))
     tmp = path.with_name(path.name + ".partial")

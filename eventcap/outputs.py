@@ -5,10 +5,13 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
 
 - ``motion.bvh``: the joined motion of the ``poses`` node (``node.port``, per-batch PoseSequences, e.g.
   ``solve.poses``) at its tracking frame rate (1000 fps), on the template's rest skeleton
-  (:func:`eventcap.bvh.write_bvh`). BVH needs a constant frame rate: frames the run did not estimate (batches that
-  failed or were not selected) are interpolated linearly and the log says how many.
-- ``motion.npz``: the estimated frames only: ``t_us``, ``poses`` (T, 33), ``joints`` (T, 24, 3) metres
-  (:func:`eventcap.bvh.write_motion_npz`).
+  (:func:`eventcap.bvh.write_bvh`). Nothing is filled in: BVH has no way to mark a frame unestimated, so a motion
+  with gaps (batches that failed or were not selected, windows that saw nothing) is cut there into
+  ``motion_partNN.bvh``, one file per stretch, and the log names them.
+- ``motion.npz``: ``t_us``, ``poses`` (T, 33), ``joints`` (T, 24, 3) metres (:func:`eventcap.bvh.write_motion_npz`),
+  ``estimated`` (T,) (False: a gap, NaN poses and joints), ``gaps_us`` (the spans of the gaps), and ``confidence``
+  (T, 24) in [0, 1] per joint when the pipeline has a confidence node (:mod:`eventcap.confidence`: below 0.5
+  unobserved or not trusted).
 - ``overlay.mp4``: every ``video_every_ms`` of the motion (at most ``video_max_frames`` frames: the step widens
   to cover the whole motion), the sharpened latent image (else the nearest intensity frame) with the events of the
   last ``video_events_ms`` (red positive, blue negative), the template's silhouette outline (yellow) and skeleton
@@ -16,7 +19,8 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
   and beside it an orthographic side view of the 3D skeleton. ``overlay_frames/`` keeps ``video_png_frames`` of its
   frames as PNG. The file appears atomically (written as ``overlay.partial.mp4``, then renamed).
 - ``motion.c3d`` (``c3d: true``): the joint centres and the template's surface markers (Plug-in Gait) at the
-  tracking rate, for mocap tools (:mod:`eventcap.c3d`).
+  tracking rate, for mocap tools (:mod:`eventcap.c3d`); residual -1 (invalid) for a gap and for a joint (or a
+  marker's joint) whose confidence is below 0.5.
 - ``up_axis`` (y | z) and ``units`` (m | cm | mm; null: BVH in m, C3D in mm) set the frame of motion.bvh and
   motion.c3d (:mod:`eventcap.worldframe`); motion.npz stays in the internal frame (y up, metres) and says so in its
   ``world_frame`` field. Each file states the time of its first frame (``t0_us``).
@@ -214,35 +218,43 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
                                                                                                Template)
     if template is None:
         return skip("no actor template in this run (the motion needs its rest skeleton)")
+    from .artifacts.pose import JointConfidence
     from .body.kinematics import joint_positions
 
-    joints = joint_positions(poses, template)
-    step = frame_step_us(t_us) or 1000
+    t_us, poses = with_gap_frames(t_us, poses, frame_step_us(t_us) or 1000)  # failed batches: their frames, NaN
+    est = np.isfinite(poses).all(axis=1)  # False: a gap (a window that saw nothing, a failed batch): never filled in
+    if not est.any():
+        return skip("the motion has no estimated frame: nothing was seen (every window of the solve was a gap)")
+    joints = np.full((t_us.size, 24, 3), np.nan)
+    joints[est] = joint_positions(poses[est], template)
+    conf = _confidence_on(_first_output(runner, result, JointConfidence), t_us)
+    if (~est).any():
+        log.warning("outputs: %d of %d frames are a gap (not estimated: nothing seen there); motion.npz marks them "
+                    "(estimated false, NaN), the BVH is cut at them, the C3D marks them invalid (residual -1)",
+                    int((~est).sum()), t_us.size)
+    step = frame_step_us(t_us[est]) or 1000
+    te, Pe, Je = t_us[est], poses[est], joints[est]
+    Ce = None if conf is None else conf[est]
     jobs = []
     if cfg.bvh:
-        jobs.append(("bvh", lambda: _write_bvh(run_dir / "motion.bvh", t_us, poses, template, step, cfg)))
+        jobs.append(("bvh", lambda: _write_bvh(run_dir / "motion.bvh", te, Pe, template, step, cfg)))
     if cfg.npz:
-        from .bvh import write_motion_npz
-        from .worldframe import describe
-
-        extra = {"source_output": np.array(cfg.poses), "t0_us": np.int64(t_us[0]),
-                 "world_frame": np.array(describe("y", "m"))}
-        jobs.append(("npz", lambda: write_motion_npz(run_dir / "motion.npz", t_us, poses, joints, extra=extra)))
+        jobs.append(("npz", lambda: _write_npz(run_dir / "motion.npz", t_us, poses, joints, est, conf, cfg)))
     if cfg.video:
         if rec is None:
             summary["skipped"]["video"] = "no recording in this run (the video needs its camera)"
             log.warning("outputs: video skipped: %s", summary["skipped"]["video"])
         else:
             latent = _first_output(runner, result, LatentFrames)
-            jobs.append(("video", lambda: write_overlay_video(run_dir, rec, template, t_us, poses, joints, cfg,
+            jobs.append(("video", lambda: write_overlay_video(run_dir, rec, template, te, Pe, Je, cfg,
                                                               latent=latent)))
     if cfg.c3d:
-        jobs.append(("c3d", lambda: _write_c3d(run_dir / "motion.c3d", t_us, poses, joints, template, step, cfg)))
+        jobs.append(("c3d", lambda: _write_c3d(run_dir / "motion.c3d", te, Pe, Je, template, step, cfg, Ce)))
     if cfg.rerun:
-        jobs.append(("rerun", lambda: _write_rerun(run_dir, runner, result, t_us, poses, joints, rec, template,
-                                                   cfg, summary)))
+        jobs.append(("rerun", lambda: _write_rerun(run_dir, runner, result, te, Pe, Je, rec, template,
+                                                   cfg, summary, Ce)))
     # Plausibility warnings (eventcap/plausibility.py): logged, and written to plausibility.json; never change the motion
-    jobs.append(("plausibility", lambda: write_plausibility(run_dir / "plausibility.json", t_us, joints,
+    jobs.append(("plausibility", lambda: write_plausibility(run_dir / "plausibility.json", te, Je,
                                                             rec.camera if rec is not None else None)))
     for name, job in jobs:
         try:
@@ -255,37 +267,108 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     return summary
 
 
-def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConfig) -> Path:
+def _confidence_on(conf, t_us: np.ndarray) -> np.ndarray | None:
+    """The run's joint confidence (a JointConfidence, or None) at the motion's frames (0 where it has none)."""
+    if conf is None:
+        return None
+    t = np.asarray(conf.t_us, dtype=np.int64)
+    k = np.searchsorted(t, t_us)
+    hit = (k < t.size) & (t[np.minimum(k, max(t.size - 1, 0))] == t_us) if t.size else np.zeros(t_us.size, bool)
+    out = np.zeros((t_us.size, 24))
+    out[hit] = np.asarray(conf.confidence, dtype=np.float64)[k[hit]]
+    return out
+
+
+def with_gap_frames(t_us: np.ndarray, poses: np.ndarray, step_us: int) -> tuple[np.ndarray, np.ndarray]:
+    """The motion with the grid frames of its time gaps (batches that failed or were not run) added as NaN rows, so
+    that a gap is a gap in every output, whatever left it."""
+    t = np.asarray(t_us, dtype=np.int64)
+    jumps = np.flatnonzero(np.diff(t) > 1.5 * step_us)
+    if not jumps.size:
+        return t, poses
+    extra = np.concatenate([np.arange(t[i] + step_us, t[i + 1] - step_us // 2, step_us, dtype=np.int64)
+                            for i in jumps])
+    t_all = np.concatenate([t, extra])
+    order = np.argsort(t_all, kind="stable")
+    P = np.concatenate([np.asarray(poses, dtype=np.float64), np.full((extra.size, poses.shape[1]), np.nan)])
+    return t_all[order], P[order]
+
+
+def motion_segments(t_us: np.ndarray, step_us: int) -> list[slice]:
+    """The stretches of a motion's frames with no gap longer than a frame step (a gap is never filled in)."""
+    cut = np.flatnonzero(np.diff(np.asarray(t_us, dtype=np.int64)) > 1.5 * step_us) + 1
+    bounds = [0, *cut.tolist(), len(t_us)]
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConfig) -> Path | str:
+    """motion.bvh of the estimated frames; a motion with gaps (BVH has no way to mark one) is cut there into
+    motion_partNN.bvh, one file per stretch, each with its own time origin (the log names them)."""
     from .bvh import write_bvh
     from .worldframe import unit_scale
 
-    grid, S, filled = uniform_motion(t_us, poses, step_us)
-    if filled.any():
-        log.warning("outputs: motion.bvh: %d of %d frames (at %g fps) were not estimated (gaps between batches); "
-                    "they are interpolated linearly; motion.npz holds the estimated frames only",
-                    int(filled.sum()), grid.size, 1e6 / step_us)
-    return write_bvh(path, S, template.rest_joints, frame_time_s=step_us * 1e-6, scale=unit_scale(cfg.units or "m"),
-                     up_axis=cfg.up_axis, t0_us=int(grid[0]))
+    segments = motion_segments(t_us, step_us)
+    written = []
+    for n, seg in enumerate(segments, start=1):
+        if seg.stop - seg.start < 2:
+            log.warning("outputs: a stretch of 1 frame at %d us between gaps is left out of the BVH files", t_us[seg][0])
+            continue
+        grid, S, _ = uniform_motion(t_us[seg], poses[seg], step_us)
+        out = path if len(segments) == 1 else path.with_name(f"{path.stem}_part{n:02d}{path.suffix}")
+        written.append(write_bvh(out, S, template.rest_joints, frame_time_s=step_us * 1e-6,
+                                 scale=unit_scale(cfg.units or "m"), up_axis=cfg.up_axis, t0_us=int(grid[0])))
+    if len(segments) > 1:
+        spans = ", ".join(f"{t_us[s][0] / 1e3:.0f}-{t_us[s][-1] / 1e3:.0f} ms" for s in segments)
+        log.warning("outputs: the motion has gaps: no motion.bvh; %d BVH files, one per stretch (%s)", len(written),
+                    spans)
+        return ", ".join(str(p) for p in written)
+    if not written:
+        raise ValueError("no stretch of the motion has 2 frames or more")
+    return written[0]
 
 
-def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int, cfg: OutputsConfig) -> Path:
+def _write_npz(path: Path, t_us, poses, joints, est, conf, cfg: OutputsConfig) -> Path:
+    """motion.npz: every frame of the joined motion, gaps included (NaN, ``estimated`` false), its ``confidence``
+    per joint (0 in gaps; when the run has a confidence node) and the time spans of its gaps."""
+    from .bvh import write_motion_npz
+    from .worldframe import describe
+
+    t = np.asarray(t_us, dtype=np.int64)
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], ~est, [False]]).astype(int)))
+    gaps = np.stack([t[edges[0::2]], t[edges[1::2] - 1]], axis=1) if edges.size else np.zeros((0, 2), np.int64)
+    extra = {"source_output": np.array(cfg.poses), "t0_us": np.int64(t[0]),
+             "world_frame": np.array(describe("y", "m")), "estimated": est, "gaps_us": gaps}
+    if conf is not None:
+        extra["confidence"] = conf.astype(np.float32)
+    return write_motion_npz(path, t, poses, joints, extra=extra, estimated=est)
+
+
+def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int, cfg: OutputsConfig,
+               conf: np.ndarray | None = None) -> Path:
     from .body.markers import plug_in_gait_markers
     from .c3d import write_c3d
+    from .confidence import OBSERVED
 
     keep = on_grid(t_us, step_us)  # C3D has one frame rate: intensity frames between two grid times stay in motion.npz
     markers = plug_in_gait_markers(template)
+    point_conf = None
+    if conf is not None:  # a joint below OBSERVED is unobserved or not trusted: residual -1; markers follow a joint
+        c = np.where(conf[keep] >= OBSERVED, conf[keep], 0.0)
+        point_conf = np.concatenate([c, c[:, np.argmax(markers.weights, axis=1)]], axis=1)  # a marker's main joint
     return write_c3d(path, np.asarray(t_us)[keep], np.asarray(joints)[keep],
                      markers.positions(np.asarray(poses)[keep], template), step_us, marker_names=markers.names,
-                     marker_descriptions=markers.descriptions, up_axis=cfg.up_axis, units=cfg.units or "mm")
+                     marker_descriptions=markers.descriptions, up_axis=cfg.up_axis, units=cfg.units or "mm",
+                     confidence=point_conf)
 
 
 def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, template, cfg: OutputsConfig,
-                 summary: dict[str, Any]) -> Path:
+                 summary: dict[str, Any], conf: np.ndarray | None = None) -> Path:
     from .artifacts.tracking import LatentFrames
     from .viewer import RRD_NAME, collect_run_content, write_recording
 
     content = collect_run_content(runner, result, t_us, poses, joints, rec, template,
                                   _first_output(runner, result, LatentFrames), cfg.poses)
+    content.confidence = conf
     content.name = f"{content.name or 'run'}/{run_dir.name}"  # the recording id: runs of one name stay apart
     stats = write_recording(run_dir / RRD_NAME, content, cfg.rerun_events_ms, cfg.rerun_every_ms,
                             cfg.rerun_max_frames, cfg.rerun_outline_every_ms)

@@ -98,6 +98,7 @@ class RunContent:
     pose_nodes: dict[str, dict[int, Any]] = field(default_factory=dict)  # per-batch node -> batch -> PoseSequence
     batch_nodes: dict[str, dict[str, Any]] = field(default_factory=dict)  # per-batch node -> committed/failed batches
     errors: Any = None  # JointErrors
+    confidence: np.ndarray | None = None  # (T, 24) in [0, 1] at the motion's frames (eventcap.confidence)
     name: str = ""
 
 
@@ -398,10 +399,17 @@ def _log_tracks(rr, s, c: RunContent, counts) -> None:
         counts["track points"] = n_points
 
 
-def _keypoint_columns(rr, cls, P: np.ndarray, class_id: int, draw_order: float | None = None) -> list:
-    """Columns of (T, K, dims) key points, one row of K per time."""
+#: joint colours by confidence: observed (>= 0.5) and unobserved or not trusted
+_SEEN, _UNSEEN = np.array([60, 200, 90], np.uint8), np.array([230, 60, 50], np.uint8)
+
+
+def _keypoint_columns(rr, cls, P: np.ndarray, class_id: int, draw_order: float | None = None,
+                      confidence: np.ndarray | None = None) -> list:
+    """Columns of (T, K, dims) key points, one row of K per time; coloured by confidence (T, K) when given."""
     T, K = P.shape[:2]
     kw = {"draw_order": np.full(T * K, draw_order, np.float32)} if draw_order is not None else {}
+    if confidence is not None:
+        kw["colors"] = np.where((np.asarray(confidence) >= 0.5).reshape(-1, 1), _SEEN, _UNSEEN)
     cols = cls.columns(positions=P.reshape(T * K, -1), class_ids=np.full(T * K, class_id, np.uint16),
                        keypoint_ids=np.tile(np.arange(K, dtype=np.uint16), T), show_labels=np.zeros(T * K, bool),
                        **kw)
@@ -410,14 +418,21 @@ def _keypoint_columns(rr, cls, P: np.ndarray, class_id: int, draw_order: float |
 
 def _log_motion(rr, s, c: RunContent, counts) -> None:
     T = c.t_us.size
+    conf = c.confidence
     rr.send_columns("world/skeleton/estimate", indexes=_times(rr, c.t_us),
-                    columns=_keypoint_columns(rr, rr.Points3D, c.joints, CLASS_ESTIMATE), recording=s)
+                    columns=_keypoint_columns(rr, rr.Points3D, c.joints, CLASS_ESTIMATE, confidence=conf),
+                    recording=s)
     counts["3D skeleton frames"] = T
+    if conf is not None:  # how much of the motion was seen: the share of joints observed, per frame
+        rr.send_columns("confidence/observed_share", indexes=_times(rr, c.t_us),
+                        columns=rr.Scalars.columns(scalars=(np.asarray(conf) >= 0.5).mean(axis=1)), recording=s)
+        counts["confidence frames"] = T
     if c.rec is not None:
         px = c.rec.camera.project(c.joints.reshape(-1, 3)).reshape(T, -1, 2)
         ok = np.all(np.isfinite(px), axis=(1, 2))
         rr.send_columns("world/camera/image/skeleton", indexes=_times(rr, c.t_us[ok]),
-                        columns=_keypoint_columns(rr, rr.Points2D, px[ok], CLASS_ESTIMATE, 30.0), recording=s)
+                        columns=_keypoint_columns(rr, rr.Points2D, px[ok], CLASS_ESTIMATE, 30.0,
+                                                  None if conf is None else np.asarray(conf)[ok]), recording=s)
         counts["projected skeleton frames"] = int(ok.sum())
 
 

@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: the domain library: top-level modules and packages of eventcap (a package covers its submodules)
 LIBRARY = {"body", "camera", "sim", "io", "energy", "render", "edi", "events", "reconstruct", "metrics", "motion",
-           "smoothing", "bvh", "c3d", "viz", "errors", "processes", "memo", "names", "plausibility", "worldframe"}
+           "smoothing", "bvh", "c3d", "viz", "errors", "processes", "memo", "names", "plausibility", "worldframe",
+           "camera_presets", "confidence"}
 #: the typed artifacts: data classes the library may build and read (they import only the library)
 ARTIFACTS = {"artifacts"}
 #: the orchestration (framework and apps): the library imports none of these, not even inside a function

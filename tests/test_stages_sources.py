@@ -100,7 +100,9 @@ def test_missing_path_is_a_clear_error(tmp_path):
     assert "source.path: file not found" in p.stdout + p.stderr
 
 
-def test_recording_without_frames_is_rejected_by_sharpen_with_a_clear_message(tmp_path):
+def test_recording_without_frames_runs_the_event_only_pipeline_unless_told_otherwise(tmp_path):
+    """The default command on a recording without intensity frames takes pipeline=events_only and says why; a
+    pipeline chosen explicitly (pipeline=default) is kept, and its sharpen stage refuses with a clear message."""
     from eventcap.events import make_events
     from eventcap.io import write_events
 
@@ -109,9 +111,16 @@ def test_recording_without_frames_is_rejected_by_sharpen_with_a_clear_message(tm
     ev = make_events(np.sort(rng.integers(0, 100_000, n)), rng.integers(0, 64, n), rng.integers(0, 48, n),
                      rng.choice([-1, 1], n))
     path = write_events(tmp_path / "events_only.npz", ev, width=64, height=48)
-    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "source=recording", f"source.path={path}",
-                        "template=procedural", "template.target_faces=3000", "hydra.run.dir=runs/nf"], cwd=tmp_path, capture_output=True,
-                       text=True, timeout=600)
-    out = p.stdout + p.stderr
-    assert p.returncode == 1
+
+    def run(*extra):
+        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "source=recording", f"source.path={path}",
+                            "template=procedural", "template.target_faces=3000", "outputs.video=false", *extra],
+                           cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        return p.returncode, p.stdout + p.stderr
+
+    code, out = run("hydra.run.dir=runs/auto")
+    assert f"{path} holds no intensity frames (an event-only recording): running pipeline=events_only" in out
+    assert "sharpen" not in out.split("running pipeline=events_only")[1]  # no EDI node in that pipeline
+    code, out = run("pipeline=default", "hydra.run.dir=runs/nf")
+    assert code == 1
     assert "stage 'edi' needs intensity frames (at least 2), but recording 'events_only' has 0" in out

@@ -67,8 +67,9 @@ class PoseSequence(Artifact):
 
     schema_version: ClassVar[int] = 1
     t_us: np.ndarray = array("int64", ("f",), units="us")
-    poses: np.ndarray = array("float64", ("f", 33), units="rad, m")
-    status: str = attr(default="", doc="solver status of the last solve")
+    poses: np.ndarray = array("float64", ("f", 33), units="rad, m; nan: not estimated (a gap)")
+    status: str = attr(default="", doc="solver status of the last solve; 'gap': nothing was observed, nothing is "
+                                       "estimated (poses NaN)")
     iterations: int = attr(default=0)
     energies: dict = attr(default_factory=dict, doc="final value of each energy term")
 
@@ -90,3 +91,21 @@ class JointErrors(Artifact):
         super().validate()
         if self.error_m.size and self.error_m.min() < 0:
             raise ArtifactError("JointErrors.error_m: distances must be >= 0")
+
+
+@dataclass(frozen=True, eq=False)
+class JointConfidence(Artifact):
+    """How much of an estimated motion was seen: per frame and joint, a confidence in [0, 1] from measurable support
+    (detections agreeing with the estimate at the intensity frames, events around its bones between them, the joint
+    in view; :mod:`eventcap.confidence`). Below 0.5 a joint is unobserved or not trusted; a gap (no estimate) is 0."""
+
+    schema_version: ClassVar[int] = 1
+    t_us: np.ndarray = array("int64", ("f",), units="us")
+    confidence: np.ndarray = array("float32", ("f", 24), doc="in [0, 1], SMPL joint order")
+    estimated: np.ndarray = array("bool", ("f",), doc="the frame has an estimate (False: a gap)")
+
+    def validate(self) -> None:
+        super().validate()
+        c = self.confidence
+        if c.size and (c.min() < 0 or c.max() > 1):
+            raise ArtifactError(f"JointConfidence.confidence: expected values in [0, 1], got [{c.min()}, {c.max()}]")

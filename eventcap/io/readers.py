@@ -100,6 +100,18 @@ def _converter(source: Source, width, height) -> ColumnConverter:
     return ColumnConverter(source.events_path, width, height, source.time_unit, source.t_add_us)
 
 
+def recording_has_frames(path, format: str | None = None) -> bool:
+    """Whether a recording (any format of :mod:`eventcap.io`, or the project's zarr) holds intensity frames; cheap for
+    the project's zarr and AEDAT4 (a declared frame stream), a decode of the frames otherwise."""
+    p = Path(path)
+    if (p / "zarr.json").is_file() or (p / ".zgroup").is_file():
+        return (p / "frames").is_dir()
+    source = open_source(p, format or None)
+    if source.format == "aedat4":
+        return getattr(source, "_frame_id", None) is not None
+    return source.frames() is not None
+
+
 def read_recording(path, format: str | None = None, time_window_us: tuple[int, int] | None = None,
                    roi: Roi | tuple[int, int, int, int] | None = None, *, width: int | None = None,
                    height: int | None = None, time_unit: str | None = None, columns=None,

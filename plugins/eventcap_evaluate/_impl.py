@@ -40,6 +40,9 @@ interpolated between its samples otherwise); frames outside the ground truth's t
 Data rate: bytes of the events (``EVENT_DTYPE.itemsize`` = 13 per event) and of the intensity frames (8 bit per
 pixel) the method read within the evaluated motion's time span, per second of that span, in MB/s (10^6 bytes),
 against a high-speed camera giving 8-bit frames of the same resolution at the tracking frame rate (1000 fps).
+
+Gaps: frames without an estimate (NaN poses: windows that saw nothing) are not evaluated; ``coverage`` is the share
+of the tracking frames that have one, ``n_gap_frames`` how many do not.
 """
 
 from __future__ import annotations
@@ -144,6 +147,11 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
     t_us = np.asarray(t_us, dtype=np.int64)
     step = float(np.median(np.diff(t_us))) if t_us.size > 1 else None
     truth, inside = truth_joints(gt, t_us)
+    estimated = np.isfinite(poses).all(axis=1)  # a gap (nothing seen: no estimate) is not evaluated
+    truth, inside = truth[estimated[inside]], inside & estimated
+    if not inside.any() and not estimated.any():
+        raise StageFailed(f"{who}: the motion has no estimated frame (every window was a gap: nothing was seen)",
+                          status="gap")
     if not inside.any():
         raise StageFailed(f"{who}: no estimated tracking frame ({t_us[0]}..{t_us[-1]} us) lies within its ground "
                           f"truth ({gt.t_us[0]}..{gt.t_us[-1]} us)", status="no_overlap")
@@ -173,6 +181,8 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
         "n_raw": int(r.sum()),
         "n_nonRaw": int((s & ~r).sum()),
         "n_tracking_frames": int(t_us.size),
+        "n_gap_frames": int((~estimated).sum()),
+        "coverage": float(estimated.mean()),
         "n_outside_ground_truth": int((~inside).sum()),
         "AE_rootrel_mm": _mean_mm(rootrel.mean(axis=1)) if rootrel.size else None,
         "every": int(every),

@@ -211,7 +211,7 @@ def run_spline(inputs, config, ctx):
     from eventcap.energy.problem import SplinePoses, coupling_band
     from eventcap.energy.spline import UniformCubicBSpline
 
-    from .solve import solve_window
+    from .solve import NothingObserved, observed_frames, solve_window
 
     rec, plan, b = inputs["recording"], inputs["batches"], ctx.batch
     where = f"batch {b.index}" if b is not None else "batch ?"
@@ -242,19 +242,28 @@ def run_spline(inputs, config, ctx):
         raise StageFailed(f"stages.spline.prior_inertia: {exc}", status="invalid_input") from exc
     if base_gain is not None:
         ctx.stats["prior_inertia_gain"] = [float(v) for v in base_gain]
+    t_win = window_times(inputs["sliced"], index, plan, b, a, z, np.asarray(own.t_us, dtype=np.int64))
     try:
         res = solve_window(solver, spline, t_det, det, t_cor, xy, valid, what=what, context=context,
                            events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), t_sil_us=t_sil,
                            base_gain=base_gain)
+    except NothingObserved as exc:  # a gap: nothing was seen, so nothing is estimated (stitch leaves it out)
+        ctx.log.warning("%s: a gap: %s", where, str(exc).removeprefix(f"{what}: "))
+        ctx.stats["gap"] = True
+        return {"poses": PoseSequence(t_us=t_win, poses=np.full((t_win.size, 33), np.nan), status="gap",
+                                      iterations=0, energies={})}
     except (StageFailed, SolveFailed, EnergyError) as exc:  # name the window in every failure (the fits' too)
         msg = str(exc) if what in str(exc) else f"{what}: {exc}"
         raise StageFailed(msg, status=getattr(exc, "status", "failed"), details=getattr(exc, "details", {})) from exc
-    # The output is the window's whole curve at the tracking rate: stitch blends the overlapping windows.
-    t_win = window_times(inputs["sliced"], index, plan, b, a, z, np.asarray(own.t_us, dtype=np.int64))
+    # The output is the window's curve at the tracking rate, between its first and last detection frame that holds
+    # an observation (NaN beyond: never extrapolated); stitch blends the overlapping windows.
     poses = spline.evaluate(res.control, t_win)
+    seen = t_det[observed_frames(det)]
+    poses[(t_win < seen[0]) | (t_win > seen[-1])] = np.nan
     # The window unwrapped its root angles from its own first fit: one branch per window (its first pose's root
     # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.
-    poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[0, 27:30] / (2.0 * np.pi))
+    first = int(np.flatnonzero(np.isfinite(poses[:, 0]))[0])
+    poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[first, 27:30] / (2.0 * np.pi))
     log_window(ctx, config, res, where, (a, z), t_det, scope, b, context, spline, t_sil)
     energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
     iters = int(sum(s.iterations for s in res.solves))

@@ -125,18 +125,33 @@ def frame_fit(solver: SplineSolver, det: FrameDetections, d: int):
     return _FITS[key], 1
 
 
+def observed_frames(det: FrameDetections) -> np.ndarray:
+    """(D,) bool: the detection frames that hold any observation (a landmark or a 3D joint with confidence > 0). The
+    others are missing observations: no fit there, and their E_2D / E_3D rows weigh nothing."""
+    return (det.confidence_2d.max(axis=1) > 0) | (det.confidence_3d.max(axis=1) > 0)
+
+
+class NothingObserved(EnergyError):
+    """No detection frame of the window holds an observation: nothing to estimate there (a gap, not a failure)."""
+
+    def __init__(self, message: str):
+        super().__init__(message, status="gap")
+
+
 def fit_window(solver: SplineSolver, det: FrameDetections) -> tuple[np.ndarray, np.ndarray, list[SolveStats], int]:
-    """Per-frame fits (E_2D + E_3D, the paper's initialisation) at every detection frame of the window, with the
-    root angles unwrapped along the window: (S (D, 33), t' (D, 3), stats, how many were computed here rather than
-    taken from this process's earlier windows)."""
-    S = np.zeros((det.n, _NP))
-    T = np.zeros((det.n, 3))
+    """Per-frame fits (E_2D + E_3D, the paper's initialisation) at every detection frame of the window that holds an
+    observation (:func:`observed_frames`), with the root angles unwrapped along the window: (S (D, 33), t' (D, 3),
+    stats, how many were computed here rather than taken from this process's earlier windows). A frame without an
+    observation (a missed or rejected detection) has NaN rows: a missing observation, not a failure."""
+    S = np.full((det.n, _NP), np.nan)
+    T = np.full((det.n, 3), np.nan)
     stats = []
-    computed = 0
-    for d in range(det.n):
-        (s, t, st), new = frame_fit(solver, det, d)
+    computed, prev = 0, None
+    for d in np.flatnonzero(observed_frames(det)):
+        (s, t, st), new = frame_fit(solver, det, int(d))
         computed += new
-        S[d], T[d] = (unwrap_root(s, S[d - 1]) if d else s), t
+        S[d], T[d] = (unwrap_root(s, prev) if prev is not None else s), t
+        prev = S[d]
         stats.append(st)
     return S, T, stats, computed
 
@@ -145,13 +160,14 @@ def detection_curvature(solver: SplineSolver, t_det_us, det: FrameDetections, fi
     """a_p (33,): the mean diagonal of the detection terms' Hessian (E_2D + E_3D, weighted) at the window's fits, /2:
     what a parameter's detections weigh per rad² in the window's energy (:mod:`eventcap.energy.prior`)."""
     window = Window(int(t_det_us[0]), int(t_det_us[-1]), t_det_us=t_det_us, detections=det)
+    seen = np.isfinite(fits).all(axis=1)
     diag = np.zeros((det.n, _NP))
-    for name, aux in (("2d", None), ("3d", tps)):
+    for name, aux in (("2d", None), ("3d", np.nan_to_num(tps))):
         f = solver.factor(name)
         if f is not None:
             f.prepare(window)
-            diag += np.einsum("dpp->dp", f.linearize(fits, aux, 2).diag)
-    return np.maximum(diag.mean(0) / 2.0, 0.0)
+            diag += np.einsum("dpp->dp", f.linearize(np.where(seen[:, None], fits, 0.0), aux, 2).diag)
+    return np.maximum(diag[seen].mean(0) / 2.0, 0.0)
 
 
 def context_gains(solver: SplineSolver, t_ctx_us, det_ctx: FrameDetections, window_fits, window_tp, t_det_us,
@@ -201,6 +217,10 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
     seconds = {}
     t0 = time.perf_counter()
     fits, tps, _, n_fits = fit_window(solver, det)
+    seen = np.isfinite(fits).all(axis=1)
+    if not seen.any():
+        raise NothingObserved(f"{what}: none of the window's {det.n} detection frames holds an observation (no "
+                              f"person detected there): nothing to estimate")
     window = Window(spline.t0_us, spline.t1_us, t_det_us=np.asarray(t_det_us, dtype=np.int64), detections=det,
                     t_cor_us=np.asarray(t_cor_us, dtype=np.int64), correspondences=Correspondences.empty(),
                     knots_us=spline.t0_us + spline.h_us * np.arange(spline.n_seg + 1, dtype=np.int64),
@@ -215,8 +235,9 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
     window.prior_gain = gain
     # Start: a penalised spline through the fits (the same prior; fits weighted as ~1 per rad² of error).
     smooth = max(float(c.lambda_prior), 1e-12) * (1.0 if gain is None else gain)
-    C = np.clip(spline.fit(t_det_us, fits, smooth=smooth, deriv=solver.order), solver.lower, solver.upper)
-    x = start_vector(solver, C, tps)
+    C = np.clip(spline.fit(np.asarray(t_det_us)[seen], fits[seen], smooth=smooth, deriv=solver.order),
+                solver.lower, solver.upper)
+    x = start_vector(solver, C, np.nan_to_num(tps))
     seconds["fit"] = time.perf_counter() - t0
     sil, pull_frames = None, (None if pg is None else (None if pg.pull is None else pg.pull[1]))
     if c.lambda_still > 0 and events is not None:
@@ -226,8 +247,10 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
         seconds["silence"] = time.perf_counter() - t1
         if pull_frames is not None:  # a part the events see move is not held to the frames' smoother
             pull_frames = pull_frames * still_gate(sil, t_det_us, float(c.context_gate_floor))
-    if pull_frames is not None:
-        window.pull = (pg.pull[0], pg.curvature * pull_frames)
+    if pull_frames is not None:  # no pull where the smoother has no value (a frame without an observation)
+        target, frames = pg.pull[0], pull_frames
+        held = np.isfinite(target).all(axis=1)
+        window.pull = (np.where(held[:, None], target, 0.0), pg.curvature * np.where(held[:, None], frames, 0.0))
     x, solves, n_sil_matched, n_boundary = _icp(solver, spline, window, x, xy, valid, t_sil_us, what, seconds)
     return _result(solver, spline, window, x, fits, solves, seconds, n_fits, gain, sil, pull_frames, n_sil_matched,
                    n_boundary)
@@ -324,5 +347,5 @@ def window_silence(solver: SplineSolver, spline: UniformCubicBSpline, C: np.ndar
                            sweep_bins=int(round(c.still_sweep_ms / c.knot_ms)))
 
 
-__all__ = ["SplineSolver", "WindowResult", "clear_fits", "context_gains", "fit_window", "frame_fit", "solve_window",
-           "window_silence"]
+__all__ = ["NothingObserved", "SplineSolver", "WindowResult", "clear_fits", "context_gains", "fit_window", "frame_fit",
+           "observed_frames", "solve_window", "window_silence"]

@@ -11,8 +11,11 @@ capture, a speed spike of up to 1 m/s at every batch boundary, the largest part 
 
 with w_k a C² bump over window k's span (the quintic smoothstep 6u⁵ - 15u⁴ + 10u³ over the first and last
 ``taper`` of the window, 1 between; a window's end at the start or end of the recording is not tapered, so every
-frame has weight). Each S_k is a C² cubic B-spline and every weight and its first two derivatives vanish at the
-window's ends, so the blend is C² everywhere: no seam, and overlapping windows average their errors. Root angles
+frame has weight; likewise a window's end at the edge of a gap). Each S_k is a C² cubic B-spline and every weight
+and its first two derivatives vanish at the window's ends, so the blend is C² everywhere: no seam, and overlapping
+windows average their errors. A window's estimate spans its frames that hold an observation (the spline stage leaves
+NaN beyond them: never extrapolated); a window that saw nothing (status ``gap``) is left out; the times no window
+covers are a gap: NaN, never interpolated. Root angles
 are moved by multiples of 2π so each window continues the ones before it. ``cut`` (per batch) gives each batch its
 frames of the blended motion, so everything downstream (evaluate, outputs) keeps the batch boundaries.
 """
@@ -45,31 +48,51 @@ def window_weight(t_us: np.ndarray, a_us: int, b_us: int, taper: float, open_sta
     return np.where((t >= a_us) & (t <= b_us), w, 0.0)
 
 
-def blend(windows: list[tuple[np.ndarray, np.ndarray]], taper: float) -> tuple[np.ndarray, np.ndarray]:
-    """Blend windows [(t_us (T_k,), poses (T_k, 33))] into one motion at the union of their times."""
-    t_all = np.unique(np.concatenate([np.asarray(t, dtype=np.int64) for t, _ in windows]))
-    t0, t1 = int(t_all[0]), int(t_all[-1])
+def _covered_spans(windows: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[int, int]]:
+    """The time spans [a, b] µs the estimated windows (finite poses) cover together, each a union of overlapping
+    windows: a window's end at a span's end is not tapered (the recording's ends, and the edges of gaps)."""
+    spans: list[list[int]] = []
+    for t, _ in sorted(windows, key=lambda w: int(w[0][0])):
+        a, b = int(t[0]), int(t[-1])
+        if spans and a <= spans[-1][1]:
+            spans[-1][1] = max(spans[-1][1], b)
+        else:
+            spans.append([a, b])
+    return [(a, b) for a, b in spans]
+
+
+def blend(windows: list[tuple[np.ndarray, np.ndarray]], taper: float,
+          t_all: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Blend the estimated windows [(t_us (T_k,), poses (T_k, 33))] into one motion at the union of their times (or
+    at t_all): NaN rows where no window covers a time (a gap)."""
+    if t_all is None:
+        t_all = np.unique(np.concatenate([np.asarray(t, dtype=np.int64) for t, _ in windows]))
+    spans = _covered_spans(windows)
     num = np.zeros((t_all.size, 33))
     den = np.zeros(t_all.size)
-    prev = None  # the blend so far, for the root branch of the next window
     for t, P in windows:
         t = np.asarray(t, dtype=np.int64)
         P = np.asarray(P, dtype=np.float64).copy()
         idx = np.searchsorted(t_all, t)
-        if prev is not None:
-            have = den[idx] > 0
-            if have.any():
-                j = int(np.flatnonzero(have)[0])
-                ref = num[idx[j], 27:30] / den[idx[j]]
-                P[:, 27:30] -= 2.0 * np.pi * np.round((P[j, 27:30] - ref) / (2.0 * np.pi))
-        w = window_weight(t, int(t[0]), int(t[-1]), taper, int(t[0]) == t0, int(t[-1]) == t1)
+        have = den[idx] > 0  # the blend so far: the root branch of this window continues it
+        if have.any():
+            j = int(np.flatnonzero(have)[0])
+            ref = num[idx[j], 27:30] / den[idx[j]]
+            P[:, 27:30] -= 2.0 * np.pi * np.round((P[j, 27:30] - ref) / (2.0 * np.pi))
+        a, b = int(t[0]), int(t[-1])
+        sa, sb = next(s for s in spans if s[0] <= a and b <= s[1])
+        w = window_weight(t, a, b, taper, a == sa, b == sb)
         num[idx] += w[:, None] * P
         den[idx] += w
-        prev = True
-    if np.any(den <= 0):
-        k = int(np.flatnonzero(den <= 0)[0])
+    inside = np.zeros(t_all.size, dtype=bool)
+    for sa, sb in spans:
+        inside |= (t_all >= sa) & (t_all <= sb)
+    if np.any(inside & (den <= 0)):
+        k = int(np.flatnonzero(inside & (den <= 0))[0])
         raise ValueError(f"no window covers t = {int(t_all[k])} us with a positive weight")
-    return t_all, num / den[:, None]
+    out = np.full((t_all.size, 33), np.nan)
+    out[inside] = num[inside] / den[inside, None]
+    return t_all, out
 
 
 def run_stitch(inputs, config, ctx):
@@ -92,10 +115,25 @@ def run_stitch(inputs, config, ctx):
             raise StageFailed(f"stitch: batch {b[k].index}'s window [{int(t[0])}, {int(t[-1])}] us does not cover the "
                               f"batch [{b[k].t0_us}, {b[k].t1_us}] us: is the input the spline stage's?",
                               status="invalid_input")
+    t_all = np.unique(np.concatenate([t for t, _ in windows]))
+    # a window's estimate spans its observed frames only (NaN beyond, never extrapolated): blend that part
+    estimated = [(t[np.isfinite(P).all(axis=1)], P[np.isfinite(P).all(axis=1)]) for t, P in windows]
+    gaps = [k for k, (t, _) in enumerate(estimated) if t.size < 2]
+    estimated = [w for k, w in enumerate(estimated) if k not in gaps]
+    if not estimated:
+        raise StageFailed(f"stitch: none of the {K} windows estimated anything (nothing observed in any)",
+                          status="gap")
     try:
-        t_out, poses = blend(windows, float(config.taper))
+        t_out, poses = blend(estimated, float(config.taper), t_all)
     except ValueError as exc:
         raise StageFailed(f"stitch: {exc}", status="invalid_input") from exc
+    missing = int(np.sum(~np.isfinite(poses).all(axis=1)))
+    if missing:
+        ctx.log.warning("stitch: %d of %d windows saw nothing (batches %s); %d of %d tracking frames are a gap (no "
+                        "window observed them: not estimated, NaN, never interpolated)", len(gaps), K,
+                        ", ".join(str(b[k].index) for k in gaps[:10]) + (" ..." if len(gaps) > 10 else ""), missing,
+                        t_out.size)
+        ctx.stats.update({"gap_windows": [b[k].index for k in gaps], "gap_frames": missing})
     # Seams the blend removed: where batch k's own window and batch k+1's own window meet.
     seams = []
     for k in range(1, K):
@@ -103,7 +141,8 @@ def run_stitch(inputs, config, ctx):
         t_next, P_next = windows[k]
         tb = b[k].t0_us
         i, j = np.searchsorted(t_prev, tb), np.searchsorted(t_next, tb)
-        if i < t_prev.size and j < t_next.size and t_prev[i] == tb and t_next[j] == tb:
+        if i < t_prev.size and j < t_next.size and t_prev[i] == tb and t_next[j] == tb \
+                and np.isfinite(P_prev[i]).all() and np.isfinite(P_next[j]).all():
             seams.append(float(np.abs(P_prev[i, :27] - P_next[j, :27]).max()))
     ctx.log.info("stitch: %d windows blended over %d tracking frames; largest joint-angle disagreement of two "
                  "neighbouring windows where their batches meet: %.3f rad", K, t_out.size, max(seams, default=0.0))
@@ -120,5 +159,7 @@ def run_cut(inputs, config, ctx):
     if sel.sum() < 2 or t[sel][0] != b.t0_us or t[sel][-1] != b.t1_us:
         raise StageFailed(f"cut: the stitched motion has no frames spanning batch {b.index} [{b.t0_us}, {b.t1_us}] "
                           "us", status="invalid_input")
-    return {"poses": PoseSequence(t_us=t[sel].copy(), poses=np.asarray(motion.poses)[sel].copy(), status="stitched",
-                                  iterations=0, energies={})}
+    poses = np.asarray(motion.poses)[sel].copy()
+    status = "stitched" if np.isfinite(poses).all() else ("gap" if not np.isfinite(poses).all(axis=1).any()
+                                                           else "stitched, with a gap")
+    return {"poses": PoseSequence(t_us=t[sel].copy(), poses=poses, status=status, iterations=0, energies={})}
