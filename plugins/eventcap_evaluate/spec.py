@@ -29,7 +29,7 @@ class EvaluateConfig:
 
 
 EVALUATE = StageSpec(
-    name="evaluate", kind="evaluate", version=2,
+    name="evaluate", kind="evaluate", version=3,  # 3: gaps not evaluated, coverage
     description="mean per-joint 3D error (AE, Procrustes-aligned) and its STD on every 10th frame, AE.raw / "
                 "AE.nonRaw, per-joint errors, data rate (MB/s) against 1000 fps frames; velocity error (MPJVE), acceleration "
                 "error and end-effector peak speed per batch, root-relative",

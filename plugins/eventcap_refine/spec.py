@@ -39,7 +39,7 @@ class SilhouetteRefineConfig:
 
 
 SILHOUETTE = StageSpec(
-    name="silhouette", kind="refine", version=1,
+    name="silhouette", kind="refine", version=2,  # 2: its terms are factors (sums in another order)
     description="event-based pose refinement per tracking frame: silhouette boundary to closest event ICP, "
                 "point-to-line E_sil + E_stab, joint limits (Sec. 3.3, CasADi + IPOPT)",
     config=SilhouetteRefineConfig,

@@ -46,7 +46,7 @@ class BatchSolveConfig:
 
 
 BATCH = StageSpec(
-    name="batch", kind="solve", version=1,
+    name="batch", kind="solve", version=2,  # 2: its terms are factors (sums in another order)
     description="hybrid batch optimisation of all 1 kHz poses of a batch: event correspondences, 2D/3D detections, "
                 "temporal term, joint limits (Sec. 3.2, CasADi + IPOPT)",
     config=BatchSolveConfig,

@@ -117,7 +117,7 @@ class SplineSolveConfig:
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=7,
+    name="spline", kind="solve", version=8,  # 8: factors; gaps; no estimate beyond the observed frames
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
                 "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
