@@ -388,10 +388,9 @@ def write_motion_npz(path, t_us, poses, joints, extra: Mapping[str, Any] | None 
     S = np.asarray(poses, dtype=np.float64)
     if S.ndim != 2 or S.shape[0] != t.shape[0]:
         check_poses(S)  # names the shape it expected
+        raise ValueError(f"poses: expected one row per time ({t.shape[0]}), got shape {S.shape}")
     check_poses(S[est])  # a gap is NaN; every estimated frame finite
     J = np.asarray(joints, dtype=np.float64)
-    if S.shape[0] != t.shape[0]:
-        raise ValueError(f"poses: expected one row per time ({t.shape[0]}), got shape {S.shape}")
     if J.shape != (t.shape[0], NUM_JOINTS, 3):
         raise ValueError(f"joints: expected shape ({t.shape[0]}, {NUM_JOINTS}, 3) (T, SMPL joints, xyz metres), "
                          f"got {J.shape}")

@@ -231,7 +231,7 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
     assert ("detect (blazepose v3): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
             "images; is there a person in view (eventcap preview FILE)?") in log
     assert ("run incomplete: detect failed (no_person); skipped because of it: track, slice, solve, stitch, cut, "
-            "evaluate; first error: detect: StageFailed: blazepose (full, at latent): no person in 3 of 3 images") \
+            "confidence, evaluate; first error: detect: StageFailed: blazepose (full, at latent): no person in 3 of 3 images") \
         in log
     assert "world frame: y up, the camera at the origin looking along -z, ASSUMED LEVEL" in log
 
