@@ -470,7 +470,8 @@ CAPTURE_MEASURES = (("AE_mm", "AE"), ("AE_rootrel_mm", "AE.rootrel"), ("MPJVE_mm
 def per_capture(records: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> dict[str, Any]:
     """The first method against each other one, capture by capture (motion, seed): for each measure of
     :data:`CAPTURE_MEASURES`, on how many of the captures both measured the first is lower, and the captures where
-    it is not, with both values. Means over a suite can hide a capture lost; this does not."""
+    it is not, with both values; and (``unmeasured``) the captures where the first has no AE but the other has (it
+    failed or was refused there). Means over a suite can hide a capture lost; this does not."""
     if len(methods) < 2:
         return {"reference": methods[0] if methods else None, "against": {}}
     ref, others = methods[0], methods[1:]
@@ -486,7 +487,10 @@ def per_capture(records: Sequence[Mapping[str, Any]], methods: Sequence[str]) ->
             res[key] = {"lower": sum(a < b for _, a, b in both), "of": len(both),
                         "not_lower": [{"motion": c[0], "seed": c[1], ref: a, name: b} for c, a, b in both if a >= b]}
         against[name] = res
-    return {"reference": ref, "against": against}
+    unmeasured = {name: [{"motion": c[0], "seed": c[1], name: value(c, name, "AE_mm")} for c in caps
+                         if value(c, ref, "AE_mm") is None and value(c, name, "AE_mm") is not None]
+                  for name in others}
+    return {"reference": ref, "against": against, "unmeasured": {k: v for k, v in unmeasured.items() if v}}
 
 
 def failed_runs(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -581,6 +585,10 @@ def format_per_capture(comparison: Mapping[str, Any]) -> str:
             for c in res[key]["not_lower"]:
                 lines.append(f"  {ref} not lower than {name}: {c['motion']} seed {c['seed']} {label} "
                              f"{f(c[ref])} against {f(c[name])}")
+    for name, caps in (comparison.get("unmeasured") or {}).items():
+        for c in caps:
+            lines.append(f"  {ref} has no result where {name} has: {c['motion']} seed {c['seed']} (AE {_num(c[name])} "
+                         "mm; the reason: failed or refused runs)")
     return "\n".join(lines)
 
 

@@ -227,7 +227,7 @@ def test_tiny_open_suite_end_to_end(tmp_path, known_poses):
 def test_groups_and_failures_are_reported_from_the_records():
     """Table 1 per group pools only that group's runs; every run that failed, was refused or is incomplete is
     listed with its reason, none dropped; the per-capture comparison stays within a group."""
-    from eventcap.benchmark import failed_runs, format_failures, group_tables
+    from eventcap.benchmark import failed_runs, format_failures, format_per_capture, group_tables
 
     def run(method, seed, group, ae, ok=True, error=None, frames=True):
         return {"motion": "kick", "seed": seed, "method": method, "capture": f"s{seed}", "group": group, "ok": ok,
@@ -241,11 +241,15 @@ def test_groups_and_failures_are_reported_from_the_records():
             run("default", 2, "b", 60.0, ok=False, error="solve failed in 3 of 25 batches"),
             run("smooth", 2, "b", 0.0, ok=False, error="detect failed (no_person)", frames=False),
             {"motion": "kick", "seed": 3, "method": "default", "capture": "s3", "group": "a", "ok": False,
-             "error": "refused: the row default has no variant for event-only cameras", "frames": None}]
+             "error": "refused: the row default has no variant for event-only cameras", "frames": None},
+            run("smooth", 3, "a", 25.0)]
     g = group_tables(recs, ["default", "smooth"], {"a": "group A", "b": "group B", "c": "group C"})
     assert [(n, x["captures"]) for n, x in g.items()] == [("a", 2), ("b", 2), ("c", 0)]
     a, b = g["a"]["table"], g["b"]["table"]
-    assert (a[0]["AE_mm"], a[1]["AE_mm"]) == (20.0, 30.0)
+    assert (a[0]["AE_mm"], a[1]["AE_mm"]) == (20.0, 27.5)
+    # a capture where the default has no result but another row has one is a loss too, and is named
+    assert g["a"]["per_capture"]["unmeasured"] == {"smooth": [{"motion": "kick", "seed": 3, "smooth": 25.0}]}
+    assert "default has no result where smooth has: kick seed 3 (AE 25.0 mm" in format_per_capture(g["a"]["per_capture"])
     assert b[0]["AE_mm"] == pytest.approx(55.0) and (b[0]["evaluated"], b[0]["runs"], b[0]["incomplete"]) == (2, 2, 1)
     assert b[1]["AE_mm"] == 40.0 and b[1]["evaluated"] == 1
     assert g["b"]["per_capture"]["against"]["smooth"]["AE_mm"]["not_lower"] == [
