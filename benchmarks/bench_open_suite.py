@@ -97,7 +97,12 @@ def _f(x, digits=1, pct=False):
 
 
 def part_markdown(args) -> None:
+    from eventcap.benchmark import failed_runs, group_tables
+
     res = json.loads(Path(args.results).read_text())
+    # recomputed from the runs' records, so a suite finished by an older version reads the same
+    res["groups"] = group_tables(res["runs"], res["methods"], {n: g["label"] for n, g in res["groups"].items()})
+    res["failures"] = failed_runs(res["runs"])
     print(f"Purpose: {res.get('note')}\n")
     for name, g in res["groups"].items():
         print(f"#### {g['label']} ({name}, {g['captures']} captures)\n")
