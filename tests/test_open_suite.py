@@ -275,3 +275,25 @@ def test_a_built_in_motion_starts_at_motion_start_s():
     now = motion_function(CaptureConfig(motions=(("javelin_throw", 0.5),), seed=4), None)(t)
     np.testing.assert_allclose(now, sequence_poses([("javelin_throw", 0.5)], t, seed=4), atol=1e-12)
     assert np.abs(late - now).max() > 0.1  # another moment of the throw
+
+
+@pytest.mark.slow
+def test_open_preset_with_the_real_default_row(tmp_path):
+    """`eventcap benchmark benchmark=open seeds=[2,9] duration_s=0.2 only=[default]`: the real row (BlazePose, the
+    spline solve; pipeline=events_only on the DVS128) on a capture with frames and an event-only one; each run is
+    evaluated or listed with its reason."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "eventcap.cli", "benchmark", "benchmark=open", "seeds=[2,9]", "duration_s=0.2",
+           "only=[default]", f"out={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}", "plot=false"]
+    got = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=3600)
+    assert got.returncode in (0, 1), got.stderr[-3000:]
+    res = json.loads((tmp_path / "out" / "benchmark.json").read_text())
+    assert [(r["capture"], r["group"]) for r in res["runs"]] == [("s2", "whole_frames"), ("s9", "whole_events")]
+    failed = {f["capture"] for f in res["failures"]}
+    for r in res["runs"]:
+        assert r["ok"] or r["capture"] in failed
+        assert (r["AE_mm"] is not None and 0 < r["AE_mm"] < 500) or r["error"]
+    assert "pipeline=events_only" in res["runs"][1]["overrides"]
+    assert "== Group whole_events: whole body, event-only, 1 capture(s)" in got.stdout
