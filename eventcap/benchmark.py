@@ -46,7 +46,7 @@ log = logging.getLogger("eventcap.benchmark")
 DATA_FIELDS = ("total_MBps", "events_MBps", "frames_MBps", "highspeed_MBps")
 #: The evaluate stage's motion-detail measures a run record keeps (root-relative joints; see eventcap.metrics).
 DETAIL_FIELDS = ("AE_rootrel_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "velocity_window_ms")
-_METHOD_KEYS = {"name", "description", "overrides", "data", "requires"}
+_METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires"}
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,12 @@ class Method:
     data: str = "total_MBps"
     requires: tuple[str, ...] = ()
     description: str = ""
+    #: the row's overrides on a capture without intensity frames (None: the row has none, its runs are refused)
+    events_only: tuple[str, ...] | None = None
+
+    def overrides_for(self, frames: bool) -> tuple[str, ...] | None:
+        """The row's overrides on a capture with (or without) intensity frames; None: not defined there."""
+        return self.overrides if frames else self.events_only
 
     @property
     def slug(self) -> str:
@@ -76,9 +82,11 @@ def parse_methods(items: Sequence[Mapping[str, Any]]) -> list[Method]:
         data = m.get("data", "total_MBps")
         if data not in DATA_FIELDS:
             raise ValueError(f"methods[{i}] ({m['name']}).data: expected one of {', '.join(DATA_FIELDS)}, got {data!r}")
+        events_only = m.get("events_only")
         meth = Method(name=str(m["name"]), overrides=tuple(str(o) for o in m.get("overrides") or ()), data=data,
                       requires=tuple(str(r) for r in m.get("requires") or ()),
-                      description=str(m.get("description") or ""))
+                      description=str(m.get("description") or ""),
+                      events_only=None if events_only is None else tuple(str(o) for o in events_only))
         if any(meth.slug == o.slug for o in out):
             raise ValueError(f"methods[{i}]: name {meth.name!r} repeats an earlier method")
         out.append(meth)
@@ -132,6 +140,20 @@ def compose_run(config_dir: Path, overrides: Sequence[str]) -> tuple[dict[str, A
 # ---------------------------------------------------------------------------------------------------------------------
 # Running
 # ---------------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SuiteCapture:
+    """One capture of a suite: a (motion, seed) of a listed suite, or a capture drawn from its seed (``draws``)."""
+
+    motion: str
+    seed: int
+    label: str  # its folder under <out>/runs/
+    overrides: tuple[str, ...]  # the run overrides that make it
+    frames: bool = True  # it has intensity frames; else the rows' events_only overrides apply
+    group: str | None = None  # a generated suite's group
+    drawn: dict[str, Any] | None = None  # a generated suite: what was drawn (eventcap.open_suite.Capture)
+    description: str = ""
+
+
 @dataclass
 class Benchmark:
     cfg: dict[str, Any]
@@ -149,20 +171,53 @@ class Benchmark:
             if unknown or not only:
                 raise ValueError(f"only: expected names of methods ({', '.join(known)}), got {only!r}")
             self.methods = [m for m in self.methods if m.name in only]
+        self.out = Path(c["out"])
+        self.draws, self.purpose, self.groups = None, None, {}
+        if c.get("draws") is not None:
+            self._generated_suite()
+            return
         self.motions = [str(m) for m in c["motions"]]
         self.seeds = [int(s) for s in c["seeds"]]
         if not self.motions or not self.seeds:
             raise ValueError("motions and seeds: the benchmark needs at least one of each")
-        self.out = Path(c["out"])
+        self.captures = [SuiteCapture(mo, s, f"{mo}-s{s}", tuple(self.sequence_overrides(mo, s)))
+                         for mo in self.motions for s in self.seeds]
 
-    def sequence_overrides(self, motion: str, seed: int) -> list[str]:
-        values = {"motion": motion, "seed": seed, "duration_s": self.cfg["duration_s"]}
+    def _generated_suite(self) -> None:
+        """Captures drawn from their seeds (eventcap/open_suite.py), the seeds those of the suite's purpose."""
+        from .camera_presets import preset_names
+        from .open_suite import draw_capture, parse_draws, suite_seeds
+
+        c = self.cfg
+        self.draws = parse_draws(c["draws"])
+        self.purpose = str(c.get("purpose") or "tuning")
+        self.seeds = suite_seeds(self.purpose, c.get("seeds"))
+        per_camera = c.get("camera_overrides") or {}
+        unknown = sorted(set(per_camera) - set(preset_names()))
+        if unknown:
+            raise ValueError(f"camera_overrides: unknown camera {unknown[0]!r}; expected one of "
+                             f"{', '.join(preset_names())}")
+        self.groups = {name: g.label for name, g in self.draws.groups.items()}
+        self.captures = []
+        for seed in self.seeds:
+            cap = draw_capture(seed, self.draws, float(c["duration_s"]))
+            ov = [*self.sequence_overrides(cap.motion, seed, cap.values()), *map(str, per_camera.get(cap.camera) or ())]
+            self.captures.append(SuiteCapture(cap.motion, seed, cap.label, tuple(ov), cap.frames, cap.group,
+                                              cap.values(), cap.describe()))
+        self.motions = list(dict.fromkeys(cap.motion for cap in self.captures))
+
+    def sequence_overrides(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> list[str]:
+        values = {**(drawn or {}), "motion": motion, "seed": seed, "duration_s": self.cfg["duration_s"]}
         detectors = self.cfg.get("detectors") or {}
         detector = self.cfg.get("detector")
         if detector is not None and detector not in detectors:
             raise ValueError(f"detector: expected one of {sorted(detectors)} (benchmark key detectors), got {detector!r}")
         chosen = detectors.get(detector) or () if detector is not None else ()
-        return [str(o).format(**values) for o in [*(self.cfg.get("sequence_overrides") or ()), *chosen]]
+        try:
+            return [str(o).format(**values) for o in [*(self.cfg.get("sequence_overrides") or ()), *chosen]]
+        except KeyError as exc:
+            raise ValueError(f"sequence_overrides: no value {{{exc.args[0]}}}; known: {', '.join(sorted(values))}") \
+                from None
 
     def base_overrides(self) -> list[str]:
         return [f"cache_dir={self.cfg['cache_dir']}", *map(str, self.cfg.get("overrides") or ()), *self.run_overrides]
@@ -185,54 +240,98 @@ class Benchmark:
         return active, left_out
 
     def run(self, echo=print) -> dict[str, Any]:
-        from .jobs import run_job
-
         methods, left_out = self.active_methods()
         for name, why in left_out.items():
             echo(f"method {name}: left out ({why})")
-        jobs = [(mo, s, m) for mo in self.motions for s in self.seeds for m in methods]
-        echo(f"benchmark {self.cfg['name']}: {len(self.motions)} motion(s) x {len(self.seeds)} seed(s) x "
-             f"{len(methods)} method(s) = {len(jobs)} runs of {self.cfg['duration_s']} s; cache {self.cfg['cache_dir']};"
-             f" results in {self.out}")
+        jobs = [(cap, m) for cap in self.captures for m in methods]
+        what = (f"{len(self.captures)} generated capture(s) (seeds {self.purpose}: {_seed_ranges(self.seeds)})"
+                if self.draws else f"{len(self.motions)} motion(s) x {len(self.seeds)} seed(s)")
+        echo(f"benchmark {self.cfg['name']}: {what} x {len(methods)} method(s) = {len(jobs)} runs of "
+             f"{self.cfg['duration_s']} s; cache {self.cfg['cache_dir']}; results in {self.out}")
+        if self.purpose == "check":
+            from .open_suite import CHECK_NOTE
+
+            echo(f"benchmark {self.cfg['name']}: {CHECK_NOTE}")
         records = []
         t_all = time.perf_counter()
-        for k, (motion, seed, method) in enumerate(jobs, 1):
-            run_dir = self.out / "runs" / f"{motion}-s{seed}" / method.slug
-            ov = [*self.sequence_overrides(motion, seed), *self.base_overrides(), *method.overrides]
-            t0 = time.perf_counter()
-            rec: dict[str, Any] = {"motion": motion, "seed": seed, "method": method.name, "run_dir": str(run_dir),
-                                   "overrides": ov, "ok": False, "error": None}
-            failures: list[str] = []
+        for k, (cap, method) in enumerate(jobs, 1):
+            records.append(self.run_one(cap, method))
+            echo(progress_line(k, len(jobs), records[-1]))
+        echo(f"{len(jobs)} runs in {time.perf_counter() - t_all:.1f} s "
+             f"({sum(r.get('computed', 0) for r in records)} cache entries computed, "
+             f"{sum(r.get('cached', 0) for r in records)} reused)")
+        names = [m.name for m in methods]
+        results = {"config": self.cfg, "run_overrides": self.run_overrides, "methods_left_out": left_out,
+                   "methods": names, "motions": self.motions, "seeds": self.seeds, "runs": records,
+                   "table": aggregate(records, names, [] if self.draws else self.motions),
+                   "per_capture": per_capture(records, names), "failures": failed_runs(records)}
+        if self.draws:
+            from .open_suite import CHECK_NOTE
+
+            results["purpose"] = self.purpose
+            results["note"] = CHECK_NOTE if self.purpose == "check" else "the tuning seeds (0-19)"
+            results["captures"] = [{"label": c.label, "seed": c.seed, "group": c.group, "frames": c.frames,
+                                    "drawn": c.drawn, "description": c.description} for c in self.captures]
+            results["groups"] = group_tables(records, names, self.groups)
+        return results
+
+    def run_one(self, cap: SuiteCapture, method: Method) -> dict[str, Any]:
+        """One row on one capture, through the normal runner and run outputs; a row without overrides for this kind
+        of capture, a refused config or a failed run is recorded with its reason, never dropped."""
+        from .jobs import run_job
+
+        run_dir = self.out / "runs" / cap.label / method.slug
+        own = method.overrides_for(cap.frames)
+        ov = [*cap.overrides, *self.base_overrides(), *(own or ())]
+        rec: dict[str, Any] = {"motion": cap.motion, "seed": cap.seed, "method": method.name, "run_dir": str(run_dir),
+                               "overrides": ov, "ok": False, "error": None, "capture": cap.label, "group": cap.group,
+                               "frames_camera": cap.frames}
+        t0 = time.perf_counter()
+        failures: list[str] = []
+        if own is None:
+            got, failures = None, [f"refused: the row {method.name} has no variant for event-only cameras "
+                                   "(its events_only overrides)"]
+        else:
             try:
                 data, yaml_text = compose_run(self.config_dir, ov)
                 run_dir.mkdir(parents=True, exist_ok=True)
                 got = run_job(data, run_dir, yaml_text, failures)
             except Exception as exc:  # noqa: BLE001 - a bad method config fails its runs, not the benchmark
                 got, failures = None, [f"{type(exc).__name__}: {exc}"]
-            if got is None:
-                rec["error"] = "; ".join(failures) or "refused"
-            else:
-                rec.update(collect_run(*got, self.cfg["metrics"], self.cfg["errors"], method.data))
-                if self.cfg.get("speed_figure", True) and seed == self.seeds[0]:
-                    rec["speed"] = speed_series(got[0], got[1], run_dir, self.cfg.get("recording",
-                                                                                      "source.recording"),
-                                                float((got[1].metrics.get(self.cfg["metrics"]) or {}).get(
-                                                    "velocity_window_ms") or 10.0))
-                rec["error"] = "; ".join(failures) or None
-            rec["wall_s"] = time.perf_counter() - t0
-            records.append(rec)
-            echo(progress_line(k, len(jobs), rec))
-        echo(f"{len(jobs)} runs in {time.perf_counter() - t_all:.1f} s "
-             f"({sum(r.get('computed', 0) for r in records)} cache entries computed, "
-             f"{sum(r.get('cached', 0) for r in records)} reused)")
-        return {"config": self.cfg, "run_overrides": self.run_overrides, "methods_left_out": left_out,
-                "methods": [m.name for m in methods], "motions": self.motions, "seeds": self.seeds,
-                "runs": records, "table": aggregate(records, [m.name for m in methods], self.motions),
-                "per_capture": per_capture(records, [m.name for m in methods])}
+        if got is None:
+            rec["error"] = _short_reason("; ".join(failures) or "refused", run_dir)
+        else:
+            rec.update(collect_run(*got, self.cfg["metrics"], self.cfg["errors"], method.data))
+            if self.cfg.get("speed_figure", True) and cap.seed == self.seeds[0]:
+                rec["speed"] = speed_series(got[0], got[1], run_dir, self.cfg.get("recording", "source.recording"),
+                                            float((got[1].metrics.get(self.cfg["metrics"]) or {}).get(
+                                                "velocity_window_ms") or 10.0))
+            rec["error"] = _short_reason("; ".join(failures), run_dir) or None
+        rec["wall_s"] = time.perf_counter() - t0
+        return rec
+
+
+def _short_reason(text: str, run_dir: Path) -> str:
+    """A failure line without the run folder it names (the record has it)."""
+    return text.replace(f"{run_dir}: ", "")
+
+
+def _seed_ranges(seeds: Sequence[int]) -> str:
+    """``[0, 1, 2, 5]`` -> ``0-2, 5``."""
+    out, run = [], []
+    for s in sorted(seeds):
+        if run and s != run[-1] + 1:
+            out.append(f"{run[0]}-{run[-1]}" if len(run) > 1 else str(run[0]))
+            run = []
+        run.append(s)
+    if run:
+        out.append(f"{run[0]}-{run[-1]}" if len(run) > 1 else str(run[0]))
+    return ", ".join(out)
 
 
 def progress_line(k: int, n: int, rec: Mapping[str, Any]) -> str:
-    head = f"[{k}/{n}] {rec['motion']} seed {rec['seed']} {rec['method']}:"
+    head = (f"[{k}/{n}] {rec['capture']} ({rec['group']}, {rec['motion']}) {rec['method']}:" if rec.get("group")
+            else f"[{k}/{n}] {rec['motion']} seed {rec['seed']} {rec['method']}:")
     if rec.get("computed") is None:
         return f"{head} FAILED ({rec.get('error')}) in {rec['wall_s']:.1f} s"
     ae = rec.get("AE_mm")
@@ -371,7 +470,8 @@ CAPTURE_MEASURES = (("AE_mm", "AE"), ("AE_rootrel_mm", "AE.rootrel"), ("MPJVE_mm
 def per_capture(records: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> dict[str, Any]:
     """The first method against each other one, capture by capture (motion, seed): for each measure of
     :data:`CAPTURE_MEASURES`, on how many of the captures both measured the first is lower, and the captures where
-    it is not, with both values. Means over a suite can hide a capture lost; this does not."""
+    it is not, with both values; and (``unmeasured``) the captures where the first has no AE but the other has (it
+    failed or was refused there). Means over a suite can hide a capture lost; this does not."""
     if len(methods) < 2:
         return {"reference": methods[0] if methods else None, "against": {}}
     ref, others = methods[0], methods[1:]
@@ -387,7 +487,30 @@ def per_capture(records: Sequence[Mapping[str, Any]], methods: Sequence[str]) ->
             res[key] = {"lower": sum(a < b for _, a, b in both), "of": len(both),
                         "not_lower": [{"motion": c[0], "seed": c[1], ref: a, name: b} for c, a, b in both if a >= b]}
         against[name] = res
-    return {"reference": ref, "against": against}
+    unmeasured = {name: [{"motion": c[0], "seed": c[1], name: value(c, name, "AE_mm")} for c in caps
+                         if value(c, ref, "AE_mm") is None and value(c, name, "AE_mm") is not None]
+                  for name in others}
+    return {"reference": ref, "against": against, "unmeasured": {k: v for k, v in unmeasured.items() if v}}
+
+
+def failed_runs(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Every run that failed, was refused or is incomplete, with its reason (in the order they ran)."""
+    return [{"capture": r.get("capture") or f"{r['motion']}-s{r['seed']}", "group": r.get("group"),
+             "motion": r["motion"], "seed": r["seed"], "method": r["method"],
+             "state": "incomplete" if r.get("computed") is not None else "failed",
+             "evaluated": bool(r.get("frames")), "reason": r.get("error") or "unknown"}
+            for r in records if not r.get("ok")]
+
+
+def group_tables(records: Sequence[Mapping[str, Any]], methods: Sequence[str],
+                 groups: Mapping[str, str]) -> dict[str, dict[str, Any]]:
+    """Per group of a generated suite: its label, captures, Table 1 and the per-capture comparison."""
+    out = {}
+    for name, label in groups.items():
+        mine = [r for r in records if r.get("group") == name]
+        out[name] = {"label": label, "captures": len({r["seed"] for r in mine}),
+                     "table": aggregate(mine, methods, []), "per_capture": per_capture(mine, methods)}
+    return out
 
 
 def aggregate(records: Sequence[Mapping[str, Any]], methods: Sequence[str], motions: Sequence[str]) -> list[dict]:
@@ -462,13 +585,18 @@ def format_per_capture(comparison: Mapping[str, Any]) -> str:
             for c in res[key]["not_lower"]:
                 lines.append(f"  {ref} not lower than {name}: {c['motion']} seed {c['seed']} {label} "
                              f"{f(c[ref])} against {f(c[name])}")
+    for name, caps in (comparison.get("unmeasured") or {}).items():
+        for c in caps:
+            lines.append(f"  {ref} has no result where {name} has: {c['motion']} seed {c['seed']} (AE {_num(c[name])} "
+                         "mm; the reason: failed or refused runs)")
     return "\n".join(lines)
 
 
 def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], note: str = "",
-                  comparison: Mapping[str, Any] | None = None) -> str:
-    """The printed report: Table 1, AE per motion, motion detail per motion, time per batch per stage, and the
-    first method against the others capture by capture (``comparison``, :func:`per_capture`)."""
+                  comparison: Mapping[str, Any] | None = None, times: bool = True) -> str:
+    """The printed report: Table 1, AE per motion and motion detail per motion (when ``motions``), time per batch
+    per stage (when ``times``), and the first method against the others capture by capture (``comparison``,
+    :func:`per_capture`)."""
     parts = []
     head = ["method", "AE.all (mm)", "AE.raw (mm)", "AE.nonRaw (mm)", "AE.rootrel (mm)", "MPJVE (mm/s)",
             "Acc.err (m/s²)", "peak speed err", "(runs)", "Size.sec (MB/s)", "runs"]
@@ -479,25 +607,85 @@ def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], no
     parts.append("Table 1" + (f" ({note})" if note else "") + "\n" + _grid(head, rows)
                  + "\n(peak speed err: the median over every run's (batch, end effector) pairs; (runs): the median of "
                    "the runs' own medians)")
+    if motions:
+        parts.extend(_per_motion_tables(table, motions))
+    if times:
+        parts.append(_time_table(table))
+    if comparison:
+        parts.append(format_per_capture(comparison))
+    return "\n\n".join(p for p in parts if p)
+
+
+def _per_motion_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str]) -> list[str]:
     head = ["method", *motions]
     rows = [[r["method"], *(_pm(r["per_motion"][m]["AE_mm"], r["per_motion"][m]["STD_mm"]) for m in motions)]
             for r in table]
-    parts.append("AE per motion (mm, mean ± STD over the frames of all seeds)\n" + _grid(head, rows))
+    out = ["AE per motion (mm, mean ± STD over the frames of all seeds)\n" + _grid(head, rows)]
     rows = [[r["method"], *(f"{_num(r['per_motion'][m].get('AE_rootrel_mm'))} / "
                             f"{_num(r['per_motion'][m].get('MPJVE_mm_s'), 0)} / "
                             f"{_pct(r['per_motion'][m].get('peak_speed_err'))}" for m in motions)] for r in table]
-    parts.append("Per motion: AE of root-relative joints (mm) / MPJVE (mm/s) / median peak-speed error per batch "
-                 "of the end effectors\n" + _grid(head, rows))
+    out.append("Per motion: AE of root-relative joints (mm) / MPJVE (mm/s) / median peak-speed error per batch "
+               "of the end effectors\n" + _grid(head, rows))
+    return out
+
+
+def _time_table(table: Sequence[Mapping[str, Any]]) -> str:
     nodes = list(dict.fromkeys(n for r in table for n in r["s_per_batch"]))
     stats = list(dict.fromkeys(k for r in table for k in r["stats"]))
     head = ["method", *nodes, "sum", *stats]
     rows = [[r["method"], *(_num(r["s_per_batch"].get(n), 3) for n in nodes),
              _num(sum(r["s_per_batch"].values()), 2), *(_num(r["stats"].get(k), 2) for k in stats)] for r in table]
-    parts.append("Time per batch (s; mean over runs, from the cache manifests; whole-recording stages divided by the "
-                 "batches; last columns: medians of the stage's own statistics)\n" + _grid(head, rows))
-    if comparison:
-        parts.append(format_per_capture(comparison))
+    return ("Time per batch (s; mean over runs, from the cache manifests; whole-recording stages divided by the "
+            "batches; last columns: medians of the stage's own statistics)\n" + _grid(head, rows))
+
+
+def format_generated(results: Mapping[str, Any]) -> str:
+    """The printed report of a generated suite: what its seeds are for, Table 1 and the per-capture comparison per
+    group, all captures pooled (with the time per batch), every capture with what was drawn and each row's result,
+    and every run that failed or was refused with its reason."""
+    parts = [f"{results['config']['name']}: {results['note']}"]
+    seq = f"{results['config']['duration_s']} s each; AE after Procrustes, every 10th tracking frame"
+    for name, g in results["groups"].items():
+        parts.append(f"== Group {name}: {g['label']}, {g['captures']} capture(s)\n"
+                     + format_tables(g["table"], [], f"{name}; {seq}", g["per_capture"], times=False))
+    parts.append(f"== All {len(results['captures'])} captures pooled\n"
+                 + format_tables(results["table"], [], seq, None, times=True))
+    parts.append(format_captures(results["captures"], results["runs"], results["methods"]))
+    parts.append(format_failures(results["failures"]))
     return "\n\n".join(p for p in parts if p)
+
+
+def format_captures(captures: Sequence[Mapping[str, Any]], records: Sequence[Mapping[str, Any]],
+                    methods: Sequence[str]) -> str:
+    """One line per capture (what was drawn), then each row's AE / MPJVE / peak-speed error, or why it has none."""
+    by = {(r["seed"], r["method"]): r for r in records}
+    lines = ["Captures (what was drawn; per row: AE mm / MPJVE mm/s / peak-speed error, or why not)"]
+    for c in captures:
+        lines.append(f"{c['label']} [{c['group']}] {c['description']}")
+        cells = []
+        for m in methods:
+            r = by.get((c["seed"], m))
+            if r is None:
+                continue
+            if r.get("frames"):
+                cells.append(f"{m} {_num(r.get('AE_mm'))} / {_num(r.get('MPJVE_mm_s'), 0)} / "
+                             f"{_pct(r.get('peak_speed_err'))}" + ("" if r.get("ok") else " (incomplete)"))
+            else:
+                cells.append(f"{m} none")
+        lines.append("    " + "; ".join(cells))
+    return "\n".join(lines)
+
+
+def format_failures(failures: Sequence[Mapping[str, Any]]) -> str:
+    """Every run that failed, was refused or is incomplete, with its reason."""
+    if not failures:
+        return "Failed or refused runs: none"
+    lines = [f"Failed, refused or incomplete runs ({len(failures)}; 'incomplete, evaluated': measured on what ran)"]
+    for f in failures:
+        state = f["state"] + (", evaluated" if f["evaluated"] else "")
+        group = f" [{f['group']}]" if f.get("group") else ""
+        lines.append(f"  {f['capture']}{group} {f['motion']} {f['method']}: {state}: {f['reason']}")
+    return "\n".join(lines)
 
 
 def table_csv_rows(table: Sequence[Mapping[str, Any]], motions: Sequence[str]) -> list[dict[str, Any]]:
@@ -528,6 +716,21 @@ def run_csv_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
         row.update({f"s_per_batch.{n}": v for n, v in (r.get("s_per_batch") or {}).items()})
         row["error"] = r.get("error") or ""
         row["run_dir"] = r.get("run_dir")
+        out.append(row)
+    return out
+
+
+def capture_csv_rows(results: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """A generated suite: one row per capture, what was drawn and each row's AE, MPJVE, peak-speed error or reason."""
+    by = {(r["seed"], r["method"]): r for r in results["runs"]}
+    out = []
+    for c in results["captures"]:
+        row = {"capture": c["label"], "group": c["group"], **(c.get("drawn") or {})}
+        for m in results["methods"]:
+            r = by.get((c["seed"], m)) or {}
+            row.update({f"{m}.AE_mm": r.get("AE_mm"), f"{m}.MPJVE_mm_s": r.get("MPJVE_mm_s"),
+                        f"{m}.peak_speed_err": r.get("peak_speed_err"), f"{m}.ok": r.get("ok"),
+                        f"{m}.error": r.get("error") or ""})
         out.append(row)
     return out
 
@@ -623,8 +826,17 @@ def plot_speeds(path: Path, records: Sequence[Mapping[str, Any]], methods: Seque
 
 def write_results(out: Path, results: Mapping[str, Any], plot: bool = True) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
-    files = {"table": write_csv(out / "table.csv", table_csv_rows(results["table"], results["motions"])),
+    generated = "groups" in results
+    files = {"table": write_csv(out / "table.csv", table_csv_rows(results["table"],
+                                                                  [] if generated else results["motions"])),
              "runs": write_csv(out / "runs.csv", run_csv_rows(results["runs"]))}
+    if generated:
+        files["groups"] = write_csv(out / "table_groups.csv", [{"group": name, **row} for name, g in
+                                                               results["groups"].items()
+                                                               for row in table_csv_rows(g["table"], [])])
+        files["captures"] = write_csv(out / "captures.csv", capture_csv_rows(results))
+        files["report"] = out / "report.txt"
+        (out / "report.txt").write_text(format_generated(results) + "\n")
     tmp = out / ".benchmark.json.partial"
     tmp.write_text(json.dumps(results, indent=1, default=str))
     tmp.replace(out / "benchmark.json")
@@ -642,7 +854,8 @@ def write_results(out: Path, results: Mapping[str, Any], plot: bool = True) -> d
 
 def main(argv: Sequence[str], config_dir: Path) -> int:
     """``eventcap benchmark [benchmark=PRESET] [benchmark key=value ...] [run overrides ...]``."""
-    probe = compose_benchmark(config_dir, "default", [])
+    preset, _, _ = split_overrides(argv, set())
+    probe = compose_benchmark(config_dir, preset, [])  # the preset's own keys (a generated suite has more)
     preset, bench_ov, run_ov = split_overrides(argv, set(probe))
     cfg = compose_benchmark(config_dir, preset, bench_ov)
     logging.getLogger().setLevel(str(cfg.get("log_level", "WARNING")).upper())
@@ -666,13 +879,16 @@ def main(argv: Sequence[str], config_dir: Path) -> int:
     seq = (f"{len(bench.motions)} motion(s) x {len(bench.seeds)} seed(s) x {cfg['duration_s']} s; AE after "
            f"Procrustes, every 10th tracking frame")
     print()
-    print(format_tables(results["table"], bench.motions, seq, results.get("per_capture")))
+    if bench.draws:
+        print(format_generated(results))
+    else:
+        print(format_tables(results["table"], bench.motions, seq, results.get("per_capture")))
     print()
     print("wrote " + ", ".join(str(p) for p in files.values()))
-    bad = [r for r in results["runs"] if not r.get("ok")]
+    bad = results["failures"]
     if bad:
-        print(f"{len(bad)} run(s) incomplete or failed: "
-              + "; ".join(f"{r['motion']} s{r['seed']} {r['method']}: {r.get('error')}" for r in bad[:5]),
-              file=sys.stderr)
+        print(f"{len(bad)} run(s) incomplete, failed or refused: "
+              + "; ".join(f"{f['capture']} {f['method']}: {f['reason']}" for f in bad[:5])
+              + (" (all listed above)" if bench.draws else ""), file=sys.stderr)
         return 1
     return 0

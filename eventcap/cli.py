@@ -539,6 +539,8 @@ benchmark.json and fig7_per_frame_error.png into <out>.
 
   eventcap benchmark                         the full suite (6 motions x 2 seeds, conf/benchmark/default.yaml)
   eventcap benchmark benchmark=quick         2 motions x 1 seed x 0.2 s
+  eventcap benchmark benchmark=open          captures drawn from their seeds (tuning seeds 0-19), per group
+  eventcap benchmark benchmark=open_check    the same on the check seeds 100-119: for reporting only
   eventcap benchmark motions=[karate_kick] seeds=[0,1,2] duration_s=1
   eventcap benchmark stages.track.stitch_px=2  an override of every run (not a benchmark key)
 """

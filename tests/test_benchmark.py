@@ -153,7 +153,8 @@ def test_bad_benchmark_configs_are_refused():
         parse_methods([{"name": "x", "data": "MBps"}])
     with pytest.raises(ValueError, match=r"methods\[1\]: name 'wo_batch' repeats"):
         parse_methods([{"name": "w/o_batch"}, {"name": "wo_batch"}])  # the same folder name
-    with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, quick"):
+    with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, open, "
+                                         r"open_check, quick\)"):
         compose_benchmark(CONF, "nope", [])
     from eventcap.benchmark import main
 

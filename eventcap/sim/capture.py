@@ -38,7 +38,7 @@ class CaptureConfig:
     # (motion name, duration in seconds) in order; see eventcap.body.motions.MOTIONS. Or a single recorded clip: a
     # BVH file or a shipped CMU clip "cmu/<subject_trial>" (eventcap.body.clips), retargeted onto the template.
     motions: tuple[tuple[str, float], ...] = (("karate_kick", 1.0),)
-    motion_start_s: float = 0.0  # a clip plays from this time into it
+    motion_start_s: float = 0.0  # a clip, or a built-in motion's performance, plays from this time into it
     motion_map: str = ""  # a clip's joint-name mapping file (YAML/JSON: BVH joint name -> our joint name); "" = none
     seed: int = 0  # varies the performance (timing, amplitudes, side)
     speed: float = 1.0  # tempo multiplier of the motions
@@ -98,8 +98,9 @@ def motion_function(config: CaptureConfig, template: Template) -> Callable[[np.n
         return clip_motion(motions[0][0], template, duration_s=config.duration_s, start_s=config.motion_start_s,
                            mapping_path=config.motion_map or None, rate_hz=config.gt_rate_hz)
 
-    def poses(t_s: np.ndarray) -> np.ndarray:
-        return sequence_poses(motions, np.asarray(t_s, dtype=np.float64), seed=config.seed, speed=config.speed,
+    def poses(t_s: np.ndarray) -> np.ndarray:  # built-in performances loop: any start time lies inside them
+        t = np.asarray(t_s, dtype=np.float64) + float(config.motion_start_s)
+        return sequence_poses(motions, t, seed=config.seed, speed=config.speed,
                               amplitude=config.amplitude, template=template)
 
     return poses
