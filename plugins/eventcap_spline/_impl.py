@@ -92,6 +92,35 @@ def prior_context(config, plan, t_det, detections, where: str, log):
         raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
 
 
+def capture_floor_of(solver, config, plan, detections, where: str, log) -> float | None:
+    """The floor's height over the capture for the floor terms (None when they are off), from the per-frame fits
+    at every intensity frame of the plan (eventcap_spline.solve.capture_floor; the same in every window, kept per
+    process)."""
+    from eventcap.energy.detections import select_detections
+
+    from .solve import capture_floor
+
+    if not (config.lambda_floor > 0 or config.lambda_slide > 0):
+        return None
+    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+    try:
+        det = select_detections(detections, frames)
+    except ValueError as exc:
+        raise StageFailed(f"{where}: the floor: {exc}", status="missing_detections") from exc
+    key = (id(solver), frames.tobytes(), *(np.ascontiguousarray(a).tobytes() for a in (
+        det.keypoints_2d, det.confidence_2d, det.joints_3d, det.confidence_3d)))
+    if key not in _FLOORS:
+        _FLOORS.clear()
+        _FLOORS[key] = capture_floor(solver, det)[0]
+        h = _FLOORS[key]
+        log.info("%s: the floor over the capture: y = %s (median lowest sole point of the fits at %d intensity "
+                 "frames)", where, "unknown" if h is None else f"{h:.3f} m", frames.size)
+    return _FLOORS[key]
+
+
+_FLOORS: dict = {}
+
+
 def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
     """E_sil's frames: a batch's tracking frames t_us every ``step_ms`` (rounded to frames), its first and last
     included."""
@@ -125,6 +154,7 @@ def clear_solvers() -> None:
     from .solve import clear_fits
 
     _SOLVERS.clear()
+    _FLOORS.clear()
     clear_fits()
 
 
@@ -242,10 +272,11 @@ def run_spline(inputs, config, ctx):
         raise StageFailed(f"stages.spline.prior_inertia: {exc}", status="invalid_input") from exc
     if base_gain is not None:
         ctx.stats["prior_inertia_gain"] = [float(v) for v in base_gain]
+    floor_y = capture_floor_of(solver, config, plan, inputs["detections"], where, ctx.log)
     try:
         res = solve_window(solver, spline, t_det, det, t_cor, xy, valid, what=what, context=context,
                            events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), t_sil_us=t_sil,
-                           base_gain=base_gain)
+                           base_gain=base_gain, floor_y=floor_y)
     except (StageFailed, SolveFailed, EnergyError) as exc:  # name the window in every failure (the fits' too)
         msg = str(exc) if what in str(exc) else f"{what}: {exc}"
         raise StageFailed(msg, status=getattr(exc, "status", "failed"), details=getattr(exc, "details", {})) from exc
