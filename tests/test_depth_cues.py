@@ -76,3 +76,32 @@ def test_depth_extents_of_exact_2d_points_are_the_true_ones_on_the_3d_detections
     assert across.any() and conf[across].max() < 0.3 and np.median(conf[steep]) > 0.5
     with pytest.raises(EnergyError, match="bones_sign_m: expected a depth > 0"):
         depth_extent_targets(*args, dz, 0.0, 0.01)
+
+
+def test_the_detectors_hip_and_shoulder_widths_are_measured_from_the_detections():
+    """Detections whose hips sit 15% and shoulders 10% nearer together than the template's joints (as BlazePose's
+    on the ANNY actor), on a kick seen from the side and the front: the widths are recovered from the 2D points,
+    the 3D detections' directions and the fits' depths, and the template with those widths projects where the
+    detections are."""
+    from eventcap.body.kinematics import landmark_positions
+    from eventcap.body.procedural import procedural_template
+    from eventcap.energy.detections import FrameDetections
+    from eventcap.energy.landmarks import LandmarkWidths, measure_widths, with_widths
+
+    tpl = procedural_template(seed=0, target_faces=2000)
+    cam = _camera()
+    S = motion_poses("karate_kick", np.linspace(0.0, 1.9, 40), seed=0, template=tpl)
+    truth = LandmarkWidths({"l_hip-r_hip": 0.85, "l_shoulder-r_shoulder": 0.9}, {})
+    seen = with_widths(tpl, truth)
+    J = joint_positions(S, tpl.rest_joints)
+    det = FrameDetections(cam.project(landmark_positions(S, seen)), np.ones((40, 25)), J - J[:, :1],
+                          np.ones((40, 24)))
+    w = measure_widths(tpl, cam, S, det)
+    assert w.scale["l_hip-r_hip"] == pytest.approx(0.85, abs=0.01)
+    assert w.scale["l_shoulder-r_shoulder"] == pytest.approx(0.9, abs=0.01)
+    assert min(w.frames.values()) >= 5
+    moved = landmark_positions(S, with_widths(tpl, w))
+    assert np.abs(cam.project(moved) - det.keypoints_2d).max() < 0.2  # px
+    # too few frames across the line of sight: the template's widths
+    few = measure_widths(tpl, cam, S[:3], det.rows([0, 1, 2]))
+    assert few.scale == {"l_hip-r_hip": 1.0, "l_shoulder-r_shoulder": 1.0} and set(few.frames.values()) == {0}
