@@ -700,7 +700,7 @@ def test_bad_config_and_missing_detections_are_named():
 
 
 def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_and_says_so(caplog):
-    """landmark_widths=data: the solve's template has the detector's hip and shoulder widths (the simulated
+    """landmarks=widths: the solve's template has the detector's hip and shoulder widths (the simulated
     detector puts them on the joints: within 10% of the template's), in the stats and the log; the floor terms: the
     floor's height over the capture in the log, near the feet of the actor standing on y = 0 (the soles' landmarks
     are a few centimetres above the mesh's soles)."""
@@ -710,10 +710,10 @@ def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_
     b = inputs["batches"].batch(1)
     _impl._FLOORS.clear()
     with caplog.at_level("INFO"):
-        out, ctx = _run_stage(inputs, b, landmark_widths="data", lambda_floor=100.0, lambda_slide=1.0, icp_rounds=1)
+        out, ctx = _run_stage(inputs, b, landmarks="widths", lambda_floor=100.0, lambda_slide=1.0, icp_rounds=1)
     w = ctx.stats["landmark_widths"]
     assert set(w) == {"l_hip-r_hip", "l_shoulder-r_shoulder"} and all(0.9 < v < 1.1 for v in w.values()), w
-    assert "the detector's widths over the capture (stages.spline.landmark_widths=data)" in caplog.text
+    assert "where the detector puts the joints, over the capture (stages.spline.landmarks=widths)" in caplog.text
     floor = [r.getMessage() for r in caplog.records if "the floor over the capture" in r.getMessage()]
     assert len(floor) == 1
     y = float(floor[0].split("y = ")[1].split(" m")[0])

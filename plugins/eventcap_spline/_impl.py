@@ -94,15 +94,15 @@ def prior_context(config, plan, t_det, detections, where: str, log):
 
 def capture_template(rec, config, layout, plan, detections, where: str, ctx):
     """The template of the solve: the recording's, with the detector's hip and shoulder widths measured over the
-    capture (eventcap.energy.landmarks) when ``landmark_widths`` is data (the same in every window, kept per
-    process); the log says which."""
+    capture (eventcap.energy.landmarks) unless ``landmarks`` is template (the same in every
+    window, kept per process); the log says which."""
     from eventcap.energy.detections import select_detections
     from eventcap.energy.errors import SolveFailed
     from eventcap.energy.landmarks import measure_widths, with_widths
 
     from .solve import frame_fit
 
-    if config.landmark_widths == "template":
+    if config.landmarks == "template":
         return rec.template
     frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
     try:
@@ -127,7 +127,8 @@ def capture_template(rec, config, layout, plan, detections, where: str, ctx):
             _FLOORS[key] = rec.template
         else:
             _FLOORS[key] = with_widths(rec.template, widths)
-            ctx.log.info("%s: the detector's widths over the capture (stages.spline.landmark_widths=data): %s", where,
+            ctx.log.info("%s: where the detector puts the joints, over the capture (stages.spline.landmarks=%s): %s",
+                         where, config.landmarks,
                          "; ".join(f"{k} {v:.3f} of the template's ({widths.frames[k]} frames)"
                                    for k, v in widths.scale.items()))
             ctx.stats["landmark_widths"] = dict(widths.scale)

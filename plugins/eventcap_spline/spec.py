@@ -87,11 +87,10 @@ class SplineSolveConfig:
     bones_2d_px: float = param(2.0, gt=0, help="foreshortening: the 2D points' noise, px (BlazePose on our actor: median "
                                          "2D error 1.7-2.6 px, NOTES.md): a bone whose depth extent this noise "
                                          "spreads by more than bones_sign_m weighs less")
-    landmark_widths: str = param("template", choices=("data", "template"),
-                                 help="the hip and shoulder landmarks of E_2D: where the detector puts them on this "
-                                      "person, their widths measured over the capture from the detections and the "
-                                      "per-frame fits (data; eventcap.energy.landmarks), or the template's joints "
-                                      "(template)")
+    landmarks: str = param("template", choices=("template", "widths"),
+                           help="the hip and shoulder landmarks of E_2D: the template's joints (template), or where "
+                                "the detector puts them on this person, their widths measured over the capture from "
+                                "the detections and the per-frame fits (widths; eventcap.energy.landmarks)")
     lambda_2d: float = param(200.0, ge=0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
     robust_2d_px: float = param(2.0, ge=0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
     lambda_3d: float = param(1.0, ge=0, help="weight of E_3D at every intensity frame of the window (metres)")
