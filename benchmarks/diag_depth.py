@@ -28,13 +28,22 @@ from eventcap.metrics import depth_split, procrustes_align, root_relative, truth
 from eventcap.runner import Runner  # noqa: E402
 
 
-def recording_of(run_dir: Path):
+def from_run(run_dir: Path, port: str = "source.recording", keep: tuple[str, ...] = ("template", "source")):
+    """An output of a run brought back from the cache: its config with only the nodes ``keep`` (so that nothing
+    else runs, whatever changed in the code since), serially."""
     data = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=True)
     data["log_level"] = "WARNING"
+    data["executor"] = {"kind": "serial"}
+    data["pipeline"]["nodes"] = {k: v for k, v in data["pipeline"]["nodes"].items() if k in keep}
+    data["outputs"] = {}
     runner = Runner(data)
     with tempfile.TemporaryDirectory() as tmp:
         result = runner.run(Path(tmp))
-        return runner.load_output(result, "source.recording")[None]
+        return runner.load_output(result, port)[None]
+
+
+def recording_of(run_dir: Path):
+    return from_run(run_dir)
 
 
 def measure(run_dir: Path, rec) -> dict:
