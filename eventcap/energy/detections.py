@@ -185,24 +185,17 @@ def keypoint_expression(template: Template, camera: Camera, S, kp, c2, robust_px
     return ca.sum2(c2.T * sq)
 
 
-def joint_expression(template: Template, S, tp, j3, c3, robust_m: float = 0.0):
+def joint_expression(template: Template, S, tp, j3, c3):
     """E_3D of one frame as a CasADi expression of the pose S (33) and the auxiliary translation t' (3): j3 (24, 3)
-    root-relative joints in metres, c3 (24, 1) their confidences. With robust_m > 0 each joint's squared error e²
-    becomes the Cauchy loss σ² log(1 + e²/σ²), σ = robust_m (metres): the 3D detector's ~7 cm error counts, a joint
-    it puts 30 cm off (a fast kick it did not follow) hardly pulls."""
+    root-relative joints in metres, c3 (24, 1) their confidences."""
     J = joint_positions(S, template.rest_joints)  # (24, 3)
     r3 = J - (j3 + ca.repmat(tp.T, NUM_JOINTS, 1))
-    sq = ca.sum2(r3 * r3)
-    if robust_m > 0:
-        sq = robust_m ** 2 * ca.log1p(sq / robust_m ** 2)
-    return ca.sum1(c3 * sq)
+    return ca.sum1(c3 * ca.sum2(r3 * r3))
 
 
-def detection_terms(template: Template, camera: Camera, S, tp, kp, c2, j3, c3, robust_px: float,
-                    robust_3d_m: float = 0.0):
+def detection_terms(template: Template, camera: Camera, S, tp, kp, c2, j3, c3, robust_px: float):
     """(E_2D, E_3D) of one frame as CasADi expressions (:func:`keypoint_expression`, :func:`joint_expression`)."""
-    return (keypoint_expression(template, camera, S, kp, c2, robust_px),
-            joint_expression(template, S, tp, j3, c3, robust_3d_m))
+    return keypoint_expression(template, camera, S, kp, c2, robust_px), joint_expression(template, S, tp, j3, c3)
 
 
 def det_symbols(prefix: str):
@@ -276,19 +269,17 @@ class Keypoints2D(Factor):
 
 
 class Joints3D(Factor):
-    """E_3D (paper Eq. 7) at every detection frame: λ_3D Σ_d Σ_l c_dl ρ(‖J_l(S_d) - (P3D_dl + t'_d)‖), P3D the
-    root-relative 3D detections, t'_d an auxiliary translation per frame (this factor's own variables), ρ the
-    Cauchy loss of scale ``robust_3d_m`` where the config states one > 0 (else squares, the paper's)."""
+    """E_3D (paper Eq. 7) at every detection frame: λ_3D Σ_d Σ_l c_dl ‖J_l(S_d) - (P3D_dl + t'_d)‖², P3D the
+    root-relative 3D detections, t'_d an auxiliary translation per frame (this factor's own variables)."""
 
     name = "3d"
     aux_size = 3
-    settings = ("robust_3d_m",)
 
     def __init__(self, weight, config, template, camera, layout):
         super().__init__(weight, config, template, camera, layout)
         S, tp = ca.SX.sym("S", _NP), ca.SX.sym("tp", 3)
         _, _, j3, c3 = det_symbols("")
-        e = joint_expression(template, S, tp, j3, c3, float(getattr(config, "robust_3d_m", 0.0)))
+        e = joint_expression(template, S, tp, j3, c3)
         self._fn = _MappedTerm("E_3d", e, ca.vertcat(S, tp), [j3, c3], self.n)
         self._data: list[np.ndarray] = []
 
@@ -316,50 +307,6 @@ class Joints3D(Factor):
         return lin
 
 
-# --------------------------------------------------------------------------------------------- the 3D sign of a limb
-#: Limbs (parent joint, child joint) whose nearer end a 3D detection may get wrong, with the joints that move with
-#: the child (its subtree).
-FLIP_LIMBS = tuple((JOINT_INDEX[p], JOINT_INDEX[c], tuple(JOINT_INDEX[n] for n in sub)) for p, c, sub in (
-    ("l_hip", "l_knee", ("l_knee", "l_ankle", "l_foot")), ("r_hip", "r_knee", ("r_knee", "r_ankle", "r_foot")),
-    ("l_knee", "l_ankle", ("l_ankle", "l_foot")), ("r_knee", "r_ankle", ("r_ankle", "r_foot")),
-    ("l_shoulder", "l_elbow", ("l_elbow", "l_wrist", "l_hand")),
-    ("r_shoulder", "r_elbow", ("r_elbow", "r_wrist", "r_hand")),
-    ("l_elbow", "l_wrist", ("l_wrist", "l_hand")), ("r_elbow", "r_wrist", ("r_wrist", "r_hand"))))
-
-
-def foreshortened_limbs(template: Template, camera: Camera, det: FrameDetections, d: int, S: np.ndarray,
-                        ratio: float) -> list[int]:
-    """Indices into :data:`FLIP_LIMBS` of the limbs whose 2D points (both confident, and 3D detections of both
-    ends) span less than ``ratio`` of the limb's length at the parent's depth in the pose S: limbs that point
-    towards or away from the camera, whose nearer end the 2D points cannot tell."""
-    z = camera.to_camera(joint_positions(S, template.rest_joints))[:, 2]
-    out = []
-    for k, (p, c, _) in enumerate(FLIP_LIMBS):
-        lp, lc = _LANDMARK_OF_JOINT.get(p), _LANDMARK_OF_JOINT.get(c)
-        if lp is None or lc is None or min(det.confidence_2d[d, [lp, lc]]) <= 0 or min(
-                det.confidence_3d[d, [p, c]]) <= 0:
-            continue
-        n = camera.undistort_points(det.keypoints_2d[d, [lp, lc]])
-        length = np.linalg.norm(template.rest_joints[c] - template.rest_joints[p])
-        if np.linalg.norm(n[1] - n[0]) * z[p] < ratio * length:
-            out.append(k)
-    return out
-
-
-def flip_limb(det: FrameDetections, d: int, k: int, R: np.ndarray) -> FrameDetections:
-    """The detections with frame d's 3D joints of limb k of :data:`FLIP_LIMBS` mirrored in depth about its parent
-    joint (camera axes: the other nearer end, the same 2D extent)."""
-    p, _, sub = FLIP_LIMBS[k]
-    j3 = np.array(det.joints_3d)
-    v = (j3[d, list(sub)] - j3[d, p]) @ R.T
-    v[:, 2] *= -1.0
-    j3[d, list(sub)] = j3[d, p] + v @ R
-    return FrameDetections(det.keypoints_2d, det.confidence_2d, j3, det.confidence_3d)
-
-
-_LANDMARK_OF_JOINT = {JOINT_INDEX[j]: LANDMARK_INDEX[lm] for lm, j in LANDMARK_ON_JOINT.items()}
-
-
 class FrameFitter:
     """The one-frame fit of a pose to its detections (E_2D + E_3D, the paper's initialisation), built once.
 
@@ -367,7 +314,7 @@ class FrameFitter:
     """
 
     def __init__(self, template: Template, camera: Camera, settings: IpoptSettings, lower: np.ndarray,
-                 upper: np.ndarray, robust_px: float, robust_3d_m: float = 0.0):
+                 upper: np.ndarray, robust_px: float):
         self.template, self.camera, self.settings = template, camera, settings
         self.lower, self.upper, self.robust_px = lower, upper, float(robust_px)
         S = ca.SX.sym("S", _NP)
@@ -375,8 +322,7 @@ class FrameFitter:
         lam = ca.SX.sym("lam", 3)  # 2D, 3D, damp
         ref = ca.SX.sym("ref", _NP)
         det = det_symbols("")
-        e2, e3 = detection_terms(template, camera, S, tp, *det, robust_px=self.robust_px,
-                                 robust_3d_m=float(robust_3d_m))
+        e2, e3 = detection_terms(template, camera, S, tp, *det, robust_px=self.robust_px)
         p = ca.vertcat(lam, ref, *[ca.vec(d) for d in det])
         x = ca.vertcat(S, tp)
         f = lam[0] * e2 + lam[1] * e3 + lam[2] * ca.sumsqr(S - ref)
@@ -408,32 +354,3 @@ class FrameFitter:
             x, stats = run_ipopt(self.solver, x, p, lbx, ubx, f"fit of detection frame {d}")
             its, secs = its + stats.iterations, secs + stats.seconds
         return x[:_NP], x[_NP:], replace(stats, iterations=its, seconds=secs)
-
-    def objective(self, det: FrameDetections, d: int, S: np.ndarray, tp: np.ndarray, d2: float, d3: float) -> float:
-        """λ_2D E_2D + λ_3D E_3D of detection frame d at the pose S and t'."""
-        p = np.concatenate([[d2, d3, 0.0], S, *det_values(det, d)])
-        e2, e3 = (float(v) for v in self.terms(np.concatenate([S, tp]), p))
-        return d2 * e2 + d3 * e3
-
-    def fit_signs(self, det: FrameDetections, d: int, d2: float, d3: float, damp: float,
-                  ratio: float) -> tuple[np.ndarray, np.ndarray, SolveStats, np.ndarray]:
-        """The fit of detection frame d (:meth:`fit`), and for each limb the 2D points show foreshortened
-        (:func:`foreshortened_limbs` at that fit, below ``ratio`` of its length) the fit with that limb's 3D
-        detection mirrored in depth (:func:`flip_limb`): the 3D detector's nearer end is where its ~7 cm error is
-        least and still wrong at times (a kicking shin towards the camera taken for one folded back). The fit whose
-        E_2D + E_3D (each against its own 3D detection) is lowest wins. Returns (S, t', stats, the winner's 3D
-        joints of the frame (24, 3)); ratio 0: no alternatives."""
-        S, tp, st = self.fit(det, d, d2, d3, damp)
-        best = (self.objective(det, d, S, tp, d2, d3), S, tp, det.joints_3d[d])
-        if ratio > 0 and d3 > 0:
-            for k in foreshortened_limbs(self.template, self.camera, det, d, S, ratio):
-                alt = flip_limb(det, d, k, self.camera.R)
-                try:
-                    Sa, ta, sa = self.fit(alt, d, d2, d3, damp)
-                except SolveFailed:
-                    continue
-                st = replace(st, iterations=st.iterations + sa.iterations, seconds=st.seconds + sa.seconds)
-                value = self.objective(alt, d, Sa, ta, d2, d3)
-                if value < best[0]:
-                    best = (value, Sa, ta, alt.joints_3d[d])
-        return best[1], best[2], st, np.array(best[3])

@@ -97,7 +97,7 @@ class SplineSolver:
         self.problem = FactorProblem(SplinePoses(layout.n_seg), self.factors, self.settings, lo, hi,
                                      damp=config.lambda_damp, damp_aux=True, name="spline", band=layout.band)
         self.lower, self.upper = self.problem.lower, self.problem.upper
-        self.fitter = FrameFitter(template, camera, self.settings, lo, hi, config.robust_2d_px, config.robust_3d_m)
+        self.fitter = FrameFitter(template, camera, self.settings, lo, hi, config.robust_2d_px)
         self.build_seconds = time.perf_counter() - t0
 
     def factor(self, name: str):
@@ -105,43 +105,23 @@ class SplineSolver:
 
 
 # --------------------------------------------------------------------------------------------- per-frame fits
-def _fit_key(solver: SplineSolver, det: FrameDetections, d: int) -> tuple:
-    """A frame's fit is a deterministic function of its detections and the fitter's settings: its key."""
-    from eventcap.energy.detections import det_values
-
-    c = solver.config
-    return (solver.template.geometry_digest(), repr(sorted(solver.camera.to_dict().items())), solver.lower.tobytes(),
-            solver.upper.tobytes(), float(c.robust_2d_px), float(c.robust_3d_m), solver.settings, float(c.lambda_2d),
-            float(c.lambda_3d), float(c.flip_3d), *(v.tobytes() for v in det_values(det, d)))
-
-
 def frame_fit(solver: SplineSolver, det: FrameDetections, d: int):
     """The per-frame fit of detection frame d, ((S, t', stats), whether it was computed now). A frame's fit is a
     deterministic function of its detections and the fitter's settings, so neighbouring windows of this process
     share it (keyed by value)."""
+    from eventcap.energy.detections import det_values
 
     c = solver.config
-    key = _fit_key(solver, det, d)
+    key = (solver.template.geometry_digest(), repr(sorted(solver.camera.to_dict().items())), solver.lower.tobytes(),
+           solver.upper.tobytes(),
+           float(c.robust_2d_px), solver.settings, float(c.lambda_2d), float(c.lambda_3d),
+           *(v.tobytes() for v in det_values(det, d)))
     if key in _FITS:
-        return _FITS[key][:3], 0
+        return _FITS[key], 0
     if len(_FITS) > _FITS_MAX:
         _FITS.clear()
-    _FITS[key] = solver.fitter.fit_signs(det, d, c.lambda_2d, c.lambda_3d, FIT_DAMP, float(c.flip_3d))
-    return _FITS[key][:3], 1
-
-
-def frame_signs(solver: SplineSolver, det: FrameDetections) -> FrameDetections:
-    """The detections with each frame's 3D joints as its per-frame fit chose them (a limb's nearer end flipped
-    where the 2D points fit the other better, :meth:`eventcap.energy.detections.FrameFitter.fit_signs`); the fits
-    must have been made (:func:`frame_fit`)."""
-    if not solver.config.flip_3d > 0:
-        return det
-    j3 = np.array(det.joints_3d)
-    for d in range(det.n):
-        hit = _FITS.get(_fit_key(solver, det, d))
-        if hit is not None and det.confidence_3d[d].max() > 0:
-            j3[d] = np.where(det.confidence_3d[d][:, None] > 0, hit[3], det.joints_3d[d])
-    return FrameDetections(det.keypoints_2d, det.confidence_2d, j3, det.confidence_3d)
+    _FITS[key] = solver.fitter.fit(det, d, c.lambda_2d, c.lambda_3d, FIT_DAMP)
+    return _FITS[key], 1
 
 
 def fit_window(solver: SplineSolver, det: FrameDetections) -> tuple[np.ndarray, np.ndarray, list[SolveStats], int]:
@@ -241,7 +221,6 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
     seconds = {}
     t0 = time.perf_counter()
     fits, tps, _, n_fits = fit_window(solver, det)
-    det = frame_signs(solver, det)  # the 3D detections with the nearer ends the fits chose
     window = Window(spline.t0_us, spline.t1_us, t_det_us=np.asarray(t_det_us, dtype=np.int64), detections=det,
                     t_cor_us=np.asarray(t_cor_us, dtype=np.int64), correspondences=Correspondences.empty(),
                     knots_us=spline.t0_us + spline.h_us * np.arange(spline.n_seg + 1, dtype=np.int64),

@@ -96,17 +96,9 @@ class SplineSolveConfig:
                                 "the detector puts them on this person, their widths measured over the capture from "
                                 "the detections and the per-frame fits (widths; eventcap.energy.landmarks). BlazePose, "
                                 "karate_kick seed 0 at 10 fps: AE 60.5 -> 58.4 mm, depth error 58.6 -> 55.3 mm")
-    flip_3d: float = param(0.0, ge=0, le=1, help="the 3D detections' nearer ends: where a limb's 2D points span less "
-                                         "than this fraction of its length (it points towards or away from the "
-                                         "camera), the per-frame fit is also made with that limb mirrored in depth in "
-                                         "the 3D detection, and the better fit (E_2D + E_3D) chooses which the window "
-                                         "uses (eventcap.energy.detections.FrameFitter.fit_signs); 0 = the 3D "
-                                         "detections as they are")
     lambda_2d: float = param(200.0, ge=0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
     robust_2d_px: float = param(2.0, ge=0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
     lambda_3d: float = param(1.0, ge=0, help="weight of E_3D at every intensity frame of the window (metres)")
-    robust_3d_m: float = param(0.0, ge=0, help="Cauchy loss scale of E_3D per joint, metres (0 = least squares): the 3D "
-                                         "detector's ~7 cm error counts, a joint it puts far off hardly pulls")
     lambda_cor: float = param(500.0, ge=0, help="weight of E_cor, the event correspondences of this batch's tracks "
                                           "(measured on karate_kick, 25 fps, with cor_step 5: EKLT 50 / 500 / 2000 "
                                           "gave AE 26.0 / 25.8 / 26.0 mm, exact tracks 25.8 / 24.5 / 24.1 mm)")
