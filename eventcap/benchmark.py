@@ -45,7 +45,8 @@ log = logging.getLogger("eventcap.benchmark")
 
 DATA_FIELDS = ("total_MBps", "events_MBps", "frames_MBps", "highspeed_MBps")
 #: The evaluate stage's motion-detail measures a run record keeps (root-relative joints; see eventcap.metrics).
-DETAIL_FIELDS = ("AE_rootrel_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "velocity_window_ms")
+DETAIL_FIELDS = ("AE_rootrel_mm", "depth_mm", "image_plane_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err",
+                 "velocity_window_ms")
 _METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires"}
 
 
@@ -453,7 +454,8 @@ def detail_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     (runs of one suite have the same length), the peak-speed error as the median over the pooled (batch, end
     effector) pairs of all runs (a fraction), and as the median of the runs' own medians (``peak_speed_err_runs``:
     each capture counts once, however many fast moments it has)."""
-    out: dict[str, Any] = {k: _mean_of(records, k) for k in ("AE_rootrel_mm", "MPJVE_mm_s", "accel_err_m_s2")}
+    out: dict[str, Any] = {k: _mean_of(records, k) for k in ("AE_rootrel_mm", "depth_mm", "image_plane_mm",
+                                                             "MPJVE_mm_s", "accel_err_m_s2")}
     vals = [r["peak_speed_err"] for r in records if r.get("peak_speed_err") is not None]
     out["peak_speed_err_runs"] = float(np.median(vals)) if vals else None
     pairs = [v for r in records for row in (r.get("peak_speed_errors") or []) for v in row if v is not None]
@@ -463,7 +465,7 @@ def detail_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 
 #: The measures compared capture by capture (:func:`per_capture`): lower is better for each.
-CAPTURE_MEASURES = (("AE_mm", "AE"), ("AE_rootrel_mm", "AE.rootrel"), ("MPJVE_mm_s", "MPJVE"),
+CAPTURE_MEASURES = (("AE_mm", "AE"), ("AE_rootrel_mm", "AE.rootrel"), ("depth_mm", "depth"), ("MPJVE_mm_s", "MPJVE"),
                     ("peak_speed_err", "peak"))
 
 
@@ -598,10 +600,12 @@ def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], no
     per stage (when ``times``), and the first method against the others capture by capture (``comparison``,
     :func:`per_capture`)."""
     parts = []
-    head = ["method", "AE.all (mm)", "AE.raw (mm)", "AE.nonRaw (mm)", "AE.rootrel (mm)", "MPJVE (mm/s)",
+    head = ["method", "AE.all (mm)", "AE.raw (mm)", "AE.nonRaw (mm)", "AE.rootrel (mm)", "depth (mm)",
+            "image plane (mm)", "MPJVE (mm/s)",
             "Acc.err (m/s²)", "peak speed err", "(runs)", "Size.sec (MB/s)", "runs"]
     rows = [[r["method"], _pm(r["AE_mm"], r["AE_STD_mm"]), _pm(r["AE_raw_mm"], r["AE_raw_STD_mm"]),
-             _pm(r["AE_nonRaw_mm"], r["AE_nonRaw_STD_mm"]), _num(r.get("AE_rootrel_mm")), _num(r.get("MPJVE_mm_s"), 0),
+             _pm(r["AE_nonRaw_mm"], r["AE_nonRaw_STD_mm"]), _num(r.get("AE_rootrel_mm")), _num(r.get("depth_mm")),
+             _num(r.get("image_plane_mm")), _num(r.get("MPJVE_mm_s"), 0),
              _num(r.get("accel_err_m_s2"), 1), _pct(r.get("peak_speed_err")), _pct(r.get("peak_speed_err_runs")),
              _num(r["data_MBps"], 2), f"{r['evaluated']}/{r['runs']}"] for r in table]
     parts.append("Table 1" + (f" ({note})" if note else "") + "\n" + _grid(head, rows)
@@ -693,13 +697,13 @@ def table_csv_rows(table: Sequence[Mapping[str, Any]], motions: Sequence[str]) -
     for r in table:
         row = {k: r.get(k) for k in ("method", "runs", "evaluated", "incomplete", "AE_mm", "AE_STD_mm", "AE_raw_mm",
                                      "AE_raw_STD_mm", "AE_nonRaw_mm", "AE_nonRaw_STD_mm", "AE_rootrel_mm",
-                                     "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "peak_speed_err_runs",
+                                     "depth_mm", "image_plane_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "peak_speed_err_runs",
                                      "data_MBps")}
         for m in motions:
             pm = r["per_motion"][m]
             row[f"AE_{m}_mm"] = pm["AE_mm"]
             row[f"STD_{m}_mm"] = pm["STD_mm"]
-            for k in ("AE_rootrel_mm", "MPJVE_mm_s", "peak_speed_err"):
+            for k in ("AE_rootrel_mm", "depth_mm", "image_plane_mm", "MPJVE_mm_s", "peak_speed_err"):
                 row[f"{k}.{m}"] = pm.get(k)
         row.update({f"s_per_batch.{n}": v for n, v in r["s_per_batch"].items()})
         row.update(r["stats"])

@@ -96,6 +96,23 @@ def mean_joint_error(pred_joints: np.ndarray, true_joints: np.ndarray, align: bo
     return np.linalg.norm(pred - np.asarray(true_joints, dtype=np.float64), axis=-1).mean(axis=-1)
 
 
+def depth_split(pred_joints: np.ndarray, true_joints: np.ndarray, R_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The root-relative joint error split along the camera's axes: (depth (T, J-1), image plane (T, J-1)), metres.
+
+    Each joint's root-relative error vector e = (P_j - P_root) - (G_j - G_root) of pred and truth (T, J, 3) in
+    world coordinates is turned into the camera's axes by R_cam (3, 3, world to camera, OpenCV axes: z along the
+    line of sight); depth is |e_z|, image plane ‖(e_x, e_y)‖. The root itself (0 by construction) is left out. What a
+    single camera sees least is depth: this tells how much of an error lies along the line of sight."""
+    P, G = root_relative(pred_joints)[..., 1:, :], root_relative(true_joints)[..., 1:, :]
+    if P.shape != G.shape:
+        raise ValueError(f"depth_split: pred {P.shape} and truth {G.shape} differ")
+    R = np.asarray(R_cam, dtype=np.float64)
+    if R.shape != (3, 3):
+        raise ValueError(f"depth_split: expected a (3, 3) camera rotation, got {R.shape}")
+    e = (P - G) @ R.T
+    return np.abs(e[..., 2]), np.linalg.norm(e[..., :2], axis=-1)
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # Motion detail: velocities, accelerations and peak speeds of root-relative joints (what a 1 kHz capture is for)
 # ---------------------------------------------------------------------------------------------------------------------

@@ -36,6 +36,8 @@ def fake_run(method, motion, seed, err, raw_every=4, data=2.0, solve_s=1.0, mpjv
     return {"motion": motion, "seed": seed, "method": method, "ok": True, "computed": 0, "cached": 10,
             "AE_mm": float(err.mean()), "data_MBps": data, "MPJVE_mm_s": mpjve, "peak_speed_errors": peaks,
             "AE_rootrel_mm": None if mpjve is None else 2 * float(err.mean()),
+            "depth_mm": None if mpjve is None else 1.5 * float(err.mean()),
+            "image_plane_mm": None if mpjve is None else 0.5 * float(err.mean()),
             "frames": {"t_us": (10_000 * np.arange(n)).tolist(), "err_mm": err.tolist(),
                        "sampled": [True] * n, "raw": raw.tolist()},
             "s_per_batch": {"track": 0.5, "solve": solve_s}, "stats": {"solve": {"solve_s": solve_s, "iterations": 20}}}
@@ -69,13 +71,15 @@ def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
     lines = text.splitlines()
     assert lines[0] == "Table 1 (fake)"
     assert lines[1].split() == ["method", "AE.all", "(mm)", "AE.raw", "(mm)", "AE.nonRaw", "(mm)", "AE.rootrel",
-                                "(mm)", "MPJVE", "(mm/s)", "Acc.err", "(m/s²)", "peak", "speed", "err", "(runs)",
+                                "(mm)", "depth", "(mm)", "image", "plane", "(mm)", "MPJVE", "(mm/s)", "Acc.err", "(m/s²)", "peak", "speed", "err", "(runs)",
                                 "Size.sec", "(MB/s)", "runs"]
     # (runs): the median of the runs' own peak_speed_err (fake runs carry none: n/a)
-    assert lines[3].split() == ["A", "31.7", "±", "14.6", "26.7", "±", "17.0", "33.3", "±", "13.3", "63.3", "600",
+    # depth and image plane: the means of the runs' (1.5 and 0.5 x their AE here)
+    assert lines[3].split() == ["A", "31.7", "±", "14.6", "26.7", "±", "17.0", "33.3", "±", "13.3", "63.3", "47.5",
+                                "15.8", "600",
                                 "n/a", "40%", "n/a", "2.67", "3/3"]
     assert lines[4].split() == ["B", "100.0", "±", "0.0", "100.0", "±", "0.0", "100.0", "±", "0.0", "n/a", "n/a",
-                                "n/a", "n/a", "n/a", "1.00", "1/2"]
+                                "n/a", "n/a", "n/a", "n/a", "n/a", "1.00", "1/2"]
     detail = text.split("Per motion: AE of root-relative joints")[1].splitlines()
     assert detail[3].split() == ["A", "45.0", "/", "400", "/", "30%", "100.0", "/", "1000", "/", "200%"]
     per_motion = text.split("AE per motion")[1].splitlines()
@@ -101,7 +105,7 @@ def test_the_first_method_against_the_others_capture_by_capture():
     def run(method, motion, seed, ae, rr, mpjve, peak):
         frames = {"t_us": [0], "err_mm": [ae], "sampled": [True], "raw": [True]}
         return {"motion": motion, "seed": seed, "method": method, "ok": True, "frames": frames, "AE_mm": ae,
-                "AE_rootrel_mm": rr, "MPJVE_mm_s": mpjve, "peak_speed_err": peak}
+                "AE_rootrel_mm": rr, "depth_mm": 0.8 * rr, "MPJVE_mm_s": mpjve, "peak_speed_err": peak}
 
     runs = [run("default", "kick", 0, 20.0, 30.0, 180.0, 0.10), run("smooth", "kick", 0, 25.0, 35.0, 300.0, 0.40),
             run("default", "kick", 1, 22.0, 31.0, 320.0, 0.15), run("smooth", "kick", 1, 21.0, 36.0, 310.0, 0.15),
@@ -110,14 +114,14 @@ def test_the_first_method_against_the_others_capture_by_capture():
     cmp_ = per_capture(runs, ["default", "smooth"])
     got = cmp_["against"]["smooth"]
     assert cmp_["reference"] == "default"
-    assert [(got[k]["lower"], got[k]["of"]) for k in ("AE_mm", "AE_rootrel_mm", "MPJVE_mm_s", "peak_speed_err")] \
-        == [(2, 3), (3, 3), (2, 3), (1, 2)]
+    assert [(got[k]["lower"], got[k]["of"]) for k in ("AE_mm", "AE_rootrel_mm", "depth_mm", "MPJVE_mm_s",
+                                                      "peak_speed_err")] == [(2, 3), (3, 3), (3, 3), (2, 3), (1, 2)]
     assert got["AE_mm"]["not_lower"] == [{"motion": "kick", "seed": 1, "default": 22.0, "smooth": 21.0}]
     assert got["peak_speed_err"]["not_lower"] == [{"motion": "kick", "seed": 1, "default": 0.15, "smooth": 0.15}]
     text = format_tables(aggregate(runs, ["default", "smooth"], ["kick", "wave"]), ["kick", "wave"], "", cmp_)
     part = text.split("Per capture: where default is lower than each method")[1].splitlines()
-    assert part[1].split() == ["method", "AE", "AE.rootrel", "MPJVE", "peak"]
-    assert part[3].split() == ["smooth", "2/3", "3/3", "2/3", "1/2"]
+    assert part[1].split() == ["method", "AE", "AE.rootrel", "depth", "MPJVE", "peak"]
+    assert part[3].split() == ["smooth", "2/3", "3/3", "3/3", "2/3", "1/2"]
     assert part[4:] == ["  default not lower than smooth: kick seed 1 AE 22.0 against 21.0",
                         "  default not lower than smooth: kick seed 1 MPJVE 320 against 310",
                         "  default not lower than smooth: kick seed 1 peak 15% against 15%"]

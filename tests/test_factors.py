@@ -66,11 +66,16 @@ def window_data():
                     estimate=lambda t: spl.evaluate(C, t), prior_gain=rng.uniform(1.0, 50.0, 33),
                     pull=(spl.evaluate(C, t_det) + r2.normal(0, 0.05, (t_det.size, 33)),
                           r2.uniform(0, 3, (t_det.size, 33)) * (r2.random((t_det.size, 33)) < 0.67)))
+    # the floor a centimetre above the start's median lowest sole point: some points in contact, some below it
+    from eventcap.energy.floor import sole_points
+
+    window.floor_y = float(np.median(sole_points(spl.evaluate(C, window.knots_us), rec.template)[..., 1].min(1))) + 0.01
     layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=t_us.size, n_sil=t_sil.size)
     return rec, spl, C, window, layout
 
 
-SPLINE_TERMS = ["2d", "3d", "cor", "sil", "still", "prior", "context", "damp", "temp", "stab"]
+SPLINE_TERMS = ["2d", "3d", "cor", "sil", "still", "prior", "context", "damp", "temp", "stab", "floor", "slide",
+                "bones"]
 
 
 @pytest.mark.parametrize("term", SPLINE_TERMS)
@@ -79,6 +84,10 @@ def test_every_factor_on_a_spline_matches_finite_differences(term):
     declared sparsity, exactly as IPOPT sees them) against central differences of its value."""
     rec, spl, C, window, layout = window_data()
     changes = {"sil_loss": "l2"} if term == "sil" else {}  # the Huber loss: on frames, with its kink in a gap
+    if term in ("floor", "slide"):  # the scene's feet move: contact wherever they are slower than 3 m/s (and no
+        # random stillness, which leaves no two neighbouring knots in contact)
+        changes = {"contact_speed_mps": 3.0, "contact_height_m": 0.2}
+        window = dataclasses.replace(window, stillness=None)
     if term == "damp":
         config = dataclasses.replace(only(SplineSolveConfig, "prior"), lambda_prior=0.0, lambda_damp=1.0)
     elif term in ("temp", "stab"):  # terms of other solves work on a spline too

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eventcap.metrics import (END_EFFECTORS, central_derivative, half_window_steps, motion_detail, peak_speed_errors,
+from eventcap.metrics import (END_EFFECTORS, central_derivative, depth_split, half_window_steps, motion_detail, peak_speed_errors,
                               root_relative, truth_at)
 from eventcap.motion import on_grid, tracking_times_us, uniform_motion
 
@@ -151,6 +151,23 @@ def test_truth_at_and_root_relative():
     assert np.all(rr[:, 0] == 0) and np.allclose(rr[:, 1], 3.0)
 
 
+def test_depth_split_by_hand():
+    """A joint moved 30 mm along the camera's line of sight and 40 mm across it, in a camera turned 90° about y:
+    depth 30, image plane 40; a shift of the whole body (root included) is no root-relative error."""
+    true = np.zeros((1, 3, 3))
+    true[0, 1] = [0.0, 0.5, 0.0]
+    true[0, 2] = [0.0, -0.5, 0.0]
+    c, s = 0.0, 1.0  # world to camera: a rotation by 90° about y, the camera's z is the world's -x
+    R = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])
+    pred = true.copy()
+    pred[0, 1] += R.T @ np.array([0.0, 0.04, 0.03])  # 40 mm in the image plane, 30 mm in depth
+    depth, image = depth_split(pred + 0.2, true, R)
+    assert depth.shape == image.shape == (1, 2)
+    assert np.allclose(depth, [[0.03, 0.0]]) and np.allclose(image, [[0.04, 0.0]])
+    with pytest.raises(ValueError, match="differ"):
+        depth_split(pred[:, :2], true, R)
+
+
 def test_bad_input():
     with pytest.raises(ValueError, match="at least 3 frames"):
         central_derivative(np.zeros(2), np.array([0, 1000]), 10_000)
@@ -196,6 +213,7 @@ def test_evaluate_stage_reports_motion_detail(monkeypatch):
     values, _ = te.evaluate(rec, te.batch_sequences(rec, shift), align="none")
     assert values["AE_mm"] == pytest.approx(100.0, rel=1e-6)
     assert values["AE_rootrel_mm"] < 1e-9 and values["MPJVE_mm_s"] < 1e-6
+    assert values["depth_mm"] < 1e-9 and values["image_plane_mm"] < 1e-9
 
     # the estimate lags the truth by 1 ms: its velocity error is the truth's acceleration × 1 ms, on average
     def lag(t, S):

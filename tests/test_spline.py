@@ -697,3 +697,25 @@ def test_bad_config_and_missing_detections_are_named():
                                          frame0=np.array([0, 1])))
     with pytest.raises(StageFailed, match="no detection row at t = \\[47000\\]"):
         _run_stage(few, b)
+
+
+def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_and_says_so(caplog):
+    """landmarks=widths: the solve's template has the detector's hip and shoulder widths (the simulated
+    detector puts them on the joints: within 10% of the template's), in the stats and the log; the floor terms: the
+    floor's height over the capture in the log, near the feet of the actor standing on y = 0 (the soles' landmarks
+    are a few centimetres above the mesh's soles)."""
+    from eventcap_spline import _impl
+
+    inputs = stage_inputs()
+    b = inputs["batches"].batch(1)
+    _impl._FLOORS.clear()
+    with caplog.at_level("INFO"):
+        out, ctx = _run_stage(inputs, b, landmarks="widths", lambda_floor=100.0, lambda_slide=1.0, icp_rounds=1)
+    w = ctx.stats["landmark_widths"]
+    assert set(w) == {"l_hip-r_hip", "l_shoulder-r_shoulder"} and all(0.9 < v < 1.1 for v in w.values()), w
+    assert "where the detector puts the joints, over the capture (stages.spline.landmarks=widths)" in caplog.text
+    floor = [r.getMessage() for r in caplog.records if "the floor over the capture" in r.getMessage()]
+    assert len(floor) == 1
+    y = float(floor[0].split("y = ")[1].split(" m")[0])
+    assert -0.05 < y < 0.15, floor
+    assert out["poses"].energies["floor"] >= 0.0

@@ -93,6 +93,7 @@ class Window:
     events: np.ndarray | None = None  #: the recording's events over the window
     prior_gain: np.ndarray | None = None  #: (33,) the motion prior's gain per pose parameter
     pull: tuple[np.ndarray, np.ndarray] | None = None  #: context pull (target, weight), each (D, 33)
+    floor_y: float | None = None  #: the floor's height (world y, m) over the capture (None: not known)
     extra: dict = field(default_factory=dict)  #: data of factors not listed here, by their name
 
     def need(self, name: str, who: str):

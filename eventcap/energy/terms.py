@@ -14,6 +14,9 @@ stab       E_stab, joints near the solve's (Eq. 10)        sil.JointStability   
 still      E_still, event silence (not in the paper)       silence.EventSilence         spline
 prior      motion prior (not in the paper)                 prior.MotionPrior            spline
 context    context pull (not in the paper)                 prior.ContextPull            spline
+floor      on the floor in contact, never below it         floor.FloorContact           spline
+slide      no sliding in contact                           floor.FootSlide              spline
+bones      bones' depth extents (foreshortening)           bones.BoneDepth              spline
 =========  ==============================================  ===========================  =====================
 """
 
@@ -24,6 +27,8 @@ from . import cor  # noqa: F401, I001
 from . import sil  # noqa: F401
 from . import silence  # noqa: F401
 from . import prior  # noqa: F401
+from . import floor  # noqa: F401
+from . import bones  # noqa: F401
 from collections.abc import Mapping
 from typing import Any
 
@@ -33,7 +38,7 @@ from eventcap.camera import Camera
 from .factor import FACTORS, Factor, Layout, weight_key
 
 #: This package's factors in the order a solve sums them (and lays out their auxiliary variables).
-ORDER = ("2d", "3d", "cor", "temp", "sil", "stab", "still", "prior", "context")
+ORDER = ("2d", "3d", "cor", "temp", "sil", "stab", "still", "prior", "context", "floor", "slide", "bones")
 
 def factors_from_config(config: Any, template: Template, camera: Camera, layout: Layout,
                         allowed: tuple[str, ...] | None = None,

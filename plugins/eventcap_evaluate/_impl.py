@@ -23,6 +23,9 @@ pelvis; the pelvis itself left out: 23 joints) at every tracking frame:
 
 - ``AE_rootrel_mm``: the mean per-joint error of root-relative joints (no rotation alignment) over the every-n-th
   frames;
+- ``depth_mm`` / ``image_plane_mm``: the same errors split along the camera's axes (:func:`eventcap.metrics.depth_split`):
+  the mean of each root-relative error's component along the line of sight (absolute), and of its length in the
+  image plane (what one camera knows least, and best);
 - ``MPJVE_mm_s``: mean per-joint velocity error, velocities by central differences over ``velocity_window_ms``
   (x(t + h) - x(t - h)) / 2h with h the nearest multiple of the tracking step to half the window
   (``velocity_window_ms`` in the metrics is the window actually used), at every frame with both neighbours;
@@ -57,7 +60,7 @@ from eventcap.artifacts.recording import GroundTruth, Recording
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import JOINT_INDEX, JOINT_NAMES
 from eventcap.events import EVENT_DTYPE
-from eventcap.metrics import END_EFFECTORS, motion_detail, procrustes_align, root_relative, truth_at
+from eventcap.metrics import END_EFFECTORS, depth_split, motion_detail, procrustes_align, root_relative, truth_at
 from eventcap.motion import JOIN_RULES, join_batches  # noqa: F401 (join_batches: part of this module's API)
 from eventcap.stage import StageContext, StageFailed
 
@@ -165,6 +168,7 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
     true = truth[k_in]
     s_in = sampled[keep]
     rootrel = np.linalg.norm(root_relative(pred[s_in])[:, 1:] - root_relative(true[s_in])[:, 1:], axis=-1)
+    depth, image = depth_split(pred[s_in], true[s_in], rec.camera.R)
     if align == "procrustes":
         pred = procrustes_align(pred, true)
     err = np.linalg.norm(pred - true, axis=-1)  # (n, 24) metres
@@ -185,6 +189,8 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
         "coverage": float(estimated.mean()),
         "n_outside_ground_truth": int((~inside).sum()),
         "AE_rootrel_mm": _mean_mm(rootrel.mean(axis=1)) if rootrel.size else None,
+        "depth_mm": _mean_mm(depth.mean(axis=1)) if depth.size else None,
+        "image_plane_mm": _mean_mm(image.mean(axis=1)) if image.size else None,
         "every": int(every),
         "align": align,
         "data_rate": data_rate(rec, int(t_us[0]), int(t_us[-1]), step),

@@ -29,10 +29,11 @@ class EvaluateConfig:
 
 
 EVALUATE = StageSpec(
-    name="evaluate", kind="evaluate", version=3,  # 3: gaps not evaluated, coverage
+    name="evaluate", kind="evaluate", version=4,  # 3: gaps not evaluated, coverage; 4: depth and image-plane split
     description="mean per-joint 3D error (AE, Procrustes-aligned) and its STD on every 10th frame, AE.raw / "
                 "AE.nonRaw, per-joint errors, data rate (MB/s) against 1000 fps frames; velocity error (MPJVE), acceleration "
-                "error and end-effector peak speed per batch, root-relative",
+                "error and end-effector peak speed per batch, root-relative; the root-relative error split along the "
+                "camera's line of sight (depth) and the image plane",
     config=EvaluateConfig,
     inputs={"recording": Port(Recording, "the recording, with ground truth and the actor template"),
             "poses": Port(PoseSequence, "the estimated poses of every batch", all_batches=True)},

@@ -92,6 +92,84 @@ def prior_context(config, plan, t_det, detections, where: str, log):
         raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
 
 
+def capture_template(rec, config, layout, plan, detections, where: str, ctx):
+    """The template of the solve: the recording's, with the detector's hip and shoulder widths measured over the
+    capture (eventcap.energy.landmarks) unless ``landmarks`` is template (the same in every
+    window, kept per process); the log says which."""
+    from eventcap.energy.detections import select_detections
+    from eventcap.energy.errors import SolveFailed
+    from eventcap.energy.landmarks import measure_widths, with_widths
+
+    from .solve import frame_fit
+
+    if config.landmarks == "template":
+        return rec.template
+    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+    try:
+        det = select_detections(detections, frames)
+    except ValueError as exc:
+        raise StageFailed(f"{where}: the landmark widths: {exc}", status="missing_detections") from exc
+    key = ("widths", rec.template.geometry_digest(), repr(config), frames.tobytes(),
+           *(np.ascontiguousarray(a).tobytes() for a in (det.keypoints_2d, det.confidence_2d, det.joints_3d,
+                                                          det.confidence_3d)))
+    if key not in _FLOORS:
+        _bound_captures()
+        plain, _ = solver_for(rec.template, rec.camera, layout, config)
+        fits, keep = [], []
+        for d in range(det.n):
+            try:
+                fits.append(frame_fit(plain, det, d)[0][0])
+                keep.append(d)
+            except SolveFailed:
+                continue
+        widths = measure_widths(rec.template, rec.camera, np.asarray(fits), det.rows(keep)) if keep else None
+        if widths is None:
+            _FLOORS[key] = rec.template
+        else:
+            _FLOORS[key] = with_widths(rec.template, widths)
+            ctx.log.info("%s: where the detector puts the joints, over the capture (stages.spline.landmarks=%s): %s",
+                         where, config.landmarks,
+                         "; ".join(f"{k} {v:.3f} of the template's ({widths.frames[k]} frames)"
+                                   for k, v in widths.scale.items()))
+            ctx.stats["landmark_widths"] = dict(widths.scale)
+    return _FLOORS[key]
+
+
+def capture_floor_of(solver, config, plan, detections, where: str, log) -> float | None:
+    """The floor's height over the capture for the floor terms (None when they are off), from the per-frame fits
+    at every intensity frame of the plan (eventcap_spline.solve.capture_floor; the same in every window, kept per
+    process)."""
+    from eventcap.energy.detections import select_detections
+
+    from .solve import capture_floor
+
+    if not (config.lambda_floor > 0 or config.lambda_slide > 0):
+        return None
+    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+    try:
+        det = select_detections(detections, frames)
+    except ValueError as exc:
+        raise StageFailed(f"{where}: the floor: {exc}", status="missing_detections") from exc
+    key = (id(solver), frames.tobytes(), *(np.ascontiguousarray(a).tobytes() for a in (
+        det.keypoints_2d, det.confidence_2d, det.joints_3d, det.confidence_3d)))
+    if key not in _FLOORS:
+        _bound_captures()
+        _FLOORS[key] = capture_floor(solver, det)[0]
+        h = _FLOORS[key]
+        log.info("%s: the floor over the capture: y = %s (median lowest sole point of the fits at %d intensity "
+                 "frames)", where, "unknown" if h is None else f"{h:.3f} m", frames.size)
+    return _FLOORS[key]
+
+
+#: What a process measured over a capture (the solve's template, the floor), by capture and settings.
+_FLOORS: dict = {}
+
+
+def _bound_captures() -> None:
+    if len(_FLOORS) >= 8:
+        _FLOORS.clear()
+
+
 def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
     """E_sil's frames: a batch's tracking frames t_us every ``step_ms`` (rounded to frames), its first and last
     included."""
@@ -125,6 +203,7 @@ def clear_solvers() -> None:
     from .solve import clear_fits
 
     _SOLVERS.clear()
+    _FLOORS.clear()
     clear_fits()
 
 
@@ -227,7 +306,8 @@ def run_spline(inputs, config, ctx):
     spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
     layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=t_cor.size, n_sil=0 if t_sil is None else t_sil.size,
                     band=coupling_band(SplinePoses(n_seg, spline), t_cor))
-    solver, built = solver_for(rec.template, rec.camera, layout, config)
+    template = capture_template(rec, config, layout, plan, inputs["detections"], where, ctx)
+    solver, built = solver_for(template, rec.camera, layout, config)
     if built:
         ctx.log.info("built the spline NLP (%d control points, %d detection frames, %d correspondence frames; "
                      "factors %s) in %.2f s (once per process)", spline.n_ctrl, t_det.size, t_cor.size,
@@ -243,10 +323,11 @@ def run_spline(inputs, config, ctx):
     if base_gain is not None:
         ctx.stats["prior_inertia_gain"] = [float(v) for v in base_gain]
     t_win = window_times(inputs["sliced"], index, plan, b, a, z, np.asarray(own.t_us, dtype=np.int64))
+    floor_y = capture_floor_of(solver, config, plan, inputs["detections"], where, ctx.log)
     try:
         res = solve_window(solver, spline, t_det, det, t_cor, xy, valid, what=what, context=context,
                            events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), t_sil_us=t_sil,
-                           base_gain=base_gain)
+                           base_gain=base_gain, floor_y=floor_y)
     except NothingObserved as exc:  # a gap: nothing was seen, so nothing is estimated (stitch leaves it out)
         ctx.log.warning("%s: a gap: %s", where, str(exc).removeprefix(f"{what}: "))
         ctx.stats["gap"] = True

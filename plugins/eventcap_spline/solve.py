@@ -193,11 +193,31 @@ def context_gains(solver: SplineSolver, t_ctx_us, det_ctx: FrameDetections, wind
     return pg, computed
 
 
+def capture_floor(solver: SplineSolver, det: FrameDetections) -> tuple[float | None, int]:
+    """The floor's height (world y, m) over a capture (:func:`eventcap.energy.floor.floor_height`) from the per-frame
+    fits at its intensity frames (det: their detections; frames whose fit fails are left out), and how many fits
+    were computed here (the others came from this process's earlier windows)."""
+    from eventcap.energy.floor import floor_height, sole_points
+
+    S, computed = [], 0
+    for d in range(det.n):
+        try:
+            (s, _, _), new = frame_fit(solver, det, d)
+        except SolveFailed:
+            continue
+        computed += new
+        S.append(s)
+    if not S:
+        return None, computed
+    return floor_height(sole_points(np.stack(S), solver.template)[..., 1]), computed
+
+
 # --------------------------------------------------------------------------------------------- a window
 def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np.ndarray, det: FrameDetections,
                  t_cor_us: np.ndarray, xy: np.ndarray, valid: np.ndarray, what: str = "window",
                  context: tuple[np.ndarray, FrameDetections] | None = None, events: np.ndarray | None = None,
-                 t_sil_us: np.ndarray | None = None, base_gain: np.ndarray | None = None) -> WindowResult:
+                 t_sil_us: np.ndarray | None = None, base_gain: np.ndarray | None = None,
+                 floor_y: float | None = None) -> WindowResult:
     """Solve one window (module doc) with the solver's config: fits at its detection frames, a smoothing spline
     through them as the start, then ``icp_rounds`` alternations of correspondence search (at the current spline's
     poses at t_cor_us, with the tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. SolveFailed on a failed
@@ -208,7 +228,8 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
     parameter, no pull. events: the recording's events over the window, for E_still (each joint's stillness per
     knot interval, measured around the start spline's projected bones, :func:`window_silence`) and E_sil (the
     silhouette of the current spline at t_sil_us matched to its closest events every round). base_gain: the motion
-    prior's fixed gain per pose parameter (33,) (the inertia each turns), times the chosen gains; None: 1."""
+    prior's fixed gain per pose parameter (33,) (the inertia each turns), times the chosen gains; None: 1. floor_y:
+    the floor's height over the capture (:func:`capture_floor`; None: the floor terms hold nothing)."""
     c = solver.config
     if solver.factor("sil") is not None and t_sil_us is None:
         raise EnergyError("E_sil (lambda_sil > 0): the window's silhouette frames t_sil_us are missing")
@@ -224,7 +245,7 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
     window = Window(spline.t0_us, spline.t1_us, t_det_us=np.asarray(t_det_us, dtype=np.int64), detections=det,
                     t_cor_us=np.asarray(t_cor_us, dtype=np.int64), correspondences=Correspondences.empty(),
                     knots_us=spline.t0_us + spline.h_us * np.arange(spline.n_seg + 1, dtype=np.int64),
-                    events=events)
+                    events=events, floor_y=floor_y)
     pg = None
     if context is not None and (c.prior_gain_max > 1 or c.lambda_context > 0):
         pg, computed = context_gains(solver, context[0], context[1], fits, tps, window.t_det_us, det)
@@ -323,7 +344,8 @@ def _result(solver, spline, window, x, fits, solves, seconds, n_fits, gain, sil,
             n_boundary) -> WindowResult:
     prob = solver.problem
     terms = prob.terms(x)
-    energies = {name: terms.get(name, 0.0) for name in ("2d", "3d", "cor", "prior", "still", "sil", "context")}
+    energies = {name: terms.get(name, 0.0) for name in ("2d", "3d", "cor", "prior", "still", "sil", "context", "floor",
+                                                        "slide", "bones")}
     energies.update({"total": prob.evaluate(x, 0)["value"], "n_correspondences": window.correspondences.n,
                      "n_silhouette": n_sil_matched, "n_boundary": n_boundary})
     U, aux = prob.split(x)
@@ -347,5 +369,5 @@ def window_silence(solver: SplineSolver, spline: UniformCubicBSpline, C: np.ndar
                            sweep_bins=int(round(c.still_sweep_ms / c.knot_ms)))
 
 
-__all__ = ["NothingObserved", "SplineSolver", "WindowResult", "clear_fits", "context_gains", "fit_window", "frame_fit",
-           "observed_frames", "solve_window", "window_silence"]
+__all__ = ["NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "clear_fits", "context_gains", "fit_window",
+           "frame_fit", "observed_frames", "solve_window", "window_silence"]

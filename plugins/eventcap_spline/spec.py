@@ -70,6 +70,32 @@ class SplineSolveConfig:
                                              "the most active place counting: a limb the estimate has at the right "
                                              "place at the wrong time is not called still (event silence; 0 = only "
                                              "the interval's own place)")
+    lambda_floor: float = param(100.0, ge=0, help="weight of the floor term: each sole point (heels, toes) in contact on "
+                                            "the floor, none below it (m²; eventcap.energy.floor); the floor's "
+                                            "height is estimated over the capture from the per-frame fits; 0 = off. "
+                                            "BlazePose, karate_kick seed 0 at 10 fps, with lambda_slide 1: AE 60.5 -> "
+                                            "55.0 mm, depth error 58.6 -> 50.9 mm (docs/spline-solve.md)")
+    lambda_slide: float = param(1.0, ge=0, help="weight of the no-sliding term: a sole point in contact does not move "
+                                          "along the floor (its horizontal speed squared over the contact, m²/s; "
+                                          "eventcap.energy.floor); 0 = off")
+    contact_speed_mps: float = param(0.3, gt=0, help="contact: a sole point's contact falls to 1/e at this speed in the "
+                                               "current estimate, m/s (eventcap.energy.floor)")
+    contact_height_m: float = param(0.05, gt=0, help="contact: ... and at this height above the floor, m")
+    lambda_bones: float = param(0.0, ge=0, help="weight of the foreshortening term: each limb bone's depth extent "
+                                          "from its length and its 2D points, the sign (which end is nearer) from "
+                                          "the 3D detections (m²; eventcap.energy.bones); 0 = off. BlazePose, "
+                                          "karate_kick seed 0 at 10 fps: 10 alone AE 60.5 -> 58.0 mm, depth 58.6 -> "
+                                          "54.4 mm; with the widths and the floor 53.9 -> 55.2, 49.0 -> 52.4: off")
+    bones_sign_m: float = param(0.05, gt=0, help="foreshortening: the 3D detections' depth noise, m: a bone whose "
+                                           "detected ends differ less in depth has an uncertain sign and weighs less")
+    bones_2d_px: float = param(2.0, gt=0, help="foreshortening: the 2D points' noise, px (BlazePose on our actor: median "
+                                         "2D error 1.7-2.6 px, NOTES.md): a bone whose depth extent this noise "
+                                         "spreads by more than bones_sign_m weighs less")
+    landmarks: str = param("widths", choices=("template", "widths"),
+                           help="the hip and shoulder landmarks of E_2D: the template's joints (template), or where "
+                                "the detector puts them on this person, their widths measured over the capture from "
+                                "the detections and the per-frame fits (widths; eventcap.energy.landmarks). BlazePose, "
+                                "karate_kick seed 0 at 10 fps: AE 60.5 -> 58.4 mm, depth error 58.6 -> 55.3 mm")
     lambda_2d: float = param(200.0, ge=0, help="weight of E_2D at every intensity frame of the window (focal-normalised)")
     robust_2d_px: float = param(2.0, ge=0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares)")
     lambda_3d: float = param(1.0, ge=0, help="weight of E_3D at every intensity frame of the window (metres)")
@@ -117,7 +143,7 @@ class SplineSolveConfig:
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=8,  # 8: factors; gaps; no estimate beyond the observed frames
+    name="spline", kind="solve", version=9,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor, widths
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
                 "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
