@@ -20,7 +20,7 @@ from test_spline import _run_stage, _stitch, stage_inputs
 
 from eventcap.artifacts.pose import Detections
 from eventcap.body.kinematics import joint_positions
-from eventcap.confidence import OBSERVED, in_image, interval_support, motion_confidence
+from eventcap.confidence import in_image, interval_support, motion_confidence
 
 
 def _without(det: Detections, frames: list[int]) -> Detections:
