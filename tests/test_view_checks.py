@@ -228,7 +228,7 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
                  "template.target_faces=2000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     log = (run_dir / "eventcap.log").read_text()
     assert code == 1
-    assert ("detect (blazepose v3): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
+    assert ("detect (blazepose v4): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
             "images; is there a person in view (eventcap preview FILE)?") in log
     assert ("run incomplete: detect failed (no_person); skipped because of it: track, slice, solve, stitch, cut, "
             "confidence, evaluate; first error: detect: StageFailed: blazepose (full, at latent): no person in 3 of 3 images") \
@@ -254,3 +254,28 @@ def test_detections_of_schema_1_are_refused_and_new_fields_round_trip(tmp_path):
     with pytest.raises(ArtifactError, match="landmark 0 of image 0 is not in view but has confidence"):
         Detections(t_us=d.t_us, keypoints_2d=d.keypoints_2d, confidence_2d=d.confidence_2d, joints_3d=d.joints_3d,
                    confidence_3d=d.confidence_3d, in_view=np.zeros_like(d.in_view))
+
+
+def test_sensor_noise_is_not_a_moving_region():
+    """A large sensor's noise (Poisson, ~3 events per 16 px cell in 40 ms, as a DVXplorer's at 1000 lux) around a
+    person 260 px tall: only the person's cells are active, so the moving region is the person's size, not the whole
+    image (which rejected every detection of such a capture as 'a whole body inside a moving region of 640 px').
+    A close-up whose every cell fires stays active all over."""
+    rng = np.random.default_rng(0)
+    W, H, cell = 640, 480, checks.cell_size(640, 480)
+    assert cell == 16
+    n = rng.poisson(3.0 * W * H / cell**2)
+    x, y = rng.integers(0, W, n), rng.integers(0, H, n)
+    px, py = rng.integers(300, 380, 20000), rng.integers(100, 360, 20000)  # the person: 80 x 260 px
+    ev = make_events(np.sort(rng.integers(0, 40_000, n + px.size)), np.r_[x, px], np.r_[y, py],
+                     np.ones(n + px.size, dtype=np.int8))
+    active = checks.activity_cells(ev, 20_000, W, H, 40_000)
+    assert 0.02 < active.mean() < 0.1, active.mean()
+    region = checks.moving_region(active, (300.0, 100.0, 380.0, 360.0), cell)
+    assert region is not None and region[3] - region[1] <= 300 and region[2] - region[0] <= 160, region
+    # a close-up: every cell fires (about 40 events each), the person's cells twice as much
+    m = rng.poisson(40.0 * W * H / cell**2)
+    cx, cy = rng.integers(0, W, m), rng.integers(0, H, m)
+    ev = make_events(np.sort(rng.integers(0, 40_000, m + px.size)), np.r_[cx, px], np.r_[cy, py],
+                     np.ones(m + px.size, dtype=np.int8))
+    assert checks.activity_cells(ev, 20_000, W, H, 40_000).mean() > 0.9

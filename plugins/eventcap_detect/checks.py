@@ -99,10 +99,17 @@ def cell_size(width: int, height: int) -> int:
     return max(4, int(round(min(width, height) / 30)))
 
 
+#: Events per cell in the window above which the quietest quarter of the cells is taken for the person rather than
+#: the sensor's noise (a close-up). Below it the Poisson test alone decides: a DVXplorer's noise and leak events at
+#: 1000 lux are 2-5 per 16 px cell in 40 ms, and half the busiest quarter's count would mark every cell active.
+_CLOSE_UP_QUIET = 10.0
+
+
 def activity_cells(events: np.ndarray, t_us: int, width: int, height: int, window_us: int) -> np.ndarray:
     """(rows, cols) bool: the cells where the events within ``window_us`` around ``t_us`` are well above the
     background: at least 3, and 4 standard deviations (Poisson) above the quietest quarter of the cells, or half
-    the count of the busiest quarter when that is lower (a close-up whose every cell fires is active all over)."""
+    the count of the busiest quarter when that is lower and the quietest quarter itself fires (at least
+    :data:`_CLOSE_UP_QUIET` events per cell: a close-up whose every cell fires is active all over)."""
     cell = cell_size(width, height)
     gw, gh = -(-width // cell), -(-height // cell)
     t = events["t"]
@@ -111,7 +118,10 @@ def activity_cells(events: np.ndarray, t_us: int, width: int, height: int, windo
     counts = np.bincount((ev["y"] // cell).astype(np.int64) * gw + (ev["x"] // cell).astype(np.int64),
                          minlength=gw * gh).reshape(gh, gw)
     quiet, busy = np.percentile(counts, [25, 75])
-    return counts >= max(3.0, min(quiet + 4.0 * math.sqrt(quiet + 1.0), 0.5 * busy))
+    bar = quiet + 4.0 * math.sqrt(quiet + 1.0)
+    if quiet >= _CLOSE_UP_QUIET:  # the quietest quarter fires too: the person fills the image
+        bar = min(bar, 0.5 * busy)
+    return counts >= max(3.0, bar)
 
 
 def moving_region(active: np.ndarray, box: tuple[float, float, float, float], cell: int
