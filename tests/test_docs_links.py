@@ -20,7 +20,7 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 #: top-level folders whose paths the docs name in code
 PREFIXES = ("benchmarks", "conf", "docs", "eventcap", "plugins", "tests", "tools")
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
-FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+FENCE = re.compile(r"^ *```.*?^ *```", re.S | re.M)  # also indented (in a list)
 INLINE = re.compile(r"`([^`]+)`")  # may span lines, as Markdown allows
 PATH = re.compile(r"(?<![\w./<>-])((?:%s)/[^\s`'\"),;:]*)" % "|".join(PREFIXES))
 PLACEHOLDER = re.compile(r"[<>*{}]|\.\.\.|\bNN\b")
@@ -56,9 +56,10 @@ def test_the_scanner_finds_links_and_paths_and_skips_placeholders(tmp_path):
     doc = tmp_path / "x.md"
     doc.write_text("See [a](docs/a.md#part), [web](https://x.org) and [here](#top).\n"
                    "Run `python benchmarks/b.py --x 1`, `conf/stages/<node>/<v>.yaml`, `plugins/*/spec.py`,\n"
-                   "`eventcap.energy` and `stages/detect=file`.\n```bash\npython tools/t.py runs/x/y.npz\n```\n")
+                   "`eventcap.energy` and `stages/detect=file`.\n```bash\npython tools/t.py runs/x/y.npz\n```\n"
+                   "- a list item:\n\n  ```bash\n  python tools/u.py\n  ```\n- `conf/x.yaml` after it\n")
     said = [s for s, _ in references(doc)]
-    assert said == ["docs/a.md#part", "tools/t.py", "benchmarks/b.py"]
+    assert said == ["docs/a.md#part", "tools/t.py", "tools/u.py", "benchmarks/b.py", "conf/x.yaml"]
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=[str(d.relative_to(ROOT)) for d in DOCS])
