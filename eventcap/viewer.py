@@ -531,7 +531,7 @@ def _log_batches(rr, s, c: RunContent, counts) -> None:
         its = []
         for b in sorted(set(info["committed"]) | set(info["failed"])):
             t0 = int(plan.t0_us[b]) if plan is not None and b < len(plan) else None
-            if t0 is None and b in poses:
+            if t0 is None and b in poses and poses[b].t_us.size:  # (a batch another window keeps has no frames)
                 t0 = int(poses[b].t_us[0])
             if t0 is None:
                 continue

@@ -69,7 +69,8 @@ class PoseSequence(Artifact):
     t_us: np.ndarray = array("int64", ("f",), units="us")
     poses: np.ndarray = array("float64", ("f", 33), units="rad, m; nan: not estimated (a gap)")
     status: str = attr(default="", doc="solver status of the last solve; 'gap': nothing was observed, nothing is "
-                                       "estimated (poses NaN)")
+                                       "estimated (poses NaN); 'in_window': no frames, another batch's window "
+                                       "estimates this batch (the spline solve's window_step)")
     iterations: int = attr(default=0)
     energies: dict = attr(default_factory=dict, doc="final value of each energy term")
 

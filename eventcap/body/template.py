@@ -155,14 +155,19 @@ class Template(Artifact):
 
     def geometry_digest(self) -> str:
         """sha1 of the geometry that posing depends on (rest joints, mesh, skinning weights, landmarks): a key for
-        per-process caches of things built from a template (e.g. a solver's NLP)."""
+        per-process caches of things built from a template (e.g. a solver's NLP). Computed once per template (its
+        arrays are read-only): the spline solve asks for it per window and per frame fit."""
         import hashlib
 
+        cached = self.__dict__.get("_geometry_digest")
+        if cached is not None:
+            return cached
         h = hashlib.sha1()
         for name in ("rest_joints", "vertices", "faces", "weights", "landmark_joint", "landmark_offset"):
             a = np.ascontiguousarray(getattr(self, name))
             h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
-        return h.hexdigest()
+        object.__setattr__(self, "_geometry_digest", h.hexdigest())
+        return self.__dict__["_geometry_digest"]
 
     def signed_volume(self) -> float:
         """Signed volume in m³ enclosed by the faces (positive when outward-oriented and closed)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -23,6 +24,47 @@ def window_of(n_batches: int, k: int, half: int) -> tuple[int, int]:
         return 0, n_batches - 1
     a = min(max(k - half, 0), n_batches - 2 * half - 1)
     return a, a + 2 * half
+
+
+@functools.lru_cache(maxsize=64)
+def window_plan(n_batches: int, half: int, step: int) -> tuple[tuple[int, int, int, int, int], ...]:
+    """The windows solved when windows advance by ``step`` batches: (solving batch, a, z, ka, kz) each, the window of
+    batches a..z (:func:`window_of` of the solving batch) keeping batches ka..kz.
+
+    The batches are cut into consecutive runs of ``step`` (the last may be shorter); each run is kept by one window,
+    solved by the run's middle batch (the earlier of two middles). Near the ends of the recording windows shift
+    inwards, so two runs' windows can be the same batches: such runs are one run, kept by that window solved once.
+    step 1: every batch solves its own window and keeps itself (no runs are joined). Windows must overlap to be
+    blended: ValueError unless 1 <= step <= max(1, 2·half)."""
+    if not 1 <= step <= max(1, 2 * half):
+        raise ValueError(f"window step {step}: expected 1 .. max(1, 2·half_window) = {max(1, 2 * half)} "
+                         "(neighbouring windows must overlap to be blended)")
+    plan: list[list[int]] = []
+    for ka in range(0, n_batches, step):
+        kz = min(ka + step, n_batches) - 1
+        c = ka + (kz - ka) // 2
+        a, z = window_of(n_batches, c, half)
+        if step > 1 and plan and (plan[-1][1], plan[-1][2]) == (a, z):
+            plan[-1][4] = kz
+        else:
+            plan.append([c, a, z, ka, kz])
+    return tuple(tuple(w) for w in plan)
+
+
+def window_role(n_batches: int, k: int, half: int, step: int) -> tuple[int, int, int, int] | None:
+    """Batch k's part in the :func:`window_plan`: (a, z, ka, kz) when batch k solves the window of batches a..z that
+    keeps batches ka..kz; None when it solves none (another batch's window keeps it: :func:`kept_by`)."""
+    if not 0 <= k < n_batches:
+        raise ValueError(f"batch {k}: expected 0 .. {n_batches - 1}")
+    for c, a, z, ka, kz in window_plan(n_batches, half, step):
+        if c == k:
+            return a, z, ka, kz
+    return None
+
+
+def kept_by(n_batches: int, k: int, half: int, step: int) -> int:
+    """The batch whose window keeps batch k (:func:`window_plan`)."""
+    return next(c for c, _, _, ka, kz in window_plan(n_batches, half, step) if ka <= k <= kz)
 
 
 def cor_frames(n_frames: int, step: int) -> np.ndarray:
@@ -230,11 +272,15 @@ _CHECKS = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
 
 def check_config(config) -> None:
     """StageFailed naming the first key of the stage's config whose value cannot be used."""
-    for name in ("half_window", "cor_step", "icp_rounds"):
+    for name in ("half_window", "cor_step", "icp_rounds", "window_step"):
         v = getattr(config, name)
-        if isinstance(v, bool) or int(v) != v or v < (1 if name == "cor_step" else 0):
-            raise StageFailed(f"stages.spline.{name}: expected an integer >= {1 if name == 'cor_step' else 0}, "
-                              f"got {v!r}", status="invalid_config")
+        low = 1 if name in ("cor_step", "window_step") else 0
+        if isinstance(v, bool) or int(v) != v or v < low:
+            raise StageFailed(f"stages.spline.{name}: expected an integer >= {low}, got {v!r}", status="invalid_config")
+    most = max(1, 2 * int(config.half_window))
+    if int(config.window_step) > most:
+        raise StageFailed(f"stages.spline.window_step: expected at most max(1, 2·half_window) = {most} (neighbouring "
+                          f"windows must overlap to be blended), got {config.window_step}", status="invalid_config")
     for name, (what, good) in _CHECKS.items():
         v = getattr(config, name)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not good(v):
@@ -244,13 +290,14 @@ def check_config(config) -> None:
                           f"{config.prior_inertia_cap!r}", status="invalid_config")
 
 
-def window_inputs(inputs, b, config, where: str):
-    """The data of this batch's window: (own tracks, window (a, z), detection times, their detections, tracks for
-    E_cor (t_cor, xy, valid), silhouette frames or None)."""
+def window_inputs(inputs, b, config, where: str, role: tuple[int, int, int, int]):
+    """The data of this batch's window (role: :func:`window_role`, the window a..z keeping batches ka..kz): (own
+    tracks, window (a, z), the batches whose tracks E_cor uses, their index among the tracks, detection times, their
+    detections, tracks for E_cor (t_cor, xy, valid), silhouette frames or None)."""
     from eventcap.energy.detections import select_detections
 
     sliced, detections, plan = inputs["sliced"], inputs["detections"], inputs["batches"]
-    a, z = window_of(len(plan), b.index, int(config.half_window))
+    a, z, ka, kz = role
     # every batch's tracks, as the runner hands them (runner.BatchSequence: .batches names them, loaded on access)
     index = {bb.index: i for i, bb in enumerate(sliced.batches)}
     if b.index not in index:
@@ -259,7 +306,9 @@ def window_inputs(inputs, b, config, where: str):
     t_us = np.asarray(own.t_us, dtype=np.int64)
     if t_us.size < 2:
         raise StageFailed(f"{where}: {t_us.size} tracking frame(s); need at least 2", status="invalid_input")
-    scope = [b.index] if config.tracks == "own" else [k for k in range(a, z + 1) if k in index]
+    # own: the tracks of the batches the window keeps (this batch alone at window_step 1); window: all of its batches
+    kept = [k for k in range(ka, kz + 1) if k in index]
+    scope = kept if config.tracks == "own" else [k for k in range(a, z + 1) if k in index]
     t_det = np.unique(np.concatenate([plan.t0_us[a:z + 1], plan.t1_us[a:z + 1]]))
     try:
         det = select_detections(detections, t_det)
@@ -269,7 +318,11 @@ def window_inputs(inputs, b, config, where: str):
     if problems:
         raise StageFailed(f"{where}: detections unusable: " + "; ".join(problems), status="invalid_input")
     cor = window_tracks([own if k == b.index else sliced[index[k]] for k in scope], int(config.cor_step), where)
-    t_sil = sil_frames(t_us, config.sil_step_ms) if config.lambda_sil > 0 else None
+    t_sil = None
+    if config.lambda_sil > 0:  # E_sil at the frames of the batches the window keeps
+        t_sil = np.unique(np.concatenate([
+            sil_frames(np.asarray((own if k == b.index else sliced[index[k]]).t_us, dtype=np.int64),
+                       config.sil_step_ms) for k in kept]))
     return own, (a, z), scope, index, t_det, det, cor, t_sil
 
 
@@ -300,7 +353,13 @@ def run_spline(inputs, config, ctx):
     if b is None:
         raise StageFailed("stage 'spline' runs per batch (no batch given)", status="invalid_input")
     check_config(config)
-    own, (a, z), scope, index, t_det, det, (t_cor, xy, valid), t_sil = window_inputs(inputs, b, config, where)
+    step = int(config.window_step)
+    role = window_role(len(plan), b.index, int(config.half_window), step)
+    if role is None:  # another batch's window keeps this batch (windows advance by window_step batches)
+        ctx.stats["kept_by"] = kept_by(len(plan), b.index, int(config.half_window), step)
+        return {"poses": PoseSequence(t_us=np.zeros(0, dtype=np.int64), poses=np.zeros((0, 33)), status="in_window",
+                                      iterations=0, energies={})}
+    own, (a, z), scope, index, t_det, det, (t_cor, xy, valid), t_sil = window_inputs(inputs, b, config, where, role)
     h_us = int(round(config.knot_ms * 1000))
     n_seg = int(math.ceil((t_det[-1] - t_det[0]) / h_us))
     spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)

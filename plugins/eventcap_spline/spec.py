@@ -16,6 +16,13 @@ from eventcap.stage import Port, StageSpec, param
 class SplineSolveConfig:
     half_window: int = param(2, ge=0, help="batches on each side of the batch being solved: the window spans "
                                      "2·half_window + 1 batches (shifted inwards at the ends of the recording)")
+    window_step: int = param(1, ge=1, help="batches between the middles of consecutive windows: the batches are cut "
+                                           "into runs of window_step, each kept by one window of 2·half_window + 1 "
+                                           "batches around the run's middle batch, which solves it (the others solve "
+                                           "nothing: status in_window); runs whose windows are the same batches "
+                                           "(shifted inwards at the recording's ends) are one run; stitch blends "
+                                           "the windows. At most 2·half_window (windows must overlap); 1: a window "
+                                           "per batch")
     knot_ms: float = param(10.0, gt=0, help="knot spacing of the cubic B-spline, ms (control points every knot_ms)")
     prior: str = param("acceleration", help="motion prior: acceleration | jerk (∫‖S''‖² or ∫‖S'''‖² dt)",
                        choices=("acceleration", "jerk"))
@@ -106,8 +113,9 @@ class SplineSolveConfig:
                                   "frames, as the batch solve; 5 measured better and 5x cheaper: larger "
                                   "displacements against the same pixel noise)")
     tracks: str = param("own", choices=("window", "own"),
-                        help="whose event tracks E_cor uses: only the batch the window is solved for (own), or every "
-                             "batch of the window (window; about twice the solve time). Measured on the full suite "
+                        help="whose event tracks E_cor uses: only the batches the window keeps (own: its run of "
+                             "window_step batches), or every batch of the window (window; about twice the solve "
+                             "time). Measured on the full suite "
                              "at 10 fps: with EKLT tracks window is no better (lambda_cor 100: a wash; 500: worse), "
                              "with exact tracks (stages/track=oracle) it cut MPJVE 210 -> 184 mm/s and the median "
                              "peak-speed error 16% -> 12% (README: 'A continuous-time solve')")
@@ -143,7 +151,8 @@ class SplineSolveConfig:
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=9,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor, widths
+    name="spline", kind="solve", version=10,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
+    # widths; 10: window_step (a batch another window keeps returns no frames)
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
                 "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
@@ -168,7 +177,7 @@ class StitchConfig:
 
 
 STITCH = StageSpec(
-    name="stitch", kind="fuse", version=2,
+    name="stitch", kind="fuse", version=3,  # 3: windows advancing by several batches; windows that only touch
     description="the spline solve's overlapping windows blended into one motion over the whole recording, each "
                 "window weighted by a C² bump over its span (no seam where batches meet; not in the paper)",
     config=StitchConfig,

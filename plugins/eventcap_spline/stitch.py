@@ -11,7 +11,9 @@ capture, a speed spike of up to 1 m/s at every batch boundary, the largest part 
 
 with w_k a C² bump over window k's span (the quintic smoothstep 6u⁵ - 15u⁴ + 10u³ over the first and last
 ``taper`` of the window, 1 between; a window's end at the start or end of the recording is not tapered, so every
-frame has weight; likewise a window's end at the edge of a gap). Each S_k is a C² cubic B-spline and every weight
+frame has weight; likewise a window's end at the edge of a gap). With ``stages.spline.window_step`` > 1 only every
+few batches solve a window (each keeping a run of batches); the others return no frames (status ``in_window``: not
+a gap) and the windows that exist are blended the same way. Each S_k is a C² cubic B-spline and every weight
 and its first two derivatives vanish at the window's ends, so the blend is C² everywhere: no seam, and overlapping
 windows average their errors. A window's estimate spans its frames that hold an observation (the spline stage leaves
 NaN beyond them: never extrapolated); a window that saw nothing (status ``gap``) is left out; the times no window
@@ -50,11 +52,12 @@ def window_weight(t_us: np.ndarray, a_us: int, b_us: int, taper: float, open_sta
 
 def _covered_spans(windows: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[int, int]]:
     """The time spans [a, b] µs the estimated windows (finite poses) cover together, each a union of overlapping
-    windows: a window's end at a span's end is not tapered (the recording's ends, and the edges of gaps)."""
+    windows: a window's end at a span's end is not tapered (the recording's ends, the edges of gaps, and where two
+    windows only touch, as beside a window that saw nothing: each is then untapered up to the frame they share)."""
     spans: list[list[int]] = []
     for t, _ in sorted(windows, key=lambda w: int(w[0][0])):
         a, b = int(t[0]), int(t[-1])
-        if spans and a <= spans[-1][1]:
+        if spans and a < spans[-1][1]:
             spans[-1][1] = max(spans[-1][1], b)
         else:
             spans.append([a, b])
@@ -103,51 +106,82 @@ def run_stitch(inputs, config, ctx):
     if not (math.isfinite(config.taper) and 0.0 < config.taper <= 0.5):
         raise StageFailed(f"stages.stitch.taper: expected a fraction in (0, 0.5], got {config.taper!r}",
                           status="invalid_config")
-    windows = []
+    windows, kept = [], []
     for k in range(K):
         p = seq[k]
         windows.append((np.asarray(p.t_us, dtype=np.int64), np.asarray(p.poses)))
+        if p.status == "in_window" and windows[-1][0].size:
+            raise StageFailed(f"stitch: batch {seq.batches[k].index} says another batch's window keeps it (status "
+                              f"in_window) but holds {windows[-1][0].size} frames", status="invalid_input")
+        if p.status != "in_window":
+            kept.append(k)
         ctx.report(k + 1, K)
     b = seq.batches
-    # Every batch's own interval must be covered by its window (the spline stage's output).
-    for k, (t, _) in enumerate(windows):
-        if t[0] > b[k].t0_us or t[-1] < b[k].t1_us:
-            raise StageFailed(f"stitch: batch {b[k].index}'s window [{int(t[0])}, {int(t[-1])}] us does not cover the "
-                              f"batch [{b[k].t0_us}, {b[k].t1_us}] us: is the input the spline stage's?",
-                              status="invalid_input")
-    t_all = np.unique(np.concatenate([t for t, _ in windows]))
+    check_cover(windows, kept, b)
+    t_all = np.unique(np.concatenate([windows[k][0] for k in kept]))
     # a window's estimate spans its observed frames only (NaN beyond, never extrapolated): blend that part
-    estimated = [(t[np.isfinite(P).all(axis=1)], P[np.isfinite(P).all(axis=1)]) for t, P in windows]
-    gaps = [k for k, (t, _) in enumerate(estimated) if t.size < 2]
-    estimated = [w for k, w in enumerate(estimated) if k not in gaps]
-    if not estimated:
-        raise StageFailed(f"stitch: none of the {K} windows estimated anything (nothing observed in any)",
+    estimated = {k: (t[np.isfinite(P).all(axis=1)], P[np.isfinite(P).all(axis=1)])
+                 for k, (t, P) in ((k, windows[k]) for k in kept)}
+    gaps = [k for k in kept if estimated[k][0].size < 2]
+    if len(gaps) == len(kept):
+        raise StageFailed(f"stitch: none of the {len(kept)} windows estimated anything (nothing observed in any)",
                           status="gap")
     try:
-        t_out, poses = blend(estimated, float(config.taper), t_all)
+        t_out, poses = blend([estimated[k] for k in kept if k not in gaps], float(config.taper), t_all)
     except ValueError as exc:
         raise StageFailed(f"stitch: {exc}", status="invalid_input") from exc
     missing = int(np.sum(~np.isfinite(poses).all(axis=1)))
+    named = ", ".join(str(b[k].index) for k in gaps[:10]) + (" ..." if len(gaps) > 10 else "")
     if missing:
-        ctx.log.warning("stitch: %d of %d windows saw nothing (batches %s); %d of %d tracking frames are a gap (no "
-                        "window observed them: not estimated, NaN, never interpolated)", len(gaps), K,
-                        ", ".join(str(b[k].index) for k in gaps[:10]) + (" ..." if len(gaps) > 10 else ""), missing,
-                        t_out.size)
-        ctx.stats.update({"gap_windows": [b[k].index for k in gaps], "gap_frames": missing})
-    # Seams the blend removed: where batch k's own window and batch k+1's own window meet.
-    seams = []
-    for k in range(1, K):
-        t_prev, P_prev = windows[k - 1]
-        t_next, P_next = windows[k]
-        tb = b[k].t0_us
-        i, j = np.searchsorted(t_prev, tb), np.searchsorted(t_next, tb)
-        if i < t_prev.size and j < t_next.size and t_prev[i] == tb and t_next[j] == tb \
-                and np.isfinite(P_prev[i]).all() and np.isfinite(P_next[j]).all():
-            seams.append(float(np.abs(P_prev[i, :27] - P_next[j, :27]).max()))
-    ctx.log.info("stitch: %d windows blended over %d tracking frames; largest joint-angle disagreement of two "
-                 "neighbouring windows where their batches meet: %.3f rad", K, t_out.size, max(seams, default=0.0))
-    ctx.stats.update({"seam_rad_max": max(seams, default=0.0), "seam_rad_median": float(np.median(seams or [0]))})
+        ctx.log.warning("stitch: %d of %d windows saw nothing (solved by batches %s); %d of %d tracking frames are a "
+                        "gap (no window observed them: not estimated, NaN, never interpolated)", len(gaps), len(kept),
+                        named, missing, t_out.size)
+        ctx.stats["gap_frames"] = missing
+    elif gaps:
+        ctx.log.info("stitch: %d of %d windows saw nothing (solved by batches %s); the others observed every frame",
+                     len(gaps), len(kept), named)
+    if gaps:
+        ctx.stats["gap_windows"] = [b[k].index for k in gaps]
+    seams = window_seams(windows, kept)
+    ctx.log.info("stitch: %d windows (of %d batches) blended over %d tracking frames; largest joint-angle "
+                 "disagreement of two neighbouring windows in the middle of their overlap: %.3f rad", len(kept), K,
+                 t_out.size, max(seams, default=0.0))
+    ctx.stats.update({"windows": len(kept), "seam_rad_max": max(seams, default=0.0),
+                      "seam_rad_median": float(np.median(seams or [0]))})
     return {"motion": PoseSequence(t_us=t_out, poses=poses, status="stitched", iterations=0, energies={})}
+
+
+def check_cover(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int], batches) -> None:
+    """StageFailed unless every batch lies within one of the windows ``kept`` (the batches that solved a window;
+    the others, status in_window, are kept by a neighbour's: stages.spline.window_step) and each of those has frames."""
+    for k in kept:
+        if windows[k][0].size < 2:
+            raise StageFailed(f"stitch: batch {batches[k].index}'s window has {windows[k][0].size} frame(s): is the "
+                              "input the spline stage's?", status="invalid_input")
+    spans = [(int(windows[k][0][0]), int(windows[k][0][-1])) for k in kept]
+    for bb in batches:
+        if not any(a <= bb.t0_us and bb.t1_us <= z for a, z in spans):
+            raise StageFailed(f"stitch: no window covers batch {bb.index} [{bb.t0_us}, {bb.t1_us}] us: is the input "
+                              "the spline stage's?", status="invalid_input")
+
+
+def window_seams(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int]) -> list[float]:
+    """The seams the blend removed: for each two consecutive windows (of the batches ``kept``), the largest
+    joint-angle disagreement (rad) at the tracking frame nearest the middle of their overlap (where their blending
+    weights are equal; with a window per batch, the boundary where the later batch starts), when both estimated it."""
+    seams = []
+    for p, q in zip(kept[:-1], kept[1:]):
+        (t_p, P_p), (t_q, P_q) = windows[p], windows[q]
+        if t_q[0] > t_p[-1]:
+            continue
+        common = np.intersect1d(t_p, t_q)
+        if common.size == 0:
+            continue
+        tm = common[np.argmin(np.abs(common - 0.5 * (float(t_q[0]) + float(t_p[-1]))))]
+        i, j = np.searchsorted(t_p, tm), np.searchsorted(t_q, tm)
+        if np.isfinite(P_p[i]).all() and np.isfinite(P_q[j]).all():
+            seams.append(float(np.abs(P_p[i, :27] - P_q[j, :27]).max()))
+    return seams
 
 
 def run_cut(inputs, config, ctx):
