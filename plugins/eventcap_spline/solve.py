@@ -176,15 +176,10 @@ def context_gains(solver: SplineSolver, t_ctx_us, det_ctx: FrameDetections, wind
     the per-frame fits at the intensity frames around it (t_ctx_us, det_ctx); frames whose fit fails are left out.
     Returns (PriorGain, fits computed here)."""
     c = solver.config
-    S, keep, computed = [], [], 0
-    for d in range(det_ctx.n):
-        try:
-            (s, _, _), new = frame_fit(solver, det_ctx, d)
-        except SolveFailed:
-            continue
-        computed += new
+    keep, fits, computed = frame_fits(solver, det_ctx)
+    S = []
+    for s in fits:
         S.append(unwrap_root(s, S[-1]) if S else s)
-        keep.append(d)
     pg = choose_prior_gains(
         np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S) if S else np.zeros((0, _NP)),
         lambda: detection_curvature(solver, t_det_us, det, window_fits, window_tp), float(c.lambda_prior),
@@ -193,20 +188,29 @@ def context_gains(solver: SplineSolver, t_ctx_us, det_ctx: FrameDetections, wind
     return pg, computed
 
 
-def capture_floor(solver: SplineSolver, det: FrameDetections) -> tuple[float | None, int]:
-    """The floor's height (world y, m) over a capture (:func:`eventcap.energy.floor.floor_height`) from the per-frame
-    fits at its intensity frames (det: their detections; frames whose fit fails are left out), and how many fits
-    were computed here (the others came from this process's earlier windows)."""
-    from eventcap.energy.floor import floor_height, sole_points
-
-    S, computed = [], 0
+def frame_fits(solver: SplineSolver, det: FrameDetections) -> tuple[list[int], list[np.ndarray], int]:
+    """The per-frame fits (:func:`frame_fit`) at det's frames that succeed: their frame indices, their poses (33,),
+    and how many were computed here (the others came from this process's earlier windows). A frame whose fit fails
+    is left out."""
+    keep, S, computed = [], [], 0
     for d in range(det.n):
         try:
             (s, _, _), new = frame_fit(solver, det, d)
         except SolveFailed:
             continue
         computed += new
+        keep.append(d)
         S.append(s)
+    return keep, S, computed
+
+
+def capture_floor(solver: SplineSolver, det: FrameDetections) -> tuple[float | None, int]:
+    """The floor's height (world y, m) over a capture (:func:`eventcap.energy.floor.floor_height`) from the per-frame
+    fits at its intensity frames (det: their detections; frames whose fit fails are left out), and how many fits
+    were computed here (the others came from this process's earlier windows)."""
+    from eventcap.energy.floor import floor_height, sole_points
+
+    _, S, computed = frame_fits(solver, det)
     if not S:
         return None, computed
     return floor_height(sole_points(np.stack(S), solver.template)[..., 1]), computed
@@ -370,4 +374,4 @@ def window_silence(solver: SplineSolver, spline: UniformCubicBSpline, C: np.ndar
 
 
 __all__ = ["NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "clear_fits", "context_gains", "fit_window",
-           "frame_fit", "observed_frames", "solve_window", "window_silence"]
+           "frame_fit", "frame_fits", "observed_frames", "solve_window", "window_silence"]
