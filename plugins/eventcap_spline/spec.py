@@ -29,7 +29,7 @@ class SplineSolveConfig:
     lambda_prior: float = param(1e-4, ge=0, help="weight of the motion prior, the integral of the squared acceleration "
                                           "(or jerk) of the poses (rad and m, time in s); 5e-4 until the event-"
                                           "silence term held the resting joints, 1e-4 measured better with it "
-                                          "(README: 'A continuous-time solve')")
+                                          "(docs/spline-solve.md)")
     prior_inertia: float = param(1.5, ge=0, help="exponent of the motion prior's gain per rotation, (I_p / mean I)^x, "
                                            "I_p the inertia of the body that pose parameter turns (de Leva's "
                                            "segments on the actor's bones, eventcap.body.segments): light parts "
@@ -118,7 +118,7 @@ class SplineSolveConfig:
                              "time). Measured on the full suite "
                              "at 10 fps: with EKLT tracks window is no better (lambda_cor 100: a wash; 500: worse), "
                              "with exact tracks (stages/track=oracle) it cut MPJVE 210 -> 184 mm/s and the median "
-                             "peak-speed error 16% -> 12% (README: 'A continuous-time solve')")
+                             "peak-speed error 16% -> 12% (docs/spline-solve.md)")
     robust_cor_px: float = param(0.0, ge=0, help="Cauchy scale (px) of E_cor's residuals: from the second ICP round on, "
                                            "each correspondence is weighted 1 / (1 + (e/σ)²) by its residual e at the "
                                            "previous round's solution (0 = least squares)")

@@ -46,7 +46,7 @@ class SyntheticConfig:
                                             "(karate_kick, boxing_combo, javelin_throw, dance_spin, fast_wave, "
                                             "jumping_jack); or one recorded clip, retargeted: a BVH file "
                                             "(path/clip.bvh) or a shipped CMU clip (cmu/<subject_trial>, e.g. "
-                                            "cmu/90_05; README 'Film a BVH clip')", file=motion_files)
+                                            "cmu/90_05; README 'Configuration', Recorded motion)", file=motion_files)
     motion_start_s: float = param(0.0, ge=0, help="a clip, or a built-in motion's performance, plays from this "
                                                   "time into it (seconds; 0 = its first frame)")
     motion_map: str = param("", help="a clip's joint-name mapping file, YAML or JSON 'BVH joint name: our joint "
