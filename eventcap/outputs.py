@@ -213,12 +213,16 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
         log.error("outputs: cannot join the poses of %s: %s", cfg.poses, exc)
         return summary
     prefer = [r.node for r in runner.by_name[node_name].inputs.values()]
+    from .artifacts.pose import Detections, JointConfidence
+    from .worldframe import upright
+
     rec = _first_output(runner, result, Recording, prefer)
+    if rec is not None:  # the world the motion was solved in (turned to the person's vertical by detect, or not)
+        rec = upright(rec, _first_output(runner, result, Detections))
     template = rec.template if rec is not None and rec.template is not None else _first_output(runner, result,
                                                                                                Template)
     if template is None:
         return skip("no actor template in this run (the motion needs its rest skeleton)")
-    from .artifacts.pose import JointConfidence
     from .body.kinematics import joint_positions
 
     t_us, poses = with_gap_frames(t_us, poses, frame_step_us(t_us) or 1000)  # failed batches: their frames, NaN

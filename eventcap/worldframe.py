@@ -50,3 +50,16 @@ def describe(up_axis: str, units: str) -> str:
     facing = "-y" if up_axis == "z" else "+z"
     return (f"right-handed, {up_axis} up, lengths in {units}; rest pose facing {facing}, actor's left +x; "
             f"origin: the run's world origin (the floor point the template's rest pose stands on)")
+
+
+def upright(rec, detections):
+    """The recording in the world its detections were made in: with the camera turned upright by the detect stage
+    (``Detections.world_R``: a recording without extrinsics, its world turned to the person's vertical), else as it
+    is. Every stage that places the body in the world (the solves, the refinement, the confidence, the outputs) reads
+    the recording through this, so that they share one world."""
+    import dataclasses
+
+    R = None if detections is None else detections.world_R
+    if R is None:
+        return rec
+    return dataclasses.replace(rec, camera=rec.camera.with_pose(np.asarray(R, dtype=np.float64), rec.camera.t))

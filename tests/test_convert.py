@@ -182,7 +182,8 @@ def test_recording_stage_reads_roi_corners_like_convert(synth, tmp_path):
 
     back = _read_back(tmp_path / "c.zarr")
     assert np.array_equal(staged.camera.R, level_rotation()) and np.array_equal(back.camera.R, np.eye(3))
-    assert staged.equals(dataclasses.replace(back, camera=back.camera.with_pose(level_rotation(), np.zeros(3))))
+    assert staged.equals(dataclasses.replace(back, camera=back.camera.with_pose(level_rotation(), np.zeros(3)),
+                                                     world="assumed_level"))
 
 
 def test_size_inferred_when_the_file_has_none(synth, tmp_path):

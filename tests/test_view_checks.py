@@ -233,7 +233,7 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
     assert ("run incomplete: detect failed (no_person); skipped because of it: track, slice, solve, stitch, cut, "
             "confidence, evaluate; first error: detect: StageFailed: blazepose (full, at latent): no person in 3 of 3 images") \
         in log
-    assert "world frame: y up, the camera at the origin looking along -z, ASSUMED LEVEL" in log
+    assert "world frame: y up, the camera at the origin looking along -z, assumed level until the detect stage measures" in log
 
 
 def test_detections_of_schema_1_are_refused_and_new_fields_round_trip(tmp_path):
@@ -247,8 +247,18 @@ def test_detections_of_schema_1_are_refused_and_new_fields_round_trip(tmp_path):
     d.to_zarr(g)
     back = Detections.from_zarr(zarr.open_group(str(tmp_path / "d.zarr"), mode="r"))
     assert back.equals(d) and back.image_status == ("ok",) * N and len(back.person_up) == 3
+    import dataclasses
+
+    from eventcap.camera import level_rotation
+
+    turned = dataclasses.replace(d, world_R=level_rotation(-20.0, 3.0))  # schema 3: the upright world's rotation
+    turned.to_zarr(zarr.open_group(str(tmp_path / "t.zarr"), mode="w"))
+    back = Detections.from_zarr(zarr.open_group(str(tmp_path / "t.zarr"), mode="r"))
+    assert back.equals(turned) and np.allclose(back.world_R, level_rotation(-20.0, 3.0))
+    with pytest.raises(ArtifactError, match=r"Detections.world_R: expected a rotation matrix \(R R\^T = I\)"):
+        dataclasses.replace(d, world_R=2 * np.eye(3))
     g.attrs["schema_version"] = 1  # a cache entry written before what is in view was stated
-    with pytest.raises(ArtifactError, match="Detections schema version 1 on disk, this code reads version 2"):
+    with pytest.raises(ArtifactError, match="Detections schema version 1 on disk, this code reads version 3"):
         Detections.from_zarr(zarr.open_group(str(tmp_path / "d.zarr"), mode="r"))
     # a landmark out of view cannot carry a confidence
     with pytest.raises(ArtifactError, match="landmark 0 of image 0 is not in view but has confidence"):

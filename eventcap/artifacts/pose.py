@@ -23,7 +23,7 @@ class Detections(Artifact):
     positions kept as the detector gave them, to look at. Schema v1 had neither:
     its caches are refused and recomputed."""
 
-    schema_version: ClassVar[int] = 2
+    schema_version: ClassVar[int] = 3
     t_us: np.ndarray = array("int64", ("n",), units="us", doc="time of the intensity frame")
     keypoints_2d: np.ndarray = array("float32", ("n", "l", 2), units="px")
     confidence_2d: np.ndarray = array("float32", ("n", "l"))
@@ -37,6 +37,11 @@ class Detections(Artifact):
                                                "not stated")
     person_up: tuple = attr(default=(), doc="the person's mean vertical over the accepted detections, camera axes "
                                             "(x right, y down, z forward), unit; empty: not measured")
+    world_R: np.ndarray = array("float64", (3, 3), optional=True,
+                                doc="the world->camera rotation the detect stage set from the person's vertical "
+                                    "(a recording without extrinsics, Recording.world 'assumed_level'): joints_3d "
+                                    "are in that world's axes, and every stage that places the body uses it "
+                                    "(eventcap.worldframe.upright); None: the recording's camera")
 
     def validate(self) -> None:
         super().validate()
@@ -48,6 +53,8 @@ class Detections(Artifact):
         if self.image_status and len(self.image_status) != n:
             raise ArtifactError(f"Detections.image_status: expected one entry per image ({n}), got "
                                 f"{len(self.image_status)}")
+        if self.world_R is not None and not np.allclose(self.world_R @ self.world_R.T, np.eye(3), atol=1e-6):
+            raise ArtifactError("Detections.world_R: expected a rotation matrix (R R^T = I)")
         if self.person_up and len(self.person_up) != 3:
             raise ArtifactError(f"Detections.person_up: expected 3 numbers or none, got {self.person_up!r}")
         if self.in_view is not None and self.in_view.size and (self.confidence_2d[~self.in_view] > 0).any():

@@ -101,6 +101,10 @@ class GroundTruth(Artifact):
                                        "intensity frame times (set when they differ, e.g. an event-only capture)")
 
 
+#: Recording.world's values (see its doc).
+WORLDS = ("", "assumed_level", "level", "camera")
+
+
 @dataclass(frozen=True, eq=False)
 class Recording(Artifact):
     """One event-camera recording: events, frames, camera, optionally the actor template and ground truth."""
@@ -113,9 +117,17 @@ class Recording(Artifact):
     ground_truth: GroundTruth | None = None
     name: str = attr(default="")
     source: str = attr(default="", doc="where it came from (file, or the simulation's settings)")
+    world: str = attr(default="", doc="how its world frame was set: '' from the camera's extrinsics (a synthetic "
+                                      "capture's, a calibration's); 'assumed_level': no extrinsics, the camera "
+                                      "assumed level at the origin until the detect stage measures the person's "
+                                      "vertical; 'level': no extrinsics, level or tilted as the user said; "
+                                      "'camera': the camera's own axes (y down)")
 
     def validate(self) -> None:
         super().validate()
+        if self.world not in WORLDS:
+            raise ArtifactError(f"Recording.world: expected one of {' | '.join(map(repr, WORLDS))}, got "
+                                f"{self.world!r}")
         e, c = self.events, self.camera
         if (e.width, e.height) != (c.width, c.height):
             raise ArtifactError(

@@ -300,7 +300,8 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
     events_group.attrs.update(_header(EventStream, {"width": w, "height": h}))
     root.attrs.update(_header(Recording, {"name": path.stem,
                                           "source": source_description(chunks.format, path, chunks.t_offset_us,
-                                                                       note, repairs)}))
+                                                                       note, repairs),
+                                          "world": ""}))  # set when read (plugins/eventcap_recording)
     seconds = time.perf_counter() - t_begin
     return {"format": chunks.format, "events": check.rows, "events_read": seen.read, "frames": 0 if stack is None
             else len(stack.t_us), "width": w, "height": h, "t_offset_us": chunks.t_offset_us,

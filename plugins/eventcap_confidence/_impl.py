@@ -38,7 +38,10 @@ def event_support(rec, template, t_us: np.ndarray, poses: np.ndarray, config) ->
 
 
 def run_confidence(inputs, config, ctx):
+    from eventcap.worldframe import upright
+
     rec, det, seq = inputs["recording"], inputs["detections"], inputs["poses"]
+    rec = upright(rec, det)  # the world the motion was solved in
     if rec.template is None:
         raise StageFailed(f"stage 'confidence' needs the actor template, but recording {rec.name or rec.source!r} "
                           "has none", status="missing_template")

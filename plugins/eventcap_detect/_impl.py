@@ -19,13 +19,15 @@ def _frame_times(rec, stage: str) -> np.ndarray:
 
 
 def _detections(t_us, kp, conf, joints, conf3, detector: str, view=None) -> Detections:
-    in_view, status, up = view if view is not None else (None, (), ())
+    in_view, status, up, world_R, turn = view if view is not None else (None, (), (), None, None)
+    joints = np.asarray(joints, dtype=np.float64)
+    if turn is not None:
+        joints = joints @ turn  # the root-relative joints' axes: the assumed level world's -> the upright world's
     return Detections(t_us=np.array(t_us, dtype=np.int64), keypoints_2d=np.asarray(kp, dtype=np.float32),
-                      confidence_2d=np.clip(conf, 0.0, 1.0).astype(np.float32),
-                      joints_3d=np.asarray(joints, dtype=np.float64),
+                      confidence_2d=np.clip(conf, 0.0, 1.0).astype(np.float32), joints_3d=joints,
                       confidence_3d=np.clip(conf3, 0.0, 1.0).astype(np.float32), detector=detector,
                       in_view=None if in_view is None else np.asarray(in_view, bool), image_status=tuple(status),
-                      person_up=tuple(up))
+                      person_up=tuple(up), world_R=world_R)
 
 
 def view_settings(config):
@@ -41,20 +43,63 @@ def view_settings(config):
                         min_found=config.min_found)
 
 
-def person_up(joints: np.ndarray, conf3: np.ndarray, ok: np.ndarray, R: np.ndarray) -> tuple:
+def person_up(joints: np.ndarray, conf3: np.ndarray, ok: np.ndarray, R: np.ndarray) -> tuple[tuple, int, float]:
     """The person's mean vertical in camera axes: the pelvis-to-shoulders direction of the accepted detections' 3D
-    joints (world axes, turned back by the camera's rotation R); () when no accepted detection has both."""
+    joints (world axes, turned back by the camera's rotation R); () when no accepted detection has both. Also the
+    number of images it comes from and the median angle (degrees) of their verticals from the mean (how upright the
+    person stayed: a person lying down for a while, bending or turning upside down spreads it)."""
     from eventcap.body.skeleton import JOINT_INDEX
 
     sh = [JOINT_INDEX["l_shoulder"], JOINT_INDEX["r_shoulder"]]
     use = ok & (conf3[:, sh] > 0).all(axis=1) & (conf3[:, 0] > 0)
     if not use.any():
-        return ()
+        return (), 0, float("nan")
     v = joints[use][:, sh].mean(axis=1) - joints[use][:, 0]
     v = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
     up = R @ v.mean(axis=0)
     n = float(np.linalg.norm(up))
-    return tuple(float(x) for x in up / n) if n > 0.5 else ()
+    if not n > 0.5:
+        return (), int(use.sum()), float("nan")
+    up = up / n
+    spread = float(np.degrees(np.median(np.arccos(np.clip((v @ R.T) @ up, -1.0, 1.0)))))
+    return tuple(float(x) for x in up), int(use.sum()), spread
+
+
+#: The person's vertical turns an assumed level world (Recording.world 'assumed_level') upright only when measured in
+#: at least this many accepted images, with the per-image verticals this close to their mean (median, degrees) and a
+#: camera tilt (pitch or roll) within this bound: otherwise the person did not stand upright enough to say where up is.
+UP_MIN_IMAGES = 5
+UP_MAX_SPREAD_DEG = 20.0
+UP_MAX_TILT_DEG = 60.0
+
+
+def upright_world(rec, up: tuple, n: int, spread: float, log) -> np.ndarray | None:
+    """The world->camera rotation that makes the person's vertical the world's y, for a recording whose world was
+    only assumed level (``Recording.world == 'assumed_level'``, no ground truth); None to keep the recording's camera.
+    The log says which, and why."""
+    from eventcap.camera import level_rotation, tilt_from_up
+
+    if rec.world != "assumed_level":
+        return None
+    keep = "world frame: kept the camera assumed level (pitch 0, roll 0): "
+    if rec.ground_truth is not None:
+        log.info(keep + "the recording holds ground truth in that world")
+        return None
+    if not up or n < UP_MIN_IMAGES:
+        log.warning(keep + "the person's vertical was measured in %d accepted images, fewer than %d (give "
+                    "source.camera_pitch_deg / camera_roll_deg if the camera was tilted)", n, UP_MIN_IMAGES)
+        return None
+    pitch, roll = tilt_from_up(up)
+    if spread > UP_MAX_SPREAD_DEG or max(abs(pitch), abs(roll)) > UP_MAX_TILT_DEG:
+        log.warning(keep + "the person did not stay upright enough to say where up is (their vertical spreads "
+                    "%.0f deg over %d images, at most %.0f; it would tilt the camera pitch %.0f deg, roll %.0f deg, "
+                    "at most %.0f): give source.camera_pitch_deg / camera_roll_deg", spread, n, UP_MAX_SPREAD_DEG,
+                    pitch, roll, UP_MAX_TILT_DEG)
+        return None
+    log.info("world frame: y up along the person's vertical (pelvis to shoulders, mean over %d images, spread %.0f "
+             "deg): the camera is pitched %.0f deg, rolled %.0f deg (source.up=level keeps it level)", n, spread,
+             pitch, roll)
+    return level_rotation(pitch, roll)
 
 
 def _log_world_up(rec, up: tuple, n: int, log) -> None:
@@ -78,7 +123,9 @@ def _log_world_up(rec, up: tuple, n: int, log) -> None:
 
 def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what: str, joint_views=None):
     """In view, checks, enough detections to solve: zero what is not observed, log per rejected image, stop the
-    stage when too few images hold a detection (StageFailed naming the counts). Returns (in_view, status, up)."""
+    stage when too few images hold a detection (StageFailed naming the counts); the person's vertical, and the upright
+    world it gives (:func:`upright_world`). Returns (in_view, status, up, world_R, turn): world_R None keeps the
+    recording's camera; turn takes the joints' rows from the recording's world axes into world_R's."""
     from . import checks
 
     settings = view_settings(config)
@@ -112,9 +159,12 @@ def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what
     level = ctx.log.warning if ok.sum() < n else ctx.log.info
     level("%s; the longest run without one: %d images; %.1f%% of the accepted landmarks in view", summary, gap,
           100.0 * in_view[ok].mean() if ok.any() else 0.0)
-    up = person_up(joints, conf3, ok, rec.camera.R)
-    _log_world_up(rec, up, int(ok.sum()), ctx.log)
-    return in_view, status, up
+    up, n_up, spread = person_up(joints, conf3, ok, rec.camera.R)
+    world_R = upright_world(rec, up, n_up, spread, ctx.log)
+    if world_R is None:
+        _log_world_up(rec, up, n_up, ctx.log)
+        return in_view, status, up, None, None
+    return in_view, status, up, world_R, rec.camera.R.T @ world_R
 
 
 def run_simulated(inputs, config, ctx):

@@ -63,9 +63,11 @@ def _read_external(path: Path, config, ctx) -> Recording:
 
 def _world_frame(rec: Recording, config, ctx) -> Recording:
     """A y-up world for a recording whose camera has no extrinsics (identity rotation, zero translation: every format
-    but a synthetic capture's): the camera is assumed level at the world's origin, looking along -z, unless
-    ``source.camera_pitch_deg`` / ``camera_roll_deg`` say how it is tilted (``source.up=camera`` keeps the camera's
-    axes). The log states the assumption; the detect stage checks it against the person's vertical."""
+    but a synthetic capture's): the camera at the world's origin looking along -z, tilted by
+    ``source.camera_pitch_deg`` / ``camera_roll_deg`` when given (kept: ``Recording.world`` 'level'), else assumed
+    level until the detect stage measures the person's vertical and turns the world to it (``source.up=person``, the
+    default: 'assumed_level'; ``source.up=level`` keeps it level: 'level'). ``source.up=camera`` keeps the camera's
+    axes. The log states which."""
     from eventcap.camera import level_rotation
 
     cam = rec.camera
@@ -75,19 +77,25 @@ def _world_frame(rec: Recording, config, ctx) -> Recording:
     if config.up == "camera":
         ctx.log.warning("world frame: the camera's own axes (source.up=camera: y points DOWN, the head's y is below "
                         "the pelvis's)")
-        return rec
-    if config.up != "level":
-        raise ValueError(f"source.up: expected level or camera, got {config.up!r}")
+        return dataclasses.replace(rec, world="camera")
+    if config.up not in ("person", "level"):
+        raise ValueError(f"source.up: expected person, level or camera, got {config.up!r}")
     try:
         R = level_rotation(config.camera_pitch_deg, config.camera_roll_deg)
     except ValueError as exc:
         raise ValueError(f"source.camera_pitch_deg / camera_roll_deg: {exc}") from None
-    given = config.camera_pitch_deg or config.camera_roll_deg
-    ctx.log.info("world frame: y up, the camera at the origin looking along -z, %s (the recording has no "
-                 "extrinsics and no floor; the detect stage compares it with the person's vertical)",
-                 f"tilted as given: pitch {config.camera_pitch_deg:g} deg, roll {config.camera_roll_deg:g} deg"
-                 if given else "ASSUMED LEVEL (pitch 0, roll 0: source.camera_pitch_deg / camera_roll_deg if not)")
-    return dataclasses.replace(rec, camera=cam.with_pose(R, np.zeros(3)))
+    given = bool(config.camera_pitch_deg or config.camera_roll_deg)
+    if given:
+        how = f"tilted as given: pitch {config.camera_pitch_deg:g} deg, roll {config.camera_roll_deg:g} deg"
+    elif config.up == "level":
+        how = "assumed level (source.up=level: kept; the detect stage compares it with the person's vertical)"
+    else:
+        how = ("assumed level until the detect stage measures the person's vertical and turns the world to it "
+               "(source.up=person; source.up=level or camera_pitch_deg / camera_roll_deg keep a camera pose)")
+    ctx.log.info("world frame: y up, the camera at the origin looking along -z, %s (the recording has no extrinsics)",
+                 how)
+    world = "assumed_level" if config.up == "person" and not given else "level"
+    return dataclasses.replace(rec, camera=cam.with_pose(R, np.zeros(3)), world=world)
 
 
 def run_recording(inputs, config, ctx):

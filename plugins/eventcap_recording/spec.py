@@ -32,18 +32,20 @@ class RecordingConfig:
                                     "recording)")
     batch_rate_hz: float = param(25.0, gt=0, help="without intensity frames: batches of 1/rate from the first event (the "
                                             "times images are reconstructed at, pipeline=events_only)")
-    up: str = param("level", help="world frame of a recording whose camera has no extrinsics: level (y up: the "
-                                  "camera assumed level, at the origin, looking along -z; tilted by camera_pitch_deg "
-                                  "and camera_roll_deg) | camera (the camera's own axes, y down)",
-                    choices=("level", "camera"))
-    camera_pitch_deg: float = param(0.0, help="with up=level: the camera's tilt, degrees (negative: looking down); "
-                                              "the detect stage measures it from the person's vertical")
-    camera_roll_deg: float = param(0.0, help="with up=level: the camera's roll about its axis, degrees (positive: "
+    up: str = param("person", help="world frame of a recording whose camera has no extrinsics: person (y up along "
+                                   "the person's vertical, which the detect stage measures from the 3D detections; "
+                                   "until then, and when it cannot, the camera assumed level at the origin, looking "
+                                   "along -z) | level (the camera level, or tilted by camera_pitch_deg and "
+                                   "camera_roll_deg: kept as given) | camera (the camera's own axes, y down)",
+                    choices=("person", "level", "camera"))
+    camera_pitch_deg: float = param(0.0, help="the camera's tilt, degrees (negative: looking down); given, it is "
+                                              "kept (the world is not turned to the person's vertical)")
+    camera_roll_deg: float = param(0.0, help="the camera's roll about its axis, degrees (positive: "
                                              "the world's up appears turned clockwise in the image)")
 
 
 RECORDING = StageSpec(
-    name="recording", kind="source", version=3,
+    name="recording", kind="source", version=4,
     description="a recording from a file (real cameras' formats or the project's own), cut into batches",
     config=RecordingConfig, inputs={"template": Port(Template, optional=True)},
     outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},

@@ -43,7 +43,10 @@ def run_refine(inputs, config, ctx):
 
     from .refine import refine_batch
 
+    from eventcap.worldframe import upright
+
     rec, est, b = inputs["recording"], inputs["poses"], ctx.batch
+    rec = upright(rec, inputs.get("detections"))  # the world the poses were solved in
     where = f"batch {b.index}" if b is not None else "batch ?"
     if rec.template is None:
         raise StageFailed(f"stage 'silhouette' needs the actor template, but recording {rec.name or rec.source!r} "

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from eventcap.artifacts import BatchPlan
-from eventcap.artifacts.pose import PoseSequence
+from eventcap.artifacts.pose import Detections, PoseSequence
 from eventcap.artifacts.recording import Recording
 from eventcap.stage import Port, StageSpec, param
 
@@ -44,7 +44,9 @@ SILHOUETTE = StageSpec(
                 "point-to-line E_sil + E_stab, joint limits (Sec. 3.3, CasADi + IPOPT)",
     config=SilhouetteRefineConfig,
     inputs={"recording": Port(Recording), "poses": Port(PoseSequence, doc="the solve's poses of the same batch"),
-            "batches": Port(BatchPlan)},
+            "batches": Port(BatchPlan),
+            "detections": Port(Detections, optional=True, doc="the detections the poses were solved with: the "
+                                                              "world they are in (Detections.world_R)")},
     outputs={"poses": Port(PoseSequence)}, per_batch=True,
     run="eventcap_refine._impl:run_refine",
 )

@@ -41,7 +41,10 @@ def run_batch(inputs, config, ctx):
 
     from .batch import select_detections, solve_batch
 
+    from eventcap.worldframe import upright
+
     rec, sliced, detections, b = inputs["recording"], inputs["sliced"], inputs["detections"], ctx.batch
+    rec = upright(rec, detections)  # the detections' world
     where = f"batch {b.index if b else '?'}"
     if rec.template is None:
         raise StageFailed(f"stage 'batch' needs the actor template, but recording {rec.name or rec.source!r} has "

@@ -345,6 +345,9 @@ def run_spline(inputs, config, ctx):
 
     from .solve import NothingObserved, observed_frames, solve_window
 
+    from eventcap.worldframe import upright
+
+    inputs = {**inputs, "recording": upright(inputs["recording"], inputs["detections"])}  # the detections' world
     rec, plan, b = inputs["recording"], inputs["batches"], ctx.batch
     where = f"batch {b.index}" if b is not None else "batch ?"
     if rec.template is None:
