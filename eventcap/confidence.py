@@ -2,8 +2,10 @@
 
 No ground truth enters; only what the run observed. For every joint j at every frame t of the motion:
 
-1. **In view.** The estimated joint projects into the image, in front of the camera; else 0 (a joint outside the
-   image was not seen, whatever the solve made of it).
+1. **In view.** The estimated joint projects into the image, in front of the camera, with the body around it: at
+   least its depth inside the template's body (:func:`joint_radii`, projected) inside every edge; else 0 (a joint
+   outside the image was not seen, whatever the solve made of it; one whose body the edge cuts was at best half seen,
+   and a detector's landmark there is extrapolated).
 2. **Detections, at the intensity frames.** A landmark the detector marks as an observation (``in_view``, confidence
    > 0, its image accepted) supports the joint it follows as much as the estimate agrees with it:
    ``c_det · exp(-(r / r0)²)``, r the reprojection residual of the estimated landmark (px), r0 = ``detection_frac``
@@ -35,10 +37,14 @@ from eventcap.camera import Camera
 OBSERVED = 0.5
 
 
-def in_image(camera: Camera, points: np.ndarray) -> np.ndarray:
-    """(...,) bool: the points (..., 3) project into the image (pixel centres' extent) and lie in front of it."""
+def in_image(camera: Camera, points: np.ndarray, radius_m=None) -> np.ndarray:
+    """(...,) bool: the points (..., 3) project into the image (pixel centres' extent) and lie in front of it; with
+    ``radius_m`` (broadcast to the points' shape (...)), the ball of that radius around each point does too: the
+    point is at least its radius's projection (f r / z px) inside every edge."""
     P = np.asarray(points, dtype=np.float64)
     flat = P.reshape(-1, 3)
+    r = np.zeros(flat.shape[0]) if radius_m is None else \
+        np.broadcast_to(np.asarray(radius_m, dtype=np.float64), P.shape[:-1]).reshape(-1)
     ok = np.isfinite(flat).all(axis=1)
     out = np.zeros(flat.shape[0], dtype=bool)
     if ok.any():
@@ -47,10 +53,22 @@ def in_image(camera: Camera, points: np.ndarray) -> np.ndarray:
         px = np.full((int(ok.sum()), 2), np.nan)
         if front.any():
             px[front] = camera.project(flat[ok][front])
-        inside = front & (px[:, 0] >= -0.5) & (px[:, 0] <= camera.width - 0.5) & (px[:, 1] >= -0.5) \
-            & (px[:, 1] <= camera.height - 0.5)
+        m = max(camera.fx, camera.fy) * r[ok] / np.maximum(z, 0.05)
+        inside = front & (px[:, 0] >= m - 0.5) & (px[:, 0] <= camera.width - 0.5 - m) & (px[:, 1] >= m - 0.5) \
+            & (px[:, 1] <= camera.height - 0.5 - m)
         out[np.flatnonzero(ok)] = inside
     return out.reshape(P.shape[:-1])
+
+
+def joint_radii(template) -> np.ndarray:
+    """(24,) how deep each joint of the template lies inside its body: the distance from the rest pose's joint to the
+    nearest point of the template's surface (m). A joint closer to an image edge than this (projected) has part of the
+    body around it out of the image: a detector's landmark there is extrapolated, not seen."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(np.asarray(template.vertices), np.asarray(template.faces), process=False)
+    _, dist, _ = trimesh.proximity.closest_point(mesh, np.asarray(template.rest_joints, dtype=np.float64))
+    return np.asarray(dist, dtype=np.float64)
 
 
 def _joint_neighbours() -> list[np.ndarray]:
@@ -157,9 +175,9 @@ def motion_confidence(template, camera: Camera, t_us: np.ndarray, poses: np.ndar
     else:
         moved = np.zeros((0, NUM_JOINTS), dtype=bool)
     out = interval_support(t_us, t_d, s_det, moved, np.asarray(event_support, dtype=np.float64))
-    seen = in_image(camera, joint_positions(np.where(est[:, None], poses, 0.0), template))
+    seen = in_image(camera, joint_positions(np.where(est[:, None], poses, 0.0), template), joint_radii(template))
     out = np.where(seen & est[:, None], out, 0.0)
     return np.clip(out, 0.0, 1.0)
 
 
-__all__ = ["OBSERVED", "detection_support", "in_image", "interval_support", "motion_confidence"]
+__all__ = ["OBSERVED", "detection_support", "in_image", "interval_support", "joint_radii", "motion_confidence"]

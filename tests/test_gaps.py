@@ -156,3 +156,25 @@ def test_recording_has_frames_reads_the_file(tmp_path, has_frames):
     frames = (np.zeros((3, 24, 32), np.float32), np.array([0, 2000, 4000]), np.full(3, 1000)) if has_frames else None
     write_hdf5(tmp_path / "rec.h5", iter([ev]), 32, 24, frames=frames)
     assert recording_has_frames(tmp_path / "rec.h5") is has_frames
+
+
+def test_a_joint_whose_body_the_image_edge_cuts_is_not_in_view():
+    """joint_radii: each joint's depth inside the template's body (its distance to the surface); in_image with a
+    radius needs the ball around the point inside the image: f r / z px from every edge."""
+    from eventcap.body.procedural import procedural_template
+    from eventcap.body.skeleton import JOINT_INDEX
+    from eventcap.camera import Camera
+    from eventcap.confidence import joint_radii
+
+    tpl = procedural_template(target_faces=3000)
+    r = joint_radii(tpl)
+    nearest_vertex = np.linalg.norm(tpl.vertices[None] - tpl.rest_joints[:, None], axis=-1).min(axis=1)
+    assert r.shape == (24,) and (r > 0.01).all() and (r <= nearest_vertex + 1e-12).all()
+    assert r[JOINT_INDEX["pelvis"]] > 0.07 > r[JOINT_INDEX["l_wrist"]]  # a torso is thicker than a wrist
+    cam = Camera(240, 180, 200.0, 200.0, 119.5, 89.5, np.zeros(5), np.eye(3), np.zeros(3))
+    z, rad = 2.0, 0.1  # the margin: 200 * 0.1 / 2 = 10 px
+    u = np.array([-0.5 + 9.0, -0.5 + 11.0, 239.5 - 9.0, 239.5 - 11.0])  # 9 and 11 px inside the left / right edge
+    pts = np.stack([(u - 119.5) * z / 200.0, np.zeros(4), np.full(4, z)], axis=1)
+    assert in_image(cam, pts).all()
+    assert in_image(cam, pts, rad).tolist() == [False, True, False, True]
+    assert in_image(cam, pts, np.array([0.0, rad, 0.0, rad])).tolist() == [True, True, True, True]
