@@ -71,6 +71,9 @@ def person_up(joints: np.ndarray, conf3: np.ndarray, ok: np.ndarray, R: np.ndarr
 UP_MIN_IMAGES = 5
 UP_MAX_SPREAD_DEG = 20.0
 UP_MAX_TILT_DEG = 60.0
+#: A vertical within this angle of the assumed level world's y keeps it: that close, the measurement's own error (3
+#: degrees on a level camera, 3-9 on one pitched 25 degrees: benchmarks/bench_upright.py) is as large as the tilt.
+UP_MIN_TILT_DEG = 5.0
 
 
 def upright_world(rec, up: tuple, n: int, spread: float, log) -> np.ndarray | None:
@@ -95,6 +98,11 @@ def upright_world(rec, up: tuple, n: int, spread: float, log) -> np.ndarray | No
                     "%.0f deg over %d images, at most %.0f; it would tilt the camera pitch %.0f deg, roll %.0f deg, "
                     "at most %.0f): give source.camera_pitch_deg / camera_roll_deg", spread, n, UP_MAX_SPREAD_DEG,
                     pitch, roll, UP_MAX_TILT_DEG)
+        return None
+    off = float(np.degrees(np.arccos(np.clip(np.dot(rec.camera.R @ np.array([0.0, 1.0, 0.0]), up), -1.0, 1.0))))
+    if off < UP_MIN_TILT_DEG:
+        log.info(keep + "the person's vertical (mean over %d images) is %.1f deg from it, within the measurement's "
+                 "own error (%.0f deg)", n, off, UP_MIN_TILT_DEG)
         return None
     log.info("world frame: y up along the person's vertical (pelvis to shoulders, mean over %d images, spread %.0f "
              "deg): the camera is pitched %.0f deg, rolled %.0f deg (source.up=level keeps it level)", n, spread,
