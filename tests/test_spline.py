@@ -408,6 +408,24 @@ def test_settled_correspondences_end_the_icp_rounds():
     np.testing.assert_allclose(between.control, every.control, atol=0.05)
 
 
+def test_a_window_started_from_its_solution_needs_fewer_iterations_and_lands_there():
+    """solve_window(start=...): started from its own solution the window converges in a few IPOPT iterations to the
+    same spline; rows with a NaN start from the fits' spline (all NaN: the cold start exactly); a start of the
+    wrong shape is refused, naming both shapes."""
+    rec, det, t_det, t_us, S, xy, valid = scene()
+    sol = solver(lambda_sil=0.0, icp_rounds=2)
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
+    cold = solve_window(sol, spl, t_det, det, t_us, xy, valid)
+    warm = solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(cold.control, cold.t_prime))
+    assert warm.solves[0].iterations < 0.5 * cold.solves[0].iterations, (warm.solves, cold.solves)
+    assert np.abs(warm.control - cold.control).max() < 0.05
+    none = np.full_like(cold.control, np.nan)
+    again = solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(none, np.full_like(cold.t_prime, np.nan)))
+    np.testing.assert_array_equal(again.control, cold.control)
+    with pytest.raises(EnergyError, match=r"start: expected control points \(\d+, 33\) and t' \(4, 3\), got \(3, 33\)"):
+        solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(none[:3], cold.t_prime))
+
+
 # ------------------------------------------------------------------------------------------------ the stage
 class _Seq(list):
     """Stands in for the runner's lazy BatchSequence (a list with .batches)."""
