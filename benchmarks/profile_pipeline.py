@@ -1,7 +1,7 @@
 """Where the time of a whole run goes: CPU seconds per stage and per part of the solve, per 40 ms of capture.
 
     python benchmarks/profile_pipeline.py [--duration 1] [--motion karate_kick] [--seed 0] [--runs 1]
-                                          [--source "source.fps=10 ..."] [-- run overrides ...]
+                                          [--source "source.fps=10 ..."] [--warm-start] [-- run overrides ...]
 
 The default measures the README's default capture (1 s of karate_kick at 25 fps, 24 batches of 40 ms) through the
 default pipeline with BlazePose (``stages/detect=blazepose``), serially, from a cache holding only the recording to
@@ -188,6 +188,11 @@ def child(args) -> None:
         from eventcap.cli import main
 
         install(timers)
+        if args.warm_start:  # an experiment, not a stage option (benchmarks/bench_warm_start.py says why)
+            sys.path.insert(0, str(ROOT / "benchmarks"))
+            from bench_warm_start import install as warm_start
+
+            warm_start("warm", [])
         setup = time.process_time() - c0
         code = main(["run", *args.overrides])
     finally:
@@ -232,7 +237,8 @@ def measure(args, base: Path, i: int) -> dict:
                    MKL_NUM_THREADS="1")
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         w0 = time.perf_counter()
-        subprocess.run([sys.executable, __file__, "--child", str(out), "--", *overrides], env=env, check=True,
+        subprocess.run([sys.executable, __file__, "--child", str(out), *(["--warm-start"] if args.warm_start else []),
+                        "--", *overrides], env=env, check=True,
                        cwd=tmp, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - w0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -323,6 +329,8 @@ def main() -> None:
                     help="where the simulated recordings are kept (one per capture; share it between checkouts)")
     ap.add_argument("--runs", type=int, default=1, help="measured runs (the median is printed)")
     ap.add_argument("--json", help="also write every run's figures here")
+    ap.add_argument("--warm-start", action="store_true",
+                    help="each window starts from the previous window's solution (benchmarks/bench_warm_start.py)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("overrides", nargs="*", help="more `eventcap run` overrides (after --)")
     args = ap.parse_args()

@@ -346,6 +346,86 @@ def test_robust_cor_weights_keep_drifting_tracks_from_pulling_the_motion():
         solve_window(solver(robust_cor_px=-1, lambda_sil=0.0), spl, t_det, det, t_us, bad, valid)
 
 
+def test_correspondence_change_counts_kept_found_and_lost_correspondences_in_pixels():
+    """The RMS over the union: a kept correspondence by how its residual changed, a new one by its residual, a lost
+    one by its old residual; the same set at the same poses changes nothing."""
+    from eventcap.energy.correspondences import Correspondences, correspondence_change_px
+
+    def corr(source, frame, track):
+        n = len(source)
+        return dataclasses.replace(Correspondences.empty(), source=np.array(source), frame=np.array(frame),
+                                   track=np.array(track), rest_points=np.zeros((n, 3)),
+                                   weights=np.full((n, 24), 1 / 24), target_px=np.zeros((n, 2)),
+                                   source_px=np.zeros((n, 2)), part=np.zeros(n, np.int64))
+
+    old = corr([1, 1, 1], [0, 2, 2], [0, 0, 1])
+    new = corr([3, 1, 1], [2, 2, 0], [5, 0, 0])  # (1, 0, 0) and (1, 2, 0) kept, (1, 2, 1) lost, (3, 2, 5) found
+    r_old = np.array([[1.0, 0.0], [0.0, 1.0], [3.0, 4.0]])
+    r_new = np.array([[0.0, 1.0], [0.0, 2.0], [1.0, 0.0]])
+    assert correspondence_change_px(old, r_old, new, r_new) == pytest.approx(np.sqrt((0 + 1 + 25 + 1) / 4))
+    assert correspondence_change_px(old, r_old, old, r_old) == 0.0
+    assert correspondence_change_px(Correspondences.empty(), np.zeros((0, 2)), Correspondences.empty(),
+                                    np.zeros((0, 2))) == 0.0
+    # residuals_px_of: another set's residuals, the factor's own set untouched
+    rec, det, t_det, t_us, S, xy, valid = scene()
+    cor = solver().factor("cor")
+    a = find_correspondences(rec.template, rec.camera, S, xy, valid)
+    moved = xy.copy()
+    moved[:, 7] += np.array([3.0, -4.0])[None] * ((t_us - t_us[0]) / 1000.0)[:, None] / 40.0
+    b = find_correspondences(rec.template, rec.camera, S, moved, valid)
+    cor.set_correspondences(a, relative=True)
+    r_b = cor.residuals_px_of(b, S)
+    np.testing.assert_array_equal(cor.residuals_px(S), cor.residuals_px_of(a, S))
+    assert cor.n_correspondences == a.n
+    # only track 7's correspondences changed: by its drift over their frames (up to 5 px over the batch)
+    change = correspondence_change_px(a, cor.residuals_px(S), b, r_b)
+    mine = b.track == 7
+    expect = np.sqrt(np.sum(np.linalg.norm(r_b[mine], axis=1) ** 2) / b.n)
+    assert change == pytest.approx(expect, rel=0.05) and 0.01 < change < 0.5
+
+
+def test_settled_correspondences_end_the_icp_rounds():
+    """icp_settle_px above the first search's change: one solve, the same spline as icp_rounds=1; 0: every round,
+    each later search's change (px) reported; on exact tracks the correspondences settle (the change falls)."""
+    rec, det, t_det, t_us, S, xy, valid = scene()
+
+    def solve(**change):
+        sol = solver(lambda_sil=0.0, **change)
+        spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
+        return solve_window(sol, spl, t_det, det, t_us, xy, valid)
+
+    every = solve(icp_rounds=3)
+    assert len(every.solves) == 3 and len(every.cor_change_px) == 2
+    first, second = every.cor_change_px
+    assert 0 < second < first < 2.0, every.cor_change_px
+    one = solve(icp_rounds=1)
+    settled = solve(icp_rounds=3, icp_settle_px=first * 1.01)
+    assert len(settled.solves) == 1 and settled.cor_change_px == pytest.approx((first,))
+    np.testing.assert_array_equal(settled.control, one.control)
+    assert settled.energies["n_correspondences"] == one.energies["n_correspondences"]
+    between = solve(icp_rounds=3, icp_settle_px=(first + second) / 2)
+    assert len(between.solves) == 2
+    np.testing.assert_allclose(between.control, every.control, atol=0.05)
+
+
+def test_a_window_started_from_its_solution_needs_fewer_iterations_and_lands_there():
+    """solve_window(start=...): started from its own solution the window converges in a few IPOPT iterations to the
+    same spline; rows with a NaN start from the fits' spline (all NaN: the cold start exactly); a start of the
+    wrong shape is refused, naming both shapes."""
+    rec, det, t_det, t_us, S, xy, valid = scene()
+    sol = solver(lambda_sil=0.0, icp_rounds=2)
+    spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
+    cold = solve_window(sol, spl, t_det, det, t_us, xy, valid)
+    warm = solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(cold.control, cold.t_prime))
+    assert warm.solves[0].iterations < 0.5 * cold.solves[0].iterations, (warm.solves, cold.solves)
+    assert np.abs(warm.control - cold.control).max() < 0.05
+    none = np.full_like(cold.control, np.nan)
+    again = solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(none, np.full_like(cold.t_prime, np.nan)))
+    np.testing.assert_array_equal(again.control, cold.control)
+    with pytest.raises(EnergyError, match=r"start: expected control points \(\d+, 33\) and t' \(4, 3\), got \(3, 33\)"):
+        solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(none[:3], cold.t_prime))
+
+
 # ------------------------------------------------------------------------------------------------ the stage
 class _Seq(list):
     """Stands in for the runner's lazy BatchSequence (a list with .batches)."""
@@ -670,6 +750,7 @@ def test_bad_config_and_missing_detections_are_named():
             ({"lambda_sil": -1.0}, r"stages.solve.lambda_sil: expected a finite number >= 0, got -1.0"),
             ({"sil_step_ms": 0.0}, r"stages.solve.sil_step_ms: expected a finite number > 0, got 0.0"),
             ({"robust_cor_px": -0.5}, r"stages.solve.robust_cor_px: expected a finite number >= 0, got -0.5"),
+            ({"icp_settle_px": -1.0}, r"stages.solve.icp_settle_px: expected a finite number >= 0, got -1.0"),
             ({"prior_inertia": -1.0}, r"stages.solve.prior_inertia: expected a finite number >= 0, got -1.0"),
             ({"prior_inertia_cap": 0.5}, r"stages.solve.prior_inertia_cap: expected a number >= 1, got 0.5"),
             ({"prior_inertia_floor": 2.0}, r"stages.solve.prior_inertia_floor: expected a finite number in \[0, 1\], "

@@ -129,6 +129,15 @@ class EventCorrespondences(Factor):
         moves its point minus where the track moved (relative form), or minus where the track is (fixed source)."""
         return self._residuals(self.kernels.transforms(S))[0] / self.scale
 
+    def residuals_px_of(self, corr: Correspondences, S: np.ndarray, relative: bool = True) -> np.ndarray:
+        """:meth:`residuals_px` of another set of correspondences (P, 2), this factor's own set left as it is."""
+        own, cache = self.data, self._cache
+        try:
+            self.data = CorrespondencePoints(corr, self.n, relative)
+            return self.residuals_px(S)
+        finally:
+            self.data, self._cache = own, cache
+
     def _first_order(self, S: np.ndarray) -> dict:
         key = S.tobytes()
         if self._cache.get("key") == key:

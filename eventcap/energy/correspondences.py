@@ -249,3 +249,32 @@ def temporal_indicator(corr: Correspondences, n_frames: int, scope: str = "batch
     covered_f = (at @ parts.T) > 0  # (F, l)
     covered = covered_f[:-1] | covered_f[1:]
     return (~covered).astype(np.float64)
+
+
+def correspondence_change_px(old: Correspondences, r_old: np.ndarray, new: Correspondences,
+                             r_new: np.ndarray) -> float:
+    """How much a new correspondence search changed E_cor, in pixels: the RMS over the union of the two sets of the
+    change of each correspondence's image residual at the same poses (r_old (P_old, 2), r_new (P_new, 2), e.g.
+    ``EventCorrespondences.residuals_px_of``). A correspondence is the same one in both when its (source frame,
+    neighbour frame, track) is: it counts with ‖r_new - r_old‖; one found only now counts with ‖r_new‖ (the pull it
+    adds), one no longer found with ‖r_old‖ (the pull it takes away). 0: the search found what the last solve
+    already fitted; 0 as well when neither set has a correspondence."""
+    r_old = np.asarray(r_old, dtype=np.float64).reshape(old.n, 2)
+    r_new = np.asarray(r_new, dtype=np.float64).reshape(new.n, 2)
+    if old.n + new.n == 0:
+        return 0.0
+    width = int(max(old.track.max(initial=0), new.track.max(initial=0))) + 1
+    frames = int(max(old.frame.max(initial=0), old.source.max(initial=0), new.frame.max(initial=0),
+                     new.source.max(initial=0))) + 1
+
+    def keys(c: Correspondences) -> np.ndarray:
+        return (c.source * frames + c.frame) * width + c.track
+
+    k_old, k_new = keys(old), keys(new)
+    _, i_old, i_new = np.intersect1d(k_old, k_new, assume_unique=False, return_indices=True)
+    only_old = np.ones(old.n, dtype=bool)
+    only_old[i_old] = False
+    only_new = np.ones(new.n, dtype=bool)
+    only_new[i_new] = False
+    sq = (np.sum((r_new[i_new] - r_old[i_old]) ** 2) + np.sum(r_old[only_old] ** 2) + np.sum(r_new[only_new] ** 2))
+    return float(np.sqrt(sq / (i_old.size + only_old.sum() + only_new.sum())))

@@ -250,6 +250,7 @@ def clear_solvers() -> None:
 
 
 _CHECKS = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
+           "icp_settle_px": ("pixels >= 0", lambda v: v >= 0),
            "prior_inertia": ("an exponent >= 0", lambda v: v >= 0),
            "prior_inertia_floor": ("a gain in [0, 1]", lambda v: 0 <= v <= 1),
            "prior_gain_min_fps": ("frames per second >= 0", lambda v: v >= 0),
@@ -424,6 +425,10 @@ def log_window(ctx, config, res, where, window, t_det, scope, b, context, spline
                  res.fits_computed, spline.n_ctrl, res.energies["n_correspondences"],
                  f"batch {b.index}" if scope == [b.index] else f"{len(scope)} batches", iters, secs,
                  res.solves[-1].status)
+    if res.cor_change_px and len(res.solves) < int(config.icp_rounds):
+        ctx.log.info("%s: correspondences settled after ICP round %d (they moved E_cor by %.3g px, below "
+                     "stages.spline.icp_settle_px = %g): %d of %d rounds", where, len(res.solves),
+                     res.cor_change_px[-1], float(config.icp_settle_px), len(res.solves), int(config.icp_rounds))
     if t_sil is not None:
         ctx.log.info("%s: E_sil at %d frames: %d of %d silhouette boundary pixels matched to an event (last round)",
                      where, t_sil.size, res.energies["n_silhouette"], res.energies["n_boundary"])
@@ -450,4 +455,5 @@ def log_window(ctx, config, res, where, window, t_det, scope, b, context, spline
     ctx.stats.update({"solve_s": secs, "phases_s": res.seconds, "iterations": iters, "window": [a, z],
                       "fits_computed": res.fits_computed,
                       "solves": [[s.status, s.iterations, s.seconds] for s in res.solves],
+                      "cor_change_px": [float(v) for v in res.cor_change_px],
                       "n_correspondences": int(res.energies["n_correspondences"])})

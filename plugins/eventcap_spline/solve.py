@@ -23,12 +23,14 @@ A window's solve: per-frame fits at its detection frames (the paper's initialisa
 one process), the prior's gains and the context pull chosen from the fits around the window
 (:func:`eventcap.energy.prior.choose_prior_gains`), a penalised spline through the fits as the start, the joints'
 stillness measured from the events around that start (E_still), then ``icp_rounds`` alternations of correspondence
-search (event tracks and silhouette events at the current spline) and IPOPT. Built once per process for a window
+search (event tracks and silhouette events at the current spline) and IPOPT, fewer when a round's search finds
+the correspondences settled (``icp_settle_px``). Built once per process for a window
 layout (:class:`SplineSolver`); every IPOPT status is checked.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -39,7 +41,7 @@ from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-from eventcap.energy.correspondences import Correspondences, find_correspondences
+from eventcap.energy.correspondences import Correspondences, correspondence_change_px, find_correspondences
 from eventcap.energy.detections import FIT_DAMP, FrameDetections, FrameFitter, unwrap_root
 from eventcap.energy.errors import EnergyError, SolveFailed
 from eventcap.energy.event_search import DENOISE_US, EventIndex
@@ -78,6 +80,9 @@ class WindowResult:
     prior_gain: np.ndarray | None = None  #: (33,) the prior's gain per parameter (None: 1)
     silence: Silence | None = None  #: the events' stillness per knot interval and joint (None: term off)
     pull_frames: np.ndarray | None = None  #: (D, 33) the context pull in frames' worth, 1/h - 1 (None: off)
+    #: per ICP round after the first: how far its correspondence search moved E_cor (px, RMS; the last below
+    #: ``icp_settle_px`` ended the rounds without a solve)
+    cor_change_px: tuple[float, ...] = ()
 
 
 class SplineSolver:
@@ -221,7 +226,7 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
                  t_cor_us: np.ndarray, xy: np.ndarray, valid: np.ndarray, what: str = "window",
                  context: tuple[np.ndarray, FrameDetections] | None = None, events: np.ndarray | None = None,
                  t_sil_us: np.ndarray | None = None, base_gain: np.ndarray | None = None,
-                 floor_y: float | None = None) -> WindowResult:
+                 floor_y: float | None = None, start: tuple[np.ndarray, np.ndarray] | None = None) -> WindowResult:
     """Solve one window (module doc) with the solver's config: fits at its detection frames, a smoothing spline
     through them as the start, then ``icp_rounds`` alternations of correspondence search (at the current spline's
     poses at t_cor_us, with the tracks xy (n_cor, H, 2) / valid (n_cor, H)) and IPOPT. SolveFailed on a failed
@@ -233,7 +238,10 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
     knot interval, measured around the start spline's projected bones, :func:`window_silence`) and E_sil (the
     silhouette of the current spline at t_sil_us matched to its closest events every round). base_gain: the motion
     prior's fixed gain per pose parameter (33,) (the inertia each turns), times the chosen gains; None: 1. floor_y:
-    the floor's height over the capture (:func:`capture_floor`; None: the floor terms hold nothing)."""
+    the floor's height over the capture (:func:`capture_floor`; None: the floor terms hold nothing). start:
+    (control points (n_ctrl, 33), t' (D, 3)) the solve starts from instead of the smoothing spline through the fits
+    and the fits' t' (rows with a NaN are taken from those); E_still is measured around the fits' spline either
+    way (benchmarks/bench_warm_start.py starts a window from its neighbour's solution)."""
     c = solver.config
     if solver.factor("sil") is not None and t_sil_us is None:
         raise EnergyError("E_sil (lambda_sil > 0): the window's silhouette frames t_sil_us are missing")
@@ -262,7 +270,7 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
     smooth = max(float(c.lambda_prior), 1e-12) * (1.0 if gain is None else gain)
     C = np.clip(spline.fit(np.asarray(t_det_us)[seen], fits[seen], smooth=smooth, deriv=solver.order),
                 solver.lower, solver.upper)
-    x = start_vector(solver, C, np.nan_to_num(tps))
+    x = start_vector(solver, *_start(solver, C, np.nan_to_num(tps), start))
     seconds["fit"] = time.perf_counter() - t0
     sil, pull_frames = None, (None if pg is None else (None if pg.pull is None else pg.pull[1]))
     if c.lambda_still > 0 and events is not None:
@@ -276,9 +284,26 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
         target, frames = pg.pull[0], pull_frames
         held = np.isfinite(target).all(axis=1)
         window.pull = (np.where(held[:, None], target, 0.0), pg.curvature * np.where(held[:, None], frames, 0.0))
-    x, solves, n_sil_matched, n_boundary = _icp(solver, spline, window, x, xy, valid, t_sil_us, what, seconds)
-    return _result(solver, spline, window, x, fits, solves, seconds, n_fits, gain, sil, pull_frames, n_sil_matched,
-                   n_boundary)
+    x, solves, n_sil_matched, n_boundary, changes = _icp(solver, spline, window, x, xy, valid, t_sil_us, what,
+                                                         seconds)
+    res = _result(solver, spline, window, x, fits, solves, seconds, n_fits, gain, sil, pull_frames, n_sil_matched,
+                  n_boundary)
+    return dataclasses.replace(res, cor_change_px=changes)
+
+
+def _start(solver: SplineSolver, C: np.ndarray, tps: np.ndarray, start) -> tuple[np.ndarray, np.ndarray]:
+    """The solve's start: C and tps, with the finite rows of ``start`` (control points, t') in their place."""
+    if start is None:
+        return C, tps
+    C0, T0 = (np.asarray(a, dtype=np.float64) for a in start)
+    if C0.shape != C.shape or T0.shape != tps.shape:
+        raise EnergyError(f"start: expected control points {C.shape} and t' {tps.shape}, got {C0.shape} and "
+                          f"{T0.shape}")
+    rows = np.isfinite(C0).all(axis=1)
+    C = C.copy()
+    C[rows] = np.clip(C0[rows], solver.lower, solver.upper)
+    keep = np.isfinite(T0).all(axis=1)
+    return C, np.where(keep[:, None], T0, tps)
 
 
 def start_vector(solver: SplineSolver, C: np.ndarray, tps: np.ndarray) -> np.ndarray:
@@ -293,7 +318,10 @@ def start_vector(solver: SplineSolver, C: np.ndarray, tps: np.ndarray) -> np.nda
 
 def _icp(solver: SplineSolver, spline, window: Window, x, xy, valid, t_sil_us, what, seconds):
     """``icp_rounds`` alternations of correspondence search and solve (or one solve without correspondences when
-    icp_rounds is 0). Returns (x, solve stats, silhouette pixels matched, silhouette pixels) of the last round."""
+    icp_rounds is 0). From the second round on, a search whose correspondences moved E_cor by less than
+    ``icp_settle_px`` (:func:`correspondence_change_px` at the last solution) ends the rounds: the last solve stands.
+    Returns (x, solve stats, silhouette pixels matched, silhouette pixels) of the last round and each later
+    search's change (px)."""
     c, prob = solver.config, solver.problem
     seconds["correspondences"] = seconds["solve"] = 0.0
     index = None
@@ -306,13 +334,20 @@ def _icp(solver: SplineSolver, spline, window: Window, x, xy, valid, t_sil_us, w
                            DENOISE_US)
         seconds["silhouette"] = time.perf_counter() - t1
     cor = prob.factor("cor")
-    solves, n_matched, n_boundary = [], 0, 0
+    solves, n_matched, n_boundary, changes = [], 0, 0, []
     for r in range(int(c.icp_rounds)):
         t1 = time.perf_counter()
         Cx = x[:prob.nU].reshape(prob.n_units, _NP)
         Se = spline.evaluate(Cx, window.t_cor_us)
-        window.correspondences = find_correspondences(solver.template, solver.camera, Se, xy, valid,
-                                                      c.edge_margin_px)
+        found = find_correspondences(solver.template, solver.camera, Se, xy, valid, c.edge_margin_px)
+        if r > 0 and cor is not None:  # how far this search moved E_cor from what the last solve fitted
+            changes.append(correspondence_change_px(
+                window.correspondences, cor.residuals_px_of(window.correspondences, Se, window.cor_relative),
+                found, cor.residuals_px_of(found, Se, window.cor_relative)))
+            if changes[-1] < float(c.icp_settle_px):  # settled: the last solve stands
+                seconds["correspondences"] += time.perf_counter() - t1
+                break
+        window.correspondences = found
         window.cor_weight = None
         if index is not None:
             t3 = time.perf_counter()
@@ -337,7 +372,7 @@ def _icp(solver: SplineSolver, spline, window: Window, x, xy, valid, t_sil_us, w
         prob.set_window(spline, window, x)
         x, st = prob.solve(x, f"{what}: spline solve (no correspondences)")
         solves.append(st)
-    return x, solves, n_matched, n_boundary
+    return x, solves, n_matched, n_boundary, tuple(changes)
 
 
 def _estimate(spline: UniformCubicBSpline, C: np.ndarray):
