@@ -2,7 +2,8 @@
 
     python benchmarks/bench_executors.py [--duration 1.0]                      # the track node (--scope track)
     python benchmarks/bench_executors.py --scope pipeline --duration 3 \\
-        [--setups serial dask:1 dask:2 dask:4] [--detector blazepose]          # the whole default pipeline
+        [--setups serial dask:1 dask:2 dask:4] [--detector blazepose] \
+        [--recording-cache runs/bench_duration/base-...]                      # the whole default pipeline
 
 ``--scope track`` (the default): wall time of the track node of an N-batch run, the speed-up, and the per-batch
 overhead of each path (wall time minus the stage's own compute time recorded in the cache manifests, per batch).
@@ -99,8 +100,12 @@ def bench_pipeline(args) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         cwd = Path(tmp)
+        if args.recording_cache:  # made elsewhere (e.g. by bench_duration.py) for the same capture
+            shutil.copytree(args.recording_cache, cwd / "base")
         env = dict(os.environ, EVENTCAP_CACHE_DIR=str(cwd / "base"))
-        run(cwd, ["pipeline=simulate", "outputs.poses=null", *source], "simulate", env)
+        rec = run(cwd, ["pipeline=simulate", "outputs.poses=null", *source], "simulate", env)
+        if args.recording_cache and rec["nodes"]["source"]["computed"]:
+            print(f"note: {args.recording_cache} did not hold this capture's recording; simulated it here")
         shutil.copytree(cwd / "base", cwd / "warm")
         run(cwd, [*common, "batches=2"], "warmup", dict(os.environ, EVENTCAP_CACHE_DIR=str(cwd / "warm")))
         shutil.rmtree(cwd / "warm")
@@ -139,6 +144,8 @@ def main() -> None:
     ap.add_argument("--setups", nargs="+", help="serial | processes:N | dask:N (default: per scope, see above)")
     ap.add_argument("--motion", default="karate_kick", help="--scope pipeline: the capture's motion")
     ap.add_argument("--detector", default="blazepose", help="--scope pipeline: stages/detect option")
+    ap.add_argument("--recording-cache", help="--scope pipeline: a cache folder that already holds the capture's "
+                    "recording (copied, not changed), e.g. one of bench_duration.py's")
     ap.add_argument("--json", help="--scope pipeline: also write the figures here")
     args = ap.parse_args()
     (bench_track if args.scope == "track" else bench_pipeline)(args)
