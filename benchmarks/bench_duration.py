@@ -76,9 +76,23 @@ def child(args) -> None:
         return run
 
     stage.StageSpec.load_run = load_run_rss
+    # profile_pipeline's "cache I/O" is loads and commits together: time them apart too (inside its timer)
+    cache_cpu: dict[str, float] = {"cache: load": 0.0, "cache: commit": 0.0}
+    from eventcap.cache import Cache
+
+    for name in ("load", "commit"):
+        def timed(*a, _fn=getattr(Cache, name), _label=f"cache: {name}", **kw):
+            c0 = time.process_time()
+            try:
+                return _fn(*a, **kw)
+            finally:
+                cache_cpu[_label] += time.process_time() - c0
+
+        setattr(Cache, name, timed)
     profile_pipeline.child(args)
     out = Path(args.child)
     res = json.loads(out.read_text())
+    res["cpu"].update(cache_cpu)
     res.update(peak_after_mb=peak_mb, rss_after_mb=rss_mb)
     out.write_text(json.dumps(res))
 
@@ -173,7 +187,7 @@ def report(rows: list[dict]) -> None:
         print("(part): only some batches ran (batches=...); per-batch stages below are per batch run, whole-recording "
               "stages per 40 ms of the whole capture")
     print("\nper stage: CPU s per 40 ms (wall s per 40 ms from run.json) | peak RSS MB after the stage's calls")
-    print(f"{'stage':<11}" + "".join(f"{str(r['duration']) + ' s':>30}" for r in rows))
+    print(f"{'stage':<22}" + "".join(f"{str(r['duration']) + ' s':>30}" for r in rows))
     for st in STAGES:
         cells = []
         for r in rows:
@@ -184,9 +198,9 @@ def report(rows: list[dict]) -> None:
                 cells.append(f"{'-':>30}")
                 continue
             cells.append(f"{(cpu or 0) / n40:9.4f} ({(wall or 0) / n40:7.4f}) | {p['peak_after_mb'].get(st, 0):6.0f}")
-        print(f"{st:<11}" + "".join(cells))
-    for part in ("cache I/O", "outputs (motion files)"):
-        print(f"{part:<11}" + "".join(f"{r['pipeline']['parts_cpu_s'].get(part, 0) / (r['duration'] / 0.04):9.4f}"
+        print(f"{st:<22}" + "".join(cells))
+    for part in ("cache I/O", "cache: load", "cache: commit", "outputs (motion files)"):
+        print(f"{part:<22}" + "".join(f"{r['pipeline']['parts_cpu_s'].get(part, 0) / (r['duration'] / 0.04):9.4f}"
                                       f"{'':>21}" for r in rows))
 
 
