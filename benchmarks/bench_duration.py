@@ -200,8 +200,9 @@ def report(rows: list[dict]) -> None:
             cells.append(f"{(cpu or 0) / n40:9.4f} ({(wall or 0) / n40:7.4f}) | {p['peak_after_mb'].get(st, 0):6.0f}")
         print(f"{st:<22}" + "".join(cells))
     for part in ("cache I/O", "cache: load", "cache: commit", "outputs (motion files)"):
-        print(f"{part:<22}" + "".join(f"{r['pipeline']['parts_cpu_s'].get(part, 0) / (r['duration'] / 0.04):9.4f}"
-                                      f"{'':>21}" for r in rows))
+        cells = [r["pipeline"]["parts_cpu_s"].get(part) for r in rows]
+        print(f"{part:<22}" + "".join(f"{'-':>9}{'':>21}" if v is None else
+                                      f"{v / (r['duration'] / 0.04):9.4f}{'':>21}" for v, r in zip(cells, rows)))
 
 
 def main() -> None:
