@@ -89,6 +89,7 @@ def child(args) -> None:
                 cache_cpu[_label] += time.process_time() - c0
 
         setattr(Cache, name, timed)
+    vars(args).setdefault("warm_start", False)  # profile_pipeline's own options that this script does not offer
     profile_pipeline.child(args)
     out = Path(args.child)
     res = json.loads(out.read_text())
