@@ -119,3 +119,25 @@ def test_deterministic_for_a_seed():
 def test_bad_motion_config_is_a_clear_error(bad):
     with pytest.raises(ValueError, match="unknown motion 'karate_kik'|duration"):
         simulate_synthetic(*scene(), CaptureConfig(motions=bad))
+
+
+def test_poses_in_chunks_are_the_poses_of_one_call_and_bound_the_memory():
+    """The capture tabulates its poses in chunks (a 60 s grid in one call peaked at ~4 GB): the values must be the
+    very same as one call's, across a cross-fade between two motions and the feet placed on the floor."""
+    import tracemalloc
+
+    from eventcap.sim.capture import motion_function, poses_in_chunks
+
+    tpl, _, _ = scene()
+    poses_at = motion_function(CaptureConfig(motions=(("karate_kick", 1.5), ("boxing_combo", 1.5)), seed=1), tpl)
+    t = np.arange(0, 3_000_000, 50) * 1e-6  # the render grid of 3 s (POSE_GRID_US)
+    tracemalloc.start()
+    whole = poses_at(t)
+    _, peak_whole = tracemalloc.get_traced_memory()
+    tracemalloc.reset_peak()
+    chunked = poses_in_chunks(poses_at, t, chunk=997)  # chunks that do not divide the grid
+    _, peak_chunked = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert chunked.shape == whole.shape == (60_000, 33)
+    assert np.array_equal(chunked, whole)
+    assert peak_chunked - whole.nbytes < 0.25 * (peak_whole - whole.nbytes), (peak_chunked, peak_whole)

@@ -27,5 +27,5 @@ def run_edi(inputs, config, ctx):
     else:
         c = float(config.contrast)
     logs = edi.sharpen_frames(frames.images, frames.t_us, frames.exposure_us, events, c, config.eps)
-    return {"latent": LatentFrames(log_images=logs.astype(np.float32), t_us=frames.t_us.copy(), contrast=c,
+    return {"latent": LatentFrames(log_images=logs.astype(np.float32, copy=False), t_us=frames.t_us.copy(), contrast=c,
                                    eps=config.eps, contrast_estimated=estimated, height=rec.height, width=rec.width)}
