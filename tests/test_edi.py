@@ -134,21 +134,26 @@ def test_contrast_estimate_within_20_percent():
         assert scenes.psnr(scenes.sharpen(frames[1], events, est.c), truth) >= p_blurry + 3.0
 
 
-def test_other_sensor_size_davis346():
-    """Nothing assumes 240x180: a moving bar on a 346x260 (DAVIS346) sensor, with per-frame exposures."""
-    height, width = 260, 346
+def bar_capture(height: int, width: int, x0_px: float, speed_px_s: float, t_end_us: int):
+    """A 12 px bright bar crossing a height x width sensor from x0_px at speed_px_s, simulated for t_end_us at 40 fps
+    with 5 ms exposures: (render, events, frames)."""
     xx = np.arange(width, dtype=np.float64)
 
     def render(t_us: int) -> np.ndarray:
-        x0 = 100 + 300.0 * t_us * 1e-6
+        x0 = x0_px + speed_px_s * t_us * 1e-6
         cover = np.clip(np.minimum(xx + 1, x0 + 12) - np.maximum(xx, x0), 0, 1)
         return np.broadcast_to((0.2 + 0.6 * cover)[None, :], (height, width)).astype(np.float32)
 
     from eventcap.sim.frames import FrameConfig, simulate_capture
 
-    chunks = list(simulate_capture(render, 0, 60_000, SensorConfig(), FrameConfig(fps=40.0, exposure_us=5_000)))
-    events = np.concatenate([c.events.events for c in chunks])
-    frames = [f for c in chunks for f in c.frames]
+    chunks = list(simulate_capture(render, 0, t_end_us, SensorConfig(), FrameConfig(fps=40.0, exposure_us=5_000)))
+    return render, np.concatenate([c.events.events for c in chunks]), [f for c in chunks for f in c.frames]
+
+
+def test_other_sensor_size_davis346():
+    """Nothing assumes 240x180: a moving bar on a 346x260 (DAVIS346) sensor, with per-frame exposures."""
+    height, width = 260, 346
+    render, events, frames = bar_capture(height, width, 100.0, 300.0, 60_000)
     images = np.stack([f.image for f in frames])
     t_us = np.array([f.t_us for f in frames])
     latents = edi.sharpen_frames(images, t_us, np.full(len(frames), 5_000), events, 0.2)
@@ -168,19 +173,9 @@ def test_contrast_estimate_memory_per_frame_is_its_counts_only():
     import tracemalloc
 
     height, width = 60, 240
-    xx = np.arange(width, dtype=np.float64)
-
-    def render(t_us: int) -> np.ndarray:
-        x0 = 20 + 400.0 * t_us * 1e-6
-        cover = np.clip(np.minimum(xx + 1, x0 + 12) - np.maximum(xx, x0), 0, 1)
-        return np.broadcast_to((0.2 + 0.6 * cover)[None, :], (height, width)).astype(np.float32)
-
-    from eventcap.sim.frames import FrameConfig, simulate_capture
-
-    chunks = list(simulate_capture(render, 0, 500_000, SensorConfig(), FrameConfig(fps=40.0, exposure_us=5_000)))
-    events = np.concatenate([c.events.events for c in chunks])
-    images = np.stack([f.image for c in chunks for f in c.frames])
-    t_us = np.array([f.t_us for c in chunks for f in c.frames])
+    _, events, frames = bar_capture(height, width, 20.0, 400.0, 500_000)
+    images = np.stack([f.image for f in frames])
+    t_us = np.array([f.t_us for f in frames])
     edi.estimate_contrast(images[:3], t_us[:3], 5_000, events)  # numba's compilation outside the measurement
     peaks, ests = {}, {}
     for k in (5, images.shape[0]):
