@@ -17,6 +17,7 @@ never saw:
 - ``feet spread``: the standard deviation of the lowest foot joint's height (ankles, feet) along the run's y over the frames (mm):
   a level floor under a tilted world shows as feet that rise and fall with their depth.
 
+Writes ``<out>/upright_side_view.png``: each variant's skeleton at 6 moments, seen from the side in its own world.
 Nothing here is asserted; the figures go into the notes.
 """
 
@@ -109,6 +110,46 @@ def measure(run_dir: Path, truth, up: str) -> dict:
             "mpjpe_cam_mm": float(err), "feet_spread_mm": float(np.std(soles) * 1000), "frames": int(J.shape[0])}
 
 
+def figure(out: Path, ups: list[str], path: Path) -> Path:
+    """Each variant's skeleton in its own world, seen from the side (the world's horizontal along the camera's view
+    across the page, the world's y up), at 6 moments, with the lowest foot height over the capture as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import zarr
+
+    from eventcap.artifacts.pose import Detections
+    from eventcap.body.skeleton import JOINT_INDEX, PARENTS
+    from eventcap.camera import level_rotation
+
+    fig, axes = plt.subplots(1, len(ups), figsize=(6 * len(ups), 4.5), squeeze=False)
+    for ax, up in zip(axes[0], ups):
+        run_dir = out / f"up_{up}"
+        det = Detections.from_zarr(zarr.open_group(str(run_dir / "detect.detections.zarr"), mode="r"))
+        R = det.world_R if det.world_R is not None else level_rotation()
+        m = np.load(run_dir / "motion.npz")
+        J = m["joints"][m["estimated"]]
+        view = R.T @ np.array([0.0, 0.0, 1.0])  # the camera's optical axis in the world
+        ahead = np.array([view[0], 0.0, view[2]]) / max(np.hypot(view[0], view[2]), 1e-9)
+        feet = [JOINT_INDEX[n] for n in ("l_ankle", "r_ankle", "l_foot", "r_foot")]
+        floor = float(np.median(J[:, feet, 1].min(axis=1)))
+        for k, f in enumerate(np.linspace(0, J.shape[0] - 1, 6).astype(int)):
+            x, y = J[f] @ ahead, J[f, :, 1]
+            x = x - x[0] + 1.2 * k
+            for j, p in enumerate(PARENTS):
+                if p >= 0:
+                    ax.plot([x[j], x[p]], [y[j], y[p]], color=f"C{k}", lw=1.5)
+        ax.axhline(floor, color="grey", lw=0.8, ls="--")
+        ax.set_title(f"source.up={up}: world y up, away from the camera to the right")
+        ax.set_aspect("equal")
+        ax.set_xlabel("m (each moment shifted 1.2 m)")
+    png = out / "upright_side_view.png"
+    fig.tight_layout()
+    fig.savefig(png, dpi=90)
+    return png
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tilt", type=float, default=25.0)
@@ -131,6 +172,7 @@ def main() -> None:
         r = measure(run_variant(args, out, path, up), truth, up)
         print(f"{r['up']:<10} {r['up_error_deg']:7.1f} {r['pitch']:6.1f} {r['roll']:6.1f} {r['head_above']:10.2f} "
               f"{r['mpjpe_cam_mm']:9.1f} {r['feet_spread_mm']:11.1f}", flush=True)
+    print(f"figure: {figure(out, args.ups.split(','), path)}")
 
 
 if __name__ == "__main__":
