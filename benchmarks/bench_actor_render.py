@@ -23,7 +23,7 @@ from eventcap.body.kinematics import skin  # noqa: E402
 from eventcap.body.motions import motion_poses  # noqa: E402
 from eventcap.body.procedural import procedural_template  # noqa: E402
 from eventcap.camera import davis240c_default  # noqa: E402
-from eventcap.render import render, textured_background  # noqa: E402
+from eventcap.imaging.render import render, textured_background  # noqa: E402
 
 
 def main() -> None:

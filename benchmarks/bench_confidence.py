@@ -36,7 +36,7 @@ SCENES = {
 
 def run_scene(name: str, args, out: Path) -> dict:
     run_dir = out / name
-    cmd = [sys.executable, "-m", "eventcap.cli", "run", f"source.duration_s={args.duration}", f"source.seed={args.seed}",
+    cmd = [sys.executable, "-m", "eventcap.apps.cli", "run", f"source.duration_s={args.duration}", f"source.seed={args.seed}",
            "outputs.video=false", "outputs.bvh=false", "export=[source.recording]", f"hydra.run.dir={run_dir}",
            f"stages/detect={args.detector}", f"cache_dir={args.cache}", *SCENES[name]]
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
@@ -51,8 +51,8 @@ def measure(name: str, run_dir: Path) -> dict:
     import zarr
 
     from eventcap.artifacts.recording import Recording
-    from eventcap.confidence import OBSERVED, in_image
-    from eventcap.metrics import truth_at
+    from eventcap.analysis.confidence import OBSERVED, in_image
+    from eventcap.analysis.metrics import truth_at
 
     m = np.load(run_dir / "motion.npz")
     rec = Recording.from_zarr(zarr.open_group(str(run_dir / "source.recording.zarr"), mode="r"))

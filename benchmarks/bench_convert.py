@@ -97,7 +97,7 @@ def main() -> int:
         gen_s = write_input(src, n, args.format)
         print(f"input: {n:,} simulated events as {args.format}, {du(src) / 1e6:.0f} MB, written in {gen_s:.1f} s",
               flush=True)
-        cmd = [sys.executable, "-m", "eventcap.cli", "convert", str(src), str(out), "--chunk-events",
+        cmd = [sys.executable, "-m", "eventcap.apps.cli", "convert", str(src), str(out), "--chunk-events",
                str(args.chunk_events)]
         if args.format == "npy":
             cmd += ["--width", str(WIDTH), "--height", str(HEIGHT)]

@@ -35,11 +35,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import numpy as np  # noqa: E402
 import zarr  # noqa: E402
 from bench_solve import run  # noqa: E402
-from eventcap import edi  # noqa: E402
+from eventcap.imaging import edi  # noqa: E402
 from eventcap.artifacts.recording import Recording  # noqa: E402
 from eventcap.artifacts.tracking import LatentFrames  # noqa: E402
 from eventcap.body.skeleton import JOINT_NAMES, LANDMARK_NAMES  # noqa: E402
-from eventcap.metrics import procrustes_align  # noqa: E402
+from eventcap.analysis.metrics import procrustes_align  # noqa: E402
 from eventcap_detect import blazepose as bp  # noqa: E402
 from eventcap_detect.simulated import frame_truth  # noqa: E402
 

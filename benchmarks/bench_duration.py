@@ -36,7 +36,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-EVENTCAP = [sys.executable, "-m", "eventcap.cli"]
+EVENTCAP = [sys.executable, "-m", "eventcap.apps.cli"]
 STAGES = ("template", "source", "sharpen", "detect", "track", "slice", "solve", "stitch", "cut", "evaluate",
           "confidence")
 
@@ -57,7 +57,7 @@ def child(args) -> None:
     sys.path.insert(0, str(HERE))
     import profile_pipeline
 
-    import eventcap.stage as stage
+    import eventcap.core.stage as stage
 
     load_run = stage.StageSpec.load_run
     peak_mb: dict[str, float] = {}
@@ -78,7 +78,7 @@ def child(args) -> None:
     stage.StageSpec.load_run = load_run_rss
     # profile_pipeline's "cache I/O" is loads and commits together: time them apart too (inside its timer)
     cache_cpu: dict[str, float] = {"cache: load": 0.0, "cache: commit": 0.0}
-    from eventcap.cache import Cache
+    from eventcap.core.cache import Cache
 
     for name in ("load", "commit"):
         def timed(*a, _fn=getattr(Cache, name), _label=f"cache: {name}", **kw):

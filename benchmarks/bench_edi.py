@@ -1,4 +1,4 @@
-"""Benchmark of EDI sharpening and trajectory slicing (eventcap.edi, eventcap_track.bspline).
+"""Benchmark of EDI sharpening and trajectory slicing (eventcap.imaging.edi, eventcap_track.bspline).
 
 Prints (1) a PSNR table over synthetic fast motions at 240x180 (simulated DAVIS240C-like sensor with default
 noise, 10 ms exposures at 25 fps, 3 frames per motion): the blurry frame, EDI at the simulator's nominal C = 0.2,
@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))
 
-from eventcap import edi
+from eventcap.imaging import edi
 from eventcap_track import bspline
 
 from eventcap.sim.events import SensorConfig

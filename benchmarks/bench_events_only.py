@@ -6,9 +6,9 @@
     python benchmarks/bench_events_only.py withheld  [--motions a,b] [--duration 1]
 
 ``images``: on synthetic captures (the ``source`` node through the normal runner and cache), reconstructions from
-the events alone (:mod:`eventcap.reconstruct`: direct integration, the per-pixel high-pass filter at several
+the events alone (:mod:`eventcap.imaging.reconstruct`: direct integration, the per-pixel high-pass filter at several
 cutoffs, with and without a spatial Gaussian) at every intensity-frame time, compared with the true sharp image's
-log, log(I + 1e-3), up to scale and offset (:func:`eventcap.reconstruct.agreement`): Pearson correlation, the RMS
+log, log(I + 1e-3), up to scale and offset (:func:`eventcap.imaging.reconstruct.agreement`): Pearson correlation, the RMS
 after the affine fit, and the correlation of the image gradients (what the tracker uses). Over two regions: the
 actor (pixels where the true image differs from the static background, grown by 3 px: what detector and tracker
 need) and the whole image (the static background cannot be recovered from events; it reads as mid-grey).
@@ -47,7 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 import numpy as np  # noqa: E402
 
-from eventcap.reconstruct import agreement, high_pass, median_baseline, smooth_image  # noqa: E402
+from eventcap.imaging.reconstruct import agreement, high_pass, median_baseline, smooth_image  # noqa: E402
 
 MOTIONS = "karate_kick,boxing_combo,javelin_throw,dance_spin,fast_wave,jumping_jack"
 #: (name, cutoff rad/s, smooth px, median baseline) compared by `images`
@@ -62,8 +62,8 @@ EPS = 1e-3
 
 def run_one(overrides: list[str], run_dir: Path):
     """``eventcap run <overrides>`` into run_dir (pipeline + run outputs); returns (runner, result) or None."""
-    from eventcap.benchmark import compose_run
-    from eventcap.cli import run_job
+    from eventcap.apps.benchmark import compose_run
+    from eventcap.apps.cli import run_job
 
     data, text = compose_run(ROOT / "conf", overrides)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -96,7 +96,7 @@ def sequence(motion: str, args) -> list[str]:
 def actor_mask(rec, k: int, grow_px: int = 3) -> np.ndarray:
     import cv2
 
-    from eventcap.render import textured_background
+    from eventcap.imaging.render import textured_background
 
     bg = textured_background(rec.height, rec.width, seed=0)
     m = (np.abs(rec.ground_truth.sharp_images[k] - bg) > 1e-3).astype(np.uint8)
@@ -221,8 +221,8 @@ def _f(x, digits):
 def cmd_picture(args) -> dict:
     import cv2
 
-    from eventcap.reconstruct import DEFAULT_CUTOFF_RAD_S, to_intensity, to_log_images
-    from eventcap.viz import event_image, label, to_bgr
+    from eventcap.imaging.reconstruct import DEFAULT_CUTOFF_RAD_S, to_intensity, to_log_images
+    from eventcap.imaging.viz import event_image, label, to_bgr
 
     rec = source_recording(args.motion, args)
     fr, gt = rec.frames, rec.ground_truth
@@ -252,7 +252,7 @@ def cmd_picture(args) -> dict:
 def cmd_withheld(args) -> dict:
     """source.frames=false withholds the frames and changes nothing else: the same events, ground truth, batches and
     images from events as the capture with frames (so `events_same_source` runs give the poses `events` would)."""
-    from eventcap.reconstruct import reconstruct
+    from eventcap.imaging.reconstruct import reconstruct
 
     out = {}
     for motion in args.motions.split(","):

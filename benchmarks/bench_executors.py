@@ -34,7 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
-EVENTCAP = [sys.executable, "-m", "eventcap.cli", "run"]
+EVENTCAP = [sys.executable, "-m", "eventcap.apps.cli", "run"]
 
 
 def run(cwd: Path, overrides: list[str], tag: str, env: dict | None = None) -> dict:

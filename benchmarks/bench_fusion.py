@@ -53,7 +53,7 @@ from eventcap.artifacts.pose import Detections  # noqa: E402
 from eventcap.artifacts.recording import Recording  # noqa: E402
 from eventcap.artifacts.tracking import SlicedTracks  # noqa: E402
 from eventcap.body.kinematics import joint_positions  # noqa: E402
-from eventcap.metrics import mean_joint_error, pose_at  # noqa: E402
+from eventcap.analysis.metrics import mean_joint_error, pose_at  # noqa: E402
 from eventcap_solve._impl import problem_for  # noqa: E402
 from eventcap_solve.batch import interpolate_poses, select_detections, solve_batch, unwrap_root  # noqa: E402
 from eventcap_solve.spec import BatchSolveConfig  # noqa: E402

@@ -17,7 +17,7 @@ import numpy as np
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.motions import sequence_poses
 from eventcap.body.procedural import DEFAULT_REST_JOINTS
-from eventcap.metrics import mean_joint_error
+from eventcap.analysis.metrics import mean_joint_error
 
 MOTIONS = "karate_kick,boxing_combo,javelin_throw,dance_spin,fast_wave,jumping_jack"
 

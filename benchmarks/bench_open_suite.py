@@ -24,8 +24,8 @@ import logging
 import time
 from pathlib import Path
 
-from eventcap.benchmark import Benchmark, compose_benchmark, compose_run
-from eventcap.stage import StageContext
+from eventcap.apps.benchmark import Benchmark, compose_benchmark, compose_run
+from eventcap.core.stage import StageContext
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -97,7 +97,7 @@ def _f(x, digits=1, pct=False):
 
 
 def part_markdown(args) -> None:
-    from eventcap.benchmark import failed_runs, group_tables
+    from eventcap.apps.benchmark import failed_runs, group_tables
 
     res = json.loads(Path(args.results).read_text())
     # recomputed from the runs' records, so a suite finished by an older version reads the same

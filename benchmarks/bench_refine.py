@@ -46,10 +46,10 @@ from eventcap.artifacts.pose import PoseSequence  # noqa: E402
 from eventcap.body.kinematics import joint_positions  # noqa: E402
 from eventcap.body.procedural import procedural_template  # noqa: E402
 from eventcap.body.skeleton import pose_bounds  # noqa: E402
-from eventcap.config import build_config  # noqa: E402
-from eventcap.metrics import mean_joint_error  # noqa: E402
-from eventcap.registry import load_registry  # noqa: E402
-from eventcap.stage import StageContext  # noqa: E402
+from eventcap.core.config import build_config  # noqa: E402
+from eventcap.analysis.metrics import mean_joint_error  # noqa: E402
+from eventcap.core.registry import load_registry  # noqa: E402
+from eventcap.core.stage import StageContext  # noqa: E402
 from eventcap.energy.boundary import silhouette_iou, silhouettes  # noqa: E402
 from eventcap_refine.spec import SILHOUETTE  # noqa: E402
 

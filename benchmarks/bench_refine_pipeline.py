@@ -35,10 +35,10 @@ from eventcap.artifacts.pose import PoseSequence  # noqa: E402
 from eventcap.artifacts.recording import Recording  # noqa: E402
 from eventcap.artifacts.tracking import LatentFrames  # noqa: E402
 from eventcap.body.kinematics import joint_positions, skin  # noqa: E402
-from eventcap.cache import Cache  # noqa: E402
-from eventcap.metrics import mean_joint_error, pose_at  # noqa: E402
-from eventcap.render import rasterize  # noqa: E402
-from eventcap.viz import event_image, to_bgr  # noqa: E402
+from eventcap.core.cache import Cache  # noqa: E402
+from eventcap.analysis.metrics import mean_joint_error, pose_at  # noqa: E402
+from eventcap.imaging.render import rasterize  # noqa: E402
+from eventcap.imaging.viz import event_image, to_bgr  # noqa: E402
 
 
 def masks(rec: Recording, poses: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from eventcap.body.procedural import procedural_template
-from eventcap.stage import StageContext
+from eventcap.core.stage import StageContext
 from eventcap_synthetic._impl import run_synthetic
 from eventcap_synthetic.spec import SyntheticConfig
 

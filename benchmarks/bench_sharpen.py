@@ -24,11 +24,11 @@ import numpy as np  # noqa: E402
 
 from eventcap.body.procedural import procedural_template  # noqa: E402
 from eventcap.camera import davis240c_default  # noqa: E402
-from eventcap.render import textured_background  # noqa: E402
+from eventcap.imaging.render import textured_background  # noqa: E402
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic  # noqa: E402
 from eventcap.sim.events import SensorConfig  # noqa: E402
 from eventcap.sim.frames import FrameConfig  # noqa: E402
-from eventcap import edi  # noqa: E402
+from eventcap.imaging import edi  # noqa: E402
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:

@@ -31,10 +31,10 @@ from omegaconf import OmegaConf  # noqa: E402
 import zarr  # noqa: E402
 from eventcap.artifacts.pose import PoseSequence  # noqa: E402
 from eventcap.artifacts.recording import Recording  # noqa: E402
-from eventcap.cache import Cache  # noqa: E402
+from eventcap.core.cache import Cache  # noqa: E402
 from eventcap.body.kinematics import joint_positions  # noqa: E402
-from eventcap.metrics import mean_joint_error, pose_at  # noqa: E402
-from eventcap.runner import Runner  # noqa: E402
+from eventcap.analysis.metrics import mean_joint_error, pose_at  # noqa: E402
+from eventcap.core.runner import Runner  # noqa: E402
 
 MODES = ("linear", "per_frame", "batch")
 

@@ -48,10 +48,10 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from eventcap.artifacts.recording import Recording  # noqa: E402
-from eventcap.benchmark import stage_times  # noqa: E402
+from eventcap.apps.benchmark import stage_times  # noqa: E402
 from eventcap.body.kinematics import joint_positions  # noqa: E402
-from eventcap.cli import run_job  # noqa: E402
-from eventcap.metrics import pose_at  # noqa: E402
+from eventcap.apps.cli import run_job  # noqa: E402
+from eventcap.analysis.metrics import pose_at  # noqa: E402
 
 METHODS = {
     "spline": ["pipeline=spline"],

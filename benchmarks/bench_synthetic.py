@@ -17,7 +17,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from eventcap.body.procedural import procedural_template  # noqa: E402
 from eventcap.camera import davis240c_default  # noqa: E402
-from eventcap.render import textured_background  # noqa: E402
+from eventcap.imaging.render import textured_background  # noqa: E402
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic  # noqa: E402
 from eventcap.sim.events import SensorConfig  # noqa: E402
 

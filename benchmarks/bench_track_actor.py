@@ -3,7 +3,7 @@ EDI latent images, per 40 ms batch, on features lying on the actor.
 
     python benchmarks/bench_track_actor.py [--motions ...] [--duration 0.5]
 
-The truth of a feature is the surface point under its detection (eventcap.metrics.feature_ground_truth). Errors are
+The truth of a feature is the surface point under its detection (eventcap.analysis.metrics.feature_ground_truth). Errors are
 over all samples of tracks on the actor; survival = fraction of actor tracks that reach the batch end.
 
 The last table is a paired check of stitching: every stitched track against the forward track it starts as
@@ -32,10 +32,10 @@ from eventcap.camera import davis240c_default  # noqa: E402
 import cv2  # noqa: E402
 
 from eventcap.body.kinematics import skin  # noqa: E402
-from eventcap.metrics import pose_at, track_errors  # noqa: E402
-from eventcap.render import rasterize, textured_background  # noqa: E402
+from eventcap.analysis.metrics import pose_at, track_errors  # noqa: E402
+from eventcap.imaging.render import rasterize, textured_background  # noqa: E402
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic  # noqa: E402
-from eventcap import edi  # noqa: E402
+from eventcap.imaging import edi  # noqa: E402
 from eventcap_track import eklt, klt  # noqa: E402
 
 

@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def eventcap(args: list[str], log: Path) -> int:
-    p = subprocess.run([sys.executable, "-m", "eventcap.cli", *args], cwd=ROOT, capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", *args], cwd=ROOT, capture_output=True, text=True)
     log.write_text(p.stdout + p.stderr)
     return p.returncode
 
@@ -86,7 +86,7 @@ def measure(run_dir: Path, truth, up: str) -> dict:
     from eventcap.artifacts.pose import Detections
     from eventcap.body.skeleton import JOINT_INDEX
     from eventcap.camera import level_rotation, tilt_from_up
-    from eventcap.metrics import truth_at
+    from eventcap.analysis.metrics import truth_at
 
     det = Detections.from_zarr(zarr.open_group(str(run_dir / "detect.detections.zarr"), mode="r"))
     R = det.world_R if det.world_R is not None else (level_rotation() if up != "camera" else np.eye(3))

@@ -42,7 +42,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from eventcap.body.skeleton import LANDMARK_NAMES  # noqa: E402
-from eventcap.runner import Runner  # noqa: E402
+from eventcap.core.runner import Runner  # noqa: E402
 from eventcap_detect.checks import CHECKS, inside_image  # noqa: E402
 
 SUITE = ("karate_kick", "boxing_combo", "javelin_throw", "dance_spin", "fast_wave", "jumping_jack")

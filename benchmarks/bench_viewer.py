@@ -27,9 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=1)
     args = ap.parse_args(argv)
 
-    from eventcap.bvh import read_motion_npz
-    from eventcap.outputs import check_outputs_config, write_run_outputs
-    from eventcap.runner import load_finished_run
+    from eventcap.export.bvh import read_motion_npz
+    from eventcap.apps.outputs import check_outputs_config, write_run_outputs
+    from eventcap.core.runner import load_finished_run
 
     runner, result = load_finished_run(args.run_dir)
     base = check_outputs_config(runner)
@@ -69,7 +69,7 @@ def _check_c3d(path: Path, m: dict, runner, result) -> None:
     import ezc3d
 
     from eventcap.body.markers import plug_in_gait_markers
-    from eventcap.c3d import c3d_labels
+    from eventcap.export.c3d import c3d_labels
 
     tpl = runner.load_output(result, "template.template")[None]
     markers = plug_in_gait_markers(tpl)

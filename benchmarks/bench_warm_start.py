@@ -45,7 +45,7 @@ import numpy as np  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from eventcap.cli import run_job  # noqa: E402
+from eventcap.apps.cli import run_job  # noqa: E402
 
 VARIANTS = {"cold": (False, None), "warm": (True, None), "warm_mu9": (True, 1e-9)}
 

@@ -24,8 +24,8 @@ import numpy as np  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from eventcap.energy.bones import _J, BONES  # noqa: E402
-from eventcap.metrics import depth_split, procrustes_align, root_relative, truth_at  # noqa: E402
-from eventcap.runner import Runner  # noqa: E402
+from eventcap.analysis.metrics import depth_split, procrustes_align, root_relative, truth_at  # noqa: E402
+from eventcap.core.runner import Runner  # noqa: E402
 
 
 def from_run(run_dir: Path, port: str = "source.recording", keep: tuple[str, ...] = ("template", "source")):

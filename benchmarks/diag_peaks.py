@@ -30,7 +30,7 @@ def load(run_dir: Path, cache: Path):
     import zarr
 
     from eventcap.artifacts.recording import Recording
-    from eventcap.metrics import truth_at
+    from eventcap.analysis.metrics import truth_at
 
     key = json.loads((run_dir / "run.json").read_text())["nodes"]["source"]["keys"][0]
     data = next(cache.glob(f"entries/*/{key}/data"), None)
@@ -48,7 +48,7 @@ def peak_pairs(t, J, G, window_us: float = 10_000.0, batch_us: int = 40_000) -> 
     """(n, 2): the true peak speed (m/s) and the signed relative error of the estimate's peak, per (batch, end
     effector) with a true peak above 0.5 m/s."""
     from eventcap.body.skeleton import JOINT_INDEX
-    from eventcap.metrics import central_derivative, root_relative
+    from eventcap.analysis.metrics import central_derivative, root_relative
 
     ee = [JOINT_INDEX[n] for n in ("l_wrist", "r_wrist", "l_ankle", "r_ankle", "head")]
     vp, valid = central_derivative(root_relative(J), t, window_us, 1)

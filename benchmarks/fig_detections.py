@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from bench_detector import capture  # noqa: E402
-from eventcap import edi  # noqa: E402
+from eventcap.imaging import edi  # noqa: E402
 from eventcap.body.skeleton import LANDMARK_INDEX, LANDMARK_NAMES  # noqa: E402
 from eventcap_detect import blazepose as bp  # noqa: E402
 from eventcap_detect.simulated import frame_truth  # noqa: E402

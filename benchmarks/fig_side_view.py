@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 
 from diag_depth import from_run  # noqa: E402
 from eventcap.body.skeleton import JOINT_INDEX, PARENTS  # noqa: E402
-from eventcap.metrics import END_EFFECTORS, central_derivative, root_relative, truth_at  # noqa: E402
+from eventcap.analysis.metrics import END_EFFECTORS, central_derivative, root_relative, truth_at  # noqa: E402
 
 
 def side(joints: np.ndarray, R: np.ndarray) -> np.ndarray:

@@ -26,8 +26,8 @@ import numpy as np  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from eventcap.body.skeleton import JOINT_INDEX  # noqa: E402
-from eventcap.metrics import central_derivative, root_relative, truth_at  # noqa: E402
-from eventcap.runner import Runner  # noqa: E402
+from eventcap.analysis.metrics import central_derivative, root_relative, truth_at  # noqa: E402
+from eventcap.core.runner import Runner  # noqa: E402
 
 
 def speed(t_us: np.ndarray, x: np.ndarray, window_us: float) -> np.ndarray:

@@ -1,5 +1,5 @@
 """Kill a multi-batch run with SIGKILL at random moments, resume it, and check the result: a run killed at any
-moment and started again must end with the outputs of an uninterrupted run (eventcap/cache.py: atomic commits).
+moment and started again must end with the outputs of an uninterrupted run (eventcap/core/cache.py: atomic commits).
 
 For each trial: start `eventcap run` on the toy pipeline (tests/toy_stages.py) in a fresh cache, SIGKILL its whole
 process group (``--kill group``) or the driver alone (``--kill driver``: its pool / Dask workers must then die on their
@@ -38,7 +38,7 @@ SLEEP_S = 0.08  # pretend work per batch and stage (--sleep)
 
 
 def command(run_dir: str, executor: str) -> list[str]:
-    return [sys.executable, "-m", "eventcap.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
+    return [sys.executable, "-m", "eventcap.apps.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
             "experiment=toy", "stages.signal.n_batches=6", f"stages.smooth.sleep_s={SLEEP_S}",
             f"stages.scale.sleep_s={SLEEP_S}",
             f"executor={executor}", f"hydra.run.dir={run_dir}", "log_level=WARNING"]

@@ -42,7 +42,7 @@ from collections import defaultdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-EVENTCAP = [sys.executable, "-m", "eventcap.cli"]
+EVENTCAP = [sys.executable, "-m", "eventcap.apps.cli"]
 
 
 # --------------------------------------------------------------------------------------------- timers (child side)
@@ -97,7 +97,7 @@ def _stage_label(spec):
 
 def install(timers: Timers) -> None:
     """Wrap the functions whose time the report shows (whatever of them this code has)."""
-    import eventcap.stage as stage
+    import eventcap.core.stage as stage
 
     load_run = stage.StageSpec.load_run
 
@@ -105,9 +105,9 @@ def install(timers: Timers) -> None:
         return timers.wrap(load_run(self), _stage_label(self))
 
     stage.StageSpec.load_run = load_run_timed
-    timers.patch("eventcap.cache", "Cache.load", "cache I/O")
-    timers.patch("eventcap.cache", "Cache.commit", "cache I/O")
-    timers.patch("eventcap.outputs", "write_run_outputs", "outputs (motion files)")
+    timers.patch("eventcap.core.cache", "Cache.load", "cache I/O")
+    timers.patch("eventcap.core.cache", "Cache.commit", "cache I/O")
+    timers.patch("eventcap.apps.outputs", "write_run_outputs", "outputs (motion files)")
     # the tracker
     try:
         from eventcap_track import eklt
@@ -185,7 +185,7 @@ def child(args) -> None:
     fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
     os.dup2(fd, 1)  # IPOPT prints its summaries on the C stdout
     try:
-        from eventcap.cli import main
+        from eventcap.apps.cli import main
 
         install(timers)
         if args.warm_start:  # an experiment, not a stage option (benchmarks/bench_warm_start.py says why)

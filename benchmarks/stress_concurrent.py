@@ -69,7 +69,7 @@ class Job:
 
     def start(self, round_: int) -> None:
         log = open(self.workdir / f"job{self.i}.round{round_}.log", "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "eventcap.cli", "run", *self.args], cwd=self.workdir,
+        self.proc = subprocess.Popen([sys.executable, "-m", "eventcap.apps.cli", "run", *self.args], cwd=self.workdir,
                                      env=env(), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         log.close()
 
@@ -129,7 +129,7 @@ def reference(args, tmp: Path, configs) -> dict[str, dict]:
     out = {}
     t0 = time.perf_counter()
     for key, value in configs:
-        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", *spec["base"], f"{key}={value}",
+        p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", *spec["base"], f"{key}={value}",
                             f"cache_dir={ref / 'cache'}", f"hydra.run.dir=runs/{value}", "log_level=WARNING"],
                            cwd=ref, env=env(), capture_output=True, text=True)
         if p.returncode != 0:

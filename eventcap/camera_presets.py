@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-PRESET_DIR = Path(__file__).parent / "assets" / "cameras"
+PRESET_DIR = Path(__file__).resolve().parent / "assets" / "cameras"
 
 #: Calibrations a preset may name instead of a lens (``calibration: NAME``): attributes of :mod:`eventcap.camera`.
 NAMED_CALIBRATIONS = ("DAVIS240C_CALIBRATION",)

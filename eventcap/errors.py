@@ -4,7 +4,7 @@ The library (body, camera, sim, io, energy, motion, ...) imports nothing from th
 cache, registry, cli, pipeline, jobs, benchmark): its modules raise errors of their own, subclasses of
 :class:`ComputationFailed` when a run should record a short machine-readable status (e.g. ``bad_poses``, a solver's
 status), and the runner translates them into the failed unit's record (``run.json``: ``failed[].status``), as it
-does for a stage's :class:`eventcap.stage.StageFailed`. Plain input mistakes stay ``ValueError``.
+does for a stage's :class:`eventcap.core.stage.StageFailed`. Plain input mistakes stay ``ValueError``.
 """
 
 from __future__ import annotations

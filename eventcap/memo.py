@@ -2,7 +2,7 @@
 keyed by value, bounded, and cleared together.
 
 Every module-level cache of the project is a :class:`ProcessCache` (or a function wrapped by :func:`memoize`), so
-that :func:`clear_process_caches` empties them all (tests; ``eventcap.runner.reset_process_caches`` after the stages
+that :func:`clear_process_caches` empties them all (tests; ``eventcap.core.runner.reset_process_caches`` after the stages
 or files on disk changed) and none is keyed by ``id()``: an id is reused once its object is gone, and a cache keyed by
 it hands a later object the value built for another. Keys are values: numbers, strings, bytes, paths, classes, frozen
 dataclasses and tuples of them; :func:`value_key` turns arrays and mappings into such keys. A key part hashed by

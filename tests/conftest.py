@@ -58,7 +58,7 @@ def run_concurrently(cmds: list[list[str]], cwd) -> list[tuple[bytes, bytes]]:
 
 def _stages_in_process(monkeypatch, specs: str):
     """Register the test stages ``specs`` (EVENTCAP_STAGES syntax, modules in tests/) for one test."""
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     monkeypatch.setenv("EVENTCAP_STAGES", specs)
     monkeypatch.syspath_prepend(str(TESTS))
@@ -108,7 +108,7 @@ def toy_cfg(tmp_path, toy):
 
 
 def eventcap_cmd() -> list[str]:
-    return [sys.executable, "-m", "eventcap.cli"]
+    return [sys.executable, "-m", "eventcap.apps.cli"]
 
 
 @functools.lru_cache(maxsize=1)

@@ -9,7 +9,7 @@ import numpy as np
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.artifacts.recording import Recording
-from eventcap.stage import Port, StageFailed, StageSpec, param
+from eventcap.core.stage import Port, StageFailed, StageSpec, param
 
 
 @dataclass

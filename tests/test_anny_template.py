@@ -20,7 +20,7 @@ from eventcap.body.skeleton import (
     NUM_POSE_PARAMS,
     PARENTS,
 )
-from eventcap.testing import StageConformance
+from eventcap.core.testing import StageConformance
 
 J = JOINT_INDEX
 ROOT = Path(__file__).resolve().parents[1]
@@ -248,7 +248,7 @@ class TestAnnyStage(StageConformance):
 
 def test_renders_as_a_clothed_person_in_the_default_camera(actor):
     from eventcap.camera import davis240c_default
-    from eventcap.render import render
+    from eventcap.imaging.render import render
 
     cam = davis240c_default(distortion=False, eye=(0.0, 1.0, 3.0), target=(0.0, 1.0, 0.0))
     r = render(cam, actor.vertices, actor.faces, actor.vertex_albedo, background=np.full((180, 240), 0.5, np.float32))

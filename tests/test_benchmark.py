@@ -1,4 +1,4 @@
-"""``eventcap benchmark`` (eventcap/benchmark.py): aggregation into Table 1 by hand on a fake results set, the method
+"""``eventcap benchmark`` (eventcap/apps/benchmark.py): aggregation into Table 1 by hand on a fake results set, the method
 list from config, a tiny end-to-end benchmark run twice (the second from the cache), and the quick preset (slow)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eventcap.benchmark import (
+from eventcap.apps.benchmark import (
     Benchmark,
     aggregate,
     compose_benchmark,
@@ -160,7 +160,7 @@ def test_bad_benchmark_configs_are_refused():
     with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, open, "
                                          r"open_check, quick\)"):
         compose_benchmark(CONF, "nope", [])
-    from eventcap.benchmark import main
+    from eventcap.apps.benchmark import main
 
     with pytest.raises(ValueError, match=r"(?s)Could not override 'motion'.*not benchmark keys are overrides of every "
                                          r"run; the benchmark keys: cache_dir, detector, detectors, duration_s"):
@@ -214,7 +214,7 @@ def test_tiny_benchmark_end_to_end_twice_second_time_from_the_cache(tmp_path, kn
 @pytest.mark.slow
 def test_quick_preset_twice(tmp_path):
     """`eventcap benchmark benchmark=quick` (about a minute), then again: everything from the cache."""
-    cmd = [sys.executable, "-m", "eventcap.cli", "benchmark", "benchmark=quick", f"out={tmp_path / 'out'}",
+    cmd = [sys.executable, "-m", "eventcap.apps.cli", "benchmark", "benchmark=quick", f"out={tmp_path / 'out'}",
            f"cache_dir={tmp_path / 'cache'}"]
     first = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=1200)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -239,19 +239,20 @@ def test_quick_preset_twice(tmp_path):
 
 def test_apps_do_not_import_each_other():
     """cli -> benchmark -> cli was an import cycle: what both need (run_job, the file writers) lives in
-    eventcap.jobs, below cli, benchmark and report."""
-    code = ("import sys, eventcap.benchmark, eventcap.report; "
-            "print(sorted(m for m in sys.modules if m in ('eventcap.cli', 'eventcap.benchmark', 'eventcap.report')))")
+    eventcap.apps.jobs, below cli, benchmark and report."""
+    code = ("import sys, eventcap.apps.benchmark, eventcap.apps.report; "
+            "print(sorted(m for m in sys.modules if m in ('eventcap.apps.cli', 'eventcap.apps.benchmark', 'eventcap.apps.report')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "['eventcap.benchmark', 'eventcap.report']"  # neither pulled in eventcap.cli
-    from eventcap import cli, jobs
+    assert out.stdout.strip() == "['eventcap.apps.benchmark', 'eventcap.apps.report']"  # neither pulled in eventcap.apps.cli
+    from eventcap.apps import cli
 
+    from eventcap.apps import jobs
     assert cli.run_job is jobs.run_job
 
 
 def test_speed_figure_from_run_records(tmp_path):
-    from eventcap.benchmark import plot_speeds
+    from eventcap.apps.benchmark import plot_speeds
 
     t = (1000 * np.arange(200)).tolist()
     true = np.abs(np.sin(np.arange(200) / 30.0)) * 3.0

@@ -17,11 +17,11 @@ import pytest
 from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.body.skeleton import JOINT_INDEX, JOINT_NAMES, LANDMARK_INDEX, LANDMARK_NAMES
 from eventcap.camera import Camera
-from eventcap.config import build_config
+from eventcap.core.config import build_config
 from eventcap.events import EVENT_DTYPE, make_events
-from eventcap.registry import load_registry
-from eventcap.stage import StageContext
-from eventcap.testing import StageConformance
+from eventcap.core.registry import load_registry
+from eventcap.core.stage import StageContext
+from eventcap.core.testing import StageConformance
 
 try:
     import eventcap_detect  # noqa: F401
@@ -335,7 +335,7 @@ def test_stage_at_latent_and_tracking_uses_the_edi_images():
 
 
 def test_no_person_anywhere_fails_the_stage_with_the_reason():
-    from eventcap.stage import StageFailed
+    from eventcap.core.stage import StageFailed
 
     rec = photo_recording()
     blank = FrameStack(images=np.zeros_like(rec.frames.images), t_us=rec.frames.t_us,

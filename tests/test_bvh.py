@@ -1,4 +1,4 @@
-"""BVH export: files written by eventcap.bvh, read back by independent parsers from PyPI (``bvh``: a plain
+"""BVH export: files written by eventcap.export.bvh, read back by independent parsers from PyPI (``bvh``: a plain
 tokenizer, positions by a small float64 forward kinematics here; ``bvhio``: its own hierarchy and forward
 kinematics, in float32), give the joint positions of eventcap's forward kinematics."""
 
@@ -25,7 +25,7 @@ from eventcap.body.skeleton import (
     PARENTS,
     pose_bounds,
 )
-from eventcap.bvh import (
+from eventcap.export.bvh import (
     bvh_channels,
     bvh_layout,
     euler_from_matrix,

@@ -1,4 +1,4 @@
-"""C3D export (eventcap/c3d.py, outputs.c3d=true), written with the `c3d` package and read back by it and by the
+"""C3D export (eventcap/export/c3d.py, outputs.c3d=true), written with the `c3d` package and read back by it and by the
 independent C++ library ezc3d: labels, rate, units, up axis, time origin, values equal to motion.npz within
 0.01 mm, gaps marked invalid, files of any length read whole by both."""
 
@@ -12,8 +12,8 @@ import pytest
 
 from eventcap.body.markers import MARKER_NAMES
 from eventcap.body.skeleton import JOINT_INDEX, JOINT_NAMES
-from eventcap.bvh import read_motion_npz
-from eventcap.c3d import c3d_labels, point_residuals, write_c3d
+from eventcap.export.bvh import read_motion_npz
+from eventcap.export.c3d import c3d_labels, point_residuals, write_c3d
 
 ezc3d = pytest.importorskip("ezc3d")
 c3d = pytest.importorskip("c3d")
@@ -203,8 +203,8 @@ def test_outputs_c3d_needs_the_c3d_package(tmp_path, monkeypatch):
 
     from test_outputs import config
 
-    from eventcap.outputs import OutputsConfig, check_outputs_config
-    from eventcap.runner import Runner
+    from eventcap.apps.outputs import OutputsConfig, check_outputs_config
+    from eventcap.core.runner import Runner
 
     with pytest.raises(ValueError, match=r"outputs\.c3d: expected true or false, got 'yes'"):
         OutputsConfig.from_mapping({"c3d": "yes"})

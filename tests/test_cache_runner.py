@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from eventcap.artifacts import Metrics
-from eventcap.cache import Cache, CacheCorruptError, make_key
-from eventcap.runner import Runner, reset_process_caches
+from eventcap.core.cache import Cache, CacheCorruptError, make_key
+from eventcap.core.runner import Runner, reset_process_caches
 
 
 def counts(result) -> dict[str, tuple[int, int]]:
@@ -142,7 +142,7 @@ def test_manifestless_directory_is_invisible_and_orphans_cleaned(toy_cfg, tmp_pa
     alive = cache.root / "tmp" / f"{key}.{os.uname().nodename}.{os.getpid()}.abcd1234"
     alive.mkdir()
     # a process killed mid rename probe leaves the probe before or after its rename (CI once found the latter)
-    from eventcap.cache import _rename_probe_paths
+    from eventcap.core.cache import _rename_probe_paths
 
     probes = _rename_probe_paths(cache.root, 999999999, "ef567890")
     for p in probes:
@@ -186,7 +186,7 @@ def test_concurrent_commit_of_same_key_keeps_one_entry(tmp_path):
 
 
 def test_file_digest_not_mtime(tmp_path, toy):
-    from eventcap.config import file_digest
+    from eventcap.core.config import file_digest
 
     f = tmp_path / "rec.bin"
     f.write_bytes(b"abc")

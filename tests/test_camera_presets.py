@@ -12,10 +12,10 @@ import pytest
 
 from eventcap.body.procedural import procedural_template
 from eventcap.camera_presets import load_preset, preset_names
-from eventcap.config import ConfigError, build_config
-from eventcap.render import BACKGROUNDS, background, textured_background
+from eventcap.core.config import ConfigError, build_config
+from eventcap.imaging.render import BACKGROUNDS, background, textured_background
 from eventcap.sim.frames import FrameConfig, sensor_readout
-from eventcap.stage import StageContext
+from eventcap.core.stage import StageContext
 from eventcap_synthetic._impl import camera_for, resolve_camera, run_synthetic, sensor_settings
 from eventcap_synthetic.spec import SYNTHETIC, SyntheticConfig
 

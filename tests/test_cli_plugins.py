@@ -14,7 +14,7 @@ TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy"]
 
 
 def run_cli(args, cwd, env=None, check=True):
-    proc = subprocess.run([sys.executable, "-m", "eventcap.cli", *args], cwd=cwd, env=env or toy_env(),
+    proc = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", *args], cwd=cwd, env=env or toy_env(),
                           capture_output=True, text=True, timeout=300)
     if check and proc.returncode != 0:
         raise AssertionError(f"exit {proc.returncode}\n{proc.stdout}\n{proc.stderr}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from eventcap.cli import main, run_options_as_overrides
+from eventcap.apps.cli import main, run_options_as_overrides
 
 
 def test_cache_ls_takes_both_styles_and_a_missing_cache_is_an_error(tmp_path, capsys):
@@ -17,7 +17,7 @@ def test_cache_ls_takes_both_styles_and_a_missing_cache_is_an_error(tmp_path, ca
 
 
 def test_cache_ls_and_explain_of_an_existing_cache(tmp_path, capsys):
-    from eventcap.cache import Cache
+    from eventcap.core.cache import Cache
 
     Cache(tmp_path / "cache")  # an empty cache
     assert main(["cache", "ls", f"cache_dir={tmp_path / 'cache'}"]) == 0

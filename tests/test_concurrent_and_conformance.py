@@ -8,14 +8,14 @@ import sys
 import numpy as np
 
 from eventcap.artifacts import BatchPlan
-from eventcap.cache import Cache
-from eventcap.testing import StageConformance
+from eventcap.core.cache import Cache
+from eventcap.core.testing import StageConformance
 
 from conftest import TESTS, run_concurrently
 
 
 def test_two_sweeps_concurrently_on_one_cache(tmp_path):
-    base = [sys.executable, "-m", "eventcap.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
+    base = [sys.executable, "-m", "eventcap.apps.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
             "experiment=toy", "stages.smooth.sleep_s=0.02", f"cache_dir={tmp_path / 'cache'}", "log_level=WARNING"]
     run_concurrently([base + ["stages.scale.factor=1,2,3", "name=a"], base + ["stages.scale.factor=3,2,1", "name=b"]],
                      tmp_path)

@@ -14,15 +14,15 @@ from pathlib import Path
 
 import pytest
 
-from eventcap.cache import Cache, EntryLock, clean_stale_locks
-from eventcap.rundir import LOCK_NAME, claim, release
+from eventcap.core.cache import Cache, EntryLock, clean_stale_locks
+from eventcap.core.rundir import LOCK_NAME, claim, release
 
 from conftest import TESTS, run_concurrently, toy_env
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from kill_resume import survivors  # noqa: E402
 
-TOY = [sys.executable, "-m", "eventcap.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy",
+TOY = [sys.executable, "-m", "eventcap.apps.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy",
        "outputs.poses=null"]
 
 
@@ -162,7 +162,7 @@ def test_dask_workers_die_with_a_killed_driver(tmp_path):
 # ---------------------------------------------------------------------------------------------------------------------
 def test_entry_lock_is_exclusive_and_a_killed_holder_leaves_nothing_stuck(tmp_path):
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from eventcap.cache import EntryLock; lock = EntryLock(sys.argv[1], 'abc123');"
+        "import sys, time; from eventcap.core.cache import EntryLock; lock = EntryLock(sys.argv[1], 'abc123');"
         "assert lock.acquire(owner='node x'); print('held', flush=True); time.sleep(60)"), str(tmp_path)],
         stdout=subprocess.PIPE, text=True)
     try:
@@ -229,11 +229,11 @@ def test_two_overlapping_sweeps_compute_each_entry_once(tmp_path):
 def test_a_benchmark_refuses_a_folder_another_benchmark_is_writing(tmp_path):
     out = tmp_path / "bench"
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from eventcap.rundir import claim; claim(sys.argv[1], what='benchmark');"
+        "import sys, time; from eventcap.core.rundir import claim; claim(sys.argv[1], what='benchmark');"
         "print('held', flush=True); time.sleep(60)"), str(out)], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "benchmark", "benchmark=quick", f"out={out}"],
+        p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "benchmark", "benchmark=quick", f"out={out}"],
                            cwd=tmp_path, capture_output=True, text=True, timeout=120)
     finally:
         holder.kill()
@@ -248,7 +248,7 @@ def test_a_pool_worker_killed_mid_run_is_replaced_and_the_result_unchanged(toy_c
 
     import psutil
 
-    from eventcap.runner import Runner
+    from eventcap.core.runner import Runner
 
     def run(name, executor):
         cfg = toy_cfg(signal={"n_batches": 6}, smooth={"sleep_s": 0.3})
@@ -288,7 +288,7 @@ def test_a_pool_worker_killed_mid_run_is_replaced_and_the_result_unchanged(toy_c
 def test_an_entry_another_process_holds_is_put_off_then_waited_for(toy_cfg, tmp_path, kind, caplog):
     import threading
 
-    from eventcap.runner import Runner
+    from eventcap.core.runner import Runner
 
     def run(name, executor):
         cfg = toy_cfg(signal={"n_batches": 4})
@@ -308,7 +308,7 @@ def test_an_entry_another_process_holds_is_put_off_then_waited_for(toy_cfg, tmp_
 
     timer = threading.Thread(target=release_when_the_others_are_done)
     timer.start()
-    with caplog.at_level("INFO", logger="eventcap.runner"):
+    with caplog.at_level("INFO", logger="eventcap.core.runner"):
         result = run("held", {"kind": kind, "workers": 2})
     timer.join()
     assert result.ok and result.metrics == reference.metrics
@@ -324,7 +324,7 @@ def test_the_issues_two_real_runs_at_once_keep_their_own_folders(tmp_path):
     tiny = ["pipeline=paper", "experiment=quick", "source.duration_s=0.09", "template=procedural",
             "template.target_faces=2000", "source.n_track_points=20", "outputs.video=false",
             f"cache_dir={tmp_path / 'cache'}"]  # the issue's runs: the paper's pipeline, whose refine node it varies
-    procs = [subprocess.Popen([sys.executable, "-m", "eventcap.cli", "run", *tiny, *extra], cwd=tmp_path,
+    procs = [subprocess.Popen([sys.executable, "-m", "eventcap.apps.cli", "run", *tiny, *extra], cwd=tmp_path,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for extra in ([], ["stages.refine.lambda_sil=2"])]
     outs = [p.communicate(timeout=900) for p in procs]

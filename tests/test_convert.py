@@ -14,7 +14,7 @@ import eventcap.artifacts.base as base
 from eventcap.artifacts import ArtifactError
 from eventcap.artifacts.base import ArrayAppender
 from eventcap.artifacts.recording import Recording
-from eventcap.cli import main
+from eventcap.apps.cli import main
 from eventcap.events import EVENT_DTYPE
 from eventcap.io import RawRecording, RecordingError, Roi, read_recording, write_events, write_recording
 from eventcap.io.convert import (
@@ -24,7 +24,7 @@ from eventcap.io.convert import (
     roi_from_corners,
     window_from_seconds,
 )
-from eventcap.testing import StageConformance
+from eventcap.core.testing import StageConformance
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from fuzz_readers import synthetic_recording
@@ -333,7 +333,7 @@ def test_cli_convert(synth, tmp_path, capsys):
 def test_cli_subprocess_exit_codes(synth, tmp_path):
     path, _ = _write("evt3", tmp_path, synth)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    cmd = [sys.executable, "-m", "eventcap.cli", "convert", str(path), str(tmp_path / "o.zarr")]
+    cmd = [sys.executable, "-m", "eventcap.apps.cli", "convert", str(path), str(tmp_path / "o.zarr")]
     ok = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
     assert ok.returncode == 0, ok.stderr
     assert f"{len(synth.events):,} events" in ok.stdout and "UNCALIBRATED" in ok.stdout

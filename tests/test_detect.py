@@ -16,11 +16,11 @@ from eventcap.body.kinematics import joint_positions, landmark_positions
 from eventcap.body.motions import sequence_poses
 from eventcap.body.skeleton import DEFAULT_REST_JOINTS, LANDMARK_INDEX, LANDMARK_NAMES, MIRROR_LANDMARKS
 from eventcap.camera import davis240c_default
-from eventcap.config import build_config
+from eventcap.core.config import build_config
 from eventcap.events import EVENT_DTYPE
-from eventcap.registry import load_registry
-from eventcap.stage import StageContext
-from eventcap.testing import StageConformance
+from eventcap.core.registry import load_registry
+from eventcap.core.stage import StageContext
+from eventcap.core.testing import StageConformance
 
 try:
     import eventcap_detect  # noqa: F401
@@ -37,7 +37,7 @@ ZERO_NOISE = {"sigma_px": 0.0, "outlier_prob": 0.0, "flip_prob": 0.0, "sigma_m":
 
 @pytest.fixture(autouse=True)
 def detect_stages(monkeypatch):
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     monkeypatch.setenv("EVENTCAP_STAGES", STAGES)
     reset_process_caches()

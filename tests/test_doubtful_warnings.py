@@ -14,9 +14,9 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from eventcap.config import build_config
-from eventcap.registry import load_registry
-from eventcap.stage import StageContext
+from eventcap.core.config import build_config
+from eventcap.core.registry import load_registry
+from eventcap.core.stage import StageContext
 
 
 @functools.lru_cache(maxsize=1)
@@ -43,7 +43,7 @@ def test_edi_contrast_at_the_edge_of_its_range_warns(caplog, c_range, at_edge):
     spec = load_registry().get("edi")
     ctx = StageContext(node="sharpen", stage="edi")
     cfg = build_config(spec, {"c_min": c_range[0], "c_max": c_range[1]}, "stages.sharpen")
-    with caplog.at_level(logging.INFO, logger="eventcap.stage"):
+    with caplog.at_level(logging.INFO, logger="eventcap.core.stage"):
         spec.load_run()({"recording": _edi_recording()}, cfg, ctx)
     assert ctx.stats["contrast_at_range_edge"] is at_edge
     warned = [r for r in caplog.records if r.levelno == logging.WARNING and "edge of its search range" in r.message]
@@ -66,7 +66,7 @@ def test_solve_with_zero_correspondences_warns(caplog):
                                            xy=np.full_like(s.xy, np.nan))
     spec = load_registry().get("batch")
     ctx = StageContext(node="solve", stage="batch", batch=Batch(0, T0, T0 + 1000 * N, 0))
-    with caplog.at_level(logging.INFO, logger="eventcap.stage"):
+    with caplog.at_level(logging.INFO, logger="eventcap.core.stage"):
         spec.load_run()(inputs, build_config(spec, {"icp_rounds": 1}, "stages.solve"), ctx)
     assert ctx.stats["n_correspondences"] == 0
     assert any(r.levelno == logging.WARNING and "batch 0: 0 track-to-mesh correspondences" in r.message
@@ -85,7 +85,7 @@ def test_refine_with_zero_matched_boundary_pixels_warns(caplog):
     ev["t"] += 10_000_000  # every event far outside the batch's window: nothing to match
     inputs["recording"] = dataclasses.replace(rec, events=EventStream(events=ev, width=rec.events.width,
                                                                       height=rec.events.height))
-    with caplog.at_level(logging.INFO, logger="eventcap.stage"):
+    with caplog.at_level(logging.INFO, logger="eventcap.core.stage"):
         _, ctx = run_stage(inputs)
     assert ctx.stats["matched"][-1] == 0 and ctx.stats["boundary_pixels"][-1] > 5000
     assert any(r.levelno == logging.WARNING and "silhouette boundary pixels has an event" in r.message

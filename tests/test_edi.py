@@ -1,4 +1,4 @@
-"""Tests of EDI sharpening (eventcap.edi): exactness of Eq. 2, propagation, sharpening of simulated fast
+"""Tests of EDI sharpening (eventcap.imaging.edi): exactness of Eq. 2, propagation, sharpening of simulated fast
 motions against the true sharp image, automatic contrast, bad input."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ sys.path.insert(0, str(ROOT / "plugins"))  # eventcap_track without an install
 sys.path.insert(0, str(ROOT / "benchmarks"))  # the synthetic scenes of bench_edi
 
 import bench_edi as scenes
-from eventcap import edi
+from eventcap.imaging import edi
 
 from eventcap.events import EVENT_DTYPE, make_events
 from eventcap.sim.events import SensorConfig

@@ -19,21 +19,21 @@ from eventcap.body.kinematics import joint_positions, landmark_positions
 from eventcap.body.motions import motion_poses
 from eventcap.body.skeleton import DEFAULT_REST_JOINTS, DOF_INDEX, JOINT_INDEX, JOINT_NAMES, default_landmarks
 from eventcap.body.template import Template
-from eventcap.bvh import matrix_from_euler
+from eventcap.export.bvh import matrix_from_euler
 from eventcap.camera import davis240c_default
-from eventcap.config import build_config
+from eventcap.core.config import build_config
 from eventcap.events import EVENT_DTYPE
-from eventcap.metrics import mean_joint_error, procrustes_align
-from eventcap.registry import load_registry
-from eventcap.stage import Port, StageContext, StageFailed, StageSpec, param
-from eventcap.testing import StageConformance
+from eventcap.analysis.metrics import mean_joint_error, procrustes_align
+from eventcap.core.registry import load_registry
+from eventcap.core.stage import Port, StageContext, StageFailed, StageSpec, param
+from eventcap.core.testing import StageConformance
 
 try:
     import eventcap_evaluate  # noqa: F401
 except ImportError:  # not installed yet: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))
 
-from eventcap.motion import MotionError, join_batches  # noqa: E402  (moved to the core; the plugin imports it from there)
+from eventcap.analysis.motion import MotionError, join_batches  # noqa: E402  (moved to the core; the plugin imports it from there)
 
 STAGES = "eventcap_evaluate.spec:EVALUATE"
 FRAME_STEP_US = 40_000  # 25 fps intensity frames
@@ -42,7 +42,7 @@ T0_US = 5_000
 
 @pytest.fixture(autouse=True)
 def evaluate_stage(monkeypatch):
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     monkeypatch.setenv("EVENTCAP_STAGES", STAGES)
     reset_process_caches()
@@ -334,7 +334,7 @@ RUNNER_SPECS = [
 def test_runner_hands_all_batches_and_collects_metrics(tmp_path, monkeypatch):
     import json
 
-    from eventcap.runner import Runner, reset_process_caches
+    from eventcap.core.runner import Runner, reset_process_caches
 
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent))
     monkeypatch.setenv("EVENTCAP_STAGES", f"{STAGES},test_evaluate:RUNNER_SPECS")

@@ -13,8 +13,8 @@ import time
 
 import pytest
 
-from eventcap.cache import Cache, CacheError
-from eventcap.runner import Runner
+from eventcap.core.cache import Cache, CacheError
+from eventcap.core.runner import Runner
 
 from conftest import TESTS, toy_env
 
@@ -84,7 +84,7 @@ def test_object_store_cache_is_refused(tmp_path):
 
 @pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
 def test_sweep_on_hydra_launchers_shares_the_cache(tmp_path, launcher):
-    cmd = [sys.executable, "-m", "eventcap.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
+    cmd = [sys.executable, "-m", "eventcap.apps.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
            "experiment=toy", f"hydra/launcher={launcher}", "stages.scale.factor=1,2", f"cache_dir={tmp_path / 'cache'}"]
     if launcher == "submitit_local":
         cmd += ["hydra.launcher.timeout_min=5"]

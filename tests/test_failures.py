@@ -7,8 +7,8 @@ import copy
 
 from conftest import TOY_PIPELINE, TOY_STAGES
 
-from eventcap.failures import failure_summary
-from eventcap.runner import NodeReport, Runner, RunResult
+from eventcap.core.failures import failure_summary
+from eventcap.core.runner import NodeReport, Runner, RunResult
 
 
 def _report(node, per_batch=True, computed=0, failed=(), skipped=0, skip_causes=()):

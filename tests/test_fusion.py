@@ -104,7 +104,7 @@ def test_place_anchors_both_ends_and_keeps_the_shape_when_it_fits():
 @pytest.mark.slow  # about a minute: pipeline=fused (not the default) end to end, twice
 def test_fused_pipeline_runs_and_explains_too_few_batches(tmp_path):
     def run(name, *overrides):
-        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "pipeline=fused", "experiment=quick",
+        p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "pipeline=fused", "experiment=quick",
                             "source.duration_s=0.17", "template=procedural", "template.target_faces=3000",
                             "source.n_track_points=60",
                             "outputs.video=false", f"hydra.run.dir=runs/{name}", *overrides],

@@ -20,7 +20,7 @@ from test_spline import _run_stage, _stitch, stage_inputs
 
 from eventcap.artifacts.pose import Detections
 from eventcap.body.kinematics import joint_positions
-from eventcap.confidence import in_image, interval_support, motion_confidence
+from eventcap.analysis.confidence import in_image, interval_support, motion_confidence
 
 
 def _without(det: Detections, frames: list[int]) -> Detections:
@@ -74,7 +74,7 @@ def test_a_window_without_observations_is_a_gap_and_nothing_is_extrapolated():
 def test_the_outputs_mark_gaps_and_cut_the_bvh(tmp_path):
     """A motion with a gap: motion.npz keeps every frame (NaN and estimated false in the gap, its span in gaps_us);
     the BVH is cut into one file per stretch; every estimated frame is finite."""
-    from eventcap.outputs import OutputsConfig, _write_bvh, _write_npz, motion_segments
+    from eventcap.apps.outputs import OutputsConfig, _write_bvh, _write_npz, motion_segments
 
     rec = stage_inputs()["recording"]
     t = np.arange(0, 50_000, 1000, dtype=np.int64)
@@ -137,7 +137,7 @@ def test_confidence_is_zero_out_of_view_and_where_nothing_supports_the_estimate(
 
 
 def test_a_recording_without_frames_picks_the_event_only_pipeline():
-    from eventcap.jobs import frameless_source
+    from eventcap.apps.jobs import frameless_source
 
     assert frameless_source({"source": {"stage": "synthetic", "camera": "davis240c", "frames": None}}) is None
     assert "dvxplorer" in frameless_source({"source": {"stage": "synthetic", "camera": "dvxplorer", "frames": None}})
@@ -164,7 +164,7 @@ def test_a_joint_whose_body_the_image_edge_cuts_is_not_in_view():
     from eventcap.body.procedural import procedural_template
     from eventcap.body.skeleton import JOINT_INDEX
     from eventcap.camera import Camera
-    from eventcap.confidence import joint_radii
+    from eventcap.analysis.confidence import joint_radii
 
     tpl = procedural_template(target_faces=3000)
     r = joint_radii(tpl)

@@ -1,12 +1,12 @@
 """The import graph of eventcap/ and plugins/, read from the source (AST, imports inside functions included): no
-import cycle; the domain library imports nothing of the orchestration; the core imports no plugin and plugins do
-not import each other.
+import cycle; the folders are the layers, and imports point down only.
 
     python tests/test_layers.py     # prints the cycles and every breach (what the tests check)
 
-Layers (docs/architecture.md): the domain library (``LIBRARY`` below, plus the typed artifacts it reads and writes)
-raises its own errors (``eventcap.errors``) and never reaches up into the stage contract, registry, pipeline,
-cache, runner or the apps on top of them; the runner translates its errors.
+Layers (docs/architecture.md), from the top: ``eventcap/apps`` (what a user runs), ``eventcap/core`` (the
+framework), ``eventcap/artifacts`` (the typed data between stages) and the domain library (every other package and
+module of ``eventcap/``). The library raises its own errors (``eventcap.errors``) and never reaches up into the
+framework or the apps; the runner translates its errors. The core never imports an app.
 """
 
 from __future__ import annotations
@@ -19,15 +19,13 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: the domain library: top-level modules and packages of eventcap (a package covers its submodules)
-LIBRARY = {"body", "camera", "sim", "io", "energy", "render", "edi", "events", "reconstruct", "metrics", "motion",
-           "smoothing", "bvh", "c3d", "viz", "errors", "processes", "memo", "names", "plausibility", "worldframe",
-           "camera_presets", "confidence"}
-#: the typed artifacts: data classes the library may build and read (they import only the library)
-ARTIFACTS = {"artifacts"}
-#: the orchestration (framework and apps): the library imports none of these, not even inside a function
-ORCHESTRATION = {"stage", "registry", "config", "pipeline", "cache", "runner", "runrecord", "lifeline", "rundir",
-                 "jobs", "benchmark", "open_suite", "report", "outputs", "viewer", "cli", "testing", "failures"}
+#: the folders of eventcap/ that are not the domain library, by layer
+LAYER_OF_PACKAGE = {"apps": "apps", "core": "core", "artifacts": "artifacts"}
+#: which layers each layer may import (besides itself)
+MAY_IMPORT = {"library": {"library", "artifacts"}, "artifacts": {"library", "artifacts"},
+              "core": {"core", "library", "artifacts"}, "apps": {"apps", "core", "library", "artifacts"}}
+#: at most this many modules directly in eventcap/ (the rest sit in the folders of their layer)
+MAX_TOP_MODULES = 12
 #: known breaches being removed: (module, imported) pairs. An entry that no longer occurs fails the test, so the
 #: list only ever shrinks (it is empty).
 PENDING: set[tuple[str, str]] = set()
@@ -112,28 +110,25 @@ def cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
     return sorted(found)
 
 
-def layer(mod: str) -> str | None:
-    """'library', 'artifacts', 'orchestration' or 'plugin' for a project module; None for an unclassified one."""
+def layer(mod: str) -> str:
+    """'apps', 'core', 'artifacts', 'library' or 'plugin' for a project module: its folder says it."""
     parts = mod.split(".")
     if parts[0] != "eventcap":
         return "plugin"
     if len(parts) == 1:
-        return "orchestration"  # the package itself (empty)
-    top = parts[1]
-    for name, members in (("library", LIBRARY), ("artifacts", ARTIFACTS), ("orchestration", ORCHESTRATION)):
-        if top in members:
-            return name
-    return None
+        return "library"  # the package itself (empty)
+    return LAYER_OF_PACKAGE.get(parts[1], "library")
 
 
 def breaches(graph: dict[str, dict[str, int]]) -> list[tuple[str, str, int]]:
-    """(module, imported, line) of every library or artifacts module importing orchestration or a plugin."""
+    """(module, imported, line) of every eventcap module importing a layer above its own, or a plugin."""
     out = []
     for mod, edges in graph.items():
-        if layer(mod) not in ("library", "artifacts"):
+        own = layer(mod)
+        if own == "plugin":
             continue
         for target, line in edges.items():
-            if layer(target) not in ("library", "artifacts"):
+            if layer(target) not in MAY_IMPORT[own]:
                 out.append((mod, target, line))
     return sorted(out)
 
@@ -147,9 +142,9 @@ GRAPH = import_graph(MODS)
 
 
 def test_the_graph_sees_imports_inside_functions_and_relative_ones():
-    # eventcap/outputs.py imports the viewer only inside a function; eventcap/runner.py has `from .cache import`
-    assert "eventcap.viewer" in GRAPH["eventcap.outputs"]
-    assert "eventcap.cache" in GRAPH["eventcap.runner"]
+    # eventcap/apps/outputs.py imports the viewer only inside a function; eventcap/core/runner.py has `from .cache import`
+    assert "eventcap.apps.viewer" in GRAPH["eventcap.apps.outputs"]
+    assert "eventcap.core.cache" in GRAPH["eventcap.core.runner"]
     assert "eventcap.body.skeleton" in GRAPH["eventcap.body.template"]  # absolute submodule import
     assert cycles({"a": {"b": 1}, "b": {"c": 1}, "c": {"a": 1}, "d": {"a": 1}}) == [["a", "b", "c"]]
     assert cycles({"a": {"b": 1}, "b": {}}) == []
@@ -163,17 +158,20 @@ def test_no_import_cycle():
     assert not found, "import cycles (counting imports inside functions):\n" + "\n".join(lines)
 
 
-def test_every_core_module_has_a_layer():
-    unclassified = sorted({m.split(".")[1] for m in MODS if m.startswith("eventcap.") and layer(m) is None})
-    assert not unclassified, (f"eventcap modules in no layer: {unclassified}; add each to LIBRARY or ORCHESTRATION in "
-                              f"tests/test_layers.py (and docs/architecture.md)")
+def test_the_folders_show_the_layers():
+    top = sorted(p.stem for p in (ROOT / "eventcap").glob("*.py"))
+    assert len(top) <= MAX_TOP_MODULES, (f"{len(top)} modules directly in eventcap/ (at most {MAX_TOP_MODULES}): "
+                                         f"{top}; put each in the folder of its layer")
+    assert layer("eventcap.core.runner") == "core" and layer("eventcap.apps.cli") == "apps"
+    assert layer("eventcap.energy.factor") == "library" and layer("eventcap_spline.solve") == "plugin"
 
 
 def test_library_imports_nothing_of_the_orchestration():
     found = breaches(GRAPH)
     new = [f"{m} imports {t} ({_where(MODS, m, line)})" for m, t, line in found if (m, t) not in PENDING]
-    assert not new, ("the domain library must not import the orchestration or a plugin, not even inside a function "
-                     "(raise an eventcap.errors.ComputationFailed subclass of its own; the runner translates it):\n"
+    assert not new, ("imports point down only (apps -> core -> artifacts, library), never to a plugin, not even inside "
+                     "a function (the library raises an eventcap.errors.ComputationFailed subclass of its own; the "
+                     "runner translates it):\n"
                      + "\n".join(new))
     gone = sorted(PENDING - {(m, t) for m, t, _ in found})
     assert not gone, f"fixed, remove from PENDING in tests/test_layers.py: {gone}"
@@ -190,10 +188,10 @@ def test_core_imports_no_plugin_and_plugins_not_each_other():
     assert not bad, "plugins are found through entry points only:\n" + "\n".join(bad)
 
 
-@pytest.mark.parametrize("mod", ["eventcap.io.convert", "eventcap.motion"])
+@pytest.mark.parametrize("mod", ["eventcap.io.convert", "eventcap.analysis.motion"])
 def test_former_breaches_stay_fixed(mod):
     # io.convert imported the cache (for pid_alive), motion the stage (for StageFailed)
-    assert not [t for t in GRAPH[mod] if layer(t) == "orchestration"]
+    assert not [t for t in GRAPH[mod] if layer(t) in ("core", "apps")]
 
 
 if __name__ == "__main__":
@@ -206,7 +204,7 @@ if __name__ == "__main__":
                 if b in comp:
                     print(f"  {a} -> {b}  ({_where(MODS, a, GRAPH[a][b])})")
     found = breaches(GRAPH)
-    print(f"library modules importing the orchestration: {len(found)}")
+    print(f"modules importing a layer above their own: {len(found)}")
     for m, t, line in found:
         print(f"  {m} -> {t}  ({_where(MODS, m, line)}){'  [pending]' if (m, t) in PENDING else ''}")
     sys.exit(1 if comps or any((m, t) not in PENDING for m, t, _ in found) else 0)

@@ -77,14 +77,14 @@ def test_memoize_and_clearing_every_cache():
     assert cleared["test_memo.square"] == 2 and cleared["test_memo.other"] == 1
     assert len(square.cache) == 0 and len(other) == 0
     assert square(3) == 9 and calls == [3, 3, 3]
-    import eventcap.runner  # noqa: F401  (its caches register when it is imported)
+    import eventcap.core.runner  # noqa: F401  (its caches register when it is imported)
 
     names = {c.name for c in process_caches()}
     assert {"test_memo.square", "test_memo.other", "runner.inputs", "runner.registry"} <= names
 
 
 def test_the_runner_reset_clears_them_all():
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     cache = ProcessCache("test_memo.reset")
     cache.get("k", lambda: 1)

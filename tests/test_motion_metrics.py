@@ -1,4 +1,4 @@
-"""Motion-detail metrics (eventcap.metrics): central differences, MPJVE, acceleration error and peak speeds per
+"""Motion-detail metrics (eventcap.analysis.metrics): central differences, MPJVE, acceleration error and peak speeds per
 batch against values worked out by hand on analytic trajectories, and the evaluate stage's new columns."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eventcap.metrics import (END_EFFECTORS, central_derivative, depth_split, half_window_steps, motion_detail, peak_speed_errors,
+from eventcap.analysis.metrics import (END_EFFECTORS, central_derivative, depth_split, half_window_steps, motion_detail, peak_speed_errors,
                               root_relative, truth_at)
-from eventcap.motion import on_grid, tracking_times_us, uniform_motion
+from eventcap.analysis.motion import on_grid, tracking_times_us, uniform_motion
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -184,7 +184,7 @@ def test_bad_input():
 # -- the evaluate stage's columns ------------------------------------------------------------------------------------
 def test_evaluate_stage_reports_motion_detail(monkeypatch):
     import test_evaluate as te
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     monkeypatch.setenv("EVENTCAP_STAGES", te.STAGES)
     reset_process_caches()

@@ -1,4 +1,4 @@
-"""The open benchmark (``benchmark=open`` / ``open_check``, eventcap/open_suite.py): its captures are drawn from
+"""The open benchmark (``benchmark=open`` / ``open_check``, eventcap/apps/open_suite.py): its captures are drawn from
 their seeds within the distributions of conf/benchmark/open.yaml, identically on any machine; tuning and check seeds
 never meet; rows on event-only captures use their event-only variant or are refused with the reason; and a tiny run
 of 2 generated captures x 1 row goes end to end, reported per group."""
@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eventcap.benchmark import Benchmark, Method, SuiteCapture, compose_benchmark, format_generated, write_results
+from eventcap.apps.benchmark import Benchmark, Method, SuiteCapture, compose_benchmark, format_generated, write_results
 from eventcap.camera_presets import load_preset
-from eventcap.open_suite import (
+from eventcap.apps.open_suite import (
     CHECK_NOTE,
     CHECK_SEEDS,
     TUNING_SEEDS,
@@ -177,9 +177,9 @@ def test_event_only_variants_compose_into_valid_pipelines(open_cfg):
     """Each row's event-only overrides give a pipeline without frames stages (no sharpen), the detector reading the
     reconstructed images; the silhouette refinement in the paper row only (the default's event-only pipeline is the
     spline solve, which has none)."""
-    from eventcap.benchmark import compose_run
-    from eventcap.pipeline import build_pipeline
-    from eventcap.registry import load_registry
+    from eventcap.apps.benchmark import compose_run
+    from eventcap.core.pipeline import build_pipeline
+    from eventcap.core.registry import load_registry
 
     bench = Benchmark(open_cfg, CONF, [])
     cap = next(c for c in bench.captures if not c.frames)
@@ -229,7 +229,7 @@ def test_tiny_open_suite_end_to_end(tmp_path, known_poses):
 def test_groups_and_failures_are_reported_from_the_records():
     """Table 1 per group pools only that group's runs; every run that failed, was refused or is incomplete is
     listed with its reason, none dropped; the per-capture comparison stays within a group."""
-    from eventcap.benchmark import failed_runs, format_failures, format_per_capture, group_tables
+    from eventcap.apps.benchmark import failed_runs, format_failures, format_per_capture, group_tables
 
     def run(method, seed, group, ae, ok=True, error=None, frames=True):
         return {"motion": "kick", "seed": seed, "method": method, "capture": f"s{seed}", "group": group, "ok": ok,
@@ -287,7 +287,7 @@ def test_open_preset_with_the_real_default_row(tmp_path):
     import subprocess
     import sys
 
-    cmd = [sys.executable, "-m", "eventcap.cli", "benchmark", "benchmark=open", "seeds=[2,9]", "duration_s=0.2",
+    cmd = [sys.executable, "-m", "eventcap.apps.cli", "benchmark", "benchmark=open", "seeds=[2,9]", "duration_s=0.2",
            "only=[default]", f"out={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}", "plot=false"]
     got = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=3600)
     assert got.returncode in (0, 1), got.stderr[-3000:]

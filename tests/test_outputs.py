@@ -1,4 +1,4 @@
-"""Run outputs (eventcap/outputs.py): motion.bvh, motion.npz and overlay.mp4 written by the core after a run from the
+"""Run outputs (eventcap/apps/outputs.py): motion.bvh, motion.npz and overlay.mp4 written by the core after a run from the
 committed per-batch poses, the ``outputs:`` config, and runs that cannot have them."""
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from conftest import small_capture_config
 
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.motions import motion_poses
-from eventcap.bvh import read_motion_npz
-from eventcap.outputs import OutputsConfig, check_outputs_config, video_frame_indices, write_run_outputs
-from eventcap.runner import Runner
+from eventcap.export.bvh import read_motion_npz
+from eventcap.apps.outputs import OutputsConfig, check_outputs_config, video_frame_indices, write_run_outputs
+from eventcap.core.runner import Runner
 
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
@@ -112,7 +112,7 @@ def test_overlay_falls_back_to_opencv_without_pyav_and_says_so(tmp_path, caplog,
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_av)
-    with caplog.at_level(logging.INFO, logger="eventcap.outputs"):
+    with caplog.at_level(logging.INFO, logger="eventcap.apps.outputs"):
         _, result, summary = run(config(tmp_path / "cache", bvh=False, npz=False, video_every_ms=10,
                                         video_png_frames=0), tmp_path / "run")
     monkeypatch.setattr(builtins, "__import__", real_import)
@@ -126,7 +126,7 @@ def test_overlay_falls_back_to_opencv_without_pyav_and_says_so(tmp_path, caplog,
 def test_outputs_are_skipped_with_a_log_line_when_the_poses_node_failed(tmp_path, caplog):
     cfg = config(tmp_path / "cache")
     cfg["stages"]["solve"]["fail_batches"] = [-1]
-    with caplog.at_level(logging.WARNING, logger="eventcap.outputs"):
+    with caplog.at_level(logging.WARNING, logger="eventcap.apps.outputs"):
         _, result, summary = run(cfg, tmp_path / "run")
     assert not result.ok and summary["written"] == {} and summary["problems"] == []
     assert result.committed("solve") == {}
@@ -143,7 +143,7 @@ def test_a_failed_batch_leaves_a_gap_that_no_output_fills(tmp_path, caplog):
     cfg = config(tmp_path / "cache", video=False)
     cfg["source"]["duration_s"] = 0.13  # 4 intensity frames: 3 batches
     cfg["stages"]["solve"]["fail_batches"] = [1]
-    with caplog.at_level(logging.WARNING, logger="eventcap.outputs"):
+    with caplog.at_level(logging.WARNING, logger="eventcap.apps.outputs"):
         runner, result, summary = run(cfg, tmp_path / "run")
     assert set(summary["written"]) == {"bvh", "npz", "plausibility"}
     parts = runner.load_output(result, "solve.poses")
@@ -197,7 +197,7 @@ def test_outputs_config_is_checked_against_the_pipeline(tmp_path, caplog):
         check_outputs_config(Runner(config(tmp_path, poses="solve.pose")))
     with pytest.raises(ValueError, match=r"'source\.recording' is a Recording, expected PoseSequence"):
         check_outputs_config(Runner(config(tmp_path, poses="source.recording")))
-    with caplog.at_level(logging.WARNING, logger="eventcap.outputs"):
+    with caplog.at_level(logging.WARNING, logger="eventcap.apps.outputs"):
         assert check_outputs_config(Runner(config(tmp_path, poses="refine.poses"))).poses is None
     assert "this pipeline has no node 'refine'" in caplog.text
 
@@ -206,7 +206,7 @@ def test_unknown_outputs_key_is_refused_by_eventcap_run(tmp_path):
     import subprocess
     import sys
 
-    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "+outputs.colour=red", "hydra.run.dir=x"],
+    p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "+outputs.colour=red", "hydra.run.dir=x"],
                        cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert p.returncode == 1
     assert "outputs.colour: unknown key; known: poses, join, bvh" in p.stdout + p.stderr
@@ -224,7 +224,7 @@ def test_video_frame_indices():
 def test_label_stays_inside_its_box_and_is_readable():
     import cv2
 
-    from eventcap.viz import label
+    from eventcap.imaging.viz import label
 
     img = np.full((40, 300, 3), 200, np.uint8)
     text = "batch 2: 30 tracks, 9643 events"

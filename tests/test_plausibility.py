@@ -14,7 +14,7 @@ from eventcap.body.kinematics import joint_positions
 from eventcap.body.motions import MOTIONS, sequence_poses
 from eventcap.body.procedural import procedural_template
 from eventcap.camera import davis240c_default
-from eventcap.plausibility import check_motion, log_findings, write_plausibility
+from eventcap.analysis.plausibility import check_motion, log_findings, write_plausibility
 
 T_US = np.arange(0, 1_000_001, 1000)
 
@@ -68,9 +68,9 @@ def test_joints_behind_the_camera_are_named():
 def test_findings_are_logged_one_line_per_kind_and_written_as_json(tmp_path, caplog):
     J = truth().copy()
     J[:, :, 1] *= -1  # upside down the whole time
-    caplog.set_level(logging.INFO, logger="eventcap.plausibility")
+    caplog.set_level(logging.INFO, logger="eventcap.analysis.plausibility")
     path = write_plausibility(tmp_path / "plausibility.json", T_US, J, davis240c_default())
-    lines = [r.getMessage() for r in caplog.records if r.name == "eventcap.plausibility"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "eventcap.analysis.plausibility"]
     assert len(lines) == 1 and lines[0].startswith("plausibility: the head below the pelvis (by up to ")
     assert "in 1001 of 1001 frames (0.000-1.000 s)" in lines[0]
     doc = json.loads(path.read_text())

@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from eventcap.cli import main
+from eventcap.apps.cli import main
 from eventcap.events import make_events
-from eventcap.viz import most_active_time
+from eventcap.imaging.viz import most_active_time
 
 W, H = 240, 180
 BURST_US = 200_000  # a bar sweeps the sensor in the 10 ms around this time

@@ -10,7 +10,7 @@ from eventcap.body.procedural import procedural_template
 from eventcap.body.skeleton import DOF_INDEX, JOINT_INDEX, LANDMARK_JOINT, LANDMARK_NAMES, PARENTS
 from eventcap.body.template import Template
 from eventcap.camera import davis240c_default
-from eventcap.render import render, silhouette, textured_background
+from eventcap.imaging.render import render, silhouette, textured_background
 
 
 @pytest.fixture(scope="module")

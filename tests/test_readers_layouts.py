@@ -173,10 +173,10 @@ def test_corrupt_compressed_aedat4_packet_is_skipped_and_reported(tmp_path):
 
 def test_options_through_the_recording_source_and_convert(tmp_path):
     from eventcap.artifacts.recording import Recording
-    from eventcap.cli import main
-    from eventcap.config import build_config
-    from eventcap.registry import load_registry
-    from eventcap.stage import StageContext
+    from eventcap.apps.cli import main
+    from eventcap.core.config import build_config
+    from eventcap.core.registry import load_registry
+    from eventcap.core.stage import StageContext
 
     ev = events()
     up = ev.copy()

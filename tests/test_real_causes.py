@@ -21,7 +21,7 @@ from conftest import TESTS, toy_env
 
 from eventcap.artifacts import ArtifactError
 from eventcap.artifacts.base import read_array
-from eventcap.cli import main
+from eventcap.apps.cli import main
 
 TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy", "outputs.poses=null"]
 #: the real pipeline on a tiny capture with a light template (see conftest.small_capture_config)
@@ -200,7 +200,7 @@ def test_choices_are_checked_against_the_default_too():
     from dataclasses import dataclass
 
     from eventcap.artifacts import BatchPlan
-    from eventcap.stage import Port, StageSpec, StageSpecError, param
+    from eventcap.core.stage import Port, StageSpec, StageSpecError, param
 
     @dataclass
     class Bad:
@@ -234,7 +234,7 @@ def test_mistyped_key_gets_did_you_mean_without_a_plus(tmp_path, capsys):
 
 # --- the cache directory -----------------------------------------------------------------------------------------------
 def _cli(args, cwd, prefix=()):
-    return subprocess.run([*prefix, sys.executable, "-m", "eventcap.cli", *args], cwd=cwd, env=toy_env(),
+    return subprocess.run([*prefix, sys.executable, "-m", "eventcap.apps.cli", *args], cwd=cwd, env=toy_env(),
                           capture_output=True, text=True, timeout=120)
 
 

@@ -1,4 +1,4 @@
-"""Images from events alone (eventcap.reconstruct), the `reconstruct` stage, rate-based batch plans and the
+"""Images from events alone (eventcap.imaging.reconstruct), the `reconstruct` stage, rate-based batch plans and the
 event-only sources: exactness of the filter, accuracy against a known scene, the stage's outputs, clear errors."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import EventStream, FrameStack, GroundTruth, Recording
 from eventcap.camera import Camera
 from eventcap.events import make_events
-from eventcap.reconstruct import agreement, high_pass, median_baseline, reconstruct, to_intensity, to_log_images
+from eventcap.imaging.reconstruct import agreement, high_pass, median_baseline, reconstruct, to_intensity, to_log_images
 from eventcap.sim.events import SensorConfig, simulate_all
-from eventcap.testing import StageConformance
+from eventcap.core.testing import StageConformance
 
 H, W = 24, 32
 
@@ -197,7 +197,7 @@ class TestReconstructStage(StageConformance):
     def test_replacing_frames_keeps_the_truths_frame_times(self):
         inputs = {"recording": small_recording(True), "batches": BatchPlan.between_frames(np.array([50_000, 100_000,
                                                                                                     150_000]))}
-        from eventcap.stage import StageContext
+        from eventcap.core.stage import StageContext
 
         out = self.spec().load_run()(inputs, self.config(exposure_us=10_000), StageContext(node="r", stage="reconstruct"))
         rec = out["recording"]
@@ -207,7 +207,7 @@ class TestReconstructStage(StageConformance):
         assert abs(float(rec.frames.images[1][:, 26:28].mean()) - 0.5) < 0.05
 
     def test_empty_plan_fails_clearly(self):
-        from eventcap.stage import StageContext, StageFailed
+        from eventcap.core.stage import StageContext, StageFailed
 
         inputs = {"recording": small_recording(False), "batches": BatchPlan.at_rate(0, 1000, 25.0)}
         with pytest.raises(StageFailed, match="the batch plan is empty"):
@@ -230,7 +230,7 @@ def test_preview_shows_event_only_recordings(tmp_path):
     path = tmp_path / "eo.zarr"
     rec.to_zarr(zarr.open_group(str(path), mode="w"))
     out = tmp_path / "p.png"
-    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "preview", str(path), "--frame", "2", "--scale", "2",
+    p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "preview", str(path), "--frame", "2", "--scale", "2",
                         "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     img = cv2.imread(str(out))
@@ -243,7 +243,7 @@ def test_preview_shows_event_only_recordings(tmp_path):
     path_f = tmp_path / "f.zarr"
     rec_f.to_zarr(zarr.open_group(str(path_f), mode="w"))
     for extra, panels in (([], 4), (["--reconstruct"], 5)):
-        q = subprocess.run([sys.executable, "-m", "eventcap.cli", "preview", str(path_f), "--out", str(out), *extra],
+        q = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "preview", str(path_f), "--out", str(out), *extra],
                            capture_output=True, text=True, timeout=120)
         assert q.returncode == 0, q.stderr
         assert cv2.imread(str(out)).shape[1] == panels * 2 * W
@@ -254,9 +254,9 @@ def test_preview_shows_event_only_recordings(tmp_path):
 def test_events_only_pipeline_builds_and_no_image_stage_reads_the_source_frames(track):
     from pathlib import Path
 
-    from eventcap.benchmark import compose_run
-    from eventcap.pipeline import build_pipeline
-    from eventcap.registry import load_registry
+    from eventcap.apps.benchmark import compose_run
+    from eventcap.core.pipeline import build_pipeline
+    from eventcap.core.registry import load_registry
 
     root = Path(__file__).resolve().parents[1]
     cfg, _ = compose_run(root / "conf", ["pipeline=events_only", f"stages/track={track}"])
@@ -272,7 +272,7 @@ def test_events_only_pipeline_builds_and_no_image_stage_reads_the_source_frames(
 
 def test_recording_source_cuts_event_only_files_at_the_batch_rate(tmp_path):
     from eventcap.io import write_events
-    from eventcap.stage import StageContext
+    from eventcap.core.stage import StageContext
 
     spec = load_registry_spec("recording")
     rng = np.random.default_rng(0)
@@ -280,7 +280,7 @@ def test_recording_source_cuts_event_only_files_at_the_batch_rate(tmp_path):
     ev = make_events(np.sort(rng.integers(10_000, 230_000, n)), rng.integers(0, 64, n), rng.integers(0, 48, n),
                      rng.choice([-1, 1], n))
     path = write_events(tmp_path / "eo.npz", ev, width=64, height=48)
-    from eventcap.config import build_config
+    from eventcap.core.config import build_config
 
     run = spec.load_run()
     out = run({}, build_config(spec, {"path": str(path), "batch_rate_hz": 20.0}, "source"),
@@ -295,15 +295,15 @@ def test_recording_source_cuts_event_only_files_at_the_batch_rate(tmp_path):
 
 
 def load_registry_spec(name):
-    from eventcap.registry import load_registry
+    from eventcap.core.registry import load_registry
 
     return load_registry().get(name)
 
 
 def test_synthetic_source_without_frames_keeps_events_truth_and_batches():
     from eventcap.body.procedural import procedural_template
-    from eventcap.config import build_config
-    from eventcap.stage import StageContext
+    from eventcap.core.config import build_config
+    from eventcap.core.stage import StageContext
 
     spec = load_registry_spec("synthetic")
     tpl = procedural_template(target_faces=3000)

@@ -22,13 +22,13 @@ from eventcap.artifacts.pose import PoseSequence
 from eventcap.artifacts.recording import EventStream, Recording
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import pose_bounds
-from eventcap.config import build_config
+from eventcap.core.config import build_config
 from eventcap.events import EVENT_DTYPE
-from eventcap.metrics import mean_joint_error
-from eventcap.registry import load_registry
-from eventcap.render import rasterize
-from eventcap.stage import StageContext, StageFailed
-from eventcap.testing import StageConformance
+from eventcap.analysis.metrics import mean_joint_error
+from eventcap.core.registry import load_registry
+from eventcap.imaging.render import rasterize
+from eventcap.core.stage import StageContext, StageFailed
+from eventcap.core.testing import StageConformance
 
 try:
     import eventcap_refine  # noqa: F401
@@ -54,7 +54,7 @@ T0, N = 5_000, 40  # first batch of posed_recording: frames at 5 ms and 45 ms, t
 @pytest.fixture(autouse=True)
 def refine_stage(monkeypatch):
     """The stage is registered through the development override until its entry point is installed."""
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     monkeypatch.setenv("EVENTCAP_STAGES", STAGE)
     reset_process_caches()
@@ -335,7 +335,7 @@ def run_stage(inputs=None, **config):
 def test_stage_refines_and_records_diagnostics(caplog):
     import logging
 
-    with caplog.at_level(logging.INFO, logger="eventcap.stage"):
+    with caplog.at_level(logging.INFO, logger="eventcap.core.stage"):
         out, ctx = run_stage()
     poses = out["poses"]
     rec, t_us, S, _ = scene()

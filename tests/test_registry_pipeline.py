@@ -8,9 +8,9 @@ import sys
 
 import pytest
 
-from eventcap.config import ConfigError, build_config
-from eventcap.pipeline import PipelineError, build_pipeline
-from eventcap.registry import UnknownStageError, load_registry
+from eventcap.core.config import ConfigError, build_config
+from eventcap.core.pipeline import PipelineError, build_pipeline
+from eventcap.core.registry import UnknownStageError, load_registry
 
 from conftest import ROOT, toy_env
 
@@ -39,7 +39,7 @@ def test_broken_plugin_is_reported_not_fatal(toy, monkeypatch):
 
 def test_stages_command_lists_without_importing_solvers():
     code = (
-        "import sys; from eventcap.cli import main; main(['stages']); "
+        "import sys; from eventcap.apps.cli import main; main(['stages']); "
         "heavy = [m for m in ('casadi', 'cv2', 'scipy.optimize', 'numba', 'zarr', 'trimesh') if m in sys.modules]; "
         "print('HEAVY', heavy)"
     )
@@ -147,7 +147,7 @@ def test_config_unknown_key_and_wrong_type(toy_cfg):
 @pytest.mark.parametrize("track", ["eklt", "klt_latent", "oracle"])
 def test_every_tracker_drops_into_the_shipped_pipelines(pipeline, track):
     """`stages/track=<any tracker>` composes and builds with the pipelines we ship (they wire optional inputs)."""
-    from eventcap.benchmark import compose_run
+    from eventcap.apps.benchmark import compose_run
 
     cfg, _ = compose_run(ROOT / "conf", [f"pipeline={pipeline}", f"stages/track={track}"])
     node = {n.name: n for n in build_pipeline(cfg, load_registry())}["track"]

@@ -1,11 +1,11 @@
-"""Tests of eventcap.render: coverage, depth test, perspective-correct barycentrics, clipping, look-ups."""
+"""Tests of eventcap.imaging.render: coverage, depth test, perspective-correct barycentrics, clipping, look-ups."""
 
 import numpy as np
 import pytest
 import trimesh
 
 from eventcap.camera import Camera, davis240c_default
-from eventcap.render import (Light, pick_surface_points, rasterize, render, silhouette, surface_points,
+from eventcap.imaging.render import (Light, pick_surface_points, rasterize, render, silhouette, surface_points,
                              textured_background)
 
 # Camera at the world origin looking down +z (world = camera frame, y down); principal point off the pixel grid

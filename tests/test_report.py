@@ -1,4 +1,4 @@
-"""``eventcap report RUNS_DIR`` (eventcap/report.py): a fake sweep folder (override sets, a repeated set, a failed
+"""``eventcap report RUNS_DIR`` (eventcap/apps/report.py): a fake sweep folder (override sets, a repeated set, a failed
 job, jobs without Hydra's records) and one real tiny sweep through ``eventcap run -m``."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from eventcap.report import ReportError, report
+from eventcap.apps.report import ReportError, report
 
 TESTS = Path(__file__).resolve().parent
 
@@ -89,13 +89,13 @@ def test_a_real_tiny_sweep(tmp_path):
     """`eventcap run -m` over two values of a stage parameter and two seeds, then `eventcap report` on the folder."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
                EVENTCAP_STAGES="output_stages:SPECS")
-    run = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
+    run = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "-m", f"hydra.searchpath=[file://{TESTS / 'conf'}]",
                           "pipeline=known_poses", "stages/solve=known_poses", "template=procedural", "template.target_faces=2000",
                           "source.duration_s=0.09", "source.supersample=1", "source.motion=jumping_jack",
                           "outputs.video=false", "stages.solve.motion=jumping_jack,karate_kick", "source.seed=0,1",
                           "hydra.sweep.dir=sweep"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
-    rep = subprocess.run([sys.executable, "-m", "eventcap.cli", "report", "sweep"], cwd=tmp_path, env=env,
+    rep = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "report", "sweep"], cwd=tmp_path, env=env,
                          capture_output=True, text=True, timeout=120)
     assert rep.returncode == 0, rep.stderr[-3000:]
     assert "4 job(s), 4 override set(s); the jobs differ in stages.solve.motion, source.seed" in rep.stdout
@@ -105,6 +105,6 @@ def test_a_real_tiny_sweep(tmp_path):
     ae = {(r["stages.solve.motion"], r["source.seed"]): float(r["AE (mm)"]) for r in rows}
     assert ae[("jumping_jack", "0")] < ae[("karate_kick", "0")]  # the motion performed fits better
     assert (tmp_path / "sweep" / "report.png").is_file()
-    bad = subprocess.run([sys.executable, "-m", "eventcap.cli", "report", "nowhere"], cwd=tmp_path, env=env,
+    bad = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "report", "nowhere"], cwd=tmp_path, env=env,
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "eventcap report: nowhere: not a folder" in bad.stderr

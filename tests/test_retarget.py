@@ -1,6 +1,6 @@
 """Recorded motion drives the simulator: BVH clips read, retargeted onto the template, placed and played.
 
-A BVH written by eventcap.bvh from known poses comes back to the same poses; Z-up, cm/inch-scaled, Mixamo-named
+A BVH written by eventcap.export.bvh from known poses comes back to the same poses; Z-up, cm/inch-scaled, Mixamo-named
 and mapping-file variants of it (written here from the clip itself) give the same motion; bad files, joints and
 start times give errors naming the file and what is wrong; the shipped CMU clips play through the capture.
 """
@@ -22,7 +22,7 @@ from eventcap.body.kinematics import joint_positions
 from eventcap.body.motions import motion_poses
 from eventcap.body.retarget import clip_motion, retarget
 from eventcap.body.skeleton import DEFAULT_REST_JOINTS, JOINT_NAMES, THETA_LOWER, THETA_UPPER
-from eventcap.bvh import write_bvh
+from eventcap.export.bvh import write_bvh
 
 FPS = 120.0
 
@@ -259,7 +259,7 @@ def test_mixing_a_clip_with_built_in_motions_is_refused():
 def test_a_cmu_clip_films_end_to_end():
     from eventcap.body.procedural import procedural_template
     from eventcap.camera import davis240c_default
-    from eventcap.render import textured_background
+    from eventcap.imaging.render import textured_background
     from eventcap.sim.capture import CaptureConfig, simulate_synthetic
 
     tpl = procedural_template(seed=0, target_faces=3000)
@@ -274,8 +274,8 @@ def test_a_cmu_clip_films_end_to_end():
 
 
 def test_the_clip_file_enters_the_cache_key(tmp_path, clip_path):
-    from eventcap.config import build_config, file_digests
-    from eventcap.registry import load_registry
+    from eventcap.core.config import build_config, file_digests
+    from eventcap.core.registry import load_registry
 
     spec = load_registry().get("synthetic")
     assert file_digests(spec, build_config(spec, {}, "source"), "source") == {}  # built-in motions: no file
@@ -289,7 +289,7 @@ def test_the_clip_file_enters_the_cache_key(tmp_path, clip_path):
 
 
 def test_simulate_cli_films_a_cmu_clip(tmp_path):
-    cmd = [sys.executable, "-m", "eventcap.cli", "simulate", "motion=cmu/135_06", "motion_start_s=0.5",
+    cmd = [sys.executable, "-m", "eventcap.apps.cli", "simulate", "motion=cmu/135_06", "motion_start_s=0.5",
            "duration_s=0.05", "supersample=1", "n_track_points=10", "hydra.run.dir=runs/sim", "template=procedural",
            "template.target_faces=3000"]
     p = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)

@@ -9,7 +9,7 @@ import logging
 
 from conftest import TESTS
 
-from eventcap.cli import main
+from eventcap.apps.cli import main
 
 
 def run_cli(tmp_path, name: str, *overrides: str, caplog=None) -> tuple[int, dict, str]:
@@ -96,7 +96,7 @@ def test_a_library_error_is_recorded_with_its_own_status(toy, tmp_path, monkeypa
     # not the framework's StageFailed; the runner records their status as it does a stage's.
     import toy_stages
 
-    from eventcap.motion import join_batches
+    from eventcap.analysis.motion import join_batches
 
     real = toy_stages.run_smooth
 

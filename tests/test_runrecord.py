@@ -1,4 +1,4 @@
-"""run.json has one definition (eventcap/runrecord.py): what the runner writes reads back, bad files are refused with
+"""run.json has one definition (eventcap/core/runrecord.py): what the runner writes reads back, bad files are refused with
 the file and key named, and the outputs step adds its section."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from eventcap.runrecord import NodeReport, RunRecord, RunRecordError, find_cache_dir, note_outputs
+from eventcap.core.runrecord import NodeReport, RunRecord, RunRecordError, find_cache_dir, note_outputs
 
 
 def _record() -> RunRecord:
@@ -32,7 +32,7 @@ def test_round_trip_and_the_file_layout(tmp_path):
 
 
 def test_a_run_writes_what_the_record_reads(toy_cfg, tmp_path):
-    from eventcap.runner import Runner
+    from eventcap.core.runner import Runner
 
     result = Runner(toy_cfg()).run(tmp_path / "run")
     rec = RunRecord.read(tmp_path / "run")

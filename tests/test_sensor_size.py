@@ -121,7 +121,7 @@ def test_an_evt2_file_cut_between_words_cannot_be_told(tmp_path):
 
 
 def test_a_picture_of_an_enormous_sensor_is_refused_before_allocating():
-    from eventcap.viz import check_picture_size
+    from eventcap.imaging.viz import check_picture_size
 
     check_picture_size(1280, 720, 2)
     with pytest.raises(ValueError, match=r"a 65532 × 260 sensor at scale 2 makes 131064 × 520 panels \(0\.2 GiB "

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import pytest
 
-from eventcap.config import ConfigError, log_level_number
-from eventcap.pipeline import PipelineError, build_pipeline
-from eventcap.registry import load_registry
-from eventcap.runner import ExecutorConfig
-from eventcap.stage import check_value
+from eventcap.core.config import ConfigError, log_level_number
+from eventcap.core.pipeline import PipelineError, build_pipeline
+from eventcap.core.registry import load_registry
+from eventcap.core.runner import ExecutorConfig
+from eventcap.core.stage import check_value
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINES = ("default", "paper", "events_only", "frames_smooth")
@@ -183,7 +183,7 @@ def test_log_level():
 ])
 def test_the_real_cli_refuses_before_anything_runs(tmp_path, override, message):
     env = {**os.environ, "EVENTCAP_CACHE_DIR": str(tmp_path / "cache")}
-    proc = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "experiment=quick", *override.split()],
+    proc = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "experiment=quick", *override.split()],
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 1 and message in out and "Traceback" not in out

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import yaml
 
-from eventcap.registry import load_registry
+from eventcap.core.registry import load_registry
 
 ROOT = Path(__file__).resolve().parents[1]
 

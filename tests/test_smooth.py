@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.motion import wrap_angle
-from eventcap.stage import StageContext, StageFailed
-from eventcap.testing import StageConformance
+from eventcap.analysis.motion import wrap_angle
+from eventcap.core.stage import StageContext, StageFailed
+from eventcap.core.testing import StageConformance
 from eventcap_smooth._impl import frame_fits, run_smooth, run_split
 from eventcap_smooth.smoothing import smooth_poses
 
-from eventcap.smoothing import GcvCurve, penalty_matrix
+from eventcap.analysis.smoothing import GcvCurve, penalty_matrix
 from eventcap_smooth.spec import SmoothConfig, SplitConfig
 
 FRAME_US = 40_000  # 25 fps
@@ -225,10 +225,10 @@ class TestSplitConformance(StageConformance):
 
 def test_frames_smooth_pipeline_composes_and_validates():
     """pipeline=frames_smooth: fits in mode linear whatever stages/solve is, smooth, split, evaluate."""
-    from eventcap.benchmark import compose_run
-    from eventcap.cli import config_dir
-    from eventcap.pipeline import build_pipeline
-    from eventcap.registry import load_registry
+    from eventcap.apps.benchmark import compose_run
+    from eventcap.apps.cli import config_dir
+    from eventcap.core.pipeline import build_pipeline
+    from eventcap.core.registry import load_registry
 
     data, _ = compose_run(config_dir(), ["pipeline=frames_smooth", "stages/solve=per_frame",
                                          "stages.smooth.pool=parameter"])

@@ -12,10 +12,10 @@ from eventcap.artifacts import Batch, BatchPlan
 from eventcap.artifacts.tracking import SlicedTracks
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import NUM_JOINTS, pose_bounds
-from eventcap.metrics import mean_joint_error
+from eventcap.analysis.metrics import mean_joint_error
 from eventcap.sim.capture import _pick_track_points, _track_points
-from eventcap.stage import StageContext, StageFailed
-from eventcap.testing import StageConformance
+from eventcap.core.stage import StageContext, StageFailed
+from eventcap.core.testing import StageConformance
 from eventcap.energy.cor import EventCorrespondences
 from eventcap.energy.correspondences import find_correspondences, temporal_indicator
 from eventcap.energy.errors import EnergyError, SolveFailed
@@ -204,8 +204,8 @@ class TestBatchStageConformance(StageConformance):
 
 
 def test_stage_records_solver_statistics():
-    from eventcap.config import build_config
-    from eventcap.registry import load_registry
+    from eventcap.core.config import build_config
+    from eventcap.core.registry import load_registry
 
     spec = load_registry().get("batch")
     ctx = StageContext(node="solve", stage="batch", batch=Batch(0, T0, T0 + 1000 * N, 0))
@@ -225,7 +225,7 @@ def test_failed_batches_are_recorded_and_only_they_are_recomputed(tmp_path):
     import sys
 
     def run(name, *overrides):
-        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "pipeline=paper", "experiment=quick",
+        p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "pipeline=paper", "experiment=quick",
                             "source.duration_s=0.09", "template=procedural", "template.target_faces=3000",
                             "source.n_track_points=60", f"hydra.run.dir=runs/{name}",
                             *overrides], cwd=tmp_path, capture_output=True, text=True, timeout=600)
@@ -244,7 +244,7 @@ def test_failed_batches_are_recorded_and_only_they_are_recomputed(tmp_path):
     assert p.returncode == 0, p.stderr[-3000:]
     assert (c["cached"], c["computed"], c["failed"]) == (1, 1, [])
     # Solver statistics are kept in the cache manifest of each batch.
-    from eventcap.cache import Cache
+    from eventcap.core.cache import Cache
 
     stats = Cache(str(tmp_path / "runs" / "cache")).lookup("batch", c["keys"][1]).manifest["stats"]
     assert stats["iterations"] > 2 and stats["solve_s"] > 0 and stats["n_correspondences"] > 0
@@ -266,8 +266,8 @@ def test_neighbouring_batches_agree_on_their_shared_frame():
 
 
 def test_stage_joint_limit_overrides_are_applied_and_checked():
-    from eventcap.config import build_config
-    from eventcap.registry import load_registry
+    from eventcap.core.config import build_config
+    from eventcap.core.registry import load_registry
     from eventcap.energy.ipopt import PARAM_NAMES
 
     spec = load_registry().get("batch")

@@ -19,10 +19,10 @@ from eventcap.body.skeleton import DOF_INDEX, pose_bounds
 from eventcap.energy.correspondences import find_correspondences
 from eventcap.energy.detections import select_detections
 from eventcap.energy.spline import UniformCubicBSpline
-from eventcap.metrics import mean_joint_error
+from eventcap.analysis.metrics import mean_joint_error
 from eventcap.sim.capture import _pick_track_points, _track_points
-from eventcap.stage import StageContext, StageFailed
-from eventcap.testing import StageConformance
+from eventcap.core.stage import StageContext, StageFailed
+from eventcap.core.testing import StageConformance
 from eventcap_spline._impl import cor_frames, window_of
 from eventcap.energy.errors import EnergyError
 from eventcap.energy.factor import Layout, Window
@@ -133,7 +133,7 @@ def test_the_context_pull_targets_the_smoothing_spline_and_weighs_what_the_other
     """smoothed_at is (I + lam K)^-1 y and that matrix' diagonal at the named frames, per column with its own lam;
     on the 20 fits above the resting parameter's leverage is ~0.18 (the pull ~5 frames' worth), the cleanly moving
     one's ~1 (no pull); a time not among the fits gives NaN."""
-    from eventcap.smoothing import penalty_matrix
+    from eventcap.analysis.smoothing import penalty_matrix
 
     from eventcap.energy.prior import smoothed_at
 
@@ -475,8 +475,8 @@ class TestSplineStageConformance(StageConformance):
 
 
 def _run_stage(inputs, batch, **changes):
-    from eventcap.config import build_config
-    from eventcap.registry import load_registry
+    from eventcap.core.config import build_config
+    from eventcap.core.registry import load_registry
 
     spec = load_registry().get("spline")
     ctx = StageContext(node="solve", stage="spline", batch=batch)
@@ -484,8 +484,8 @@ def _run_stage(inputs, batch, **changes):
 
 
 def _stitch(poses, plan, **changes):
-    from eventcap.config import build_config
-    from eventcap.registry import load_registry
+    from eventcap.core.config import build_config
+    from eventcap.core.registry import load_registry
 
     reg = load_registry()
     spec = reg.get("stitch")
@@ -648,8 +648,8 @@ def test_the_prior_gains_are_chosen_only_at_frame_rates_that_sample_the_motion(c
     plain, _ = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
     # what `eventcap run` composes: gains up to 10 by GCV from 20 fps on (measured better at 25 fps, worse at 10)
-    from eventcap.benchmark import compose_run
-    from eventcap.cli import config_dir
+    from eventcap.apps.benchmark import compose_run
+    from eventcap.apps.cli import config_dir
 
     data, _ = compose_run(config_dir(), [])
     spline = data["stages"]["spline"]
@@ -726,8 +726,8 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
         _run_stage(inputs, b, context_gate_floor=2)
     # what `eventcap run` composes (measured on the suite at 25 fps: 0.01 / 0.03 / 0.1 / 0.3 gave MPJVE 198 / 196 /
     # 202 / 213 mm/s against 241 without)
-    from eventcap.benchmark import compose_run
-    from eventcap.cli import config_dir
+    from eventcap.apps.benchmark import compose_run
+    from eventcap.apps.cli import config_dir
 
     spline = compose_run(config_dir(), [])[0]["stages"]["spline"]
     assert (spline["lambda_context"], spline["context_gate_floor"]) == (0.03, 0.1)
@@ -764,8 +764,8 @@ def test_bad_config_and_missing_detections_are_named():
     # the stage keeps its own checks for configs built without the declarations (a library caller)
     import dataclasses
 
-    from eventcap.config import build_config
-    from eventcap.registry import load_registry
+    from eventcap.core.config import build_config
+    from eventcap.core.registry import load_registry
 
     spec = load_registry().get("spline")
     bad = dataclasses.replace(build_config(spec, FAST, "stages.spline"), lambda_sil=-1.0)

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from eventcap.cli import main
-from eventcap.stage import StageFailed
+from eventcap.apps.cli import main
+from eventcap.core.stage import StageFailed
 
 # A tiny capture of 3 batches (light procedural actor), windows of 3 batches, no video.
 TINY = ["pipeline=spline", "experiment=quick", "source.duration_s=0.13", "template=procedural",
@@ -81,7 +81,7 @@ def _entries(cache, stage: str) -> set[str]:
 @pytest.mark.slow
 def test_killed_during_the_window_solves_resumes_without_recomputing_and_ends_equal(tmp_path):
     cache = tmp_path / "cache"
-    cmd = [sys.executable, "-m", "eventcap.cli", "run", *TINY, "source.duration_s=0.25", f"cache_dir={cache}"]
+    cmd = [sys.executable, "-m", "eventcap.apps.cli", "run", *TINY, "source.duration_s=0.25", f"cache_dir={cache}"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([*cmd, f"hydra.run.dir={tmp_path / 'killed'}"], cwd=ROOT, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -13,7 +13,7 @@ import zarr
 
 from eventcap.artifacts.recording import Recording
 from eventcap.body.procedural import procedural_template
-from eventcap.testing import StageConformance
+from eventcap.core.testing import StageConformance
 
 REAL = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # shipped (tests/data/real/SOURCE.md)
 
@@ -72,7 +72,7 @@ class TestRecordingReal(StageConformance):
 
 def test_simulate_then_read_back_as_recording(tmp_path):
     env = {**__import__("os").environ}
-    cmd = [sys.executable, "-m", "eventcap.cli"]
+    cmd = [sys.executable, "-m", "eventcap.apps.cli"]
     subprocess.run(cmd + ["simulate", "motion=jumping_jack", "duration_s=0.1", "seed=3", "supersample=1",
                           "n_track_points=10", "hydra.run.dir=runs/sim", "template=procedural", "template.target_faces=3000"],
                    cwd=tmp_path, env=env, check=True, capture_output=True, timeout=600)
@@ -93,7 +93,7 @@ def test_simulate_then_read_back_as_recording(tmp_path):
 
 
 def test_missing_path_is_a_clear_error(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "pipeline=simulate", "source=recording",
+    p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "pipeline=simulate", "source=recording",
                         f"source.path={tmp_path / 'nope.aedat4'}", "template=procedural", "template.target_faces=3000"],
                        cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert p.returncode == 1
@@ -113,7 +113,7 @@ def test_recording_without_frames_runs_the_event_only_pipeline_unless_told_other
     path = write_events(tmp_path / "events_only.npz", ev, width=64, height=48)
 
     def run(*extra):
-        p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "source=recording", f"source.path={path}",
+        p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "source=recording", f"source.path={path}",
                             "template=procedural", "template.target_faces=3000", "outputs.video=false", *extra],
                            cwd=tmp_path, capture_output=True, text=True, timeout=600)
         return p.returncode, p.stdout + p.stderr

@@ -10,9 +10,9 @@ import sys
 
 import numpy as np
 
-from eventcap.registry import load_registry
-from eventcap.stage import StageContext
-from eventcap.testing import StageConformance
+from eventcap.core.registry import load_registry
+from eventcap.core.stage import StageContext
+from eventcap.core.testing import StageConformance
 
 
 @functools.lru_cache(maxsize=1)
@@ -20,7 +20,7 @@ def tiny_recording():
     """A 90 ms synthetic capture (3 frames, 2 batches) from the synthetic stage itself."""
     spec = load_registry().get("synthetic")
     from eventcap.body.procedural import procedural_template
-    from eventcap.config import build_config
+    from eventcap.core.config import build_config
 
     cfg = build_config(spec, {"duration_s": 0.09, "supersample": 1, "n_track_points": 10, "motion": "jumping_jack",
                               "speed": 2.0}, "source")
@@ -32,7 +32,7 @@ def tiny_recording():
 @functools.lru_cache(maxsize=1)
 def tiny_latent():
     spec = load_registry().get("edi")
-    from eventcap.config import build_config
+    from eventcap.core.config import build_config
 
     return spec.load_run()({"recording": tiny_recording()[0]}, build_config(spec, {"contrast": 0.2}, "sharpen"),
                            StageContext(node="sharpen", stage="edi"))["latent"]
@@ -83,7 +83,7 @@ class TestOracle(StageConformance):
         rec, plan = tiny_recording()
         bare = dataclasses.replace(rec, ground_truth=None)
         spec = load_registry().get("oracle")
-        from eventcap.config import build_config
+        from eventcap.core.config import build_config
 
         with pytest.raises(ValueError, match="needs ground-truth surface tracks"):
             spec.load_run()({"recording": bare, "batches": plan}, build_config(spec, {}, "stages.track"),
@@ -107,7 +107,7 @@ class TestEklt(StageConformance):
     def test_features_start_around_the_actor_given_detections(self):
         from test_detect import detect
 
-        from eventcap.config import build_config
+        from eventcap.core.config import build_config
 
         rec, plan = tiny_recording()
         det = detect("simulated", rec)
@@ -158,7 +158,7 @@ class TestBspline(StageConformance):
 
 
 def test_default_pipeline_runs_through_solving(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "experiment=quick", "source.duration_s=0.09",
+    p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "experiment=quick", "source.duration_s=0.09",
                         "template=procedural", "template.target_faces=3000", "hydra.run.dir=runs/x"], cwd=tmp_path, capture_output=True,
                        text=True, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]

@@ -13,7 +13,7 @@ import pytest
 from eventcap.body.kinematics import skin
 from eventcap.body.procedural import procedural_template
 from eventcap.camera import davis240c_default
-from eventcap.render import textured_background
+from eventcap.imaging.render import textured_background
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic
 from eventcap.sim.events import SensorConfig
 from eventcap.sim.frames import FrameConfig

@@ -14,7 +14,7 @@ import pytest
 
 from eventcap.body.skeleton import LANDMARK_INDEX
 from eventcap.events import make_events
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_detect import detect, posed_recording, truth_2d, truth_3d  # noqa: E402
@@ -35,7 +35,7 @@ LEGS = [LANDMARK_INDEX[n] for n in ("r_knee", "r_ankle", "l_knee", "l_ankle", "l
 
 @pytest.fixture(autouse=True)
 def detect_stages(monkeypatch):
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     monkeypatch.setenv("EVENTCAP_STAGES", "eventcap_detect.spec:SIMULATED,eventcap_detect.spec:FILE")
     reset_process_caches()
@@ -213,8 +213,8 @@ def test_the_simulated_detector_states_what_is_in_view(tmp_path):
 def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monkeypatch):
     """The real DAVIS346 recording (a lab with a robot arm, no person): detect stops with the count, every later
     node is skipped because of it, and the run's last line says so once."""
-    from eventcap.cli import main
-    from eventcap.runner import reset_process_caches
+    from eventcap.apps.cli import main
+    from eventcap.core.runner import reset_process_caches
 
     real = [Path(__file__).resolve().parent / "data" / "davis346_lab_aps.aedat4",
             Path("/work/shared/data/real/davis346_lab_aps.aedat4")]

@@ -1,4 +1,4 @@
-"""The Rerun recording of a run (eventcap/viewer.py, outputs.rerun=true, `eventcap view`): written from a small
+"""The Rerun recording of a run (eventcap/apps/viewer.py, outputs.rerun=true, `eventcap view`): written from a small
 default-like run, read back with Rerun's own reader (entities, time range, row counts, values)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eventcap.bvh import read_motion_npz
+from eventcap.export.bvh import read_motion_npz
 
 pytest.importorskip("rerun")
 from conftest import small_capture_config
@@ -53,7 +53,7 @@ def run_job(cfg: dict, run_dir: Path):
     """Through the CLI's own job function: the pipeline, config.yaml, run.json and the outputs."""
     import yaml
 
-    from eventcap.cli import run_job as cli_run_job
+    from eventcap.apps.cli import run_job as cli_run_job
 
     failures: list[str] = []
     got = cli_run_job(cfg, run_dir, yaml.safe_dump(cfg), failures)
@@ -93,7 +93,7 @@ def column(chunks, entity: str, component: str) -> list:
 def finished_run(tmp_path_factory):
     """One small default-like run with outputs.rerun=true (and the motion npz to compare with)."""
     mp = pytest.MonkeyPatch()
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     mp.setenv("EVENTCAP_STAGES", "output_stages:SPECS")
     mp.syspath_prepend(str(TESTS))
@@ -174,7 +174,7 @@ def test_the_recording_of_a_default_like_run_read_back_with_rerun(finished_run):
 
 
 def test_speeds_are_central_differences_and_skip_gaps():
-    from eventcap.viewer import speeds
+    from eventcap.apps.viewer import speeds
 
     t = np.r_[np.arange(0, 30_000, 1000), np.arange(40_000, 60_000, 1000)].astype(np.int64)
     J = np.zeros((t.size, 24, 3))
@@ -188,12 +188,12 @@ def test_speeds_are_central_differences_and_skip_gaps():
 
 def test_decimation_is_logged_and_respected(finished_run, caplog):
     tmp, run_dir, runner, result = finished_run
-    from eventcap.viewer import collect_run_content, write_recording
+    from eventcap.apps.viewer import collect_run_content, write_recording
 
     m = read_motion_npz(run_dir / "motion.npz")
     rec = runner.load_output(result, "source.recording")[None]
     content = collect_run_content(runner, result, m["t_us"], m["poses"], m["joints"], rec, rec.template)
-    with caplog.at_level(logging.INFO, logger="eventcap.viewer"):
+    with caplog.at_level(logging.INFO, logger="eventcap.apps.viewer"):
         stats = write_recording(tmp / "small.rrd", content, events_ms=2, every_ms=1, max_frames=20,
                                 outline_every_ms=1)
     n = stats["counts"]["event images"]
@@ -209,7 +209,7 @@ def test_decimation_is_logged_and_respected(finished_run, caplog):
 
 
 def test_eventcap_view_builds_the_recording_of_a_finished_run(finished_run, tmp_path, capsys, monkeypatch):
-    from eventcap.cli import main
+    from eventcap.apps.cli import main
 
     _, run_dir, _, _ = finished_run
     copy = tmp_path / "run"
@@ -235,7 +235,7 @@ def test_eventcap_view_builds_the_recording_of_a_finished_run(finished_run, tmp_
 
 
 def test_eventcap_view_errors_say_what_is_wrong(finished_run, tmp_path, capsys):
-    from eventcap.cli import main
+    from eventcap.apps.cli import main
 
     _, run_dir, _, _ = finished_run
     assert main(["view", str(tmp_path / "nowhere")]) == 2
@@ -261,9 +261,9 @@ def test_eventcap_view_errors_say_what_is_wrong(finished_run, tmp_path, capsys):
 
 
 def test_without_rerun_installed_the_message_says_what_to_install(tmp_path, capsys, monkeypatch):
-    from eventcap.cli import main
-    from eventcap.outputs import check_outputs_config
-    from eventcap.runner import Runner
+    from eventcap.apps.cli import main
+    from eventcap.apps.outputs import check_outputs_config
+    from eventcap.core.runner import Runner
 
     monkeypatch.setitem(sys.modules, "rerun", None)  # import rerun -> ImportError
     assert main(["view", str(tmp_path)]) == 2
@@ -282,7 +282,7 @@ def test_the_quick_preset_through_the_real_pipeline(tmp_path):
     """`eventcap run experiment=quick outputs.rerun=true` (the real solve and refine; ~1-2 min)."""
     import subprocess
 
-    p = subprocess.run([sys.executable, "-m", "eventcap.cli", "run", "experiment=quick", "outputs.rerun=true",
+    p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "run", "experiment=quick", "outputs.rerun=true",
                         "outputs.video=false", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={tmp_path / 'run'}"],
                        cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-2000:]

@@ -14,7 +14,7 @@ from test_spline_resume import TINY
 
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 from eventcap_spline._impl import kept_by, window_of, window_plan, window_role
 
 
@@ -167,7 +167,7 @@ def test_a_small_run_with_window_step_three_estimates_every_frame(tmp_path):
     """A 0.28 s capture (7 batches), windows of 5 batches advancing by 3 (batch 1 solves 0..4 keeping 0-2, batch 4
     solves 2..6 keeping 3-6, as batch 6's window would be the same): every tracking
     frame of the motion is estimated, and its error against the truth is in the range of the solve's."""
-    from eventcap.cli import main
+    from eventcap.apps.cli import main
 
     run_dir = tmp_path / "run"
     code = main(["run", *TINY, "source.duration_s=0.3", "stages.spline.half_window=2",
@@ -178,7 +178,7 @@ def test_a_small_run_with_window_step_three_estimates_every_frame(tmp_path):
     assert t.size == 281 and np.isfinite(poses).all() and estimated.all()
     record = json.loads((run_dir / "run.json").read_text())
     assert record["nodes"]["solve"]["computed"] == 7
-    from eventcap.cache import Cache
+    from eventcap.core.cache import Cache
 
     stitched = Cache(str(tmp_path / "cache")).lookup("stitch", record["nodes"]["stitch"]["keys"][0]).manifest["stats"]
     assert stitched["windows"] == 2 and "gap_windows" not in stitched

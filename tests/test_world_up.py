@@ -14,9 +14,9 @@ import pytest
 
 from eventcap.body.skeleton import JOINT_INDEX
 from eventcap.camera import Camera, level_rotation, tilt_from_up
-from eventcap.config import build_config
-from eventcap.registry import load_registry
-from eventcap.stage import StageContext
+from eventcap.core.config import build_config
+from eventcap.core.registry import load_registry
+from eventcap.core.stage import StageContext
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_detect import detect, posed_recording  # noqa: E402
@@ -24,7 +24,7 @@ from test_detect import detect, posed_recording  # noqa: E402
 
 @pytest.fixture(autouse=True)
 def stages(monkeypatch):
-    from eventcap.runner import reset_process_caches
+    from eventcap.core.runner import reset_process_caches
 
     monkeypatch.setenv("EVENTCAP_STAGES", "eventcap_detect.spec:FILE,eventcap_recording.spec:RECORDING")
     reset_process_caches()

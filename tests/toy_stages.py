@@ -11,7 +11,7 @@ from typing import ClassVar
 import numpy as np
 
 from eventcap.artifacts import Artifact, BatchPlan, Metrics, array, attr
-from eventcap.stage import Port, StageFailed, StageSpec, param
+from eventcap.core.stage import Port, StageFailed, StageSpec, param
 
 
 @dataclass(frozen=True, eq=False)

@@ -105,7 +105,7 @@ class JointErrors(Artifact):
 class JointConfidence(Artifact):
     """How much of an estimated motion was seen: per frame and joint, a confidence in [0, 1] from measurable support
     (detections agreeing with the estimate at the intensity frames, events around its bones between them, the joint
-    in view; :mod:`eventcap.confidence`). Below 0.5 a joint is unobserved or not trusted; a gap (no estimate) is 0."""
+    in view; :mod:`eventcap.analysis.confidence`). Below 0.5 a joint is unobserved or not trusted; a gap (no estimate) is 0."""
 
     schema_version: ClassVar[int] = 1
     t_us: np.ndarray = array("int64", ("f",), units="us")

@@ -6,7 +6,7 @@ file's conventions as data, and the kinematics in numpy:
 
 - each joint's rotation channels are intrinsic Euler angles in channel order (``Zrotation Yrotation Xrotation`` is
   ``R_z @ R_y @ R_x``), relative to its parent: ``world_j = world_parent @ local_j``,
-  ``pos_j = pos_parent + world_parent @ offset_j`` (the BVH convention, as :mod:`eventcap.bvh` writes it);
+  ``pos_j = pos_parent + world_parent @ offset_j`` (the BVH convention, as :mod:`eventcap.export.bvh` writes it);
 - the root's position channels are its position; a non-zero root OFFSET is added to them (files disagree on this;
   the retargeting places the clip on the floor and at the origin, so a constant offset never matters);
 - lengths stay in the file's units (see :func:`infer_units`), angles become rotations.

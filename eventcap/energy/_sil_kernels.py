@@ -2,7 +2,7 @@
 skinning products of the energy, the silhouette boundary scan, the rest-point solve and the event search.
 
 Each is checked in tests/test_refine.py against a plain reference: ``eventcap.energy.kernels.project_derivatives``
-(camera model and its derivatives), ``eventcap.render.rasterize`` (projection), finite differences (the energy's
+(camera model and its derivatives), ``eventcap.imaging.render.rasterize`` (projection), finite differences (the energy's
 gradient and Hessian built from the sparse products), ``eventcap.energy.correspondences.rest_point`` (rest
 points), the definition on a disc (boundary and normals) and a brute-force scan of all events (search, support).
 """

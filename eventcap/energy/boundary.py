@@ -2,7 +2,7 @@
 points v_b under them, in the form the refinement energy evaluates.
 
 Per tracking frame the template is posed with the current estimate S_f (linear blend skinning) and rasterised
-(z-buffer, as :func:`eventcap.render.rasterize`; :func:`rasterize_frames`).
+(z-buffer, as :func:`eventcap.imaging.render.rasterize`; :func:`rasterize_frames`).
 
 - Boundary pixels s_b: pixels of the body mask with at least one background 4-neighbour inside the image (the
   image border is not a silhouette edge: a body cut off by the border has no boundary there).
@@ -29,7 +29,7 @@ import numpy as np
 from eventcap.body.kinematics import global_transforms, skin
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-from eventcap.render import rasterize
+from eventcap.imaging.render import rasterize
 
 #: σ of the Gaussian smoothing the body mask before its gradient gives the boundary normals (pixels).
 NORMAL_SIGMA_PX = 1.0
@@ -59,11 +59,11 @@ class BoundarySamples:
 
 
 def rasterize_frames(camera: Camera, verts: np.ndarray, faces: np.ndarray, near_m: float = 0.05):
-    """``eventcap.render.rasterize`` of each mesh verts[f] (F, V, 3): (tri_id (F, H, W) int32, bary: list of F
+    """``eventcap.imaging.render.rasterize`` of each mesh verts[f] (F, V, 3): (tri_id (F, H, W) int32, bary: list of F
     (H, W, 3) float32), depth left out. The same z-buffer (the renderer's compiled kernel) and vertex handling, with
     the camera projection of all frames' vertices in one compiled loop (numpy's projection of 41 × 6k vertices took
     as long as the z-buffer itself); the tests check it against ``rasterize``."""
-    from eventcap.render import _rasterize
+    from eventcap.imaging.render import _rasterize
 
     from ._sil_kernels import camera_params, project_points
 

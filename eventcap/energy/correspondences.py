@@ -1,9 +1,9 @@
 """Event correspondences of E_cor (paper Eq. 5) and the temporal-stabilisation indicator φ of E_temp (Eq. 8).
 
 Correspondence search (one ICP step). For every tracking frame i = 1..N-1 of a batch, the template is posed with
-the current estimate S_i and rasterised (z-buffered, :func:`eventcap.render.rasterize`). For every track h valid at
+the current estimate S_i and rasterised (z-buffered, :func:`eventcap.imaging.render.rasterize`). For every track h valid at
 frame i, the surface point under its pixel p_{i,h} is picked (triangle + perspective-correct barycentrics,
-:func:`eventcap.render.pick_surface_points`); τ(p_{i,h}) = 0 — no correspondence — where no mesh lies under the
+:func:`eventcap.imaging.render.pick_surface_points`); τ(p_{i,h}) = 0 — no correspondence — where no mesh lies under the
 pixel. The point then yields one correspondence per neighbour j ∈ {i-1, i+1} at which the track is valid too: the
 point, carried by the skeleton with the pose S_j, should project onto p_{j,h}.
 
@@ -35,7 +35,7 @@ from eventcap.body.kinematics import global_transforms, skin
 from eventcap.body.skeleton import DOF_JOINT, NUM_JOINTS, NUM_POSE_PARAMS, PARENTS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-from eventcap.render import Render, pick_surface_points, rasterize
+from eventcap.imaging.render import Render, pick_surface_points, rasterize
 
 #: Below this |det| of the blended rotation Σ_j w_j R_j a point is attached rigidly to its dominant joint instead of
 #: being solved for (the blend of strongly different rotations degenerates).

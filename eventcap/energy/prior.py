@@ -10,7 +10,7 @@
 
 :func:`choose_prior_gains` chooses both factors' data from the per-frame fits around a window (no ground truth):
 each parameter's fits are samples of a smoothing-spline model y = f + noise, whose smoothing lam_p is chosen by
-REML or GCV (:mod:`eventcap.smoothing`): large where the fits vary no more than their noise (a limb at rest, an
+REML or GCV (:mod:`eventcap.analysis.smoothing`): large where the fits vary no more than their noise (a limb at rest, an
 angle the detections cannot tell), small where the parameter moves. In the window's energy a parameter's detections
 weigh about a_p (the detection terms' curvature, the mean diagonal of their Hessian at the window's fits / 2) per
 rad², so the same trade-off there is a prior weight of a_p · lam_p; the gain is that over λ_prior, clipped to
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from eventcap.body.skeleton import DOF_JOINT, NUM_POSE_PARAMS, PARENTS
-from eventcap.smoothing import MIN_KNOTS, GcvCurve, check_criterion
+from eventcap.analysis.smoothing import MIN_KNOTS, GcvCurve, check_criterion
 
 from .errors import EnergyError
 from .factor import Factor, Layout, Linearization, Window
@@ -185,7 +185,7 @@ def smoothed_at(t_us: np.ndarray, fits: np.ndarray, lam: np.ndarray, t_at_us: np
                 curve: GcvCurve | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(g, h), both (len(t_at_us), P): the cubic smoothing splines through each column p of fits (K, P) at times
     t_us (K,) with smoothing parameter lam_p (s³), and their leverage (hat-matrix diagonal, in (0, 1]), at those
-    of t_us that t_at_us names (:meth:`eventcap.smoothing.GcvCurve.fitted`; curve: the GcvCurve of t_us if already
+    of t_us that t_at_us names (:meth:`eventcap.analysis.smoothing.GcvCurve.fitted`; curve: the GcvCurve of t_us if already
     built); NaN rows where t_at_us is not among t_us."""
     t = np.asarray(t_us, dtype=np.int64)
     curve = GcvCurve((t - t[0]) * 1e-6) if curve is None else curve

@@ -1,7 +1,7 @@
 """The synthetic event-camera capture: a simulated actor performing fast motions, filmed by a simulated DAVIS.
 
 Everything here is simulated and says so: a rigged template (:mod:`eventcap.body`) is posed by a motion
-(:mod:`eventcap.body.motions`), skinned, rendered over a static textured background (:mod:`eventcap.render`),
+(:mod:`eventcap.body.motions`), skinned, rendered over a static textured background (:mod:`eventcap.imaging.render`),
 and turned into events and blurred intensity frames by the sensor model (:mod:`eventcap.sim.events`,
 :mod:`eventcap.sim.frames`) — one render per sample time, shared by events and frames. Ground truth is exact:
 poses, 3D joints and landmarks at the ground-truth rate (1000 fps by default) and at frame times, the true sharp
@@ -21,7 +21,7 @@ from eventcap.body.kinematics import joint_positions, landmark_positions, skin
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.events import EVENT_DTYPE
-from eventcap.render import Light, pick_surface_points, rasterize, render, surface_points
+from eventcap.imaging.render import Light, pick_surface_points, rasterize, render, surface_points
 from eventcap.sim.events import SensorConfig
 from eventcap.sim.frames import FrameConfig, simulate_capture
 
@@ -201,7 +201,7 @@ def _pick_track_points(template, camera, poses_at, times_us, n_points, seed):
         pick = rng.choice(xs.size, size=min(per, xs.size), replace=False)
         # sub-pixel positions inside the chosen pixels
         uv = np.stack([xs[pick], ys[pick]], axis=1) + rng.uniform(-0.4, 0.4, size=(pick.size, 2))
-        from eventcap.render import Render
+        from eventcap.imaging.render import Render
 
         rd = Render(intensity=np.zeros_like(depth), depth=depth, tri_id=tri_id, bary=bary)
         tri, b = pick_surface_points(camera, verts, template.faces, rd, uv)
@@ -220,7 +220,7 @@ def _track_points(template, camera, poses, tri, bary, chunk=64):
     vis = np.zeros((T, P), dtype=bool)
     if P == 0:
         return px, vis
-    from eventcap.render import Render
+    from eventcap.imaging.render import Render
 
     for a in range(0, T, chunk):
         verts = skin(poses[a:a + chunk], template)

@@ -1,7 +1,7 @@
 """Hydra plugin: every installed stage's config dataclass is a structured config ``/stage/<name>`` wherever Hydra
 composes EventCap's configs (``eventcap run``, sweeps, launchers, ``hydra.compose`` in scripts and tests), so a
 stage variant's YAML can start from its spec's defaults and state only what differs
-(:func:`eventcap.config.register_stage_configs`)."""
+(:func:`eventcap.core.config.register_stage_configs`)."""
 
 from hydra.core.config_search_path import ConfigSearchPath
 from hydra.plugins.search_path_plugin import SearchPathPlugin
@@ -10,6 +10,6 @@ from hydra.plugins.search_path_plugin import SearchPathPlugin
 class EventcapStageConfigs(SearchPathPlugin):
     def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
         # Called before every composition: the stage configs are in the ConfigStore by the time a config names them.
-        from eventcap.config import register_stage_configs
+        from eventcap.core.config import register_stage_configs
 
         register_stage_configs()

@@ -1,1 +1,1 @@
-"""Stage confidence: how much of the estimated motion was seen (eventcap.confidence)."""
+"""Stage confidence: how much of the estimated motion was seen (eventcap.analysis.confidence)."""

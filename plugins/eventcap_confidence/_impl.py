@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from eventcap.artifacts.pose import JointConfidence
-from eventcap.confidence import OBSERVED, motion_confidence
-from eventcap.motion import join_batches
-from eventcap.stage import StageFailed
+from eventcap.analysis.confidence import OBSERVED, motion_confidence
+from eventcap.analysis.motion import join_batches
+from eventcap.core.stage import StageFailed
 
 
 def event_support(rec, template, t_us: np.ndarray, poses: np.ndarray, config) -> np.ndarray:

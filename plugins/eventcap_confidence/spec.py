@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from eventcap.artifacts.pose import Detections, JointConfidence, PoseSequence
 from eventcap.artifacts.recording import Recording
-from eventcap.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, param
 
 
 @dataclass

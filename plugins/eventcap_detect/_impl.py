@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from eventcap.artifacts.pose import Detections
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 
 
 def _frame_times(rec, stage: str) -> np.ndarray:
@@ -245,7 +245,7 @@ def run_file(inputs, config, ctx):
 
 def _blazepose_images(rec, latent, config):
     """(times, images) the detector looks at, images as a lazy sequence of linear-intensity (H, W) arrays."""
-    from eventcap import edi
+    from eventcap.imaging import edi
 
     if config.at == "frames":
         frames = rec.require_frames("blazepose")

@@ -169,7 +169,7 @@ def hidden_by_body(camera, template, poses: np.ndarray, points: np.ndarray, marg
     nothing. Joints lie inside the body, a few centimetres behind their own limb's surface, hence the margin.
     """
     from eventcap.body.kinematics import skin
-    from eventcap.render import rasterize
+    from eventcap.imaging.render import rasterize
 
     n, K = points.shape[:2]
     hidden = np.zeros((n, K), dtype=bool)

@@ -1,6 +1,6 @@
 """The evaluate stage (paper Sec. 4): join the per-batch pose sequences into one motion and measure it.
 
-Joining (:func:`eventcap.motion.join_batches`). The solve stage gives one PoseSequence per batch; neighbouring
+Joining (:func:`eventcap.analysis.motion.join_batches`). The solve stage gives one PoseSequence per batch; neighbouring
 batches share their boundary tracking frame (the intensity frame between them). Frames are ordered by time and every
 time appears once: with ``join=later`` a shared frame keeps the later batch's pose (the batch that starts there),
 with ``join=mean`` the average of the batches' poses (root rotation angles averaged modulo 2π). Batches missing from
@@ -23,7 +23,7 @@ pelvis; the pelvis itself left out: 23 joints) at every tracking frame:
 
 - ``AE_rootrel_mm``: the mean per-joint error of root-relative joints (no rotation alignment) over the every-n-th
   frames;
-- ``depth_mm`` / ``image_plane_mm``: the same errors split along the camera's axes (:func:`eventcap.metrics.depth_split`):
+- ``depth_mm`` / ``image_plane_mm``: the same errors split along the camera's axes (:func:`eventcap.analysis.metrics.depth_split`):
   the mean of each root-relative error's component along the line of sight (absolute), and of its length in the
   image plane (what one camera knows least, and best);
 - ``MPJVE_mm_s``: mean per-joint velocity error, velocities by central differences over ``velocity_window_ms``
@@ -60,9 +60,9 @@ from eventcap.artifacts.recording import GroundTruth, Recording
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import JOINT_INDEX, JOINT_NAMES
 from eventcap.events import EVENT_DTYPE
-from eventcap.metrics import END_EFFECTORS, depth_split, motion_detail, procrustes_align, root_relative, truth_at
-from eventcap.motion import JOIN_RULES, join_batches  # noqa: F401 (join_batches: part of this module's API)
-from eventcap.stage import StageContext, StageFailed
+from eventcap.analysis.metrics import END_EFFECTORS, depth_split, motion_detail, procrustes_align, root_relative, truth_at
+from eventcap.analysis.motion import JOIN_RULES, join_batches  # noqa: F401 (join_batches: part of this module's API)
+from eventcap.core.stage import StageContext, StageFailed
 
 ALIGN_MODES = ("procrustes", "none")
 _MB = 1e6

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from eventcap.metrics import END_EFFECTORS
+from eventcap.analysis.metrics import END_EFFECTORS
 
 from eventcap.artifacts import Metrics
 from eventcap.artifacts.pose import JointErrors, PoseSequence
 from eventcap.artifacts.recording import Recording
-from eventcap.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, param
 
 
 @dataclass

@@ -8,8 +8,8 @@ import numpy as np
 
 from eventcap.artifacts.recording import FrameStack
 from eventcap.artifacts.tracking import LatentFrames
-from eventcap.reconstruct import reconstruct, to_intensity, to_log_images
-from eventcap.stage import StageFailed
+from eventcap.imaging.reconstruct import reconstruct, to_intensity, to_log_images
+from eventcap.core.stage import StageFailed
 
 
 def run_reconstruct(inputs, config, ctx):

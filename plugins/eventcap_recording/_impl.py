@@ -10,7 +10,7 @@ import numpy as np
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.io.convert import is_project_recording, recording_from_raw, roi_from_corners, window_from_seconds
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 
 
 def _window_us(config) -> tuple[int, int] | None:

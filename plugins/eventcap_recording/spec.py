@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import Recording
 from eventcap.body.template import Template
-from eventcap.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, param
 
 
 @dataclass

@@ -8,7 +8,7 @@ from eventcap.artifacts.tracking import LatentFrames
 
 
 def run_edi(inputs, config, ctx):
-    from eventcap import edi
+    from eventcap.imaging import edi
 
     rec = inputs["recording"]
     frames = rec.require_frames("edi")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 
 
 def frame_fits(parts) -> tuple[np.ndarray, np.ndarray]:

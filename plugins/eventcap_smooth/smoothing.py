@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eventcap.smoothing import MIN_KNOTS, GcvChoice, GcvCurve, check_criterion
+from eventcap.analysis.smoothing import MIN_KNOTS, GcvChoice, GcvCurve, check_criterion
 
 #: The parameter groups sharing one smoothing parameter with ``pool=group`` (skeleton layout S = [theta (27), root
 #: rotation (3), root translation (3)]): all angles (joint angles and root rotation, radians) and the root

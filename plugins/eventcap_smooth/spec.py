@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, param
 
 
 @dataclass

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 
 #: Built problems of this process, keyed by value (template, camera, frames, config): built once per run.
 _PROBLEMS: dict = {}

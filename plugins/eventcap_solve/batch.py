@@ -92,7 +92,7 @@ Modes (baselines of the paper's evaluation, from the same code):
 
 Reproducibility: IPOPT options are pinned (:class:`IpoptSettings`: iteration limit, tolerances, barrier strategy,
 MUMPS pivot order, no option file); the same inputs give bit-identical poses. Every solve's status is checked and
-anything but success raises :class:`eventcap.stage.StageFailed` with IPOPT's status; unusable data (NaN/inf where
+anything but success raises :class:`eventcap.core.stage.StageFailed` with IPOPT's status; unusable data (NaN/inf where
 valid, bad confidences) raise it before IPOPT runs.
 """
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.body.skeleton import THETA_SLICE
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 
 #: Below this many steps between fitted frames, an estimated rho is flagged as unreliable in the log.
 FEW_STEPS = 10

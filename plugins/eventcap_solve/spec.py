@@ -8,7 +8,7 @@ from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import Detections, PoseSequence
 from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import SlicedTracks
-from eventcap.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, param
 
 
 @dataclass

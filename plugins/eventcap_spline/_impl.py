@@ -9,8 +9,8 @@ import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.body.segments import inertia_prior_gain
-from eventcap.motion import tracking_times_us
-from eventcap.stage import StageFailed
+from eventcap.analysis.motion import tracking_times_us
+from eventcap.core.stage import StageFailed
 
 #: Built solvers of this process, keyed by value (template, camera, window layout, config): built once per run.
 _SOLVERS: dict = {}
@@ -328,7 +328,7 @@ def window_inputs(inputs, b, config, where: str, role: tuple[int, int, int, int]
 
 
 def window_times(sliced, index, plan, b, a: int, z: int, t_us: np.ndarray) -> np.ndarray:
-    """The window's batches' tracking times (one grid for the whole recording, eventcap.motion.tracking_times_us), so
+    """The window's batches' tracking times (one grid for the whole recording, eventcap.analysis.motion.tracking_times_us), so
     overlapping windows give the same times. They follow from the plan at this batch's step when that step
     reproduces this batch's own times (a whole number of µs: 1 kHz); else they are read from the batches' tracks."""
     rate = 1e6 / int(np.median(np.diff(t_us)))

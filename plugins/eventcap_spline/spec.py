@@ -9,7 +9,7 @@ from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import Detections, PoseSequence
 from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import SlicedTracks
-from eventcap.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, param
 
 
 @dataclass
@@ -46,7 +46,7 @@ class SplineSolveConfig:
                                              "smoothing; 1 = λ_prior for all")
     prior_gain_criterion: str = param("gcv", choices=("reml", "gcv"),
                                       help="how each parameter's fits choose its smoothing for those gains: gcv | "
-                                           "reml (eventcap.smoothing; REML held fast_wave's waving arm at 25 fps)")
+                                           "reml (eventcap.analysis.smoothing; REML held fast_wave's waving arm at 25 fps)")
     prior_gain_min_fps: float = param(20.0, ge=0, help="choose those gains (and the context pull) only when the intensity "
                                                  "frames come at least this often (frames per second; 0 = always): "
                                                  "at 10 fps the fits undersample the punches and kicks, whose "

@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 
 
 def smootherstep(u: np.ndarray) -> np.ndarray:

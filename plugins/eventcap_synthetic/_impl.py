@@ -12,11 +12,11 @@ from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import EventStream, FrameStack, GroundTruth, Recording
 from eventcap.camera import Camera, look_at, read_rpg_calibration
 from eventcap.camera_presets import CameraPreset, load_preset
-from eventcap.render import background
+from eventcap.imaging.render import background
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic
 from eventcap.sim.events import SensorConfig
 from eventcap.sim.frames import FrameConfig
-from eventcap.stage import StageFailed
+from eventcap.core.stage import StageFailed
 
 
 def run_procedural(inputs, config, ctx):

@@ -9,7 +9,7 @@ from eventcap.artifacts.recording import Recording
 from eventcap.body.clips import motion_files
 from eventcap.body.template import Template
 from eventcap.camera_presets import preset_names
-from eventcap.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, param
 
 
 @dataclass
@@ -102,7 +102,7 @@ class SyntheticConfig:
     illuminance_lux: float = param(500.0, gt=0, help="scene illuminance: drives the photoreceptor bandwidth and the "
                                                      "frames' noise (500 office, 50 dim room, 5 night-time interior)")
     background: str = param("textured", help="static backdrop: textured | low_texture | plain",
-                            choices=("textured", "low_texture", "plain"))  # eventcap.render.BACKGROUNDS
+                            choices=("textured", "low_texture", "plain"))  # eventcap.imaging.render.BACKGROUNDS
     background_seed: int = param(0, ge=0, help="texture of the static background")
     gt_rate_hz: float = param(1000.0, gt=0, help="rate of the ground-truth poses, joints and tracks")
     n_track_points: int = param(300, ge=0, help="surface points whose ground-truth 2D tracks are recorded")

@@ -87,7 +87,7 @@ def run_eklt(inputs, config, ctx):
 
 
 def run_klt_latent(inputs, config, ctx):
-    from eventcap import edi
+    from eventcap.imaging import edi
 
     from . import eklt, klt
 

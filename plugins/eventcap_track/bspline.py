@@ -29,7 +29,7 @@ leave a gap of hundreds of knot intervals is not bridged faithfully there (the r
 track's mean position): split such tracks.
 
 Slicing: positions at the batch's ends and at every time ``round(k · 1e6 / rate_hz)`` of the recording's tracking
-grid between them (:func:`eventcap.motion.tracking_times_us`: the same grid for every batch, whatever the frame
+grid between them (:func:`eventcap.analysis.motion.tracking_times_us`: the same grid for every batch, whatever the frame
 clock); a position is valid only inside its track's observed span (no extrapolation); invalid positions are NaN.
 """
 
@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solveh_banded
 
-from eventcap.motion import tracking_times_us
+from eventcap.analysis.motion import tracking_times_us
 
 #: Default expected noise of tracked positions, px (sub-pixel accuracy of event-based feature trackers).
 DEFAULT_SIGMA_PX = 0.2
@@ -243,7 +243,7 @@ def fit_trajectory(
 
 def slice_times_us(t0_us: int, t1_us: int, rate_hz: float = 1000.0) -> np.ndarray:
     """The tracking-frame times int64 µs of a batch: both ends and the recording's tracking grid between them
-    (:func:`eventcap.motion.tracking_times_us`)."""
+    (:func:`eventcap.analysis.motion.tracking_times_us`)."""
     return tracking_times_us(_as_int("t0_us", t0_us), _as_int("t1_us", t1_us), _positive("rate_hz", rate_hz))
 
 

@@ -9,7 +9,7 @@ from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import Detections
 from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import LatentFrames, SlicedTracks, Tracks
-from eventcap.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, param
 
 
 @dataclass

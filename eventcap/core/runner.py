@@ -22,17 +22,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
-from .cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
-from .config import ConfigError, build_config, config_to_dict, file_digests, result_config
-from .errors import ComputationFailed
-from .memo import clear_process_caches, memoize
-from .pipeline import Node, build_pipeline
-from .registry import Registry, load_registry
-from .runrecord import NodeReport, RunRecord, RunRecordError
-from .stage import StageContext, StageSpec
+from eventcap.artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
+from eventcap.core.cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
+from eventcap.core.config import ConfigError, build_config, config_to_dict, file_digests, result_config
+from eventcap.errors import ComputationFailed
+from eventcap.memo import clear_process_caches, memoize
+from eventcap.core.pipeline import Node, build_pipeline
+from eventcap.core.registry import Registry, load_registry
+from eventcap.core.runrecord import NodeReport, RunRecord, RunRecordError
+from eventcap.core.stage import StageContext, StageSpec
 
-log = logging.getLogger("eventcap.runner")
+log = logging.getLogger("eventcap.core.runner")
 
 #: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines costs 10-30x (a dense
 #: Cholesky took 1.4 s instead of 49 ms with two threads fighting on a busy 2-core machine).
@@ -174,7 +174,7 @@ def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
             else:
                 inputs[port] = _load(task.cache_root, ref.stage, ref.keys[0], ref.port, cls)
         ctx = StageContext(node=task.node, stage=task.stage, batch=task.batch,
-                           log=logging.getLogger(f"eventcap.stage.{task.node}"),
+                           log=logging.getLogger(f"eventcap.core.stage.{task.node}"),
                            progress=_ProgressLog(task.node) if task.batch is None else None)
         outputs = spec.load_run()(inputs, config, ctx)
         _check_outputs(spec, task.node, outputs)
@@ -335,7 +335,7 @@ class _ProcessPool:
 def _init_worker(level: int, parent_pid: int | None = None) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     if parent_pid is not None:  # a worker never outlives its driver, even a driver killed by kill -9
-        from .lifeline import die_with_parent
+        from eventcap.core.lifeline import die_with_parent
 
         die_with_parent(parent_pid)
 

@@ -32,8 +32,8 @@ the viewer shows the latest outline until the next) are drawn at most ``rerun_ma
 evenly over the run, as the overlay video's frames do); the 3D skeleton, the projected skeleton, the tracks and the
 speeds are kept at every tracking frame.
 
-This module is an app layer below :mod:`eventcap.outputs`, which calls it (``outputs.rerun=true``, and
-:func:`eventcap.outputs.build_run_recording` for ``eventcap view``): it is handed a runner and its result, reads the
+This module is an app layer below :mod:`eventcap.apps.outputs`, which calls it (``outputs.rerun=true``, and
+:func:`eventcap.apps.outputs.build_run_recording` for ``eventcap view``): it is handed a runner and its result, reads the
 run's outputs through them (:meth:`Runner.load_output`), and imports neither the outputs, the runner nor a plugin. Rerun is an optional dependency (``rerun-sdk``, ~500 MB
 with its viewer): without it, :func:`require_rerun` says what to install.
 """
@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-log = logging.getLogger("eventcap.viewer")
+log = logging.getLogger("eventcap.apps.viewer")
 
 RRD_NAME = "capture.rrd"
 TIMELINE = "t_us"
@@ -98,17 +98,17 @@ class RunContent:
     pose_nodes: dict[str, dict[int, Any]] = field(default_factory=dict)  # per-batch node -> batch -> PoseSequence
     batch_nodes: dict[str, dict[str, Any]] = field(default_factory=dict)  # per-batch node -> committed/failed batches
     errors: Any = None  # JointErrors
-    confidence: np.ndarray | None = None  # (T, 24) in [0, 1] at the motion's frames (eventcap.confidence)
+    confidence: np.ndarray | None = None  # (T, 24) in [0, 1] at the motion's frames (eventcap.analysis.confidence)
     name: str = ""
 
 
 def collect_run_content(runner, result, t_us=None, poses=None, joints=None, rec=None, template=None, latent=None,
                         motion_from: str = "") -> RunContent:
-    """What a recording of this run shows: the motion and artifacts :mod:`eventcap.outputs` already loaded (passed
+    """What a recording of this run shows: the motion and artifacts :mod:`eventcap.apps.outputs` already loaded (passed
     in), the rest found by type among the run's committed outputs."""
-    from .artifacts import BatchPlan
-    from .artifacts.pose import Detections, JointErrors, PoseSequence
-    from .artifacts.tracking import SlicedTracks
+    from eventcap.artifacts import BatchPlan
+    from eventcap.artifacts.pose import Detections, JointErrors, PoseSequence
+    from eventcap.artifacts.tracking import SlicedTracks
 
     c = RunContent(t_us=t_us, poses=poses, joints=joints, motion_from=motion_from, rec=rec, template=template,
                    latent=latent, name=str(runner.cfg.get("name") or ""))
@@ -149,7 +149,7 @@ def _set_time(rec_stream, t_us: int) -> None:
 def decimated(t_us: np.ndarray, every_ms: float, max_frames: int) -> np.ndarray:
     """Indices into the motion frames ``t_us``: one every ``every_ms`` of motion time, at most ``max_frames`` (the step
     widens evenly over the whole motion); the same rule as the overlay video's frames."""
-    from .motion import frames_every
+    from eventcap.analysis.motion import frames_every
 
     return frames_every(t_us, every_ms, max_frames)[0]
 
@@ -182,8 +182,8 @@ def silhouette_outline(camera, template, S: np.ndarray) -> list[np.ndarray]:
     contours of the rasterized silhouette)."""
     import cv2
 
-    from .body.kinematics import skin
-    from .render import rasterize
+    from eventcap.body.kinematics import skin
+    from eventcap.imaging.render import rasterize
 
     _, tri_id, _ = rasterize(camera, skin(S, template), template.faces)
     mask = (tri_id >= 0).astype(np.uint8)
@@ -220,7 +220,7 @@ def write_recording(path, content: RunContent, events_ms: float = 1.0, every_ms:
     rr = require_rerun()
     import rerun.blueprint as rrb
 
-    from .body.skeleton import JOINT_INDEX, JOINT_NAMES, LANDMARK_NAMES, PARENTS
+    from eventcap.body.skeleton import JOINT_INDEX, JOINT_NAMES, LANDMARK_NAMES, PARENTS
 
     path = Path(path)
     tmp = path.with_name(path.stem + ".partial.rrd")
@@ -467,7 +467,7 @@ def _log_truth(rr, s, c: RunContent, counts) -> None:
                     columns=_keypoint_columns(rr, rr.Points2D, px[ok], CLASS_TRUTH, 25.0), recording=s)
     counts["ground-truth frames"] = int(t.size)
     if c.t_us is not None and c.t_us.size > 2:
-        from .body.skeleton import JOINT_INDEX
+        from eventcap.body.skeleton import JOINT_INDEX
 
         idx, v = speeds(c.t_us, _truth_on(gt, c.t_us))
         good = np.all(np.isfinite(v), axis=1)

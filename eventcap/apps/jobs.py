@@ -20,14 +20,14 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     Returns ``(runner, result)``, or None when the config was refused before anything ran. Problems are appended to
     ``failures`` (one line each); the caller decides the exit code. Shared by ``eventcap run`` and ``benchmark``.
     """
-    from .cache import CacheError
-    from .config import ConfigError
-    from .outputs import check_outputs_config, write_run_outputs
-    from .pipeline import PipelineError
-    from .registry import UnknownStageError
-    from .runner import Runner
+    from eventcap.core.cache import CacheError
+    from eventcap.core.config import ConfigError
+    from eventcap.apps.outputs import check_outputs_config, write_run_outputs
+    from eventcap.core.pipeline import PipelineError
+    from eventcap.core.registry import UnknownStageError
+    from eventcap.core.runner import Runner
 
-    from .config import log_level_number
+    from eventcap.core.config import log_level_number
 
     try:
         log_level_number(data.get("log_level", "INFO"))
@@ -45,7 +45,7 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     if written["problems"]:
         failures.append(f"{run_dir}: outputs: {'; '.join(written['problems'])}")
     if not result.ok:
-        from .failures import failure_summary
+        from eventcap.core.failures import failure_summary
 
         msg = failure_summary(result)
         log.error("run incomplete: %s", msg)
@@ -66,7 +66,7 @@ def frameless_source(data: Mapping[str, Any]) -> str | None:
     if src.get("frames") is False:
         return "source.frames=false: the recording's intensity frames are left out"
     if stage == "synthetic" and src.get("frames") is None and src.get("camera"):
-        from .camera_presets import load_preset
+        from eventcap.camera_presets import load_preset
 
         try:
             preset = load_preset(str(src["camera"]))
@@ -74,7 +74,7 @@ def frameless_source(data: Mapping[str, Any]) -> str | None:
             return None  # refused with its reason when the source runs
         return None if preset.frames else f"camera {preset.name} ({preset.sensor}) has no intensity frames"
     if stage == "recording" and src.get("path") not in (None, "", "???"):
-        from .io.readers import recording_has_frames
+        from eventcap.io.readers import recording_has_frames
 
         try:
             has = recording_has_frames(src["path"], src.get("format") or None)

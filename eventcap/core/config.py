@@ -13,8 +13,8 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from .registry import unknown_name_message
-from .stage import StageSpec, allowed_values, check_value
+from eventcap.core.registry import unknown_name_message
+from eventcap.core.stage import StageSpec, allowed_values, check_value
 
 
 class ConfigError(ValueError):
@@ -91,7 +91,7 @@ def register_stage_configs() -> list[str]:
     them, and an override ``stages.<node>.<key>=...`` needs no '+'). Returns the registered names."""
     from hydra.core.config_store import ConfigStore
 
-    from .registry import load_registry
+    from eventcap.core.registry import load_registry
 
     cs = ConfigStore.instance()
     names = []

@@ -121,22 +121,22 @@ def _between(lo_hi: tuple[float, float], u: float) -> float:
 @functools.lru_cache(maxsize=64)
 def clip_duration_s(name: str) -> float:
     """Length of a recorded clip (``cmu/<trial>`` or a BVH path), read from its file (once per process)."""
-    from .body.bvh_clip import read_bvh
-    from .body.clips import clip_path
+    from eventcap.body.bvh_clip import read_bvh
+    from eventcap.body.clips import clip_path
 
     return read_bvh(clip_path(name)).duration_s
 
 
 @functools.lru_cache(maxsize=16)
 def _preset(name: str):
-    from .camera_presets import load_preset
+    from eventcap.camera_presets import load_preset
 
     return load_preset(name)
 
 
 def draw_capture(seed: int, draws: Draws, duration_s: float) -> Capture:
     """The capture of ``seed``: every value drawn from its own stream, rounded to fixed decimals."""
-    from .body.clips import is_clip
+    from eventcap.body.clips import is_clip
 
     u = lambda name: uniform(seed, draws.salt, name)  # noqa: E731
     group = draws.groups[draws.cycle[seed % len(draws.cycle)]]
@@ -214,8 +214,8 @@ def _count(where: str, value: Any) -> int:
 
 
 def _check_motions(where: str, motions: tuple[str, ...]) -> None:
-    from .body.clips import clip_path, is_clip
-    from .body.motions import MOTIONS
+    from eventcap.body.clips import clip_path, is_clip
+    from eventcap.body.motions import MOTIONS
 
     for m in motions:
         if is_clip(m):
@@ -228,7 +228,7 @@ def _check_motions(where: str, motions: tuple[str, ...]) -> None:
 
 
 def _parse_group(name: str, g: Any) -> GroupDraws:
-    from .camera_presets import preset_names
+    from eventcap.camera_presets import preset_names
 
     where = f"groups.{name}"
     if not isinstance(g, Mapping):
@@ -265,7 +265,7 @@ def parse_draws(data: Any) -> Draws:
     if not isinstance(groups_in, Mapping) or not groups_in:
         raise ValueError(f"draws.groups: expected a mapping of group name -> its draws, got {groups_in!r}")
     groups = {str(n): _parse_group(str(n), g) for n, g in groups_in.items()}
-    from .render import BACKGROUNDS
+    from eventcap.imaging.render import BACKGROUNDS
 
     return Draws(salt=_count("salt", data["salt"]), cycle=_names("cycle", data["cycle"], list(groups)), groups=groups,
                  builtin_start_s=_range("builtin_start_s", data["builtin_start_s"], low=0.0),

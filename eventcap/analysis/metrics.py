@@ -21,7 +21,7 @@ def feature_ground_truth(rec, t_ref_us: int, xy_ref: np.ndarray, times_us: np.nd
     Returns positions (T, H, 2) and on_actor (H,) bool.
     """
     from eventcap.body.kinematics import skin  # here, not at the top: the stage specs import this module's constants
-    from eventcap.render import Render, pick_surface_points, rasterize
+    from eventcap.imaging.render import Render, pick_surface_points, rasterize
 
     gt, tpl, cam = rec.ground_truth, rec.template, rec.camera
     if gt is None or tpl is None:

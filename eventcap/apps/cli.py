@@ -24,7 +24,7 @@ import re
 import sys
 from pathlib import Path
 
-from .jobs import run_job  # noqa: F401 (part of this module's API: eventcap.cli.run_job)
+from eventcap.apps.jobs import run_job  # noqa: F401 (part of this module's API: eventcap.apps.cli.run_job)
 
 log = logging.getLogger("eventcap")
 
@@ -33,7 +33,7 @@ def config_dir() -> Path:
     """The hydra config directory: $EVENTCAP_CONFIG_DIR, else ``conf/`` next to the package (source checkout)."""
     env = os.environ.get("EVENTCAP_CONFIG_DIR")
     candidates = [Path(env)] if env else []
-    candidates.append(Path(__file__).resolve().parent.parent / "conf")
+    candidates.append(Path(__file__).resolve().parents[2] / "conf")
     for c in candidates:
         if (c / "config.yaml").is_file():
             return c.resolve()
@@ -58,7 +58,7 @@ def _run_job(cfg) -> bool:
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf
 
-    from .config import ConfigError, log_level_number
+    from eventcap.core.config import ConfigError, log_level_number
 
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -82,7 +82,7 @@ def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
     from hydra import compose
     from omegaconf import OmegaConf
 
-    from .jobs import FRAMELESS_PIPELINE, frameless_source
+    from eventcap.apps.jobs import FRAMELESS_PIPELINE, frameless_source
 
     if any(o.partition("=")[0].lstrip("+~") == "pipeline" for o in overrides):
         return cfg, data
@@ -162,7 +162,7 @@ def unknown_override_message(exc: BaseException, argv: list[str], cdir: str | Pa
     parent = full_key.rpartition(".")[0]
     override_key = str(exc).split("'")[1] if str(exc).count("'") >= 2 else full_key
     known, stage_fields, stage_name, where_file = _known_keys(parent, override_key, argv, cdir)
-    from .registry import unknown_name_message
+    from eventcap.core.registry import unknown_name_message
 
     where = (parent or "the top-level config") + (f" ({where_file})" if where_file else "")
     if key in stage_fields:
@@ -178,7 +178,7 @@ def unknown_override_message(exc: BaseException, argv: list[str], cdir: str | Pa
 
 def typed_override_message(exc: BaseException, argv: list[str]) -> str | None:
     """Hydra's "Error merging override k=v ... could not be converted" for a stage's key as the project's message
-    (what the key takes, as eventcap.stage.allowed_values says it), or None for any other error."""
+    (what the key takes, as eventcap.core.stage.allowed_values says it), or None for any other error."""
     import dataclasses
 
     from omegaconf.errors import ValidationError
@@ -190,8 +190,8 @@ def typed_override_message(exc: BaseException, argv: list[str]) -> str | None:
     node_type = getattr(getattr(cause, "object_type", None), "__name__", "")
     if not (full_key and node_type.endswith("Node")):
         return None
-    from .registry import load_registry
-    from .stage import allowed_values
+    from eventcap.core.registry import load_registry
+    from eventcap.core.stage import allowed_values
 
     key = full_key.rpartition(".")[2]
     for spec in load_registry().specs():
@@ -242,7 +242,7 @@ def _known_keys(parent: str, override_key: str, argv: list[str], cdir) -> tuple[
     stage_name = ""
     if OmegaConf.is_dict(node) and "stage" in node:
         try:
-            from .registry import load_registry
+            from eventcap.core.registry import load_registry
 
             spec = load_registry().get(str(node["stage"]))
             stage_fields, stage_name = [f.name for f in dataclasses.fields(spec.config)], spec.name
@@ -276,9 +276,9 @@ def cmd_simulate(argv: list[str]) -> int:
 # eventcap stages / cache
 # ---------------------------------------------------------------------------------------------------------------------
 def cmd_stages(args) -> int:
-    from .registry import load_registry
+    from eventcap.core.registry import load_registry
 
-    logging.getLogger("eventcap.registry").setLevel(logging.ERROR)  # problems are printed below, once
+    logging.getLogger("eventcap.core.registry").setLevel(logging.ERROR)  # problems are printed below, once
     reg = load_registry()
     if args.name:
         return _print_stage_config(reg, args.name)
@@ -303,7 +303,7 @@ def _print_stage_config(reg, name: str) -> int:
     import dataclasses
     import textwrap
 
-    from .registry import UnknownStageError
+    from eventcap.core.registry import UnknownStageError
 
     try:
         spec = reg.get(name)
@@ -330,7 +330,7 @@ def _print_stage_config(reg, name: str) -> int:
 
 
 def cmd_cache(args) -> int:
-    from .cache import Cache, CacheError
+    from eventcap.core.cache import Cache, CacheError
 
     try:
         cache = Cache(args.cache_dir, create=False)  # a missing directory is said so, not created
@@ -372,7 +372,7 @@ def cmd_cache(args) -> int:
 def _read_for_preview(args):
     """The recording at ``args.recording`` in any format the readers take (the project's zarr format too), and a
     line saying what was read."""
-    from .io.convert import is_project_recording, recording_from_raw
+    from eventcap.io.convert import is_project_recording, recording_from_raw
 
     path = Path(args.recording)
     if not path.exists():
@@ -380,10 +380,10 @@ def _read_for_preview(args):
     if args.format in ("", None, "eventcap") and is_project_recording(path):
         import zarr
 
-        from .artifacts.recording import Recording
+        from eventcap.artifacts.recording import Recording
 
         return Recording.from_zarr(zarr.open_group(str(path), mode="r"), where=str(path)), "eventcap (zarr)"
-    from .io import read_recording
+    from eventcap.io import read_recording
 
     raw = read_recording(path, format=args.format or None, width=args.width or None, height=args.height or None,
                          time_unit=args.time_unit or None, columns=args.columns or None)
@@ -398,21 +398,21 @@ def cmd_preview(args) -> int:
     import numpy as np
     import zarr
 
-    from .artifacts import ArtifactError
-    from .viz import describe_recording, most_active_time, recording_overview
+    from eventcap.artifacts import ArtifactError
+    from eventcap.imaging.viz import describe_recording, most_active_time, recording_overview
 
     try:
         rec, fmt = _read_for_preview(args)
         print(f"read {args.recording}: {fmt}; {describe_recording(rec)}")
         latent = None
         if args.latent:
-            from .artifacts.tracking import LatentFrames
+            from eventcap.artifacts.tracking import LatentFrames
 
             latent = LatentFrames.from_zarr(zarr.open_group(str(args.latent), mode="r"), where=str(args.latent))
         if args.tracks:
-            from .artifacts import BatchPlan
-            from .artifacts.tracking import SlicedTracks
-            from .viz import tracks_overview
+            from eventcap.artifacts import BatchPlan
+            from eventcap.artifacts.tracking import SlicedTracks
+            from eventcap.imaging.viz import tracks_overview
 
             if latent is None:
                 raise ArtifactError("--tracks needs --latent (the sharpened frames to draw on)")
@@ -444,9 +444,9 @@ def cmd_view(args) -> int:
     """Open a run's Rerun recording (``capture.rrd``; built from the run folder when missing), or say how."""
     import subprocess
 
-    from .outputs import build_run_recording
-    from .runrecord import RunRecordError
-    from .viewer import RRD_NAME, ViewError, has_display, how_to_view, require_rerun, rerun_command, \
+    from eventcap.apps.outputs import build_run_recording
+    from eventcap.core.runrecord import RunRecordError
+    from eventcap.apps.viewer import RRD_NAME, ViewError, has_display, how_to_view, require_rerun, rerun_command, \
         web_viewer_command, web_viewer_url
 
     try:
@@ -490,8 +490,8 @@ def cmd_view(args) -> int:
 
 def cmd_convert(args) -> int:
     """Convert a recording into the project's format, printing progress (stderr) and a summary (stdout)."""
-    from .io import RecordingError
-    from .io.convert import convert_recording, roi_from_corners, window_from_seconds
+    from eventcap.io import RecordingError
+    from eventcap.io.convert import convert_recording, roi_from_corners, window_from_seconds
 
     tty = sys.stderr.isatty()
     shown = {"at": 0.0, "any": False}
@@ -547,7 +547,7 @@ benchmark.json and fig7_per_frame_error.png into <out>.
 
 
 def cmd_benchmark(argv: list[str]) -> int:
-    from .benchmark import main as benchmark_main
+    from eventcap.apps.benchmark import main as benchmark_main
 
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     try:
@@ -774,7 +774,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "stages":
         return cmd_stages(args)
     if args.command == "report":
-        from .report import ReportError, report
+        from eventcap.apps.report import ReportError, report
 
         try:
             report(Path(args.runs_dir), args.out, args.metrics, args.column, plot=not args.no_plot)

@@ -78,7 +78,7 @@ def _skipped_part(result, failed_nodes: list[str], chars: int) -> str:
 
 
 def failure_summary(result, examples: int = 3, error_chars: int = 200) -> str:
-    """One short line saying why a run is incomplete (``result``: a :class:`eventcap.runner.RunResult`).
+    """One short line saying why a run is incomplete (``result``: a :class:`eventcap.core.runner.RunResult`).
 
     ``solve failed in 187 of 201 batches: 180 missing_detections (batches 3, 4, 5, ...), 7
     Maximum_Iterations_Exceeded (batches 12, 40, 41, ...); skipped because of it: evaluate; first error:

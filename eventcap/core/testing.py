@@ -1,6 +1,6 @@
 """Conformance tests every stage inherits (ours and third parties'), in the manner of Hydra's launcher test suite.
 
-    from eventcap.testing import StageConformance
+    from eventcap.core.testing import StageConformance
 
     class TestMyStage(StageConformance):
         stage_name = "my_stage"
@@ -18,11 +18,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, ClassVar
 
-from .artifacts import Artifact, Batch, BatchPlan
-from .cache import make_key
-from .config import ConfigError, build_config, config_to_dict
-from .registry import load_registry
-from .stage import StageContext, StageSpec
+from eventcap.artifacts import Artifact, Batch, BatchPlan
+from eventcap.core.cache import make_key
+from eventcap.core.config import ConfigError, build_config, config_to_dict
+from eventcap.core.registry import load_registry
+from eventcap.core.stage import StageContext, StageSpec
 
 
 class StageConformance:
@@ -57,7 +57,7 @@ class StageConformance:
         return dict(spec.load_run()(inputs, self.config(**changes), ctx))
 
     def key(self, **changes: Any) -> str:
-        from .runner import base_doc
+        from eventcap.core.runner import base_doc
 
         spec = self.spec()
         return make_key({**base_doc(spec, self.config(**changes), f"stages.{spec.name}"), "inputs": {}})

@@ -38,9 +38,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .artifacts import Artifact
-from .memo import ProcessCache
-from .processes import pid_alive
+from eventcap.artifacts import Artifact
+from eventcap.memo import ProcessCache
+from eventcap.processes import pid_alive
 
 log = logging.getLogger(__name__)
 

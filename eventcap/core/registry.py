@@ -20,8 +20,8 @@ from dataclasses import replace
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from .names import unknown_name_message
-from .stage import StageSpec, StageSpecError
+from eventcap.names import unknown_name_message
+from eventcap.core.stage import StageSpec, StageSpecError
 
 log = logging.getLogger(__name__)
 

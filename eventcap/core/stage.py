@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from .artifacts import Artifact, Batch
-from .errors import ComputationFailed
+from eventcap.artifacts import Artifact, Batch
+from eventcap.errors import ComputationFailed
 
 
 def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool = True,
@@ -166,7 +166,7 @@ class StageSpec:
             raise StageSpecError(f"{where}: config must be a dataclass type, got {self.config!r}")
         for f in dataclasses.fields(self.config):
             if "help" not in f.metadata:
-                raise StageSpecError(f"{where}: config field {f.name!r} must be declared with eventcap.stage.param()")
+                raise StageSpecError(f"{where}: config field {f.name!r} must be declared with eventcap.core.stage.param()")
             choices = f.metadata.get("choices")
             if choices is not None and f.default is not dataclasses.MISSING and f.default not in choices:
                 raise StageSpecError(f"{where}: config field {f.name!r}: default {f.default!r} is not one of its "
@@ -212,7 +212,7 @@ class StageContext:
     node: str
     stage: str
     batch: Batch | None = None
-    log: logging.Logger = field(default_factory=lambda: logging.getLogger("eventcap.stage"))
+    log: logging.Logger = field(default_factory=lambda: logging.getLogger("eventcap.core.stage"))
     progress: Callable[[int, int], None] | None = None
     #: Diagnostics of this computation (timings, solver iterations...): JSON-serialisable, recorded in the cache
     #: manifest of the result (``eventcap cache explain``), not part of the outputs or their key.

@@ -116,8 +116,8 @@ def recording_overview(rec, frame_index: int | None = 1, scale: int = 2, window_
     the frame nearest that time, or for an event-only recording the image at exactly that time."""
     import cv2
 
-    from eventcap.reconstruct import DEFAULT_BASELINE, DEFAULT_CUTOFF_RAD_S, reconstruct as events_to_images
-    from eventcap.reconstruct import to_intensity, to_log_images
+    from eventcap.imaging.reconstruct import DEFAULT_BASELINE, DEFAULT_CUTOFF_RAD_S, reconstruct as events_to_images
+    from eventcap.imaging.reconstruct import to_intensity, to_log_images
 
     check_picture_size(rec.width, rec.height, scale)
     times, what = image_times(rec, rate_hz)

@@ -40,10 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .body.skeleton import JOINT_NAMES
-from .worldframe import check_frame, to_export
+from eventcap.body.skeleton import JOINT_NAMES
+from eventcap.worldframe import check_frame, to_export
 
-log = logging.getLogger("eventcap.c3d")
+log = logging.getLogger("eventcap.export.c3d")
 
 #: Frame numbers past this need the long-file parameters (16-bit header words and POINT:FRAMES).
 MAX_SHORT_FRAME = 65535

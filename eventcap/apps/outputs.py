@@ -5,12 +5,12 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
 
 - ``motion.bvh``: the joined motion of the ``poses`` node (``node.port``, per-batch PoseSequences, e.g.
   ``solve.poses``) at its tracking frame rate (1000 fps), on the template's rest skeleton
-  (:func:`eventcap.bvh.write_bvh`). Nothing is filled in: BVH has no way to mark a frame unestimated, so a motion
+  (:func:`eventcap.export.bvh.write_bvh`). Nothing is filled in: BVH has no way to mark a frame unestimated, so a motion
   with gaps (batches that failed or were not selected, windows that saw nothing) is cut there into
   ``motion_partNN.bvh``, one file per stretch, and the log names them.
-- ``motion.npz``: ``t_us``, ``poses`` (T, 33), ``joints`` (T, 24, 3) metres (:func:`eventcap.bvh.write_motion_npz`),
+- ``motion.npz``: ``t_us``, ``poses`` (T, 33), ``joints`` (T, 24, 3) metres (:func:`eventcap.export.bvh.write_motion_npz`),
   ``estimated`` (T,) (False: a gap, NaN poses and joints), ``gaps_us`` (the spans of the gaps), and ``confidence``
-  (T, 24) in [0, 1] per joint when the pipeline has a confidence node (:mod:`eventcap.confidence`: below 0.5
+  (T, 24) in [0, 1] per joint when the pipeline has a confidence node (:mod:`eventcap.analysis.confidence`: below 0.5
   unobserved or not trusted).
 - ``overlay.mp4``: every ``video_every_ms`` of the motion (at most ``video_max_frames`` frames: the step widens
   to cover the whole motion), the sharpened latent image (else the nearest intensity frame) with the events of the
@@ -19,14 +19,14 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
   and beside it an orthographic side view of the 3D skeleton. ``overlay_frames/`` keeps ``video_png_frames`` of its
   frames as PNG. The file appears atomically (written as ``overlay.partial.mp4``, then renamed).
 - ``motion.c3d`` (``c3d: true``): the joint centres and the template's surface markers (Plug-in Gait) at the
-  tracking rate, for mocap tools (:mod:`eventcap.c3d`); residual -1 (invalid) for a gap and for a joint (or a
+  tracking rate, for mocap tools (:mod:`eventcap.export.c3d`); residual -1 (invalid) for a gap and for a joint (or a
   marker's joint) whose confidence is below 0.5.
 - ``up_axis`` (y | z) and ``units`` (m | cm | mm; null: BVH in m, C3D in mm) set the frame of motion.bvh and
   motion.c3d (:mod:`eventcap.worldframe`); motion.npz stays in the internal frame (y up, metres) and says so in its
   ``world_frame`` field. Each file states the time of its first frame (``t0_us``).
 - ``plausibility.json``: speeds beyond human limits, joints behind the camera, sudden flips, the head below the
-  pelvis, each with its frames (:mod:`eventcap.plausibility`); also logged, one line per kind.
-- ``capture.rrd`` (``rerun: true``): a Rerun recording of everything the run saw and produced (:mod:`eventcap.viewer`;
+  pelvis, each with its frames (:mod:`eventcap.analysis.plausibility`); also logged, one line per kind.
+- ``capture.rrd`` (``rerun: true``): a Rerun recording of everything the run saw and produced (:mod:`eventcap.apps.viewer`;
   ``eventcap view RUN_DIR`` opens it, or builds it from a finished run).
 
 A run whose poses node committed nothing (it failed or was skipped) gets none of these, with a log line saying so.
@@ -47,14 +47,14 @@ from typing import Any
 
 import numpy as np
 
-from .artifacts.pose import PoseSequence
-from .motion import JOIN_RULES, frame_step_us, frames_every, join_batches, on_grid, uniform_motion
-from .plausibility import write_plausibility
-from .runrecord import note_outputs
-from .viz import label as _label
-from .worldframe import check_frame
+from eventcap.artifacts.pose import PoseSequence
+from eventcap.analysis.motion import JOIN_RULES, frame_step_us, frames_every, join_batches, on_grid, uniform_motion
+from eventcap.analysis.plausibility import write_plausibility
+from eventcap.core.runrecord import note_outputs
+from eventcap.imaging.viz import label as _label
+from eventcap.worldframe import check_frame
 
-log = logging.getLogger("eventcap.outputs")
+log = logging.getLogger("eventcap.apps.outputs")
 
 #: BGR colours of the overlay
 ESTIMATE = (60, 200, 60)
@@ -79,10 +79,10 @@ class OutputsConfig:
     video_scale: int = 2  # image pixels per sensor pixel
     video_events_ms: float = 5.0  # events of the last ... ms are drawn
     video_png_frames: int = 4  # frames of the video also saved as PNG in overlay_frames/
-    c3d: bool = False  # motion.c3d: joint centres + surface markers at the tracking rate (eventcap/c3d.py)
+    c3d: bool = False  # motion.c3d: joint centres + surface markers at the tracking rate (eventcap/export/c3d.py)
     up_axis: str = "y"  # motion.bvh / motion.c3d: y | z (eventcap/worldframe.py)
     units: str | None = None  # motion.bvh / motion.c3d: m | cm | mm; null: BVH m, C3D mm
-    rerun: bool = False  # capture.rrd: a Rerun recording of the whole run (eventcap/viewer.py; eventcap view)
+    rerun: bool = False  # capture.rrd: a Rerun recording of the whole run (eventcap/apps/viewer.py; eventcap view)
     rerun_events_ms: float = 1.0  # each event image shows the events of the last ... ms
     rerun_every_ms: float = 1.0  # motion time between event images
     rerun_outline_every_ms: float = 5.0  # motion time between silhouette outlines (each costs a rasterization)
@@ -181,9 +181,9 @@ def write_run_outputs(runner, result, run_dir: str | Path, cfg: OutputsConfig | 
 
 
 def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str, Any]) -> dict[str, Any]:
-    from .artifacts.recording import Recording
-    from .artifacts.tracking import LatentFrames
-    from .body.template import Template
+    from eventcap.artifacts.recording import Recording
+    from eventcap.artifacts.tracking import LatentFrames
+    from eventcap.body.template import Template
 
     wanted = [k for k in ("bvh", "npz", "video", "c3d", "rerun") if getattr(cfg, k)]
     if cfg.poses is None or not wanted:
@@ -213,8 +213,8 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
         log.error("outputs: cannot join the poses of %s: %s", cfg.poses, exc)
         return summary
     prefer = [r.node for r in runner.by_name[node_name].inputs.values()]
-    from .artifacts.pose import Detections, JointConfidence
-    from .worldframe import upright
+    from eventcap.artifacts.pose import Detections, JointConfidence
+    from eventcap.worldframe import upright
 
     rec = _first_output(runner, result, Recording, prefer)
     if rec is not None:  # the world the motion was solved in (turned to the person's vertical by detect, or not)
@@ -223,7 +223,7 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
                                                                                                Template)
     if template is None:
         return skip("no actor template in this run (the motion needs its rest skeleton)")
-    from .body.kinematics import joint_positions
+    from eventcap.body.kinematics import joint_positions
 
     t_us, poses = with_gap_frames(t_us, poses, frame_step_us(t_us) or 1000)  # failed batches: their frames, NaN
     est = np.isfinite(poses).all(axis=1)  # False: a gap (a window that saw nothing, a failed batch): never filled in
@@ -257,7 +257,7 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     if cfg.rerun:
         jobs.append(("rerun", lambda: _write_rerun(run_dir, runner, result, te, Pe, Je, rec, template,
                                                    cfg, summary, Ce)))
-    # Plausibility warnings (eventcap/plausibility.py): logged, and written to plausibility.json; never change the motion
+    # Plausibility warnings (eventcap/analysis/plausibility.py): logged, and written to plausibility.json; never change the motion
     jobs.append(("plausibility", lambda: write_plausibility(run_dir / "plausibility.json", te, Je,
                                                             rec.camera if rec is not None else None)))
     for name, job in jobs:
@@ -308,8 +308,8 @@ def motion_segments(t_us: np.ndarray, step_us: int) -> list[slice]:
 def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConfig) -> Path | str:
     """motion.bvh of the estimated frames; a motion with gaps (BVH has no way to mark one) is cut there into
     motion_partNN.bvh, one file per stretch, each with its own time origin (the log names them)."""
-    from .bvh import write_bvh
-    from .worldframe import unit_scale
+    from eventcap.export.bvh import write_bvh
+    from eventcap.worldframe import unit_scale
 
     segments = motion_segments(t_us, step_us)
     written = []
@@ -334,8 +334,8 @@ def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConf
 def _write_npz(path: Path, t_us, poses, joints, est, conf, cfg: OutputsConfig) -> Path:
     """motion.npz: every frame of the joined motion, gaps included (NaN, ``estimated`` false), its ``confidence``
     per joint (0 in gaps; when the run has a confidence node) and the time spans of its gaps."""
-    from .bvh import write_motion_npz
-    from .worldframe import describe
+    from eventcap.export.bvh import write_motion_npz
+    from eventcap.worldframe import describe
 
     t = np.asarray(t_us, dtype=np.int64)
     edges = np.flatnonzero(np.diff(np.concatenate([[False], ~est, [False]]).astype(int)))
@@ -349,9 +349,9 @@ def _write_npz(path: Path, t_us, poses, joints, est, conf, cfg: OutputsConfig) -
 
 def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int, cfg: OutputsConfig,
                conf: np.ndarray | None = None) -> Path:
-    from .body.markers import plug_in_gait_markers
-    from .c3d import write_c3d
-    from .confidence import OBSERVED
+    from eventcap.body.markers import plug_in_gait_markers
+    from eventcap.export.c3d import write_c3d
+    from eventcap.analysis.confidence import OBSERVED
 
     keep = on_grid(t_us, step_us)  # C3D has one frame rate: intensity frames between two grid times stay in motion.npz
     markers = plug_in_gait_markers(template)
@@ -367,8 +367,8 @@ def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int, cfg: Out
 
 def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, template, cfg: OutputsConfig,
                  summary: dict[str, Any], conf: np.ndarray | None = None) -> Path:
-    from .artifacts.tracking import LatentFrames
-    from .viewer import RRD_NAME, collect_run_content, write_recording
+    from eventcap.artifacts.tracking import LatentFrames
+    from eventcap.apps.viewer import RRD_NAME, collect_run_content, write_recording
 
     content = collect_run_content(runner, result, t_us, poses, joints, rec, template,
                                   _first_output(runner, result, LatentFrames), cfg.poses)
@@ -453,8 +453,8 @@ class OverlayRenderer:
         """The template's silhouette at pose S (rasterized in the enlarged image), outer and inner contours."""
         import cv2
 
-        from .body.kinematics import skin
-        from .render import rasterize
+        from eventcap.body.kinematics import skin
+        from eventcap.imaging.render import rasterize
 
         _, tri_id, _ = rasterize(self.cam_big, skin(S, self.template), self.template.faces)
         mask = (tri_id >= 0).astype(np.uint8)
@@ -464,7 +464,7 @@ class OverlayRenderer:
     def draw_skeleton(self, img: np.ndarray, joints: np.ndarray, colour, width: int) -> None:
         import cv2
 
-        from .body.skeleton import PARENTS
+        from eventcap.body.skeleton import PARENTS
 
         px = self.cam_big.project(joints)
         if not np.all(np.isfinite(px)):
@@ -479,7 +479,7 @@ class OverlayRenderer:
     def side_view(self, joints: np.ndarray, truth: np.ndarray | None) -> np.ndarray:
         import cv2
 
-        from .body.skeleton import PARENTS
+        from eventcap.body.skeleton import PARENTS
 
         n = self.side
         panel = np.full((n, n, 3), 32, np.uint8)
@@ -632,13 +632,13 @@ def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, po
 def build_run_recording(run_dir: Path, recompute: bool = False) -> Path:
     """Write ``RUN_DIR/capture.rrd`` from a finished run (config + cache) through the same path as
     ``outputs.rerun=true``; ``recompute`` runs the pipeline again first (cache hits, recomputing what is gone).
-    ViewError (:mod:`eventcap.viewer`) when there is nothing to show; RunRecordError when the folder is not a
+    ViewError (:mod:`eventcap.apps.viewer`) when there is nothing to show; RunRecordError when the folder is not a
     finished run or its cache entries are gone."""
     import yaml
 
-    from .runner import Runner, load_finished_run
-    from .runrecord import find_cache_dir
-    from .viewer import ViewError
+    from eventcap.core.runner import Runner, load_finished_run
+    from eventcap.core.runrecord import find_cache_dir
+    from eventcap.apps.viewer import ViewError
 
     run_dir = Path(run_dir)
     if recompute:

@@ -17,10 +17,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .artifacts import BatchPlan
-from .config import ConfigError, build_config
-from .registry import Registry, UnknownStageError, unknown_name_message
-from .stage import StageSpec
+from eventcap.artifacts import BatchPlan
+from eventcap.core.config import ConfigError, build_config
+from eventcap.core.registry import Registry, UnknownStageError, unknown_name_message
+from eventcap.core.stage import StageSpec
 
 
 class PipelineError(ValueError):

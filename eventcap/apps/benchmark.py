@@ -39,12 +39,12 @@ from typing import Any
 
 import numpy as np
 
-from .jobs import save_figure, write_csv  # noqa: F401 (also this module's API, as before)
+from eventcap.apps.jobs import save_figure, write_csv  # noqa: F401 (also this module's API, as before)
 
-log = logging.getLogger("eventcap.benchmark")
+log = logging.getLogger("eventcap.apps.benchmark")
 
 DATA_FIELDS = ("total_MBps", "events_MBps", "frames_MBps", "highspeed_MBps")
-#: The evaluate stage's motion-detail measures a run record keeps (root-relative joints; see eventcap.metrics).
+#: The evaluate stage's motion-detail measures a run record keeps (root-relative joints; see eventcap.analysis.metrics).
 DETAIL_FIELDS = ("AE_rootrel_mm", "depth_mm", "image_plane_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err",
                  "velocity_window_ms")
 _METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires"}
@@ -151,7 +151,7 @@ class SuiteCapture:
     overrides: tuple[str, ...]  # the run overrides that make it
     frames: bool = True  # it has intensity frames; else the rows' events_only overrides apply
     group: str | None = None  # a generated suite's group
-    drawn: dict[str, Any] | None = None  # a generated suite: what was drawn (eventcap.open_suite.Capture)
+    drawn: dict[str, Any] | None = None  # a generated suite: what was drawn (eventcap.apps.open_suite.Capture)
     description: str = ""
 
 
@@ -185,9 +185,9 @@ class Benchmark:
                          for mo in self.motions for s in self.seeds]
 
     def _generated_suite(self) -> None:
-        """Captures drawn from their seeds (eventcap/open_suite.py), the seeds those of the suite's purpose."""
-        from .camera_presets import preset_names
-        from .open_suite import draw_capture, parse_draws, suite_seeds
+        """Captures drawn from their seeds (eventcap/apps/open_suite.py), the seeds those of the suite's purpose."""
+        from eventcap.camera_presets import preset_names
+        from eventcap.apps.open_suite import draw_capture, parse_draws, suite_seeds
 
         c = self.cfg
         self.draws = parse_draws(c["draws"])
@@ -250,7 +250,7 @@ class Benchmark:
         echo(f"benchmark {self.cfg['name']}: {what} x {len(methods)} method(s) = {len(jobs)} runs of "
              f"{self.cfg['duration_s']} s; cache {self.cfg['cache_dir']}; results in {self.out}")
         if self.purpose == "check":
-            from .open_suite import CHECK_NOTE
+            from eventcap.apps.open_suite import CHECK_NOTE
 
             echo(f"benchmark {self.cfg['name']}: {CHECK_NOTE}")
         records = []
@@ -267,7 +267,7 @@ class Benchmark:
                    "table": aggregate(records, names, [] if self.draws else self.motions),
                    "per_capture": per_capture(records, names), "failures": failed_runs(records)}
         if self.draws:
-            from .open_suite import CHECK_NOTE
+            from eventcap.apps.open_suite import CHECK_NOTE
 
             results["purpose"] = self.purpose
             results["note"] = CHECK_NOTE if self.purpose == "check" else "the tuning seeds (0-19)"
@@ -279,7 +279,7 @@ class Benchmark:
     def run_one(self, cap: SuiteCapture, method: Method) -> dict[str, Any]:
         """One row on one capture, through the normal runner and run outputs; a row without overrides for this kind
         of capture, a refused config or a failed run is recorded with its reason, never dropped."""
-        from .jobs import run_job
+        from eventcap.apps.jobs import run_job
 
         run_dir = self.out / "runs" / cap.label / method.slug
         own = method.overrides_for(cap.frames)
@@ -343,7 +343,7 @@ def progress_line(k: int, n: int, rec: Mapping[str, Any]) -> str:
 
 def collect_run(runner, result, metrics_out: str, errors_out: str, data_field: str) -> dict[str, Any]:
     """One run's record: status, cache counts, Table-1 metrics, per-frame errors, time per batch per stage."""
-    from .artifacts.pose import JointErrors
+    from eventcap.artifacts.pose import JointErrors
 
     rec: dict[str, Any] = {"ok": result.ok, "computed": result.computed_keys(),
                            "cached": sum(r.cached for r in result.nodes.values()),
@@ -370,7 +370,7 @@ def collect_run(runner, result, metrics_out: str, errors_out: str, data_field: s
 def speed_series(runner, result, run_dir: Path, recording_out: str, window_ms: float) -> dict[str, Any] | None:
     """For the speed figure: the root-relative speed over time of the end effector that moves fastest in the truth,
     true and estimated (from the run's ``motion.npz``), by the evaluate stage's central differences."""
-    from .metrics import END_EFFECTORS, motion_detail, truth_at
+    from eventcap.analysis.metrics import END_EFFECTORS, motion_detail, truth_at
 
     npz = run_dir / "motion.npz"
     node = recording_out.partition(".")[0]
@@ -384,7 +384,7 @@ def speed_series(runner, result, run_dir: Path, recording_out: str, window_ms: f
         with np.load(npz) as z:
             t_us, joints = np.asarray(z["t_us"], np.int64), np.asarray(z["joints"], np.float64)
         true, inside = truth_at(gt.t_us, gt.joints, t_us)
-        from .body.skeleton import JOINT_INDEX
+        from eventcap.body.skeleton import JOINT_INDEX
 
         ee = tuple(JOINT_INDEX[n] for n in END_EFFECTORS)
         d = motion_detail(t_us[inside], joints[inside], true, window_ms * 1000.0, None, ee)
@@ -863,7 +863,7 @@ def main(argv: Sequence[str], config_dir: Path) -> int:
     preset, bench_ov, run_ov = split_overrides(argv, set(probe))
     cfg = compose_benchmark(config_dir, preset, bench_ov)
     logging.getLogger().setLevel(str(cfg.get("log_level", "WARNING")).upper())
-    logging.getLogger("eventcap.benchmark").setLevel(logging.INFO)
+    logging.getLogger("eventcap.apps.benchmark").setLevel(logging.INFO)
     bench = Benchmark(cfg, config_dir, run_ov)
     try:
         bench.active_methods()  # composes the common run overrides once: a bad one stops here, not in every run
@@ -872,7 +872,7 @@ def main(argv: Sequence[str], config_dir: Path) -> int:
             raise ValueError(f"{exc}\n(arguments that are not benchmark keys are overrides of every run; the "
                              f"benchmark keys: {', '.join(sorted(probe))}, benchmark=PRESET)") from exc
         raise
-    from .rundir import RunFolderBusy, claim
+    from eventcap.core.rundir import RunFolderBusy, claim
 
     try:  # held until this process ends: two benchmarks writing into one folder would mix their runs and tables
         claim(bench.out, what="benchmark")

@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .jobs import save_figure, write_csv
-from .runrecord import RUN_JSON, RunRecord
+from eventcap.apps.jobs import save_figure, write_csv
+from eventcap.core.runrecord import RUN_JSON, RunRecord
 
-log = logging.getLogger("eventcap.report")
+log = logging.getLogger("eventcap.apps.report")
 
 #: (column title, dotted key into the metrics of the chosen node)
 DEFAULT_COLUMNS = (("AE (mm)", "AE_mm"), ("STD (mm)", "STD_mm"), ("AE.raw (mm)", "AE_raw_mm"),

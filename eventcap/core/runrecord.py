@@ -14,9 +14,9 @@ The one definition of the file's format. A run folder (``runs/<name>/<timestamp>
      "outputs": {"written": {"bvh": "<path>", ...}, "skipped": {"video": "<why>"}, "problems": []}
     }
 
-``outputs`` is added after the run by :func:`eventcap.outputs.write_run_outputs` (and again by ``eventcap view``,
-merged with what is there). Readers: :func:`eventcap.runner.load_finished_run` (``eventcap view``, the viewer's
-benchmark), :mod:`eventcap.report` (the status of a sweep's jobs). This module imports nothing of eventcap.
+``outputs`` is added after the run by :func:`eventcap.apps.outputs.write_run_outputs` (and again by ``eventcap view``,
+merged with what is there). Readers: :func:`eventcap.core.runner.load_finished_run` (``eventcap view``, the viewer's
+benchmark), :mod:`eventcap.apps.report` (the status of a sweep's jobs). This module imports nothing of eventcap.
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ class RunRecord:
     ok: bool
     cache_dir: str | None
     nodes: dict[str, NodeReport]
-    #: what :mod:`eventcap.outputs` wrote after the run (None until it ran)
+    #: what :mod:`eventcap.apps.outputs` wrote after the run (None until it ran)
     outputs: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:

@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from eventcap.body.skeleton import JOINT_INDEX, JOINT_NAMES, NUM_JOINTS
-from eventcap.metrics import central_derivative, half_window_steps
+from eventcap.analysis.metrics import central_derivative, half_window_steps
 
-log = logging.getLogger("eventcap.plausibility")
+log = logging.getLogger("eventcap.analysis.plausibility")
 
 #: Fastest speed of each joint a person reaches, m/s (see the module docstring for the figures).
 SPEED_LIMITS_MPS: dict[str, float] = {
