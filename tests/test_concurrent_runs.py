@@ -19,7 +19,7 @@ from eventcap.core.rundir import LOCK_NAME, claim, release
 
 from conftest import TESTS, run_concurrently, toy_env
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
 from kill_resume import survivors  # noqa: E402
 
 TOY = [sys.executable, "-m", "eventcap.apps.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy",

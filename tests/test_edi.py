@@ -11,7 +11,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "plugins"))  # eventcap_track without an install
-sys.path.insert(0, str(ROOT / "benchmarks"))  # the synthetic scenes of bench_edi
+sys.path.insert(0, str(ROOT / "benchmarks" / "accuracy"))  # the synthetic scenes of bench_edi
 
 import bench_edi as scenes
 from eventcap.imaging import edi

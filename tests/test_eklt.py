@@ -1,6 +1,6 @@
 """Tests of the event feature trackers (plugins/eventcap_track/eklt.py, klt.py) against exact ground truth.
 
-The scenes are simulated (``benchmarks/bench_tracking.py``): textured patterns at 240x180 moving fast with known
+The scenes are simulated (``benchmarks/accuracy/bench_tracking.py``): textured patterns at 240x180 moving fast with known
 motion, turned into events by ``eventcap.sim.events``; every texture point's true position is known at any time.
 Thresholds are conservative versions of the benchmark's numbers (see the module docstring of eklt.py).
 """
@@ -18,7 +18,7 @@ try:
     import eventcap_track  # noqa: F401
 except ImportError:  # not installed: use the source tree
     sys.path.insert(0, str(ROOT / "plugins"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "benchmarks" / "accuracy"))
 
 import bench_tracking as bt  # noqa: E402
 from eventcap.events import EVENT_DTYPE, make_events  # noqa: E402

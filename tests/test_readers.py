@@ -21,7 +21,7 @@ from eventcap.io import (
 )
 from eventcap.io.recording import Frames
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
 from fuzz_readers import synthetic_recording
 
 REAL = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # shipped (tests/data/real/SOURCE.md)

@@ -1,4 +1,4 @@
-"""A small fuzz run of the recording readers (the full one is ``benchmarks/fuzz_readers.py --n 2000``).
+"""A small fuzz run of the recording readers (the full one is ``benchmarks/robustness/fuzz_readers.py --n 2000``).
 
 Mutated files of every format are read in forked children; no read may crash, hang, raise an unclear error or
 return events that break the readers' invariants.
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
 import fuzz_readers
 
 from eventcap.io import read_recording

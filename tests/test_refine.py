@@ -4,7 +4,7 @@ boundary, accuracy against ground truth, failures and the stage contract.
 The accuracy scene (:func:`scene`) has exact ground truth and *synthetic events placed exactly on the true
 silhouette boundary*: at every tracking frame t_f one event on each boundary pixel of the ground-truth pose's
 rendered silhouette (no event simulation), so the closest event of a boundary pixel is a point of a true
-silhouette within the batch window. Simulated sensor events are measured in benchmarks/bench_refine.py.
+silhouette within the batch window. Simulated sensor events are measured in benchmarks/accuracy/bench_refine.py.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """What is in view and the detect checks (issue 35, item 2), through the `detections_file` stage with detections
 made from the ground truth: landmarks out of the image are not observations, a partial view stays partial, a
 body that does not fit the events is rejected with the reason per image and counted, and too few detections stop
-the stage naming the counts. The numbers on BlazePose and real captures: benchmarks/bench_view_checks.py."""
+the stage naming the counts. The numbers on BlazePose and real captures: benchmarks/accuracy/bench_view_checks.py."""
 
 from __future__ import annotations
 

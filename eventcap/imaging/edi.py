@@ -24,7 +24,7 @@ minimises the disagreement of consecutive EDI results: the sharp image of frame 
 to frame k+1 (``L_k + c·E``), must equal the sharp image of frame k+1. Why not a sharpness prior: on our synthetic scenes the total variation of the EDI image
 grows monotonically with c (a blurred ramp has the same TV as a sharp step, while event quantisation adds texture
 in proportion to c), and TV with an event-edge agreement term (the EDI authors' energy) put its minimum anywhere
-from 0.05 to 0.2 for a true c of 0.2 (measured; see benchmarks/bench_edi.py). The consistency energy's minimum
+from 0.05 to 0.2 for a true c of 0.2 (measured; see benchmarks/accuracy/bench_edi.py). The consistency energy's minimum
 is the contrast that best explains the data; where the sensor lost events (refractory period at fast,
 high-contrast edges) that is the *effective* threshold, larger than the nominal one.
 """

@@ -17,7 +17,7 @@ What it cannot do: recover anything that did not change. A static background pro
 ``1/cutoff_rad_s`` seconds. The estimate is a *relative* log image (unknown offset per pixel); compare it with a true
 image only up to scale and offset (:func:`agreement`), on the pixels that moved.
 
-``benchmarks/bench_events_only.py`` compares the options against the true sharp images of the synthetic capture.
+``benchmarks/accuracy/bench_events_only.py`` compares the options against the true sharp images of the synthetic capture.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Defaults of the reconstruction, chosen by ``benchmarks/bench_events_only.py`` (docs/results.md, the stage spec).
+#: Defaults of the reconstruction, chosen by ``benchmarks/accuracy/bench_events_only.py`` (docs/results.md, the stage spec).
 DEFAULT_CUTOFF_RAD_S = 3.0
 DEFAULT_CONTRAST = 0.2
 DEFAULT_BASE_INTENSITY = 0.5

@@ -45,7 +45,7 @@ event index, packet, dataset) and the problem:
 
 Prophesee decoders (faery) clamp backwards time steps and unwrap their counters themselves, so those repairs
 are not visible for evt2/evt3/dat. Decoding libraries' panics are caught; the fuzz script
-``benchmarks/fuzz_readers.py`` checks that no mutated file crashes or hangs the interpreter.
+``benchmarks/robustness/fuzz_readers.py`` checks that no mutated file crashes or hangs the interpreter.
 """
 
 from eventcap.io.detect import READ_FORMATS, detect_format

@@ -19,7 +19,7 @@ Every detector's landmarks (the skeleton's BODY_25 order) go through the same th
    - ``scale``: a whole body whose height disagrees with the scale of its own head and shoulders: ear-to-ear
      width over ``head_ratio`` or shoulder width over ``shoulder_ratio`` x the torso's length (neck to mid-hip).
      The head and shoulders of a close-up with a small body folded under them give 0.4-2 and 0.9-8; whole bodies
-     of the synthetic captures at most 0.28 and 0.74 (benchmarks/bench_view_checks.py).
+     of the synthetic captures at most 0.28 and 0.74 (benchmarks/accuracy/bench_view_checks.py).
 
    Checks that need what a detection lacks (no torso, no events near it) do not judge it. They assume a static
    camera, as the method does: a moving camera makes the whole image fire.

@@ -40,7 +40,7 @@ products are compiled loops (:mod:`eventcap.energy._sil_kernels`, checked agains
 handed to the factors per solve, never rebuilt into the NLP. Every solve's status is checked: anything but success
 raises :class:`eventcap.energy.errors.SolveFailed` with IPOPT's status.
 
-What it achieves (synthetic captures, benchmarks/bench_refine.py). Events pin the silhouette to about a pixel
+What it achieves (synthetic captures, benchmarks/accuracy/bench_refine.py). Events pin the silhouette to about a pixel
 (1.5 cm at 3 m): the refinement corrects estimates whose silhouettes are off by pixels, and cannot improve ones
 that are already better than that — there it adds up to a pixel's worth of noise, which E_stab keeps small.
 """

@@ -16,7 +16,7 @@ average that error instead. Two stages do it, after a solve in mode ``odometry``
 - ``place`` (per batch) puts each batch's event trajectory onto the graph: anchored at X_k, with the mismatch at
   frame N spread linearly, so batch k ends exactly where batch k+1 starts.
 
-Measured with ``benchmarks/bench_fusion.py`` (6 synthetic motions × 2 s, speed 1, AE against linear's 33.5 mm):
+Measured with ``benchmarks/accuracy/bench_fusion.py`` (6 synthetic motions × 2 s, speed 1, AE against linear's 33.5 mm):
 -32% with perfect relative motion, -21% with odometry from exact tracks, -11% from EKLT (estimated rho), where
 the paper's batch solve is at +8% on the same captures. The estimate needs many batches: on the 4-batch captures
 of ``eventcap benchmark benchmark=quick`` it gave rho = 10 on one motion and a worse result than linear there.

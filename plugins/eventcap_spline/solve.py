@@ -241,7 +241,7 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, t_det_us: np
     the floor's height over the capture (:func:`capture_floor`; None: the floor terms hold nothing). start:
     (control points (n_ctrl, 33), t' (D, 3)) the solve starts from instead of the smoothing spline through the fits
     and the fits' t' (rows with a NaN are taken from those); E_still is measured around the fits' spline either
-    way (benchmarks/bench_warm_start.py starts a window from its neighbour's solution)."""
+    way (benchmarks/speed/bench_warm_start.py starts a window from its neighbour's solution)."""
     c = solver.config
     if solver.factor("sil") is not None and t_sil_us is None:
         raise EnergyError("E_sil (lambda_sil > 0): the window's silhouette frames t_sil_us are missing")

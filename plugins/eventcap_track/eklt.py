@@ -104,7 +104,7 @@ _WARPS = {"translation": 0, "rotation": 1, "affine": 2}
 @dataclass(frozen=True)
 class EkltConfig:
     """Parameters of the EKLT tracker (defaults: the public reference's where they exist, else tuned on the
-    simulated scenes of ``benchmarks/bench_tracking.py``)."""
+    simulated scenes of ``benchmarks/accuracy/bench_tracking.py``)."""
 
     # Side of the square feature patch, px (odd). Reference: 25.
     patch_px: int = 25
@@ -1120,10 +1120,10 @@ def relocate(
     Corners detected independently on the end image differ from the forward points by 0.1-1.5 px under rotation
     or deformation (measured on the simulated scenes), and a stitched track would switch points at mid-batch.
 
-    The patch must lie on the moving object. Measured (benchmarks/bench_track_actor.py, speed 2, 6 motions; paired
+    The patch must lie on the moving object. Measured (benchmarks/accuracy/bench_track_actor.py, speed 2, 6 motions; paired
     stitched vs forward tracks of the same corners inside the actor): radius 12 px, whose patch is mostly static
     background around a ~10 px limb, made stitching *worse* (p90 0.58 -> 0.67 px); 6 px made it better
-    (0.58 -> 0.41 px). On the large textured planes of benchmarks/bench_tracking.py, 12 px is slightly better
+    (0.58 -> 0.41 px). On the large textured planes of benchmarks/accuracy/bench_tracking.py, 12 px is slightly better
     (translate_500 p90 0.78 vs 0.99 px; affine and disc equal).
     """
     a = _check_log_image("log_image_0", log_image_0).astype(np.float32)
