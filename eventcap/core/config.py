@@ -14,7 +14,8 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from eventcap.core.registry import unknown_name_message
-from eventcap.core.stage import StageSpec, allowed_values, check_value
+from eventcap.core.stage import StageSpec
+from eventcap.params import allowed_values, check_value, field_at, is_group, leaves, value_at
 
 
 class ConfigError(ValueError):
@@ -28,40 +29,69 @@ def _structured(config_class: type):
 
 
 def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
-    """The stage's config dataclass from ``values`` (a plain mapping); unknown keys and wrong types name ``where.key``."""
-    known = [f.name for f in dataclasses.fields(spec.config)]
-    for key in values:
-        if key not in known:
-            raise ConfigError(
-                f"{where}.{key}: " + unknown_name_message("config key", key, known, f"the config of stage {spec.name!r}")
-            )
+    """The stage's config dataclass from ``values`` (a plain mapping, groups as nested mappings); an unknown key, a
+    renamed one (named with its new key) and a wrong type or value name ``where.<dotted key>``."""
+    _check_keys(spec, spec.config, values, where, "")
     try:
         merged = OmegaConf.merge(_structured(spec.config), OmegaConf.create(dict(values)))
         obj = OmegaConf.to_object(merged)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", "") or ""
         msg = str(exc).splitlines()[0]
-        field = next((f for f in dataclasses.fields(spec.config) if f.name == key.split(".")[0].split("[")[0]), None)
+        path = ".".join(p.split("[")[0] for p in key.split("."))
+        field = field_at(spec.config, path) if path else None
         allowed = allowed_values(field) if field is not None else None
         if allowed:  # a value of the wrong type: say what the field takes (the field, not an item of a list)
-            msg = f"expected {allowed}, got {values.get(field.name)!r}"
-            key = field.name
+            msg = f"expected {allowed}, got {_value_in(values, path)!r}"
+            key = path
         raise ConfigError(f"{where}{'.' + key if key else ''}: {msg} (stage {spec.name!r})") from None
-    missing = [f.name for f in dataclasses.fields(obj) if getattr(obj, f.name) is dataclasses.MISSING]
-    if missing:
-        raise ConfigError(f"{where}.{missing[0]}: required by stage {spec.name!r} but not set")
-    for f in dataclasses.fields(obj):
+    for key, f in leaves(spec.config):
+        value = value_at(obj, key)
+        if value is dataclasses.MISSING:
+            raise ConfigError(f"{where}.{key}: required by stage {spec.name!r} but not set")
         choices = f.metadata.get("choices")
-        value = getattr(obj, f.name)
         if choices is not None and value not in choices:
             close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1, cutoff=0.5)
             hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise ConfigError(f"{where}.{f.name}: expected one of {' | '.join(str(c) for c in choices)}, got "
+            raise ConfigError(f"{where}.{key}: expected one of {' | '.join(str(c) for c in choices)}, got "
                               f"{value!r} (stage {spec.name!r}){hint}")
         problem = check_value(f, value)
         if problem:
-            raise ConfigError(f"{where}.{f.name}: {problem} (stage {spec.name!r})")
+            raise ConfigError(f"{where}.{key}: {problem} (stage {spec.name!r})")
     return obj
+
+
+def _check_keys(spec: StageSpec, config_class: type, values: Mapping[str, Any], where: str, prefix: str) -> None:
+    """ConfigError for the first key of ``values`` that the config class (a group at ``prefix``) has not: a renamed
+    one names its new key, others the close matches among the group's keys."""
+    fields = {f.name: f for f in dataclasses.fields(config_class)}
+    for key, value in values.items():
+        full = f"{prefix}{key}"
+        f = fields.get(str(key))
+        if f is None:
+            new = spec.renamed.get(full)
+            if new is not None:
+                raise ConfigError(f"{where}.{full}: this setting is now {where}.{new} (stage {spec.name!r}; "
+                                  f"`eventcap stages {spec.name}` lists its settings)")
+            what = f"the config of stage {spec.name!r}" + (f", group {prefix[:-1]}" if prefix else "")
+            raise ConfigError(f"{where}.{full}: " + unknown_name_message("config key", str(key), list(fields), what))
+        if is_group(f):
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"{where}.{full}: a group of settings ({', '.join(sorted(_names(f)))}); set one "
+                                  f"with {where}.{full}.<key>=..., got {value!r} (stage {spec.name!r})")
+            _check_keys(spec, f.metadata["group"], value, where, f"{full}.")
+
+
+def _names(f: dataclasses.Field) -> list[str]:
+    return [g.name for g in dataclasses.fields(f.metadata["group"])]
+
+
+def _value_in(values: Mapping[str, Any], key: str) -> Any:
+    for part in key.split("."):
+        if not isinstance(values, Mapping) or part not in values:
+            return None
+        values = values[part]
+    return values
 
 
 #: The values ``log_level`` takes (case-insensitive).
@@ -123,8 +153,7 @@ def _plain(v):
 
 def result_config(spec: StageSpec, config: Any) -> dict[str, Any]:
     """Only the fields that affect the stage's result: what goes into the cache key."""
-    full = config_to_dict(config)
-    return {k: full[k] for k in spec.result_fields()}
+    return {k: _plain(value_at(config, k)) for k in spec.result_fields()}
 
 
 def file_digest(path: str | Path, chunk: int = 1 << 22) -> str:
@@ -148,9 +177,9 @@ def file_digests(spec: StageSpec, config: Any, where: str) -> dict[str, str]:
     """Digest of every file config field that is set (empty string / None means unused): ``file=True`` fields by
     their path, ``file=<function>`` fields by the paths the function finds in the value (none: no entry)."""
     out = {}
-    kinds = {f.name: f.metadata.get("file") for f in dataclasses.fields(config)}
+    kinds = {k: f.metadata.get("file") for k, f in leaves(type(config))}
     for name in spec.file_fields():
-        value = getattr(config, name)
+        value = value_at(config, name)
         if value in (None, ""):
             continue
         paths = [value] if kinds.get(name) is True else list(kinds[name](value))
