@@ -116,7 +116,8 @@ def cmd_run(argv: list[str]) -> int:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         return code
     except Exception as exc:
-        msg = unknown_override_message(exc, argv, cdir) or typed_override_message(exc, argv)
+        msg = (stage_override_message(exc, argv, cdir) or unknown_override_message(exc, argv, cdir)
+               or typed_override_message(exc, argv))
         if msg is not None:
             print(f"eventcap run: {msg}", file=sys.stderr)
             return 1
@@ -137,6 +138,81 @@ def cmd_run(argv: list[str]) -> int:
         else:
             os.environ["HYDRA_FULL_ERROR"] = full_error
     return 1 if _RUN_FAILURES else 0
+
+
+def stage_override_message(exc: BaseException, argv: list[str], cdir: str | Path) -> str | None:
+    """Hydra's "Could not override" of a node's settings as the project's message, or None for any other error: a
+    key (``stages.<x>.<key>``) or a variant (``stages/<x>=...``) of a node the composed pipeline does not have
+    names the node that runs what was meant, or says which pipelines have it; a key that moved names its new key."""
+    m = re.match(r"Could not override 'stages([./])([^'.@/]+)((?:\.[^'@]*)?)'", str(exc))
+    if type(exc).__name__ != "ConfigCompositionException" or m is None:
+        return None
+    sep, name, rest = m.group(1), m.group(2), m.group(3).lstrip(".")
+    nodes, pipeline = _pipeline_nodes(argv, cdir, f"stages{sep}{name}")
+    if not nodes:
+        return None
+    key = f"stages{sep}{name}" + (f".{rest}" if rest else "")
+    if name in nodes:  # the node exists: a key that moved?
+        from eventcap.core.registry import load_registry
+
+        try:
+            spec = load_registry().get(nodes[name])
+        except Exception:  # noqa: BLE001 - an unknown stage is reported by the pipeline check
+            return None
+        new = spec.renamed.get(rest)
+        if new is None:
+            return None
+        return (f"{key}: this setting is now stages.{name}.{new} (stage {spec.name!r}; `eventcap stages {name}` "
+                f"lists its settings)")
+    runs = [n for n, st in nodes.items() if st == name]
+    if runs:
+        where = runs[0]
+        tail = f".{rest}" if rest else ".<key>"
+        try:
+            from eventcap.core.registry import load_registry
+
+            tail = f".{load_registry().get(name).renamed.get(rest, rest)}" if rest else tail
+        except Exception:  # noqa: BLE001 - the key as given
+            pass
+        return (f"{key}: the pipeline {pipeline!r} has no node {name!r}; its node {where!r} runs stage {name!r}: "
+                f"set stages.{where}{tail} (`eventcap stages {where}` lists its settings)")
+    others = _pipelines_with_node(cdir, name)
+    has = f"; pipeline={' | '.join(others)} has one" if others else ""
+    return (f"{key}: the pipeline {pipeline!r} runs no node {name!r} (its nodes: {', '.join(nodes)}){has}: the "
+            f"setting would do nothing")
+
+
+def _pipeline_nodes(argv: list[str], cdir, failing: str) -> tuple[dict[str, str], str]:
+    """The stage of every node of the pipeline composed without the overrides of ``failing`` (a node's key or
+    group), and the pipeline's name; ({}, "") when it cannot be composed."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    rest = [a for a in argv if "=" in a and not a.startswith("-")
+            and not a.partition("=")[0].lstrip("+~").startswith((failing + ".", failing + "=", failing))]
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(cdir), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=rest, return_hydra_config=True)
+    except Exception:  # noqa: BLE001 - best effort: Hydra's own message then
+        return {}, ""
+    stages = cfg.get("stages") or {}
+    nodes = {str(n): str((stages.get(n) or {}).get("stage", n)) for n in cfg.pipeline.nodes
+             if n not in ("template", "source")}
+    return nodes, str(cfg.hydra.runtime.choices.get("pipeline", "default"))
+
+
+def _pipelines_with_node(cdir, name: str) -> list[str]:
+    """The pipelines (conf/pipeline/*.yaml) that have a node ``name``."""
+    import yaml
+
+    out = []
+    for p in sorted((Path(cdir) / "pipeline").glob("*.yaml")):
+        d = yaml.safe_load(p.read_text()) or {}
+        nodes = (d.get("pipeline", d) or {}).get("nodes") or {}
+        if name in nodes:
+            out.append(p.stem)
+    return out
 
 
 def unknown_override_message(exc: BaseException, argv: list[str], cdir: str | Path) -> str | None:
@@ -299,34 +375,134 @@ def cmd_stages(args) -> int:
 
 
 def _print_stage_config(reg, name: str) -> int:
-    """Every key of a stage's config with its default, choices and meaning: the one place they are stated."""
-    import dataclasses
+    """Every key of a stage's config with its default, choices and meaning, group by group: the one place they are
+    stated. ``name``: a stage, a node of a pipeline (the default pipeline's first), or a variant (stages/<node>=name)."""
     import textwrap
 
     from eventcap.core.registry import UnknownStageError
 
+    node, how = _resolve_stage_name(name)
     try:
-        spec = reg.get(name)
+        spec = reg.get(node[1] if node else name)
     except UnknownStageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if how:
+        print(how)
     print(f"{spec.name} (v{spec.version}, {spec.kind}, {'per batch' if spec.per_batch else 'whole recording'}): "
           f"{spec.description}")
-    print(f"  from {spec.origin}; set a key with stages.<node>.<key>=value (the node runs this stage)")
-    for f in dataclasses.fields(spec.config):
-        if f.default is not dataclasses.MISSING:
-            default = f.default
+    prefix = f"stages.{node[0]}" if node else "stages.<node>"
+    print(f"  from {spec.origin}; set a key with {prefix}.<key>=value" + ("" if node else " (the node that runs this "
+                                                                          "stage: `eventcap run --help` names it)"))
+    try:
+        default = spec.config()
+    except TypeError:
+        default = None
+    _print_settings(spec.config, default, "", textwrap)
+    return 0
+
+
+def _print_settings(config_class, default, prefix: str, textwrap) -> None:
+    """The settings of a config class (groups opened, each with its help) with their defaults."""
+    import dataclasses
+
+    from eventcap.params import is_group
+
+    plain = [f for f in dataclasses.fields(config_class) if not is_group(f)]
+    groups = [f for f in dataclasses.fields(config_class) if is_group(f)]
+    for f in plain:
+        if default is not None:
+            value = getattr(default, f.name)
+        elif f.default is not dataclasses.MISSING:
+            value = f.default
         elif f.default_factory is not dataclasses.MISSING:
-            default = f.default_factory()
+            value = f.default_factory()
         else:
-            default = "(required)"
+            value = "(required)"
         meta = f.metadata
         extra = (f"; one of {' | '.join(map(str, meta['choices']))}" if meta.get("choices") else "") + \
             ("" if meta.get("affects_result", True) else "; not part of the cache key")
-        print(f"  {f.name} = {default!r}{extra}")
+        print(f"  {prefix}{f.name} = {value!r}{extra}")
         for line in textwrap.wrap(meta.get("help", ""), 110):
             print(f"      {line}")
-    return 0
+    for f in groups:
+        print(f"  {prefix}{f.name}: {f.metadata.get('help', '')}")
+        _print_settings(f.metadata["group"], None if default is None else getattr(default, f.name),
+                        f"{prefix}{f.name}.", textwrap)
+
+
+def _resolve_stage_name(name: str) -> tuple[tuple[str, str] | None, str]:
+    """((node, stage), what was resolved) when ``name`` is a node of a pipeline (the default pipeline's first) or a
+    variant of a node (conf/stages/<node>/<name>.yaml); (None, "") for anything else (a stage's name)."""
+    import yaml
+
+    cdir = config_dir()
+    default_nodes = _default_pipeline_nodes(cdir)
+    if name in default_nodes:
+        return (name, default_nodes[name]), (f"node {name!r} of the default pipeline runs stage "
+                                             f"{default_nodes[name]!r}; its settings are stages.{name} (another "
+                                             f"stage: stages/{name}=<variant>: "
+                                             f"{' | '.join(_variants(cdir, name))})")
+    runs = [n for n, st in default_nodes.items() if st == name]
+    if runs:
+        return (runs[0], name), f"stage {name!r} runs at node {runs[0]!r} of the default pipeline"
+    found = [(f.parent.name, f, _variant_stage(f)) for f in sorted((cdir / "stages").glob(f"*/{name}.yaml"))]
+    found = sorted((x for x in found if x[2] and x[2] != name), key=lambda x: (x[0] not in default_nodes, x[0]))
+    if found:
+        node, f, stage = found[0]
+        also = "".join(f"; also of node {n!r} (stages/{n}={name}, stage {st!r})" for n, _, st in found[1:])
+        return (node, stage), (f"{name!r} is a variant of node {node!r} (stages/{node}={name}: "
+                               f"{f.relative_to(cdir.parent)}) running stage {stage!r}{also}")
+    for p in sorted((cdir / "pipeline").glob("*.yaml")):
+        d = yaml.safe_load(p.read_text()) or {}
+        if name not in ((d.get("pipeline", d) or {}).get("nodes") or {}):
+            continue
+        for entry in d.get("defaults") or []:
+            if isinstance(entry, dict):
+                (k, v), = entry.items()
+                if k.lstrip("/").split("@")[0] == f"stages/{name}":
+                    stage = _variant_stage(cdir / "stages" / name / f"{v}.yaml")
+                    if stage:
+                        return (name, stage), (f"node {name!r} of pipeline={p.stem} (not the default pipeline) runs "
+                                               f"stage {stage!r} (stages/{name}={v}); its settings are stages.{name}")
+    return None, ""
+
+
+def _default_pipeline_nodes(cdir: Path) -> dict[str, str]:
+    """The default pipeline's stage nodes and the stage each runs by default."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(cdir), version_base="1.3"):
+            cfg = compose(config_name="config")
+    except Exception:  # noqa: BLE001 - best effort
+        return {}
+    stages = cfg.get("stages") or {}
+    return {str(n): str(stages[n].stage) for n in cfg.pipeline.nodes if n in stages}
+
+
+def _variants(cdir: Path, node: str) -> list[str]:
+    return sorted(p.stem for p in (cdir / "stages" / node).glob("*.yaml"))
+
+
+def _variant_stage(path: Path) -> str | None:
+    """The stage a variant file runs (its ``stage:``, or that of the variant it starts from)."""
+    import yaml
+
+    d = yaml.safe_load(path.read_text()) or {}
+    if "stage" in d:
+        return str(d["stage"])
+    for entry in d.get("defaults") or []:
+        if isinstance(entry, str) and entry.startswith("/stages/"):
+            ref = entry.split("@")[0].lstrip("/")
+            return _variant_stage(path.parents[2] / f"{ref}.yaml")
+        if isinstance(entry, str) and entry.startswith("/stage/"):
+            return entry.split("@")[0].split("/")[-1]
+        if isinstance(entry, str) and entry not in ("_self_",):
+            return _variant_stage(path.parent / f"{entry}.yaml")
+    return None
 
 
 def cmd_cache(args) -> int:
