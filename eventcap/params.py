@@ -138,6 +138,23 @@ def leaves(config_class: type, prefix: str = "") -> Iterator[tuple[str, dataclas
             yield f"{prefix}{f.name}", f
 
 
+def nest(*changes: Mapping[str, Any]) -> dict[str, Any]:
+    """Settings given by dotted keys ({"terms.sil.weight": 50}) and nested mappings, merged in order into one nested
+    mapping (what a config is built from)."""
+    out: dict[str, Any] = {}
+    for mapping in changes:
+        for key, value in mapping.items():
+            *groups, leaf = str(key).split(".")
+            d = out
+            for g in groups:
+                d = d.setdefault(g, {})
+            if isinstance(value, Mapping) and isinstance(d.get(leaf), dict):
+                d[leaf] = nest(d[leaf], value)
+            else:
+                d[leaf] = dict(nest(value)) if isinstance(value, Mapping) else value
+    return out
+
+
 def value_at(config: Any, key: str) -> Any:
     """The value of a dotted key in a config instance."""
     for part in key.split("."):
@@ -154,4 +171,4 @@ def field_at(config_class: type, key: str) -> dataclasses.Field | None:
     return field_at(f.metadata["group"], rest) if is_group(f) else None
 
 
-__all__ = ["allowed_values", "check_value", "field_at", "group", "is_group", "leaves", "param", "value_at"]
+__all__ = ["allowed_values", "check_value", "field_at", "group", "is_group", "leaves", "nest", "param", "value_at"]

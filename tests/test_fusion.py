@@ -22,7 +22,7 @@ def _objective(X, fits, steps, rho):
 # ------------------------------------------------------------------------------------------------ odometry mode
 def test_odometry_mode_follows_the_events_from_the_first_fit_and_ignores_frame_n():
     rec, det, t_us, S, xy, valid = scene()
-    prob = problem(mode="odometry", edge_margin_px=0.0)
+    prob = problem(mode="odometry", **{"tracks.edge_margin_px": 0.0})
     ends = select_detections(det, t_us[[0, N]])
     res = solve_batch(prob, t_us, xy, valid, ends)
     fit0, _, _ = prob.fit_frame(ends, 0)

@@ -213,12 +213,12 @@ def test_choices_are_checked_against_the_default_too():
 
 def test_mistyped_key_gets_did_you_mean_without_a_plus(tmp_path, capsys):
     code = main(["run", *SMALL, f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={tmp_path / 'r'}",
-                 "stages.solve.lamda_cor=1"])
+                 "stages.solve.icp_round=1"])
     err = capsys.readouterr().err
     assert code == 1
-    assert err.startswith("eventcap run: stages.solve.lamda_cor: no config key named 'lamda_cor' in stages.solve "
+    assert err.startswith("eventcap run: stages.solve.icp_round: no config key named 'icp_round' in stages.solve "
                           "(config group stages/solve=batch: ")
-    assert "conf/stages/solve/batch.yaml); did you mean 'lambda_cor'" in err
+    assert "conf/stages/solve/batch.yaml); did you mean 'icp_rounds'" in err
     assert "+stages" not in err and "not in struct" not in err
     assert not (tmp_path / "cache").exists()
     # a group name and a top-level key, each in its own file

@@ -44,7 +44,7 @@ from eventcap.energy.boundary import (
 )
 from eventcap.energy.event_search import EventIndex
 from eventcap_refine.refine import RefineProblem, refine_batch
-from eventcap_refine.spec import SilhouetteRefineConfig
+from eventcap.params import nest
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE = "eventcap_refine.spec:SILHOUETTE"
@@ -107,7 +107,8 @@ def problem(**config) -> RefineProblem:
 @functools.lru_cache(maxsize=4)
 def _problem(config: tuple) -> RefineProblem:
     rec = scene()[0]
-    return RefineProblem(rec.template, rec.camera, N + 1, SilhouetteRefineConfig(**dict(config)))
+    return RefineProblem(rec.template, rec.camera, N + 1,
+                         build_config(load_registry().get("silhouette"), nest(dict(config)), "stages.refine"))
 
 
 def joint_error_mm(rec, poses, truth, align: bool = True) -> float:
@@ -298,7 +299,7 @@ def test_refinement_lowers_joint_error_and_raises_silhouette_iou(seed):
     assert res.energies["sil"] < res.energies["sil_start"]
     assert np.all(res.poses >= lo - 1e-9) and np.all(res.poses <= hi + 1e-9)
     assert res.status == "Solve_Succeeded" and len(res.icp) == 4
-    weak = refine_batch(problem(lambda_stab=0.5), t_us, start, rec.events.events)
+    weak = refine_batch(problem(**{"terms.stab.weight": 0.5}), t_us, start, rec.events.events)
     err2, iou2 = joint_error_mm(rec, weak.poses, S, align=False), iou(rec, weak.poses, masks)
     assert err2 < 0.9 * err0 and iou2 > iou0 + 0.06, (err0, err2, iou0, iou2)  # measured: -20%, +0.09..0.17
 
@@ -311,7 +312,7 @@ def test_refinement_of_articulation_errors_lowers_the_aligned_error():
     res = refine_batch(problem(), t_us, start, rec.events.events)
     err1, iou1 = joint_error_mm(rec, res.poses, S), iou(rec, res.poses, masks)
     assert err1 < err0 - 0.2 and iou1 > iou0 + 0.015, (err0, err1, iou0, iou1)  # measured: 19.3 -> 18.9 mm
-    weak = refine_batch(problem(lambda_stab=0.5), t_us, start, rec.events.events)
+    weak = refine_batch(problem(**{"terms.stab.weight": 0.5}), t_us, start, rec.events.events)
     assert joint_error_mm(rec, weak.poses, S) < 0.93 * err0  # measured: 17.0 mm
 
 
@@ -329,7 +330,7 @@ def run_stage(inputs=None, **config):
     inputs = inputs or stage_inputs()
     plan = inputs["batches"]
     ctx = StageContext(node="refine", stage="silhouette", batch=plan.batch(0))
-    return spec.load_run()(inputs, build_config(spec, config, "stages.refine"), ctx), ctx
+    return spec.load_run()(inputs, build_config(spec, nest(config), "stages.refine"), ctx), ctx
 
 
 def test_stage_refines_and_records_diagnostics(caplog):
@@ -352,7 +353,7 @@ def test_stage_refines_and_records_diagnostics(caplog):
 @pytest.mark.parametrize("cap", [1, 2])
 def test_iteration_cap_fails_with_ipopts_status(cap):
     with pytest.raises(StageFailed, match="status Maximum_Iterations_Exceeded") as exc:
-        run_stage(max_iter=cap)
+        run_stage(**{"ipopt.max_iter": cap})
     assert exc.value.status == "Maximum_Iterations_Exceeded"
 
 
@@ -364,8 +365,10 @@ def test_unusable_inputs_fail_with_a_status():
         run_stage({**inputs, "recording": bare})
     assert exc.value.status == "missing_template"
     # an unknown loss is refused when the config is built (before anything runs), no longer by the stage per batch
-    with pytest.raises(ValueError, match=r"stages.refine.sil_loss: expected one of l2 \| huber, got 'cauchy'"):
-        run_stage(sil_loss="cauchy")
+    with pytest.raises(ValueError, match=r"stages.refine.terms.sil.loss: expected one of l2 \| huber, got 'cauchy'"):
+        run_stage(**{"terms.sil.loss": "cauchy"})
+    with pytest.raises(ValueError, match=r"stages.refine.sil_loss: this setting is now stages.refine.terms.sil.loss"):
+        run_stage(sil_loss="huber")
     late = BatchPlan(t0_us=np.array([T0 + 40_000]), t1_us=np.array([T0 + 80_000]), frame0=np.array([1]))
     with pytest.raises(StageFailed, match="outside the batch") as exc:
         run_stage({**inputs, "batches": late})
@@ -379,8 +382,8 @@ class TestSilhouetteConformance(StageConformance):
 
     stage_name = "silhouette"
     config_overrides = {"icp_iterations": 2}
-    sensitive = ("lambda_stab", 0.5)
-    insensitive = ("max_iter", 50)
+    sensitive = ("terms.stab.weight", 0.5)
+    insensitive = ("ipopt.max_iter", 50)
 
     def make_inputs(self):
         return stage_inputs(frames=5)

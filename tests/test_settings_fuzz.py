@@ -123,7 +123,7 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
              ("source.duration_s", -1): "source.duration_s: expected a finite number > 0, got -1",
              ("source.exposure_us", "abc"): "source.exposure_us: expected an integer >= 0, got 'abc'",
              ("stages.track.patch_px", 24): "stages.track.patch_px: expected an odd integer >= 5, got 24",
-             ("stages.spline.knot_ms", math.inf): "stages.spline.knot_ms: expected a finite number > 0, got inf",
+             ("stages.solve.knot_ms", math.inf): "stages.solve.knot_ms: expected a finite number > 0, got inf",
              ("stages.detect.outlier_prob", 1.5): "stages.detect.outlier_prob: expected a finite number in [0, 1], "
                                                   "got 1.5"}
     for (key, value), message in cases.items():
@@ -132,7 +132,7 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
         with pytest.raises(PipelineError) as err:
             build_pipeline(with_value(data, key, value, f), registry)
         assert message in err.value.problems[0]
-    for key, value in (("stages.spline.lambda_sil", 0), ("stages.spline.prior_inertia_cap", math.inf),
+    for key, value in (("stages.solve.terms.sil.weight", 0), ("stages.solve.terms.prior.inertia_cap", math.inf),
                        ("source.camera_height_m", -1)):
         f = next(f for k, f in numeric_keys(data, registry) if k == key)
         build_pipeline(with_value(data, key, value, f), registry)  # legal: 0 turns a term off

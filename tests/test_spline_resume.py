@@ -21,7 +21,7 @@ from eventcap.core.stage import StageFailed
 
 # A tiny capture of 3 batches (light procedural actor), windows of 3 batches, no video.
 TINY = ["pipeline=spline", "experiment=quick", "source.duration_s=0.13", "template=procedural",
-        "template.target_faces=2000", "source.n_track_points=20", "stages.spline.half_window=1", "outputs.video=false"]
+        "template.target_faces=2000", "source.n_track_points=20", "stages.solve.half_window=1", "outputs.video=false"]
 
 
 def _run(tmp_path, name: str, cache: str) -> tuple[int, dict]:

@@ -1,4 +1,4 @@
-"""Windows that advance by several batches (stages.spline.window_step): the batches are cut into runs of window_step,
+"""Windows that advance by several batches (stages.solve.window_step): the batches are cut into runs of window_step,
 each run kept by one window solved by its middle batch; the other batches solve nothing (status in_window, no
 frames: not a gap) and stitch blends the windows that exist."""
 
@@ -65,7 +65,7 @@ def test_window_role_refuses_a_step_that_leaves_windows_apart():
 def test_the_stage_refuses_a_window_step_beyond_twice_the_half_window():
     inputs = stage_inputs()
     b = inputs["batches"].batch(1)
-    with pytest.raises(StageFailed, match=r"stages.spline.window_step: expected at most max\(1, 2·half_window\) = 2 "
+    with pytest.raises(StageFailed, match=r"stages.solve.window_step: expected at most max\(1, 2·half_window\) = 2 "
                                           r"\(neighbouring windows must overlap to be blended\), got 3") as err:
         _run_stage(inputs, b, half_window=1, window_step=3)
     assert err.value.status == "invalid_config"
@@ -170,8 +170,8 @@ def test_a_small_run_with_window_step_three_estimates_every_frame(tmp_path):
     from eventcap.apps.cli import main
 
     run_dir = tmp_path / "run"
-    code = main(["run", *TINY, "source.duration_s=0.3", "stages.spline.half_window=2",
-                 "stages.spline.window_step=3", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
+    code = main(["run", *TINY, "source.duration_s=0.3", "stages.solve.half_window=2",
+                 "stages.solve.window_step=3", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     assert code == 0
     with np.load(run_dir / "motion.npz") as z:
         poses, t, estimated = z["poses"], z["t_us"], z["estimated"]

@@ -76,6 +76,9 @@ def _check_keys(spec: StageSpec, config_class: type, values: Mapping[str, Any], 
             what = f"the config of stage {spec.name!r}" + (f", group {prefix[:-1]}" if prefix else "")
             raise ConfigError(f"{where}.{full}: " + unknown_name_message("config key", str(key), list(fields), what))
         if is_group(f):
+            if not isinstance(value, Mapping) and full in spec.renamed:  # an old setting now a group's name
+                raise ConfigError(f"{where}.{full}: this setting is now {where}.{spec.renamed[full]} (stage "
+                                  f"{spec.name!r}; `eventcap stages {spec.name}` lists its settings)")
             if not isinstance(value, Mapping):
                 raise ConfigError(f"{where}.{full}: a group of settings ({', '.join(sorted(_names(f)))}); set one "
                                   f"with {where}.{full}.<key>=..., got {value!r} (stage {spec.name!r})")

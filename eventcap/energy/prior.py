@@ -74,7 +74,7 @@ class MotionPrior(Factor):
         gain, self.n_context = None, 0
         gain_max = float(self.config.gain_max)
         if self.weight > 0 and gain_max > 1:
-            ctx = inputs.evidence("context")
+            ctx = inputs.evidence("smoothing")
             if ctx is not None and ctx.lam is not None:
                 gain = np.clip(np.asarray(ctx.curvature) * ctx.lam / self.weight, 1.0, gain_max)
                 self.n_context = ctx.n_fits
@@ -128,7 +128,7 @@ class ContextPull(Factor):
         super().collect(inputs)
         self.target, self.w = np.zeros((self.n, _NP)), np.zeros((self.n, _NP))
         self._inputs, self.frames = inputs, None
-        ctx = inputs.evidence("context")
+        ctx = inputs.evidence("smoothing")
         self._ctx = None if ctx is None or ctx.target is None else ctx  # none: nothing to hold
 
     def relinearize(self, estimate) -> None:

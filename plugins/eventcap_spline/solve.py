@@ -225,7 +225,7 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, inputs: Wind
     inputs.offer("fits", lambda: fits)
     inputs.offer("fit_translation", lambda: tps)
     if context is not None:
-        inputs.offer("context", lambda: window_context(solver, inputs, context[0], context[1], fits, tps, counter))
+        inputs.offer("smoothing", lambda: window_context(solver, inputs, context[0], context[1], fits, tps, counter))
     if inputs.events is not None:
         inputs.offer("stillness", lambda: window_stillness(solver, inputs))
     for f in solver.factors:
