@@ -9,8 +9,6 @@ import functools
 
 import numpy as np
 import pytest
-from conftest import assert_derivatives_match_fd
-from test_spline import H_US, T_SIL, scene, silhouette_events
 
 from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS, pose_bounds
 from eventcap.energy.correspondences import find_correspondences
@@ -26,6 +24,8 @@ from eventcap.energy.terms import ORDER
 from eventcap_refine.spec import SilhouetteRefineConfig
 from eventcap_solve.spec import BatchSolveConfig
 from eventcap_spline.spec import SplineSolveConfig
+from helpers.derivatives import assert_derivatives_match_fd
+from helpers.spline_scene import H_US, T_SIL, scene, silhouette_events
 
 SETTINGS = IpoptSettings(max_iter=100, tol=1e-6, mumps_pivot_order=0)
 LAMBDAS = tuple(f"lambda_{n}" for n in ORDER)

@@ -9,18 +9,13 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_detect import detect, posed_recording
-from test_refine import boundary_events
 
 from eventcap.artifacts import BatchPlan
-from eventcap.artifacts.tracking import SlicedTracks
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import DOF_INDEX, pose_bounds
 from eventcap.energy.correspondences import find_correspondences
-from eventcap.energy.detections import select_detections
 from eventcap.energy.spline import UniformCubicBSpline
 from eventcap.analysis.metrics import mean_joint_error
-from eventcap.sim.capture import _pick_track_points, _track_points
 from eventcap.core.stage import StageContext, StageFailed
 from eventcap.core.testing import StageConformance
 from eventcap_spline._impl import cor_frames, window_of
@@ -29,9 +24,7 @@ from eventcap.energy.factor import Layout, Window
 from eventcap.energy.prior import gains_from_fits
 from eventcap_spline.solve import SplineSolver, solve_window
 from eventcap_spline.spec import SplineSolveConfig
-
-H_US = 10_000  # knot spacing of the test splines
-EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
+from helpers.spline_scene import FAST, H_US, T_SIL, run_stage, scene, silhouette_events, stage_inputs, stitch
 
 
 # ------------------------------------------------------------------------------------------------ the basis
@@ -163,23 +156,6 @@ def test_windows_cover_the_batch_and_shift_inwards_at_the_ends():
 
 
 # ------------------------------------------------------------------------------------------------ a window
-@functools.lru_cache(maxsize=3)
-def scene(exact: bool = False, n_frames: int = 4):
-    """4 intensity frames (3 batches, 120 ms; or n_frames) of a fast motion, simulated detections (default noise
-    unless exact), ground-truth surface tracks in the second batch."""
-    rec = posed_recording("high_knees", n_frames=n_frames, speed=1.0, with_template=True)
-    det = select_detections(detect("simulated", rec, **(EXACT if exact else {})), rec.frames.t_us)
-    t_det = rec.frames.t_us.astype(np.int64)
-    t_us = t_det[1] + 1_000 * np.arange(41, dtype=np.int64)
-    gt = rec.ground_truth
-    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-    tri, bary = _pick_track_points(rec.template, rec.camera, lambda t: S[np.searchsorted(t_us, np.rint(t * 1e6))],
-                                   t_us[[0, 20, 40]], 100, seed=0)
-    xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
-    return rec, det, t_det, t_us, S, xy, valid
-
-
-T_SIL = slice(None, None, 5)  # E_sil at every 5th tracking frame of the scene: 9 frames
 
 
 def solver(**config) -> SplineSolver:
@@ -194,15 +170,6 @@ def _solver(config: tuple) -> SplineSolver:
     n_seg = int((t_det[-1] - t_det[0]) // H_US)
     layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=41, n_sil=9)
     return SplineSolver(rec.template, rec.camera, layout, SplineSolveConfig(**{"knot_ms": H_US / 1000, **dict(config)}))
-
-
-@functools.lru_cache(maxsize=1)
-def silhouette_events() -> np.ndarray:
-    """One event on every pixel of the true silhouette's boundary every millisecond of the scene (its 3 batches)."""
-    rec, _, t_det = scene()[:3]
-    gt = rec.ground_truth
-    t = np.arange(t_det[0], t_det[-1] + 1, 1000)
-    return boundary_events(rec.template, rec.camera, gt.poses[np.searchsorted(gt.t_us, t)], t)
 
 
 def joint_error_mm(rec, poses, truth) -> float:
@@ -427,41 +394,6 @@ def test_a_window_started_from_its_solution_needs_fewer_iterations_and_lands_the
 
 
 # ------------------------------------------------------------------------------------------------ the stage
-class _Seq(list):
-    """Stands in for the runner's lazy BatchSequence (a list with .batches)."""
-
-    def __init__(self, items, batches):
-        super().__init__(items)
-        self.batches = batches
-
-
-@functools.lru_cache(maxsize=2)
-def _stage_data(n_frames: int = 4):
-    rec, det_rows, t_det = scene(n_frames=n_frames)[:3]
-    det = detect("simulated", rec)
-    gt = rec.ground_truth
-    plan = BatchPlan.between_frames(t_det)
-    sliced = []
-    for k in range(len(plan)):  # exact surface tracks of every batch, each batch its own points
-        t_us = t_det[k] + 1_000 * np.arange(41, dtype=np.int64)
-        S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-        tri, bary = _pick_track_points(rec.template, rec.camera,
-                                       lambda t, S=S, t_us=t_us: S[np.searchsorted(t_us, np.rint(t * 1e6))],
-                                       t_us[[0, 20, 40]], 60, seed=1 + k)
-        xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
-        sliced.append(SlicedTracks(t_us=t_us, xy=np.where(valid[..., None], xy, np.nan).astype(np.float32),
-                                   valid=valid, track_id=np.arange(xy.shape[1], dtype=np.int32)))
-    return rec, det, plan, _Seq(sliced, plan.batches())
-
-
-def stage_inputs(n_frames: int = 4):
-    """The stage's inputs on the scene: 3 batches of 40 ms (or n_frames - 1), every batch's tracks (as the runner
-    hands them)."""
-    rec, det, plan, sliced = _stage_data(n_frames)
-    return {"recording": rec, "sliced": sliced, "detections": det, "batches": plan}
-
-
-FAST = {"icp_rounds": 1, "half_window": 1, "knot_ms": 20.0, "cor_step": 4}
 
 
 class TestSplineStageConformance(StageConformance):
@@ -472,30 +404,6 @@ class TestSplineStageConformance(StageConformance):
 
     def make_inputs(self):
         return stage_inputs()
-
-
-def _run_stage(inputs, batch, **changes):
-    from eventcap.core.config import build_config
-    from eventcap.core.registry import load_registry
-
-    spec = load_registry().get("spline")
-    ctx = StageContext(node="solve", stage="spline", batch=batch)
-    return spec.load_run()(inputs, build_config(spec, {**FAST, **changes}, "stages.solve"), ctx), ctx
-
-
-def _stitch(poses, plan, **changes):
-    from eventcap.core.config import build_config
-    from eventcap.core.registry import load_registry
-
-    reg = load_registry()
-    spec = reg.get("stitch")
-    ctx = StageContext(node="stitch", stage="stitch")
-    motion = spec.load_run()({"windows": _Seq(poses, plan.batches()[:len(poses)])},
-                             build_config(spec, changes, "stages.stitch"), ctx)["motion"]
-    cut = reg.get("cut")
-    return motion, [cut.load_run()({"motion": motion, "batches": plan}, build_config(cut, {}, "stages.cut"),
-                                   StageContext(node="cut", stage="cut", batch=plan.batch(k)))["poses"]
-                    for k in range(len(poses))], ctx
 
 
 def test_stitch_blends_overlapping_windows_without_a_seam():
@@ -519,7 +427,7 @@ def test_stitch_blends_overlapping_windows_without_a_seam():
         p[:, :27] += 0.05 if k == 1 else 0.0
         p[:, 27] -= 2 * np.pi if k == 2 else 0.0
         windows.append(PoseSequence(t_us=t[sel], poses=p, status="Solve_Succeeded", iterations=1, energies={}))
-    motion, cut, ctx = _stitch(windows, plan)
+    motion, cut, ctx = stitch(windows, plan)
     assert ctx.stats["seam_rad_max"] == pytest.approx(0.05)
     assert motion.t_us.tolist() == t.tolist()
     d1 = np.abs(np.diff(motion.poses, axis=0)).max()
@@ -543,13 +451,13 @@ def test_stitched_stage_output_is_smooth_where_batches_meet():
     outs = []
     for k in (0, 1, 2):
         inputs = stage_inputs()
-        out, ctx = _run_stage(inputs, inputs["batches"].batch(k), half_window=1)
+        out, ctx = run_stage(inputs, inputs["batches"].batch(k), half_window=1)
         outs.append(out["poses"])
         assert ctx.stats["window"] == [0, 2] and out["poses"].status == "Solve_Succeeded"
         assert out["poses"].t_us[0] == 5_000 and out["poses"].t_us[-1] == 125_000  # the whole window
     rest = rec.template.rest_joints
     inside = max(np.linalg.norm(np.diff(joint_positions(o.poses, rest), axis=0), axis=2).max() for o in outs)
-    motion, cut, ctx = _stitch(outs, stage_inputs()["batches"])
+    motion, cut, ctx = stitch(outs, stage_inputs()["batches"])
     J = joint_positions(motion.poses, rest)
     assert np.linalg.norm(np.diff(J, axis=0), axis=2).max() <= 1.05 * inside
     assert cut[0].poses[-1].tolist() == cut[1].poses[0].tolist() and cut[2].t_us[-1] == 125_000
@@ -562,10 +470,10 @@ def test_a_window_uses_the_tracks_of_all_its_batches():
     batch); with tracks=own (the default) each sees only its own batch's."""
     inputs = stage_inputs()
     plan = inputs["batches"]
-    out0, ctx0 = _run_stage(inputs, plan.batch(0), half_window=1, tracks="window")
-    out2, ctx2 = _run_stage(inputs, plan.batch(2), half_window=1, tracks="window")
+    out0, ctx0 = run_stage(inputs, plan.batch(0), half_window=1, tracks="window")
+    out2, ctx2 = run_stage(inputs, plan.batch(2), half_window=1, tracks="window")
     np.testing.assert_array_equal(out0["poses"].poses, out2["poses"].poses)
-    own = [_run_stage(inputs, plan.batch(k), half_window=1, tracks="own")[1].stats["n_correspondences"]
+    own = [run_stage(inputs, plan.batch(k), half_window=1, tracks="own")[1].stats["n_correspondences"]
            for k in (0, 1, 2)]
     assert ctx0.stats["n_correspondences"] == pytest.approx(sum(own), rel=0.1), (ctx0.stats, own)
     assert min(own) > 0 and ctx0.stats["n_correspondences"] > 2.5 * max(own)
@@ -607,11 +515,11 @@ def test_the_stage_fits_the_silhouette_at_every_sil_step_of_its_batch(caplog):
     inputs = dict(inputs, recording=dataclasses.replace(rec, events=events))
     b = inputs["batches"].batch(1)
     with caplog.at_level("INFO"):
-        out, ctx = _run_stage(inputs, b, lambda_sil=50.0, sil_step_ms=5.0)
+        out, ctx = run_stage(inputs, b, lambda_sil=50.0, sil_step_ms=5.0)
     e = out["poses"].energies
     assert e["n_silhouette"] > 2000 and e["n_boundary"] >= e["n_silhouette"] and e["sil"] > 0
     assert "E_sil at 9 frames" in caplog.text
-    off, _ = _run_stage(inputs, b, lambda_sil=0.0)
+    off, _ = run_stage(inputs, b, lambda_sil=0.0)
     assert off["poses"].energies["n_silhouette"] == 0
 
 
@@ -622,12 +530,12 @@ def test_the_stage_holds_light_parts_less_with_prior_inertia():
 
     inputs = stage_inputs()
     b = inputs["batches"].batch(1)
-    on, ctx = _run_stage(inputs, b, prior_inertia=1.0)
+    on, ctx = run_stage(inputs, b, prior_inertia=1.0)
     g = np.array(ctx.stats["prior_inertia_gain"])
     np.testing.assert_allclose(g, inertia_prior_gain(inputs["recording"].template.rest_joints, 1.0, 1.0, 0.04))
     assert g[DOF_INDEX["l_elbow_flex"]] < 0.3 and g[DOF_INDEX["spine_twist"]] == 1.0
     assert g.min() == pytest.approx(0.04)  # the floor (the ankles)
-    off, ctx_off = _run_stage(inputs, b, prior_inertia=0.0)
+    off, ctx_off = run_stage(inputs, b, prior_inertia=0.0)
     assert "prior_inertia_gain" not in ctx_off.stats
     assert np.abs(on["poses"].poses - off["poses"].poses).max() > 1e-4
 
@@ -637,15 +545,15 @@ def test_the_prior_gains_are_chosen_only_at_frame_rates_that_sample_the_motion(c
     stats), 30 does not and says why; the result then equals prior_gain_max=1."""
     inputs = stage_inputs()
     b = inputs["batches"].batch(1)
-    on, ctx_on = _run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv", prior_gain_min_fps=20.0)
+    on, ctx_on = run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv", prior_gain_min_fps=20.0)
     assert len(ctx_on.stats["prior_gain"]) == 33
     with caplog.at_level("INFO"):
-        off, ctx_off = _run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv",
+        off, ctx_off = run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv",
                                   prior_gain_min_fps=30.0)
     assert "prior_gain" not in ctx_off.stats
     assert ("batch 1: no per-parameter prior gains or context pull: intensity frames at 25.0 fps, below "
             "stages.spline.prior_gain_min_fps (30)") in caplog.text
-    plain, _ = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
+    plain, _ = run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
     # what `eventcap run` composes: gains up to 10 by GCV from 20 fps on (measured better at 25 fps, worse at 10)
     from eventcap.apps.benchmark import compose_run
@@ -688,17 +596,17 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     inputs = stage_inputs(n_frames=7)  # 6 batches: 7 frames of context, enough for a smoothing spline
     b = inputs["batches"].batch(3)
     with caplog.at_level("INFO"):
-        on, ctx_on = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=20.0)
+        on, ctx_on = run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=20.0)
     frames = np.array(ctx_on.stats["context_pull_frames"])
     assert frames.shape == (33,) and np.all(frames >= 0) and frames.max() > 0.5
     assert "batch 3: context pull: median" in caplog.text
-    plain, _ = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
+    plain, _ = run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
     assert np.abs(on["poses"].poses - plain["poses"].poses).max() > 1e-4
-    off, ctx_off = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=30.0)
+    off, ctx_off = run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=30.0)
     assert "context_pull_frames" not in ctx_off.stats
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
     with pytest.raises(ValueError, match=r"stages.solve.lambda_context: expected a finite number >= 0, got -1.0"):
-        _run_stage(inputs, b, lambda_context=-1.0)
+        run_stage(inputs, b, lambda_context=-1.0)
     # the gate's floor, with a body busy with events everywhere (the scene has none): the events alone (floor 0)
     # hold nothing, a floor of 0.1 holds a tenth of what no gate (1) holds
     import dataclasses
@@ -716,14 +624,14 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     inputs["recording"] = dataclasses.replace(rec, events=dataclasses.replace(rec.events, events=busy))
     frames = {}
     for floor in (0.0, 0.1, 1.0):
-        _, ctx_f = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, context_gate_floor=floor)
+        _, ctx_f = run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, context_gate_floor=floor)
         frames[floor] = np.array(ctx_f.stats["context_pull_frames"])
     assert frames[1.0].max() > 0.5
     np.testing.assert_allclose(frames[0.0], 0.0, atol=1e-6)
     np.testing.assert_allclose(frames[0.1], 0.1 * frames[1.0], rtol=1e-6, atol=1e-9)
     with pytest.raises(ValueError, match=r"stages.solve.context_gate_floor: expected a finite number in \[0, 1\], "
                                          r"got 2"):
-        _run_stage(inputs, b, context_gate_floor=2)
+        run_stage(inputs, b, context_gate_floor=2)
     # what `eventcap run` composes (measured on the suite at 25 fps: 0.01 / 0.03 / 0.1 / 0.3 gave MPJVE 198 / 196 /
     # 202 / 213 mm/s against 241 without)
     from eventcap.apps.benchmark import compose_run
@@ -736,7 +644,7 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
 def test_a_failed_window_raises_with_the_solver_status():
     inputs = stage_inputs()
     with pytest.raises(StageFailed) as err:
-        _run_stage(inputs, inputs["batches"].batch(0), max_iter=1)
+        run_stage(inputs, inputs["batches"].batch(0), max_iter=1)
     assert err.value.status == "Maximum_Iterations_Exceeded" and "window of batches 0..2" in str(err.value)
 
 
@@ -760,7 +668,7 @@ def test_bad_config_and_missing_detections_are_named():
             ({"still_radius_px": -1}, r"stages.solve.still_radius_px: expected an integer >= 0, got -1"),
             ({"still_radius_px": 2.5}, r"stages.solve.still_radius_px: expected an integer >= 0, got 2.5")):
         with pytest.raises(ValueError, match=message):
-            _run_stage(inputs, b, **change)
+            run_stage(inputs, b, **change)
     # the stage keeps its own checks for configs built without the declarations (a library caller)
     import dataclasses
 
@@ -773,11 +681,11 @@ def test_bad_config_and_missing_detections_are_named():
         spec.load_run()(inputs, bad, StageContext(node="solve", stage="spline", batch=b))
     # an unknown prior is refused when the config is built, before anything runs
     with pytest.raises(ValueError, match=r"\.prior: expected one of acceleration \| jerk, got 'snap'"):
-        _run_stage(inputs, b, prior="snap")
+        run_stage(inputs, b, prior="snap")
     few = dict(inputs, batches=BatchPlan(t0_us=np.array([5_000, 47_000]), t1_us=np.array([47_000, 85_000]),
                                          frame0=np.array([0, 1])))
     with pytest.raises(StageFailed, match="no detection row at t = \\[47000\\]"):
-        _run_stage(few, b)
+        run_stage(few, b)
 
 
 def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_and_says_so(caplog):
@@ -791,7 +699,7 @@ def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_
     b = inputs["batches"].batch(1)
     _impl._FLOORS.clear()
     with caplog.at_level("INFO"):
-        out, ctx = _run_stage(inputs, b, landmarks="widths", lambda_floor=100.0, lambda_slide=1.0, icp_rounds=1)
+        out, ctx = run_stage(inputs, b, landmarks="widths", lambda_floor=100.0, lambda_slide=1.0, icp_rounds=1)
     w = ctx.stats["landmark_widths"]
     assert set(w) == {"l_hip-r_hip", "l_shoulder-r_shoulder"} and all(0.9 < v < 1.1 for v in w.values()), w
     assert "where the detector puts the joints, over the capture (stages.spline.landmarks=widths)" in caplog.text
