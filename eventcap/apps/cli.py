@@ -304,6 +304,7 @@ def _print_stage_config(reg, name: str) -> int:
     import textwrap
 
     from eventcap.core.registry import UnknownStageError
+    from eventcap.core.stage import allowed_values
 
     try:
         spec = reg.get(name)
@@ -321,7 +322,9 @@ def _print_stage_config(reg, name: str) -> int:
         else:
             default = "(required)"
         meta = f.metadata
+        allowed = allowed_values(f)  # a number's declared range, in words
         extra = (f"; one of {' | '.join(map(str, meta['choices']))}" if meta.get("choices") else "") + \
+            (f"; {allowed}" if allowed and not meta.get("choices") else "") + \
             ("" if meta.get("affects_result", True) else "; not part of the cache key")
         print(f"  {f.name} = {default!r}{extra}")
         for line in textwrap.wrap(meta.get("help", ""), 110):
