@@ -17,10 +17,9 @@ import pytest
 from eventcap.core.cache import Cache, EntryLock, clean_stale_locks
 from eventcap.core.rundir import LOCK_NAME, claim, release
 
-from conftest import TESTS, run_concurrently, toy_env
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
-from kill_resume import survivors  # noqa: E402
+from helpers.paths import TESTS
+from helpers.toy import run_concurrently, toy_env
+from helpers.kill_resume import survivors
 
 TOY = [sys.executable, "-m", "eventcap.apps.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy",
        "outputs.poses=null"]

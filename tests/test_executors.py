@@ -16,7 +16,8 @@ import pytest
 from eventcap.core.cache import Cache, CacheError
 from eventcap.core.runner import Runner
 
-from conftest import TESTS, toy_env
+from helpers.paths import TESTS
+from helpers.toy import toy_env
 
 
 def entries(cache_dir) -> dict[str, dict]:

@@ -14,8 +14,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import assert_derivatives_match_fd
-from test_spline import H_US, scene, silhouette_events
 
 from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS, pose_bounds
 from eventcap.core.stage import group, param
@@ -31,6 +29,8 @@ from eventcap.energy.window import Estimate, Tracks, WindowInputs
 from eventcap_refine.spec import RefineTerms
 from eventcap_solve.spec import BatchTerms
 from eventcap_spline.spec import SplineSolveConfig, SplineTerms
+from helpers.derivatives import assert_derivatives_match_fd
+from helpers.spline_scene import H_US, scene, scene_inputs, silhouette_events
 
 ROOT = Path(__file__).resolve().parents[1]
 SETTINGS = IpoptSettings(max_iter=100, tol=1e-6, mumps_pivot_order=0)
@@ -344,7 +344,7 @@ def test_a_new_term_is_one_class_and_one_config_entry():
     """ToyHold registers itself by its name; a solve whose terms list it with weight > 0 uses it (its energy and
     count reported, its pull visible in the solution) without a change anywhere else; weight 0 leaves it out."""
     from eventcap_spline.solve import SplineSolver, solve_window
-    from test_spline import scene_inputs
+
 
     assert FACTORS["toy"] is ToyHold
     rec, det, t_det, t_us, S, xy, valid = scene(exact=True)

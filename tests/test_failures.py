@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import copy
 
-from conftest import TOY_PIPELINE, TOY_STAGES
 
 from eventcap.core.failures import failure_summary
 from eventcap.core.runner import NodeReport, Runner, RunResult
+from helpers.toy import TOY_PIPELINE, TOY_STAGES
 
 
 def _report(node, per_batch=True, computed=0, failed=(), skipped=0, skip_causes=()):

@@ -1,7 +1,6 @@
 """Tests of eventcap.io: the real AEDAT4 file, round trips per format, streaming, and each kind of bad input."""
 
 import logging
-import sys
 from pathlib import Path
 
 import h5py
@@ -21,8 +20,7 @@ from eventcap.io import (
 )
 from eventcap.io.recording import Frames
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
-from fuzz_readers import synthetic_recording
+from helpers.fuzz_readers import synthetic_recording
 
 REAL = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # shipped (tests/data/real/SOURCE.md)
 T0 = 1_633_000_000_000_000  # a plausible epoch-µs offset, as DV writes

@@ -1,18 +1,14 @@
-"""A small fuzz run of the recording readers (the full one is ``benchmarks/robustness/fuzz_readers.py --n 2000``).
+"""A small fuzz run of the recording readers (tests/helpers/fuzz_readers.py; the full one is
+``benchmarks/robustness/fuzz_readers.py --n 2000``).
 
 Mutated files of every format are read in forked children; no read may crash, hang, raise an unclear error or
 return events that break the readers' invariants.
 """
 
-import sys
-from pathlib import Path
-
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
-import fuzz_readers
-
 from eventcap.io import read_recording
+from helpers import fuzz_readers
 
 
 def test_fuzz_small_run_has_no_crash_hang_or_silent_error():

@@ -17,11 +17,12 @@ import numpy as np
 import pytest
 import zarr
 
-from conftest import TESTS, toy_env
 
 from eventcap.artifacts import ArtifactError
 from eventcap.artifacts.base import read_array
 from eventcap.apps.cli import main
+from helpers.paths import TESTS
+from helpers.toy import toy_env
 
 TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy", "outputs.poses=null"]
 #: the real pipeline on a tiny capture with a light template (see conftest.small_capture_config)

@@ -7,9 +7,9 @@ from __future__ import annotations
 import json
 import logging
 
-from conftest import TESTS
 
 from eventcap.apps.cli import main
+from helpers.paths import TESTS
 
 
 def run_cli(tmp_path, name: str, *overrides: str, caplog=None) -> tuple[int, dict, str]:

@@ -3,8 +3,8 @@
 The fuzz: every numeric key of every stage of the default and the main alternative pipelines, found from the stage
 specs at test time (keys added later are covered too) x {0, -1, nan, inf, "abc"}, through the pipeline builder
 in-process: a refusal (PipelineError naming ``<node config>.<key>``) where the value is outside what the field
-declares, acceptance where it is inside, no other exception, each in well under 5 s (a hang guard, not a speed
-claim). A handful go through the real CLI in subprocesses: exit 1, the key in the message, no traceback.
+declares, acceptance where it is inside, no other exception, and no stage's run function loaded (nothing runs). A
+handful go through the real CLI in subprocesses: exit 1, the key in the message, no traceback.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import math
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -24,7 +23,7 @@ from eventcap.core.config import ConfigError, log_level_number
 from eventcap.core.pipeline import PipelineError, build_pipeline
 from eventcap.core.registry import load_registry
 from eventcap.core.runner import ExecutorConfig
-from eventcap.core.stage import check_value
+from eventcap.core.stage import StageSpec, check_value
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINES = ("default", "paper", "events_only", "frames_smooth")
@@ -85,9 +84,10 @@ def registry():
     return load_registry()
 
 
-def test_every_numeric_stage_key_is_refused_or_taken_before_anything_runs(registry):
+def test_every_numeric_stage_key_is_refused_or_taken_before_anything_runs(registry, monkeypatch):
     counts = {"keys": 0, "cases": 0, "refused": 0, "accepted": 0}
-    slowest = 0.0
+    loaded = []  # every run function the builder asks for: it must ask for none (nothing runs, nothing is imported)
+    monkeypatch.setattr(StageSpec, "load_run", lambda spec: loaded.append(spec.name))
     seen: set[tuple[str, int]] = set()  # a key of the same stage in another pipeline is checked once
     for pipeline in PIPELINES:
         data = composed(pipeline)
@@ -98,21 +98,19 @@ def test_every_numeric_stage_key_is_refused_or_taken_before_anything_runs(regist
         counts["keys"] += len(keys)
         for dotted, f in keys:
             for value in VALUES:
-                t0 = time.perf_counter()
                 try:
                     build_pipeline(with_value(data, dotted, value, f), registry)
                     accepted, problems = True, []
                 except PipelineError as exc:
                     accepted, problems = False, exc.problems
-                slowest = max(slowest, time.perf_counter() - t0)
                 counts["cases"] += 1
                 counts["accepted" if accepted else "refused"] += 1
                 assert accepted == legal(f, value), (pipeline, dotted, value, problems)
                 if not accepted:
                     assert len(problems) == 1 and f"{dotted}: expected " in problems[0], (dotted, value, problems)
-    print(f"settings fuzz: {counts}, slowest case {slowest * 1000:.0f} ms")
-    assert slowest < 5.0  # a hang guard: each case takes milliseconds
+    print(f"settings fuzz: {counts}")
     assert counts["refused"] > counts["accepted"] > 0
+    assert loaded == []
 
 
 def test_what_the_issue_found_is_refused_with_the_key(registry):
@@ -154,17 +152,25 @@ def test_executor_settings(values, message):
     assert message in str(err.value)
 
 
-def test_an_unreachable_scheduler_is_refused_quickly():
+def test_an_unreachable_scheduler_is_refused_after_one_bounded_attempt(monkeypatch):
+    """One TCP connection attempt, bounded by 3 s, and the refusal names what happened (refused, not timed out)."""
     import socket
 
+    attempts = []
+    connect = socket.create_connection
+
+    def counted(address, timeout=None, *args, **kwargs):
+        attempts.append((address, timeout))
+        return connect(address, timeout, *args, **kwargs)
+
+    monkeypatch.setattr(socket, "create_connection", counted)
     with socket.socket() as s:  # a port nothing listens on: bound, never listening
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-        t0 = time.perf_counter()
         with pytest.raises(ValueError, match=rf"executor.address: no Dask scheduler reachable at "
-                                             rf"tcp://127.0.0.1:{port} \(.*; waited at most 3 s\)"):
+                                             rf"tcp://127.0.0.1:{port} \(Connection refused; waited at most 3 s\)"):
             ExecutorConfig.from_mapping({"kind": "dask", "address": f"tcp://127.0.0.1:{port}"})
-    assert time.perf_counter() - t0 < 5.0  # a hang guard (the connection is refused at once)
+    assert attempts == [(("127.0.0.1", port), 3.0)]
 
 
 def test_log_level():

@@ -4,37 +4,26 @@ every term of the spline energy against finite differences, accuracy against gro
 from __future__ import annotations
 
 import dataclasses
-import functools
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_detect import detect, posed_recording
-from test_refine import boundary_events
 
 from eventcap.artifacts import BatchPlan
-from eventcap.artifacts.tracking import SlicedTracks
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import DOF_INDEX, pose_bounds
 from eventcap.energy.correspondences import find_correspondences
-from eventcap.energy.detections import select_detections
 from eventcap.energy.spline import UniformCubicBSpline
 from eventcap.analysis.metrics import mean_joint_error
-from eventcap.sim.capture import _pick_track_points, _track_points
-from eventcap.core.stage import StageContext, StageFailed
+from eventcap.core.stage import StageFailed
 from eventcap.core.testing import StageConformance
 from eventcap_spline._impl import cor_frames, window_of
 from eventcap.energy.errors import EnergyError
-from eventcap.energy.factor import Layout
 from eventcap.energy.prior import gains_from_fits
-from eventcap.energy.terms import sample_times
-from eventcap.energy.window import Estimate, Tracks, WindowInputs
+from eventcap.energy.window import Estimate, WindowInputs
 from eventcap.params import nest
-from eventcap_spline.solve import SplineSolver, solve_window
-from eventcap_spline.spec import SplineSolveConfig
-
-H_US = 10_000  # knot spacing of the test splines
-EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
+from helpers.spline_scene import (FAST, H_US, run_stage, scene, silhouette_events, solver,
+                                  stage_inputs, stitch, window)
 
 
 # ------------------------------------------------------------------------------------------------ the basis
@@ -166,82 +155,6 @@ def test_windows_cover_the_batch_and_shift_inwards_at_the_ends():
 
 
 # ------------------------------------------------------------------------------------------------ a window
-@functools.lru_cache(maxsize=3)
-def scene(exact: bool = False, n_frames: int = 4):
-    """4 intensity frames (3 batches, 120 ms; or n_frames) of a fast motion, simulated detections (default noise
-    unless exact), ground-truth surface tracks in the second batch."""
-    rec = posed_recording("high_knees", n_frames=n_frames, speed=1.0, with_template=True)
-    det = select_detections(detect("simulated", rec, **(EXACT if exact else {})), rec.frames.t_us)
-    t_det = rec.frames.t_us.astype(np.int64)
-    t_us = t_det[1] + 1_000 * np.arange(41, dtype=np.int64)
-    gt = rec.ground_truth
-    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-    tri, bary = _pick_track_points(rec.template, rec.camera, lambda t: S[np.searchsorted(t_us, np.rint(t * 1e6))],
-                                   t_us[[0, 20, 40]], 100, seed=0)
-    xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
-    return rec, det, t_det, t_us, S, xy, valid
-
-
-T_SIL = slice(None, None, 5)  # E_sil at every 5th tracking frame of the scene: 9 frames
-
-
-nested = nest  # dotted keys as the nested mapping a config is built from
-
-
-def spline_config(changes: dict | None = None) -> SplineSolveConfig:
-    """The stage's config with the dotted-key changes (checked as `eventcap run` checks them)."""
-    from eventcap.core.config import build_config
-    from eventcap.core.registry import load_registry
-
-    return build_config(load_registry().get("spline"), nested(dict(changes or {})), "stages.solve")
-
-
-def solver(**config) -> SplineSolver:
-    """The spline solver of the scene's window (3 batches, E_cor at the middle batch's 41 tracking frames, E_sil at 9
-    of them) with the stage's config (defaults but for the changes given, by dotted key: solver(**{"terms.sil.weight":
-    0}))."""
-    return _solver(tuple(sorted(config.items())))
-
-
-@functools.lru_cache(maxsize=8)
-def _solver(config: tuple) -> SplineSolver:
-    rec, det, t_det, t_us = scene()[:4]
-    n_seg = int((t_det[-1] - t_det[0]) // H_US)
-    cfg = spline_config({"knot_ms": H_US / 1000, **dict(config)})
-    spl = UniformCubicBSpline(int(t_det[0]), H_US, n_seg)
-    times = sample_times(cfg.terms, scene_inputs(spl, None, None))
-    from eventcap.energy.problem import SplinePoses, coupling_band
-
-    band = coupling_band(SplinePoses(n_seg, spl), t_us)
-    layout = Layout(n_seg=n_seg, sizes=tuple((k, t.size) for k, t in times.items()), band=band)
-    return SplineSolver(rec.template, rec.camera, layout, cfg)
-
-
-def scene_inputs(spl, xy, valid, events=None) -> WindowInputs:
-    """The scene's window as the solve's inputs: its detections, the middle batch's tracks (xy, valid; None: the
-    scene's own shapes without any track), the events (None: none)."""
-    rec, det, t_det, t_us = scene()[:4]
-    if xy is None:
-        xy, valid = np.zeros((t_us.size, 0, 2)), np.zeros((t_us.size, 0), dtype=bool)
-    return WindowInputs(spl.t0_us, spl.t1_us, knots_us=spl.t0_us + spl.h_us * np.arange(spl.n_seg + 1),
-                        t_det_us=t_det, detections=det, tracks=Tracks(t_us, xy, valid), track_times_us=(t_us,),
-                        events=events)
-
-
-def window(sol: SplineSolver, spl, det, xy, valid, events=None, **kw):
-    """solve_window on the scene's window with these detections, tracks and events."""
-    inputs = scene_inputs(spl, xy, valid, events)
-    inputs.detections = det
-    return solve_window(sol, spl, inputs, **kw)
-
-
-@functools.lru_cache(maxsize=1)
-def silhouette_events() -> np.ndarray:
-    """One event on every pixel of the true silhouette's boundary every millisecond of the scene (its 3 batches)."""
-    rec, _, t_det = scene()[:3]
-    gt = rec.ground_truth
-    t = np.arange(t_det[0], t_det[-1] + 1, 1000)
-    return boundary_events(rec.template, rec.camera, gt.poses[np.searchsorted(gt.t_us, t)], t)
 
 
 def joint_error_mm(rec, poses, truth) -> float:
@@ -473,75 +386,16 @@ def test_a_window_started_from_its_solution_needs_fewer_iterations_and_lands_the
 
 
 # ------------------------------------------------------------------------------------------------ the stage
-class _Seq(list):
-    """Stands in for the runner's lazy BatchSequence (a list with .batches)."""
-
-    def __init__(self, items, batches):
-        super().__init__(items)
-        self.batches = batches
-
-
-@functools.lru_cache(maxsize=2)
-def _stage_data(n_frames: int = 4):
-    rec, det_rows, t_det = scene(n_frames=n_frames)[:3]
-    det = detect("simulated", rec)
-    gt = rec.ground_truth
-    plan = BatchPlan.between_frames(t_det)
-    sliced = []
-    for k in range(len(plan)):  # exact surface tracks of every batch, each batch its own points
-        t_us = t_det[k] + 1_000 * np.arange(41, dtype=np.int64)
-        S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-        tri, bary = _pick_track_points(rec.template, rec.camera,
-                                       lambda t, S=S, t_us=t_us: S[np.searchsorted(t_us, np.rint(t * 1e6))],
-                                       t_us[[0, 20, 40]], 60, seed=1 + k)
-        xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
-        sliced.append(SlicedTracks(t_us=t_us, xy=np.where(valid[..., None], xy, np.nan).astype(np.float32),
-                                   valid=valid, track_id=np.arange(xy.shape[1], dtype=np.int32)))
-    return rec, det, plan, _Seq(sliced, plan.batches())
-
-
-def stage_inputs(n_frames: int = 4):
-    """The stage's inputs on the scene: 3 batches of 40 ms (or n_frames - 1), every batch's tracks (as the runner
-    hands them)."""
-    rec, det, plan, sliced = _stage_data(n_frames)
-    return {"recording": rec, "sliced": sliced, "detections": det, "batches": plan}
-
-
-FAST = {"icp_rounds": 1, "half_window": 1, "knot_ms": 20.0, "tracks.step": 4}
 
 
 class TestSplineStageConformance(StageConformance):
     stage_name = "spline"
-    config_overrides = nested(FAST)
+    config_overrides = nest(FAST)
     sensitive = ("terms.prior.weight", 2e-3)
     insensitive = ("ipopt.max_iter", 50)
 
     def make_inputs(self):
         return stage_inputs()
-
-
-def _run_stage(inputs, batch, **changes):
-    from eventcap.core.config import build_config
-    from eventcap.core.registry import load_registry
-
-    spec = load_registry().get("spline")
-    ctx = StageContext(node="solve", stage="spline", batch=batch)
-    return spec.load_run()(inputs, build_config(spec, nested({**FAST, **changes}), "stages.solve"), ctx), ctx
-
-
-def _stitch(poses, plan, **changes):
-    from eventcap.core.config import build_config
-    from eventcap.core.registry import load_registry
-
-    reg = load_registry()
-    spec = reg.get("stitch")
-    ctx = StageContext(node="stitch", stage="stitch")
-    motion = spec.load_run()({"windows": _Seq(poses, plan.batches()[:len(poses)])},
-                             build_config(spec, changes, "stages.stitch"), ctx)["motion"]
-    cut = reg.get("cut")
-    return motion, [cut.load_run()({"motion": motion, "batches": plan}, build_config(cut, {}, "stages.cut"),
-                                   StageContext(node="cut", stage="cut", batch=plan.batch(k)))["poses"]
-                    for k in range(len(poses))], ctx
 
 
 def test_stitch_blends_overlapping_windows_without_a_seam():
@@ -565,7 +419,7 @@ def test_stitch_blends_overlapping_windows_without_a_seam():
         p[:, :27] += 0.05 if k == 1 else 0.0
         p[:, 27] -= 2 * np.pi if k == 2 else 0.0
         windows.append(PoseSequence(t_us=t[sel], poses=p, status="Solve_Succeeded", iterations=1, energies={}))
-    motion, cut, ctx = _stitch(windows, plan)
+    motion, cut, ctx = stitch(windows, plan)
     assert ctx.stats["seam_rad_max"] == pytest.approx(0.05)
     assert motion.t_us.tolist() == t.tolist()
     d1 = np.abs(np.diff(motion.poses, axis=0)).max()
@@ -589,13 +443,13 @@ def test_stitched_stage_output_is_smooth_where_batches_meet():
     outs = []
     for k in (0, 1, 2):
         inputs = stage_inputs()
-        out, ctx = _run_stage(inputs, inputs["batches"].batch(k), half_window=1)
+        out, ctx = run_stage(inputs, inputs["batches"].batch(k), half_window=1)
         outs.append(out["poses"])
         assert ctx.stats["window"] == [0, 2] and out["poses"].status == "Solve_Succeeded"
         assert out["poses"].t_us[0] == 5_000 and out["poses"].t_us[-1] == 125_000  # the whole window
     rest = rec.template.rest_joints
     inside = max(np.linalg.norm(np.diff(joint_positions(o.poses, rest), axis=0), axis=2).max() for o in outs)
-    motion, cut, ctx = _stitch(outs, stage_inputs()["batches"])
+    motion, cut, ctx = stitch(outs, stage_inputs()["batches"])
     J = joint_positions(motion.poses, rest)
     assert np.linalg.norm(np.diff(J, axis=0), axis=2).max() <= 1.05 * inside
     assert cut[0].poses[-1].tolist() == cut[1].poses[0].tolist() and cut[2].t_us[-1] == 125_000
@@ -608,10 +462,10 @@ def test_a_window_uses_the_tracks_of_all_its_batches():
     batch); with tracks=own (the default) each sees only its own batch's."""
     inputs = stage_inputs()
     plan = inputs["batches"]
-    out0, ctx0 = _run_stage(inputs, plan.batch(0), half_window=1, **{"tracks.scope": "window"})
-    out2, ctx2 = _run_stage(inputs, plan.batch(2), half_window=1, **{"tracks.scope": "window"})
+    out0, ctx0 = run_stage(inputs, plan.batch(0), half_window=1, **{"tracks.scope": "window"})
+    out2, ctx2 = run_stage(inputs, plan.batch(2), half_window=1, **{"tracks.scope": "window"})
     np.testing.assert_array_equal(out0["poses"].poses, out2["poses"].poses)
-    own = [_run_stage(inputs, plan.batch(k), half_window=1, **{"tracks.scope": "own"})[1].stats["n_correspondences"]
+    own = [run_stage(inputs, plan.batch(k), half_window=1, **{"tracks.scope": "own"})[1].stats["n_correspondences"]
            for k in (0, 1, 2)]
     assert ctx0.stats["n_correspondences"] == pytest.approx(sum(own), rel=0.1), (ctx0.stats, own)
     assert min(own) > 0 and ctx0.stats["n_correspondences"] > 2.5 * max(own)
@@ -653,11 +507,11 @@ def test_the_stage_fits_the_silhouette_at_every_sil_step_of_its_batch(caplog):
     inputs = dict(inputs, recording=dataclasses.replace(rec, events=events))
     b = inputs["batches"].batch(1)
     with caplog.at_level("INFO"):
-        out, ctx = _run_stage(inputs, b, **{"terms.sil.weight": 50.0, "terms.sil.step_ms": 5.0})
+        out, ctx = run_stage(inputs, b, **{"terms.sil.weight": 50.0, "terms.sil.step_ms": 5.0})
     e = out["poses"].energies
     assert e["n_silhouette"] > 2000 and e["n_boundary"] >= e["n_silhouette"] and e["sil"] > 0
     assert "E_sil at 9 frames" in caplog.text
-    off, _ = _run_stage(inputs, b, **{"terms.sil.weight": 0.0})
+    off, _ = run_stage(inputs, b, **{"terms.sil.weight": 0.0})
     assert "n_silhouette" not in off["poses"].energies and "sil" not in off["poses"].energies
 
 
@@ -668,12 +522,12 @@ def test_the_stage_holds_light_parts_less_with_prior_inertia():
 
     inputs = stage_inputs()
     b = inputs["batches"].batch(1)
-    on, ctx = _run_stage(inputs, b, **{"terms.prior.inertia": 1.0, "terms.prior.gain_max": 1.0})
+    on, ctx = run_stage(inputs, b, **{"terms.prior.inertia": 1.0, "terms.prior.gain_max": 1.0})
     g = np.array(ctx.stats["prior_gain"])
     np.testing.assert_allclose(g, inertia_prior_gain(inputs["recording"].template.rest_joints, 1.0, 1.0, 0.04))
     assert g[DOF_INDEX["l_elbow_flex"]] < 0.3 and g[DOF_INDEX["spine_twist"]] == 1.0
     assert g.min() == pytest.approx(0.04)  # the floor (the ankles)
-    off, ctx_off = _run_stage(inputs, b, **{"terms.prior.inertia": 0.0, "terms.prior.gain_max": 1.0})
+    off, ctx_off = run_stage(inputs, b, **{"terms.prior.inertia": 0.0, "terms.prior.gain_max": 1.0})
     assert "prior_gain" not in ctx_off.stats
     assert np.abs(on["poses"].poses - off["poses"].poses).max() > 1e-4
 
@@ -684,14 +538,14 @@ def test_the_prior_gains_are_chosen_only_at_frame_rates_that_sample_the_motion(c
     inputs = stage_inputs()
     b = inputs["batches"].batch(1)
     base = {"terms.prior.inertia": 0.0, "terms.prior.gain_max": 10.0, "smoothing.criterion": "gcv"}
-    on, ctx_on = _run_stage(inputs, b, **base, **{"smoothing.min_fps": 20.0})
+    on, ctx_on = run_stage(inputs, b, **base, **{"smoothing.min_fps": 20.0})
     assert len(ctx_on.stats["prior_gain"]) == 33
     with caplog.at_level("INFO"):
-        off, ctx_off = _run_stage(inputs, b, **base, **{"smoothing.min_fps": 30.0})
+        off, ctx_off = run_stage(inputs, b, **base, **{"smoothing.min_fps": 30.0})
     assert "prior_gain" not in ctx_off.stats
     assert ("batch 1: no smoothing evidence from the fits around the window (no prior gains, no context pull): "
             "intensity frames at 25.0 fps, below stages.solve.smoothing.min_fps (30)") in caplog.text
-    plain, _ = _run_stage(inputs, b, **{"terms.prior.inertia": 0.0, "terms.prior.gain_max": 1.0,
+    plain, _ = run_stage(inputs, b, **{"terms.prior.inertia": 0.0, "terms.prior.gain_max": 1.0,
                                         "terms.context.weight": 0.0})
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
     # what `eventcap run` composes: gains up to 10 by GCV from 20 fps on (measured better at 25 fps, worse at 10)
@@ -736,20 +590,20 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     inputs = stage_inputs(n_frames=7)  # 6 batches: 7 frames of context, enough for a smoothing spline
     b = inputs["batches"].batch(3)
     with caplog.at_level("INFO"):
-        on, ctx_on = _run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
+        on, ctx_on = run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
                                               "smoothing.min_fps": 20.0})
     frames = np.array(ctx_on.stats["context_pull_frames"])
     assert frames.shape == (33,) and np.all(frames >= 0) and frames.max() > 0.5
     assert "batch 3: context pull: median" in caplog.text
-    plain, _ = _run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 0.0})
+    plain, _ = run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 0.0})
     assert np.abs(on["poses"].poses - plain["poses"].poses).max() > 1e-4
-    off, ctx_off = _run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
+    off, ctx_off = run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
                                             "smoothing.min_fps": 30.0})
     assert "context_pull_frames" not in ctx_off.stats
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
     with pytest.raises(ValueError, match=r"stages.solve.terms.context.weight: expected a finite number >= 0, "
                                          r"got -1.0"):
-        _run_stage(inputs, b, **{"terms.context.weight": -1.0})
+        run_stage(inputs, b, **{"terms.context.weight": -1.0})
     # the gate's floor, with a body busy with events everywhere (the scene has none): the events alone (floor 0)
     # hold nothing, a floor of 0.1 holds a tenth of what no gate (1) holds
     import dataclasses
@@ -767,7 +621,7 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     inputs["recording"] = dataclasses.replace(rec, events=dataclasses.replace(rec.events, events=busy))
     frames = {}
     for floor in (0.0, 0.1, 1.0):
-        _, ctx_f = _run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
+        _, ctx_f = run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
                                             "terms.context.gate_floor": floor})
         frames[floor] = np.array(ctx_f.stats["context_pull_frames"])
     assert frames[1.0].max() > 0.5
@@ -775,7 +629,7 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     np.testing.assert_allclose(frames[0.1], 0.1 * frames[1.0], rtol=1e-6, atol=1e-9)
     with pytest.raises(ValueError, match=r"stages.solve.terms.context.gate_floor: expected a finite number in "
                                          r"\[0, 1\], got 2"):
-        _run_stage(inputs, b, **{"terms.context.gate_floor": 2})
+        run_stage(inputs, b, **{"terms.context.gate_floor": 2})
     # what `eventcap run` composes (measured on the suite at 25 fps: 0.01 / 0.03 / 0.1 / 0.3 gave MPJVE 198 / 196 /
     # 202 / 213 mm/s against 241 without)
     from eventcap.apps.benchmark import compose_run
@@ -788,7 +642,7 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
 def test_a_failed_window_raises_with_the_solver_status():
     inputs = stage_inputs()
     with pytest.raises(StageFailed) as err:
-        _run_stage(inputs, inputs["batches"].batch(0), **{"ipopt.max_iter": 1})
+        run_stage(inputs, inputs["batches"].batch(0), **{"ipopt.max_iter": 1})
     assert err.value.status == "Maximum_Iterations_Exceeded" and "window of batches 0..2" in str(err.value)
 
 
@@ -820,17 +674,17 @@ def test_bad_config_and_missing_detections_are_named():
             ({"terms.sill.weight": 1.0}, r"stages.solve.terms.sill: no config key named 'sill' .*did you mean "
                                          r"'sil'")):
         with pytest.raises(ValueError, match=message):
-            _run_stage(inputs, b, **change)
+            run_stage(inputs, b, **change)
     # what spans several settings is checked by the stage
     with pytest.raises(StageFailed, match=r"stages.solve.window_step: expected at most max\(1, 2·half_window\) = 2"):
-        _run_stage(inputs, b, window_step=3)
+        run_stage(inputs, b, window_step=3)
     # an unknown prior order is refused when the config is built, before anything runs
     with pytest.raises(ValueError, match=r"\.terms\.prior\.order: expected one of acceleration \| jerk, got 'snap'"):
-        _run_stage(inputs, b, **{"terms.prior.order": "snap"})
+        run_stage(inputs, b, **{"terms.prior.order": "snap"})
     few = dict(inputs, batches=BatchPlan(t0_us=np.array([5_000, 47_000]), t1_us=np.array([47_000, 85_000]),
                                          frame0=np.array([0, 1])))
     with pytest.raises(StageFailed, match="no detection row at t = \\[47000\\]"):
-        _run_stage(few, b)
+        run_stage(few, b)
 
 
 def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_and_says_so(caplog):
@@ -844,7 +698,7 @@ def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_
     b = inputs["batches"].batch(1)
     _impl._FLOORS.clear()
     with caplog.at_level("INFO"):
-        out, ctx = _run_stage(inputs, b, landmarks="widths", icp_rounds=1,
+        out, ctx = run_stage(inputs, b, landmarks="widths", icp_rounds=1,
                               **{"terms.floor.weight": 100.0, "terms.slide.weight": 1.0})
     w = ctx.stats["landmark_widths"]
     assert set(w) == {"l_hip-r_hip", "l_shoulder-r_shoulder"} and all(0.9 < v < 1.1 for v in w.values()), w

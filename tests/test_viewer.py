@@ -16,7 +16,7 @@ import pytest
 from eventcap.export.bvh import read_motion_npz
 
 pytest.importorskip("rerun")
-from conftest import small_capture_config
+from helpers.runs import small_capture_config
 from rerun.chunk import RrdReader  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent

@@ -225,18 +225,30 @@ class Benchmark:
 
     def active_methods(self) -> tuple[list[Method], dict[str, str]]:
         """Methods whose required nodes their own pipeline has (composed with the common overrides and the method's
-        own), and why others not. The common overrides are composed once first: a bad one stops here."""
+        own), and why others not. A row whose runs would be those of an earlier row (the same composed config on
+        every kind of capture of the suite, e.g. ``pipeline=spline`` while the default is the spline) is left out
+        too, naming that row: it would only print its twin's figures again. The common overrides are composed once
+        first: a bad one stops here."""
         compose_run(self.config_dir, self.base_overrides())
-        active, left_out = [], {}
+        kinds = sorted({cap.frames for cap in self.captures}, reverse=True)  # with frames first
+        active, left_out, seen = [], {}, {}
         for m in self.methods:
-            missing = []
-            if m.requires:
-                data, _ = compose_run(self.config_dir, [*self.base_overrides(), *m.overrides])
-                nodes = set((data.get("pipeline") or {}).get("nodes") or {})
-                missing = [r for r in m.requires if r not in nodes]
+            composed = {}
+            for frames in kinds:
+                own = m.overrides_for(frames)
+                composed[frames] = None if own is None else \
+                    compose_run(self.config_dir, [*self.base_overrides(), *own])[0]
+            nodes = set()
+            for data in composed.values():
+                nodes |= set(((data or {}).get("pipeline") or {}).get("nodes") or {})
+            missing = [r for r in m.requires if r not in nodes]
+            same = seen.get(json.dumps([composed[k] for k in kinds], sort_keys=True, default=str))
             if missing:
                 left_out[m.name] = f"the pipeline has no node {', '.join(repr(r) for r in missing)}"
+            elif same is not None:
+                left_out[m.name] = f"the same runs as {same!r}: its overrides compose the same config"
             else:
+                seen[json.dumps([composed[k] for k in kinds], sort_keys=True, default=str)] = m.name
                 active.append(m)
         return active, left_out
 

@@ -380,6 +380,7 @@ def _print_stage_config(reg, name: str) -> int:
     import textwrap
 
     from eventcap.core.registry import UnknownStageError
+    from eventcap.core.stage import allowed_values
 
     node, how = _resolve_stage_name(name)
     try:
@@ -420,7 +421,9 @@ def _print_settings(config_class, default, prefix: str, textwrap) -> None:
         else:
             value = "(required)"
         meta = f.metadata
+        allowed = allowed_values(f)  # a number's declared range, in words
         extra = (f"; one of {' | '.join(map(str, meta['choices']))}" if meta.get("choices") else "") + \
+            (f"; {allowed}" if allowed and not meta.get("choices") else "") + \
             ("" if meta.get("affects_result", True) else "; not part of the cache key")
         print(f"  {prefix}{f.name} = {value!r}{extra}")
         for line in textwrap.wrap(meta.get("help", ""), 110):
