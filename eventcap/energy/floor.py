@@ -102,8 +102,8 @@ def contact_at(poses, knots_us: np.ndarray, template, floor_y: float, stillness:
 
 
 class _Contact(Factor):
-    """Shared by the floor terms: samples at the window's knots, the estimate's contact weights
-    (:meth:`eventcap.energy.window.Estimate.contact`) at each round."""
+    """Shared by the floor terms: samples at the window's knots, the estimate's contact weights (:func:`contact_at`,
+    computed once per estimate for both terms) at each round."""
 
     def __init__(self, config, template, camera, n):
         super().__init__(config, template, camera, n)
@@ -132,7 +132,10 @@ class _Contact(Factor):
             self.contact = np.zeros((self.n, len(SOLE_LANDMARKS)))
             return
         self.floor_y = float(floor_y)
-        self.contact = estimate.contact(self.t_us)
+        inputs, t = self._inputs, self.t_us
+        still = inputs.evidence("stillness")
+        self.contact = estimate.memo(("contact", t.tobytes()), lambda: contact_at(
+            estimate.poses, t, self.template, self.floor_y, None if still is None else still.stillness, inputs.contact))
 
     def report(self) -> dict:
         return {f"{self.name}_contact": float(self.contact.mean())} if self.active else {}

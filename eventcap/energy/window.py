@@ -6,7 +6,7 @@ evidence the solve measures once for every factor that asks (:meth:`WindowInputs
 the joints' stillness in the events, the smoothing the fits around the window call for, the floor. Evidence is
 measured on first request, so a factor that is off costs nothing. The estimate of one ICP round gives the poses at
 any time and what is associated with them, searched once per round for every factor that asks: the tracks'
-correspondences on the mesh, and the sole points' contact with the floor.
+correspondences on the mesh, and what factors share through :meth:`Estimate.memo` (the sole points' contact).
 """
 
 from __future__ import annotations
@@ -119,18 +119,11 @@ class Estimate:
                                                          tracks.xy, tracks.valid, tracks.edge_margin_px)
         return self._memo["cor"]
 
-    def contact(self, knots_us: np.ndarray) -> np.ndarray | None:
-        """(K, 6) in [0, 1]: how surely each sole point is in contact with the floor at the knots
-        (:func:`eventcap.energy.floor.contact_at`), None when the floor is not known."""
-        from .floor import contact_at
-
-        key = ("contact", np.asarray(knots_us).tobytes())
+    def memo(self, key, compute: Callable[[], Any]) -> Any:
+        """What ``compute()`` gives, computed once per estimate for every factor that asks with the same key (an
+        association several factors share: the sole points' contact of the floor terms)."""
         if key not in self._memo:
-            floor_y = self.inputs.evidence("floor_y")
-            stillness = self.inputs.evidence("stillness")
-            self._memo[key] = None if floor_y is None else contact_at(
-                self.poses, np.asarray(knots_us, dtype=np.int64), self.template, float(floor_y),
-                None if stillness is None else stillness.stillness, self.inputs.contact)
+            self._memo[key] = compute()
         return self._memo[key]
 
 
