@@ -220,7 +220,7 @@ def test_a_coupling_across_a_knot_widens_the_band_and_a_narrower_problem_refuses
     shifted = _with(inputs)
     shifted.tracks = Tracks(off, inputs.tracks.xy[::5], inputs.tracks.valid[::5])
     factors = _factors(only(SplineTerms, "cor"), shifted, rec)
-    prob = FactorProblem(poses, factors, SETTINGS, band=3)
+    prob = FactorProblem(poses, factors, SETTINGS, damp=0.0, band=3)
     factors[0].collect(shifted)
     with pytest.raises(EnergyError, match="factor cor couples samples 4 units apart; the problem was built for 3"):
         prob.set_window(spl)

@@ -15,6 +15,8 @@ import re
 
 import pytest
 
+from eventcap.params import is_group
+
 from eventcap.core.registry import load_registry
 
 SIGNS = {
@@ -30,9 +32,6 @@ SIGNS = {
     "a pointer to a log": re.compile(r"docs/|NOTES\.md|benchmarks/"),
 }
 
-#: Stages whose help text may still carry figures. The lead removes ``spline`` when rewriting
-#: plugins/eventcap_spline/spec.py into nested groups (its figures are in docs/results/spline-solve.md).
-ALLOWED = {"spline"}
 
 
 def figures(text: str) -> list[str]:
@@ -127,20 +126,20 @@ def test_the_rule_leaves_units_ranges_and_examples_alone(text):
 
 
 def help_texts():
+    """(stage, dotted key, help) of every stage's description, setting and group of settings (groups opened)."""
     for spec in load_registry().specs():
         yield spec.name, "(description)", spec.description
-        for f in dataclasses.fields(spec.config):
-            yield spec.name, f.name, f.metadata.get("help", "")
+        yield from _helps(spec.name, spec.config, "")
+
+
+def _helps(stage: str, config_class, prefix: str):
+    for f in dataclasses.fields(config_class):
+        yield stage, f"{prefix}{f.name}", f.metadata.get("help", "")
+        if is_group(f):
+            yield from _helps(stage, f.metadata["group"], f"{prefix}{f.name}.")
 
 
 def test_no_help_text_carries_a_measurement():
-    found = {f"{stage}.{key}": figures(text) for stage, key, text in help_texts()
-             if stage not in ALLOWED and figures(text)}
+    found = {f"{stage}.{key}": figures(text) for stage, key, text in help_texts() if figures(text)}
     assert not found, (f"help text says what a setting is, its unit and its range; move the figures to "
                        f"docs/results/settings.md: {found}")
-
-
-def test_every_allowed_stage_still_needs_it():
-    """An allowance that is no longer needed goes (the lead's rewrite of the spline spec removes this one)."""
-    still = {stage for stage, _, text in help_texts() if stage in ALLOWED and figures(text)}
-    assert still == ALLOWED, f"remove {sorted(ALLOWED - still)} from ALLOWED in tests/test_help_text.py"

@@ -191,7 +191,7 @@ def test_invalid_choice_is_refused_before_anything_runs(tmp_path, caplog):
             "(stage 'eklt')") in log_text
     assert log_text.count("sideways") == 1 + log_text.count("overrides:")  # said once, not once per batch
     assert not committed_entries(tmp_path / "cache") and not (run_dir / "run.json").exists()
-    code, log_text = run_main(tmp_path / "loss", *SMALL, f"cache_dir={tmp_path / 'cache'}", "stages.refine.sil_loss=hubber",
+    code, log_text = run_main(tmp_path / "loss", *SMALL, f"cache_dir={tmp_path / 'cache'}", "stages.refine.terms.sil.loss=hubber",
                               caplog=caplog)
     assert code == 1 and "expected one of l2 | huber, got 'hubber' (stage 'silhouette'); did you mean 'huber'?" \
         in log_text

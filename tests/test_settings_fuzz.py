@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from eventcap.params import leaves
+
 from eventcap.core.config import ConfigError, log_level_number
 from eventcap.core.pipeline import PipelineError, build_pipeline
 from eventcap.core.registry import load_registry
@@ -53,7 +55,7 @@ def numeric_keys(data: dict, registry) -> list[tuple[str, dataclasses.Field]]:
         for part in path.split("."):
             values = values[part]
         spec = registry.get(values["stage"])
-        out += [(f"{path}.{f.name}", f) for f in dataclasses.fields(spec.config) if _type(f) in NUMERIC]
+        out += [(f"{path}.{key}", f) for key, f in leaves(spec.config) if _type(f) in NUMERIC]
     return out
 
 

@@ -380,7 +380,6 @@ def _print_stage_config(reg, name: str) -> int:
     import textwrap
 
     from eventcap.core.registry import UnknownStageError
-    from eventcap.core.stage import allowed_values
 
     node, how = _resolve_stage_name(name)
     try:
@@ -407,7 +406,7 @@ def _print_settings(config_class, default, prefix: str, textwrap) -> None:
     """The settings of a config class (groups opened, each with its help) with their defaults."""
     import dataclasses
 
-    from eventcap.params import is_group
+    from eventcap.params import allowed_values, is_group
 
     plain = [f for f in dataclasses.fields(config_class) if not is_group(f)]
     groups = [f for f in dataclasses.fields(config_class) if is_group(f)]

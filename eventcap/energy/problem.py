@@ -127,7 +127,7 @@ class FactorProblem:
     tells what a window needs; a window whose factors reach further is refused)."""
 
     def __init__(self, poses: SplinePoses | FramePoses, factors: Sequence[Factor], settings: IpoptSettings,
-                 lower=None, upper=None, damp: float = 0.0, damp_aux: bool = True, name: str = "factors",
+                 lower=None, upper=None, *, damp: float, damp_aux: bool = True, name: str = "factors",
                  band: int | None = None):
         t0 = time.perf_counter()
         self.poses, self.factors, self.settings = poses, list(factors), settings
