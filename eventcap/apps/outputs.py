@@ -36,23 +36,20 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import os
 import shutil
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.analysis.motion import JOIN_RULES, frame_step_us, frames_every, join_batches, on_grid, uniform_motion
+from eventcap.analysis.motion import frame_step_us, frames_every, join_batches, on_grid, uniform_motion
 from eventcap.analysis.plausibility import write_plausibility
 from eventcap.core.runrecord import note_outputs
 from eventcap.imaging.viz import label as _label
-from eventcap.worldframe import check_frame
+from eventcap.apps.output_settings import OutputsConfig  # noqa: F401 (this module's API)
 
 log = logging.getLogger("eventcap.apps.outputs")
 
@@ -62,60 +59,6 @@ TRUTH = (170, 170, 170)
 OUTLINE = (0, 230, 255)
 POSITIVE = np.array([50, 50, 235], np.uint8)
 NEGATIVE = np.array([235, 120, 30], np.uint8)
-
-
-@dataclass(frozen=True)
-class OutputsConfig:
-    """The ``outputs:`` section of the run config (see the module docstring)."""
-
-    poses: str | None = "solve.poses"  # node.port of the PoseSequences that make the motion; null: no outputs
-    join: str = "later"  # a frame two batches share: later | mean (as the evaluate stage)
-    bvh: bool = True
-    npz: bool = True
-    video: bool = True
-    video_every_ms: float = 2.0  # motion time between video frames
-    video_max_frames: int = 500  # at most this many frames (the step widens to cover the whole motion)
-    video_fps: float = 25.0  # playback rate
-    video_scale: int = 2  # image pixels per sensor pixel
-    video_events_ms: float = 5.0  # events of the last ... ms are drawn
-    video_png_frames: int = 4  # frames of the video also saved as PNG in overlay_frames/
-    c3d: bool = False  # motion.c3d: joint centres + surface markers at the tracking rate (eventcap/export/c3d.py)
-    up_axis: str = "y"  # motion.bvh / motion.c3d: y | z (eventcap/worldframe.py)
-    units: str | None = None  # motion.bvh / motion.c3d: m | cm | mm; null: BVH m, C3D mm
-    rerun: bool = False  # capture.rrd: a Rerun recording of the whole run (eventcap/apps/viewer.py; eventcap view)
-    rerun_events_ms: float = 1.0  # each event image shows the events of the last ... ms
-    rerun_every_ms: float = 1.0  # motion time between event images
-    rerun_outline_every_ms: float = 5.0  # motion time between silhouette outlines (each costs a rasterization)
-    rerun_max_frames: int = 2000  # at most this many event images / outlines (the step widens)
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any] | None) -> OutputsConfig:
-        """Checked config from the ``outputs`` mapping: unknown keys and wrong types name ``outputs.<key>``."""
-        values = dict(values or {})
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        for key in values:
-            if key not in fields:
-                raise ValueError(f"outputs.{key}: unknown key; known: {', '.join(fields)}")
-        cfg = cls(**values)
-        if cfg.poses is not None and (not isinstance(cfg.poses, str) or cfg.poses.count(".") != 1):
-            raise ValueError(f"outputs.poses: expected '<node>.<port>' (e.g. solve.poses) or null, got {cfg.poses!r}")
-        if cfg.join not in JOIN_RULES:
-            raise ValueError(f"outputs.join: expected one of {', '.join(JOIN_RULES)}, got {cfg.join!r}")
-        check_frame(cfg.up_axis, cfg.units if cfg.units is not None else "m", "outputs.")
-        for name in ("bvh", "npz", "video", "c3d", "rerun"):
-            if not isinstance(getattr(cfg, name), bool):
-                raise ValueError(f"outputs.{name}: expected true or false, got {getattr(cfg, name)!r}")
-        for name in ("video_every_ms", "video_fps", "video_events_ms", "rerun_events_ms", "rerun_every_ms",
-                     "rerun_outline_every_ms"):
-            v = getattr(cfg, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-                raise ValueError(f"outputs.{name}: expected a positive number, got {v!r}")
-        for name, low in (("video_max_frames", 1), ("video_scale", 1), ("video_png_frames", 0),
-                          ("rerun_max_frames", 1)):
-            v = getattr(cfg, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ValueError(f"outputs.{name}: expected an integer >= {low}, got {v!r}")
-        return cfg
 
 
 def check_outputs_config(runner) -> OutputsConfig:

@@ -31,58 +31,69 @@ def _structured(config_class: type):
 def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
     """The stage's config dataclass from ``values`` (a plain mapping, groups as nested mappings); an unknown key, a
     renamed one (named with its new key) and a wrong type or value name ``where.<dotted key>``."""
-    _check_keys(spec, spec.config, values, where, "")
+    return build_settings(spec.config, values, where, spec.renamed, f"stage {spec.name!r}")
+
+
+def build_settings(config_class: type, values: Mapping[str, Any] | None, where: str,
+                   renamed: Mapping[str, str] | None = None, owner: str = "") -> Any:
+    """An instance of a dataclass of declared settings (:mod:`eventcap.params`) from ``values``: every key known
+    (a renamed one refused with its new key), every value of the field's type, within its choices and bounds; each
+    error names ``where.<dotted key>`` and the owner (e.g. "stage 'spline'")."""
+    values = dict(values or {})
+    renamed = dict(renamed or {})
+    tag = f" ({owner})" if owner else ""
+    _check_keys(config_class, values, where, "", renamed, owner)
     try:
-        merged = OmegaConf.merge(_structured(spec.config), OmegaConf.create(dict(values)))
+        merged = OmegaConf.merge(_structured(config_class), OmegaConf.create(values))
         obj = OmegaConf.to_object(merged)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", "") or ""
         msg = str(exc).splitlines()[0]
         path = ".".join(p.split("[")[0] for p in key.split("."))
-        field = field_at(spec.config, path) if path else None
+        field = field_at(config_class, path) if path else None
         allowed = allowed_values(field) if field is not None else None
         if allowed:  # a value of the wrong type: say what the field takes (the field, not an item of a list)
             msg = f"expected {allowed}, got {_value_in(values, path)!r}"
             key = path
-        raise ConfigError(f"{where}{'.' + key if key else ''}: {msg} (stage {spec.name!r})") from None
-    for key, f in leaves(spec.config):
+        raise ConfigError(f"{where}{'.' + key if key else ''}: {msg}{tag}") from None
+    for key, f in leaves(config_class):
         value = value_at(obj, key)
         if value is dataclasses.MISSING:
-            raise ConfigError(f"{where}.{key}: required by stage {spec.name!r} but not set")
+            raise ConfigError(f"{where}.{key}: required{' by ' + owner if owner else ''} but not set")
         choices = f.metadata.get("choices")
         if choices is not None and value not in choices:
             close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1, cutoff=0.5)
             hint = f"; did you mean {close[0]!r}?" if close else ""
             raise ConfigError(f"{where}.{key}: expected one of {' | '.join(str(c) for c in choices)}, got "
-                              f"{value!r} (stage {spec.name!r}){hint}")
+                              f"{value!r}{tag}{hint}")
         problem = check_value(f, value)
         if problem:
-            raise ConfigError(f"{where}.{key}: {problem} (stage {spec.name!r})")
+            raise ConfigError(f"{where}.{key}: {problem}{tag}")
     return obj
 
 
-def _check_keys(spec: StageSpec, config_class: type, values: Mapping[str, Any], where: str, prefix: str) -> None:
+def _check_keys(config_class: type, values: Mapping[str, Any], where: str, prefix: str,
+                renamed: Mapping[str, str], owner: str) -> None:
     """ConfigError for the first key of ``values`` that the config class (a group at ``prefix``) has not: a renamed
     one names its new key, others the close matches among the group's keys."""
     fields = {f.name: f for f in dataclasses.fields(config_class)}
+    tag = f" ({owner})" if owner else ""
     for key, value in values.items():
         full = f"{prefix}{key}"
         f = fields.get(str(key))
         if f is None:
-            new = spec.renamed.get(full)
+            new = renamed.get(full)
             if new is not None:
-                raise ConfigError(f"{where}.{full}: this setting is now {where}.{new} (stage {spec.name!r}; "
-                                  f"`eventcap stages {spec.name}` lists its settings)")
-            what = f"the config of stage {spec.name!r}" + (f", group {prefix[:-1]}" if prefix else "")
+                raise ConfigError(f"{where}.{full}: this setting is now {where}.{new}{tag}")
+            what = (f"the config of {owner}" if owner else where) + (f", group {prefix[:-1]}" if prefix else "")
             raise ConfigError(f"{where}.{full}: " + unknown_name_message("config key", str(key), list(fields), what))
         if is_group(f):
-            if not isinstance(value, Mapping) and full in spec.renamed:  # an old setting now a group's name
-                raise ConfigError(f"{where}.{full}: this setting is now {where}.{spec.renamed[full]} (stage "
-                                  f"{spec.name!r}; `eventcap stages {spec.name}` lists its settings)")
+            if not isinstance(value, Mapping) and full in renamed:  # an old setting now a group's name
+                raise ConfigError(f"{where}.{full}: this setting is now {where}.{renamed[full]}{tag}")
             if not isinstance(value, Mapping):
                 raise ConfigError(f"{where}.{full}: a group of settings ({', '.join(sorted(_names(f)))}); set one "
-                                  f"with {where}.{full}.<key>=..., got {value!r} (stage {spec.name!r})")
-            _check_keys(spec, f.metadata["group"], value, where, f"{full}.")
+                                  f"with {where}.{full}.<key>=..., got {value!r}{tag}")
+            _check_keys(f.metadata["group"], value, where, f"{full}.", renamed, owner)
 
 
 def _names(f: dataclasses.Field) -> list[str]:
@@ -115,6 +126,23 @@ def log_level_number(value: Any) -> int:
 #: :func:`register_stage_configs`: a stage variant's YAML (conf/stages/<node>/<variant>.yaml) starts from it with
 #: ``defaults: [/stage/<name>@_here_, _self_]`` and states only what differs.
 STAGE_GROUP = "stage"
+
+
+#: The Hydra config group holding the declared settings of the run's other parts (``/settings/<name>``: outputs,
+#: executor), filled by :func:`register_settings_configs`.
+SETTINGS_GROUP = "settings"
+
+
+def register_settings_configs(configs: Mapping[str, type]) -> list[str]:
+    """Store dataclasses of declared settings in Hydra's ConfigStore under ``/settings/<name>`` (the Hydra plugin
+    does so before every composition): ``conf/config.yaml`` starts the ``outputs`` block from it and the executor
+    variants start from ``/settings/executor``, stating only what differs."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    for name, cls in configs.items():
+        cs.store(group=SETTINGS_GROUP, name=name, node=cls, provider="eventcap")
+    return list(configs)
 
 
 def register_stage_configs() -> list[str]:

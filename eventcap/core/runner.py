@@ -24,7 +24,8 @@ from typing import Any
 
 from eventcap.artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
 from eventcap.core.cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
-from eventcap.core.config import ConfigError, build_config, config_to_dict, file_digests, result_config
+from eventcap.core.config import ConfigError, build_config, build_settings, config_to_dict, file_digests, result_config
+from eventcap.params import param
 from eventcap.errors import ComputationFailed
 from eventcap.memo import clear_process_caches, memoize
 from eventcap.core.pipeline import Node, build_pipeline
@@ -240,13 +241,18 @@ def base_doc(spec: StageSpec, config: Any, where: str) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------------------------------
 # Executors
 # ---------------------------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass
 class ExecutorConfig:
-    kind: str = "serial"  # serial | processes | dask
-    workers: int = 2  # processes / dask LocalCluster workers
-    threads_per_worker: int = 1  # BLAS/OpenMP threads per worker
-    address: str | None = None  # dask: scheduler address (tcp://host:8786); None starts a LocalCluster
-    retries: int = 2  # dask: resubmissions of a task whose worker raised an infrastructure error
+    """The ``executor:`` settings of a run (conf/executor/<kind>.yaml state only what differs from these)."""
+
+    kind: str = param("serial", choices=("serial", "processes", "dask"),
+                      help="serial (in this process) | processes (a local pool over batches) | dask (a LocalCluster, "
+                           "or the scheduler at address)")
+    workers: int = param(2, ge=1, help="processes / dask LocalCluster: worker processes")
+    threads_per_worker: int = param(1, ge=1, help="BLAS/OpenMP/numba threads per worker")
+    address: str | None = param(None, help="dask: the scheduler's address, tcp://host:8786 (null: start a "
+                                           "LocalCluster on this machine)")
+    retries: int = param(2, ge=0, help="dask: resubmissions of a task whose worker raised an infrastructure error")
 
     #: seconds to wait for a TCP connection to ``address`` before the run is refused
     CONNECT_TIMEOUT_S = 3.0
@@ -255,18 +261,7 @@ class ExecutorConfig:
     def from_mapping(cls, values: Mapping[str, Any] | None) -> ExecutorConfig:
         """Checked executor settings: every key and value named as ``executor.<key>`` with what it takes, before
         anything runs (a dask scheduler that cannot be reached included)."""
-        values = dict(values or {})
-        known = [f.name for f in dataclasses.fields(cls)]
-        unknown = sorted(set(values) - set(known))
-        if unknown:
-            raise ValueError(f"executor.{unknown[0]}: unknown key; known: {', '.join(sorted(known))}")
-        cfg = cls(**values)
-        if cfg.kind not in ("serial", "processes", "dask"):
-            raise ValueError(f"executor.kind: expected one of serial | processes | dask, got {cfg.kind!r}")
-        for name, low in (("workers", 1), ("threads_per_worker", 1), ("retries", 0)):
-            v = getattr(cfg, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ValueError(f"executor.{name}: expected an integer >= {low}, got {v!r}")
+        cfg = build_settings(cls, values, "executor")
         if cfg.address is not None:
             if not isinstance(cfg.address, str) or not cfg.address.strip():
                 raise ValueError(f"executor.address: expected a scheduler address such as tcp://host:8786, or null, "
