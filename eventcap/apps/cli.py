@@ -1,15 +1,19 @@
 """The ``eventcap`` command: run pipelines (Hydra), list stages, inspect and clean the cache.
 
-    eventcap run [hydra overrides]       run the configured pipeline; -m for sweeps; --cfg job / --help show config
-    eventcap simulate [key=value ...]    write a synthetic recording (motion=karate_kick duration_s=1 seed=0)
+    eventcap run [hydra overrides]       run the configured pipeline; -m for sweeps; --help: the groups, the pipeline's
+                                         nodes and their keys; --cfg job: the composed config
+    eventcap simulate [key=value ...]    write a synthetic recording (motion=karate_kick duration_s=1 seed=0; run
+                                         takes the source's keys bare too)
     eventcap stages [--kind K]           installed stages with one-line descriptions (imports no implementation)
     eventcap cache ls | explain KEY | gc inspect and clean the stage cache
     eventcap preview FILE                PNG of frames (or images from events), events and the ground-truth skeleton,
-                                         at the most active moment; any readable format; says what it read
+                                         at the most active moment, into the current folder (or --out); any readable
+                                         format; says what it read
     eventcap benchmark [overrides]       Table 1 / Fig. 7 on synthetic captures: methods x motions x seeds, one cache
                                          (benchmark=quick for a short one; conf/benchmark/*.yaml)
     eventcap report RUNS_DIR             one table (+ CSV, plot) of the jobs of a sweep (eventcap run -m ...)
-    eventcap view RUN_DIR | FILE.rrd     the run in the Rerun viewer (capture.rrd, built from the run if missing)
+    eventcap view RUN_DIR | FILE.rrd     the run in the Rerun viewer (capture.rrd; built from the run into the view
+                                         cache if missing: the run folder is only read)
     eventcap convert IN OUT              convert a recording (AEDAT4, HDF5, EVT2/3, DAT, npy/npz, rpg) into the
                                          project's format, streaming (--t-start/--t-end, --roi, --calibration)
 """

@@ -27,7 +27,7 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
 - ``plausibility.json``: speeds beyond human limits, joints behind the camera, sudden flips, the head below the
   pelvis, each with its frames (:mod:`eventcap.analysis.plausibility`); also logged, one line per kind.
 - ``capture.rrd`` (``rerun: true``): a Rerun recording of everything the run saw and produced (:mod:`eventcap.apps.viewer`;
-  ``eventcap view RUN_DIR`` opens it, or builds it from a finished run).
+  ``eventcap view RUN_DIR`` opens it, or builds it from a finished run into the view cache, outside the run folder).
 
 A run whose poses node committed nothing (it failed or was skipped) gets none of these, with a log line saying so.
 """
@@ -167,7 +167,7 @@ def write_run_outputs(runner, result, run_dir: str | Path, cfg: OutputsConfig | 
     """Write the configured outputs of a finished run into ``run_dir``; returns what was written (paths as
     strings), what was ``skipped`` and why, and ``problems`` (errors while writing). Missing inputs are logged and
     skipped, not errors. The summary is also added to the run folder's ``run.json`` under ``outputs`` (``merge``:
-    added to what an earlier call recorded there, e.g. ``eventcap view`` adding the recording to a finished run)."""
+    added to what an earlier call recorded there)."""
     cfg = cfg or check_outputs_config(runner)
     run_dir = Path(run_dir)
     summary: dict[str, Any] = {"written": {}, "skipped": {}, "problems": []}

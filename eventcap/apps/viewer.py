@@ -1,7 +1,7 @@
 """An interactive recording of a run for the Rerun viewer: everything the run saw and produced, on its time axis.
 
-``capture.rrd`` (written by ``outputs.rerun=true`` after a run, or by ``eventcap view RUN_DIR``) holds, on the
-timeline ``t_us`` (the run's own time axis, microseconds, shown as a duration):
+``capture.rrd`` (written by ``outputs.rerun=true`` after a run, or by ``eventcap view RUN_DIR`` into the view cache,
+:func:`view_cache_dir`) holds, on the timeline ``t_us`` (the run's own time axis, microseconds, shown as a duration):
 
 =====================================  ===========================================================================
 entity                                 what
