@@ -89,6 +89,15 @@ def test_a_synthetic_recording_without_ground_truth_runs_with_blazepose(simulate
         assert (tmp / "bare" / "motion.npz").is_file()
 
 
+def test_a_simulated_capture_read_as_a_recording_keeps_the_simulated_detector_and_says_so(simulated):
+    tmp, with_truth, _ = simulated
+    code, summary, log = run(tmp, "truth", "source=recording", f"source.path={with_truth}", "template=procedural",
+                             "template.target_faces=2000", "batches=1")
+    assert summary["nodes"]["detect"]["stage"] == "simulated"
+    assert f"{with_truth} holds the ground truth of a simulated capture: detect detects from it with the simulated " \
+           f"detector (stages/detect=blazepose runs a real one on its images)" in log
+
+
 def test_which_sources_need_a_real_detector(simulated):
     _, with_truth, bare = simulated
     nodes = {"detect": {"inputs": {}}, "solve": {"config": "stages.spline"}}

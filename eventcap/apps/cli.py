@@ -97,7 +97,8 @@ def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
     from hydra import compose
     from omegaconf import OmegaConf
 
-    from eventcap.apps.jobs import FRAMELESS_PIPELINE, REAL_DETECTOR, frameless_source, groundless_detect_nodes
+    from eventcap.apps.jobs import FRAMELESS_PIPELINE, REAL_DETECTOR, frameless_source, ground_truth_detect_nodes, \
+        groundless_detect_nodes
 
     chosen = {o.partition("=")[0].lstrip("+~") for o in overrides}
     extra: list[str] = []
@@ -109,6 +110,12 @@ def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
     nodes, why = groundless_detect_nodes(data)
     nodes = [n for n in nodes if not {f"stages/{n}", f"stages.{n}.stage"} & chosen
              and (config_dir() / "stages" / n / f"{REAL_DETECTOR}.yaml").is_file()]
+    src = data.get("source") or {}
+    simulated = [n for n in ground_truth_detect_nodes(data) if not {f"stages/{n}", f"stages.{n}.stage"} & chosen]
+    if simulated and src.get("stage") == "recording" and _holds_ground_truth(src):  # a simulated capture
+        log.info("%s holds the ground truth of a simulated capture: %s detects from it with the simulated detector "
+                 "(stages/%s=%s runs a real one on its images)", src.get("path"), simulated[0], simulated[0],
+                 REAL_DETECTOR)
     if nodes:
         log.info("%s: detecting with %s (the default detector is simulated from ground truth; give %s to choose "
                  "another, e.g. stages/%s=file stages.%s.path=<detections made elsewhere>)", why,
@@ -126,6 +133,13 @@ def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
         raise ConfigError(f"the settings given do not fit {' '.join(extra)}, chosen for this recording ({cause}); "
                           f"choose yourself: {' '.join(e.split('=')[0] + '=...' for e in extra)}") from None
     return cfg, OmegaConf.to_container(cfg, resolve=True)
+
+
+def _holds_ground_truth(src) -> bool:
+    from eventcap.io.readers import recording_has_ground_truth
+
+    path = Path(str(src.get("path") or ""))
+    return bool(src.get("path")) and path.exists() and recording_has_ground_truth(path, src.get("format") or None)
 
 
 def cmd_run(argv: list[str]) -> int:

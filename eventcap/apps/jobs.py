@@ -139,6 +139,19 @@ REAL_DETECTOR = "blazepose"
 GROUND_TRUTH_DETECTORS = ("simulated",)
 
 
+def ground_truth_detect_nodes(data: Mapping[str, Any]) -> list[str]:
+    """The composed pipeline's nodes that run a detector made from ground truth (the simulated one)."""
+    nodes = []
+    for name, node in ((data.get("pipeline") or {}).get("nodes") or {}).items():
+        where = (node or {}).get("config") or f"stages.{name}"
+        cfg: Any = data
+        for part in str(where).split("."):
+            cfg = cfg.get(part) if isinstance(cfg, Mapping) else None
+        if isinstance(cfg, Mapping) and cfg.get("stage") in GROUND_TRUTH_DETECTORS:
+            nodes.append(name)
+    return nodes
+
+
 def groundless_detect_nodes(data: Mapping[str, Any]) -> tuple[list[str], str | None]:
     """The pipeline's nodes running a detector made from ground truth (the simulated one) on a source without any,
     and why the source has none (a sentence for the log); ``([], None)`` when the source has ground truth (a
@@ -152,15 +165,8 @@ def groundless_detect_nodes(data: Mapping[str, Any]) -> tuple[list[str], str | N
     path = Path(str(src["path"]))
     if not path.exists() or recording_has_ground_truth(path, src.get("format") or None):
         return [], None
-    nodes = []
-    for name, node in ((data.get("pipeline") or {}).get("nodes") or {}).items():
-        where = (node or {}).get("config") or f"stages.{name}"
-        cfg: Any = data
-        for part in str(where).split("."):
-            cfg = cfg.get(part) if isinstance(cfg, Mapping) else None
-        if isinstance(cfg, Mapping) and cfg.get("stage") in GROUND_TRUTH_DETECTORS:
-            nodes.append(name)
-    return nodes, f"{path} has no ground truth (a recording from a camera, not a simulated capture)"
+    return ground_truth_detect_nodes(data), f"{path} has no ground truth (a recording from a camera, not a " \
+                                            f"simulated capture)"
 
 
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
