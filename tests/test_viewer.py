@@ -234,7 +234,7 @@ def test_eventcap_view_builds_the_recording_of_a_finished_run(finished_run, tmp_
     built = next((tmp_path / "views").rglob("capture.rrd"))
     assert built.parent.name == "run"  # the run folder's name: the recording's id carries it
     assert "building" in out.err and "no display here" in out.out
-    assert f"rerun {built}" in out.out and "--serve-web --bind 127.0.0.1" in out.out
+    assert f"rerun {built}" in out.out and f"eventcap view {copy} --web\n" in out.out  # which ends the viewer
     # the address that loads the served recording, not the bare viewer (a welcome page)
     assert "open http://127.0.0.1:9090?url=rerun%2Bhttp%3A%2F%2Flocalhost%3A9876%2Fproxy" in out.out
     rows_a, times_a, _ = read_rrd(run_dir / "capture.rrd")

@@ -568,7 +568,7 @@ def cmd_view(args) -> int:
         return run_viewer([*rerun_command(), str(rrd)])
     why = "" if args.no_open else "no display here; "
     print(f"eventcap view: {rrd} ({rrd.stat().st_size / 1e6:.1f} MB): {why}"
-          f"{how_to_view(rrd, args.port, args.grpc_port)}")
+          f"{how_to_view(rrd, args.port, args.grpc_port, target)}")
     return 0
 
 

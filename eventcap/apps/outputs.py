@@ -657,12 +657,21 @@ def build_run_recording(run_dir: Path, recompute: bool = False, out_dir: Path | 
         raise ViewError(f"{run_dir}: this run has no motion to show (outputs.poses is null or names no node of its "
                         f"pipeline, e.g. pipeline=simulate); `eventcap preview RECORDING.zarr` shows a recording")
     only = dataclasses.replace(cfg, bvh=False, npz=False, video=False, c3d=False, rerun=True)
-    # built in a folder named as the run's (the recording's id names it), then moved into place whole
+    # built in a folder named as the run's (the recording's id names it), then moved into place; the run's own
+    # outputs were logged by the run (the plausibility checks are made again on the way: said only if they warn)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
+    quiet = [logging.getLogger(n) for n in ("eventcap.apps.outputs", "eventcap.analysis.plausibility")]
+    levels = [q.level for q in quiet]
     with tempfile.TemporaryDirectory(dir=out_dir.parent, prefix=".building-") as tmp:
         work = Path(tmp) / run_dir.name
         work.mkdir()
-        summary = write_run_outputs(runner, result, work, only)
+        try:
+            for q in quiet:
+                q.setLevel(max(q.getEffectiveLevel(), logging.WARNING))
+            summary = write_run_outputs(runner, result, work, only)
+        finally:
+            for q, level in zip(quiet, levels):
+                q.setLevel(level)
         if "rerun" not in summary["written"]:
             why = summary["skipped"].get("rerun") or "; ".join(summary["problems"]) or "nothing to show"
             raise ViewError(f"{run_dir}: no recording written: {why}")

@@ -697,9 +697,12 @@ def web_viewer_command(rrd: Path, port: int = 9090, grpc_port: int = 9876) -> li
     return [str(rrd), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), "--port", str(grpc_port)]
 
 
-def how_to_view(rrd: Path, port: int = 9090, grpc_port: int = 9876) -> str:
+def how_to_view(rrd: Path, port: int = 9090, grpc_port: int = 9876, target: Path | str | None = None) -> str:
+    """How to open ``rrd``: the native viewer, or the web viewer served by ``eventcap view TARGET --web`` (which ends
+    the viewer when it is stopped; ``target``: what was given to ``eventcap view``, default ``rrd``)."""
+    ports = "" if (port, grpc_port) == (9090, 9876) else f" --port {port} --grpc-port {grpc_port}"
     return (f"open it with the Rerun viewer:\n  rerun {rrd}\n"
             f"or, on a machine without a display, serve the web viewer on this machine and open it in a browser "
             f"(from elsewhere through an SSH tunnel: ssh -L {port}:localhost:{port} -L {grpc_port}:localhost:"
-            f"{grpc_port} HOST):\n  rerun {' '.join(web_viewer_command(rrd, port, grpc_port))}\n"
+            f"{grpc_port} HOST):\n  eventcap view {target or rrd} --web{ports}\n"
             f"  then open {web_viewer_url(port, grpc_port)}")
