@@ -129,9 +129,11 @@ def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
     except Exception as exc:  # noqa: BLE001 - a setting of the stage given up (e.g. a key of the simulated detector)
         from eventcap.core.config import ConfigError
 
-        cause = f"{exc}" + (f": {exc.__cause__}" if exc.__cause__ is not None else "")
-        raise ConfigError(f"the settings given do not fit {' '.join(extra)}, chosen for this recording ({cause}); "
-                          f"choose yourself: {' '.join(e.split('=')[0] + '=...' for e in extra)}") from None
+        argv = [*overrides, *extra]
+        cause = unknown_override_message(exc, argv, config_dir()) or typed_override_message(exc, argv) or \
+            " ".join(f"{exc}: {exc.__cause__ or ''}".split())
+        raise ConfigError(f"the settings given do not fit {' '.join(extra)}, chosen for this recording: {cause}; "
+                          f"or choose yourself: {' '.join(e.split('=')[0] + '=...' for e in extra)}") from None
     return cfg, OmegaConf.to_container(cfg, resolve=True)
 
 
