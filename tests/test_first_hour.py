@@ -224,6 +224,16 @@ def test_run_help_shows_groups_nodes_and_their_keys_not_the_config(capsys):
     assert not any(line.split()[:1] == ["stitch"] for line in paper)
 
 
+def test_run_help_on_a_recording_says_what_the_run_picks_by_itself(capsys):
+    assert main(["run", "source=recording", "--help"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "On a file without ground truth the run takes stages/detect=blazepose by itself, unless stages/detect=... " \
+           "is given." in lines
+    assert "On a file without intensity frames it takes pipeline=events_only by itself." in lines
+    assert main(["run", "source=recording", "stages/detect=file", "pipeline=paper", "--help"]) == 0
+    assert "by itself" not in capsys.readouterr().out
+
+
 def test_run_help_with_a_key_that_does_not_compose_says_so(capsys):
     assert main(["run", "stages.solve.nope=1", "--help"]) == 1
     assert "eventcap run: stages.solve.nope" in capsys.readouterr().err

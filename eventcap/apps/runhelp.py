@@ -79,6 +79,14 @@ def run_help(overrides: list[str], cdir: str | Path) -> str:
         rows.insert(0, ("node", "stage", "settings", "stage picked by"))
         w = [max(len(r[i]) for r in rows) for i in range(3)]
         out += [f"  {n:<{w[0]}}  {s:<{w[1]}}  {k:<{w[2]}}  {p}".rstrip() for n, s, k, p in rows]
+        if choices.get("source") == "recording":
+            from eventcap.apps.jobs import FRAMELESS_PIPELINE, REAL_DETECTOR, ground_truth_detect_nodes
+
+            for name in ground_truth_detect_nodes(data):
+                out.append(f"On a file without ground truth the run takes stages/{name}={REAL_DETECTOR} by itself, "
+                           f"unless stages/{name}=... is given.")
+            if "pipeline" not in {o.partition("=")[0].lstrip("+~") for o in overrides}:
+                out.append(f"On a file without intensity frames it takes pipeline={FRAMELESS_PIPELINE} by itself.")
         example = next((n.spec.name for n in nodes if n.name == "solve"), nodes[-1].spec.name if nodes else "")
         out.append(f"A stage's settings, their defaults and meaning: eventcap stages STAGE (e.g. eventcap stages "
                    f"{example}).")
