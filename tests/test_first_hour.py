@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import REAL_DAVIS346, ROOT
+from helpers.paths import REAL_DAVIS346, ROOT
 
 from eventcap.apps.cli import main, preview_path, source_shorthands
 from eventcap.apps.jobs import groundless_detect_nodes, metrics_table, run_folder_line

@@ -357,7 +357,8 @@ def _start_view(tmp_path, *args):
     deadline = time.monotonic() + 60
     while not pids.exists():
         assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() < deadline, "the fake viewer did not start"
+        if time.monotonic() > deadline:
+            raise TimeoutError("the fake viewer did not start within 60 s")
         time.sleep(0.05)
     return proc, [int(p) for p in pids.read_text().split()]
 
@@ -467,7 +468,9 @@ def test_the_real_web_viewer_frees_its_ports_when_eventcap_view_is_killed(tmp_pa
     try:
         deadline = time.monotonic() + 60
         while not (_listening(port) and _listening(grpc)):
-            assert proc.poll() is None and time.monotonic() < deadline, "the web viewer did not start"
+            assert proc.poll() is None, "the web viewer exited before serving"
+            if time.monotonic() > deadline:
+                raise TimeoutError("the web viewer did not start within 60 s")
             time.sleep(0.1)
         os.kill(proc.pid, getattr(signal, how))
         proc.wait(timeout=20)
