@@ -16,7 +16,7 @@ from eventcap.imaging.viz import most_active_time
 
 W, H = 240, 180
 BURST_US = 200_000  # a bar sweeps the sensor in the 10 ms around this time
-REAL_DAVIS346 = Path(__file__).resolve().parents[1] / "tests" / "data" / "davis346_lab_aps.aedat4"
+REAL_DAVIS346 = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # tests/data/real/SOURCE.md
 SHARED_DAVIS346 = Path("/work/shared/data/real/davis346_lab_aps.aedat4")
 
 

@@ -1,15 +1,19 @@
 """The ``eventcap`` command: run pipelines (Hydra), list stages, inspect and clean the cache.
 
-    eventcap run [hydra overrides]       run the configured pipeline; -m for sweeps; --cfg job / --help show config
-    eventcap simulate [key=value ...]    write a synthetic recording (motion=karate_kick duration_s=1 seed=0)
+    eventcap run [hydra overrides]       run the configured pipeline; -m for sweeps; --help: the groups, the pipeline's
+                                         nodes and their keys; --cfg job: the composed config
+    eventcap simulate [key=value ...]    write a synthetic recording (motion=karate_kick duration_s=1 seed=0; run
+                                         takes the source's keys bare too)
     eventcap stages [--kind K]           installed stages with one-line descriptions (imports no implementation)
     eventcap cache ls | explain KEY | gc inspect and clean the stage cache
     eventcap preview FILE                PNG of frames (or images from events), events and the ground-truth skeleton,
-                                         at the most active moment; any readable format; says what it read
+                                         at the most active moment, into the current folder (or --out); any readable
+                                         format; says what it read
     eventcap benchmark [overrides]       Table 1 / Fig. 7 on synthetic captures: methods x motions x seeds, one cache
                                          (benchmark=quick for a short one; conf/benchmark/*.yaml)
     eventcap report RUNS_DIR             one table (+ CSV, plot) of the jobs of a sweep (eventcap run -m ...)
-    eventcap view RUN_DIR | FILE.rrd     the run in the Rerun viewer (capture.rrd, built from the run if missing)
+    eventcap view RUN_DIR | FILE.rrd     the run in the Rerun viewer (capture.rrd; built from the run into the view
+                                         cache if missing: the run folder is only read)
     eventcap convert IN OUT              convert a recording (AEDAT4, HDF5, EVT2/3, DAT, npy/npz, rpg) into the
                                          project's format, streaming (--t-start/--t-end, --roi, --calibration)
 """
@@ -70,29 +74,75 @@ def _run_job(cfg) -> bool:
     data = OmegaConf.to_container(cfg, resolve=True)
     overrides = list(HydraConfig.get().overrides.task)
     log.info("run folder: %s%s", run_dir, f" (overrides: {' '.join(overrides)})" if overrides else "")
-    cfg, data = _pipeline_for_recording(cfg, data, overrides)
+    try:
+        cfg, data = _pipeline_for_recording(cfg, data, overrides)
+    except ConfigError as exc:
+        log.error("%s", exc)
+        _RUN_FAILURES.append(f"{run_dir}: {exc}")
+        return False
     before = len(_RUN_FAILURES)
     run_job(data, run_dir, OmegaConf.to_yaml(cfg, resolve=True), _RUN_FAILURES)
     return len(_RUN_FAILURES) == before
 
 
 def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
-    """The default command on a recording without intensity frames: when no pipeline was chosen, the run takes
-    pipeline=events_only (images reconstructed from the events) and the log says why. Returns (cfg, data)."""
+    """The default command on a recording, made to fit it, each change said in the log:
+
+    - without intensity frames, when no pipeline was chosen: pipeline=events_only (images reconstructed from the
+      events);
+    - without ground truth, when no detector was chosen: stages/detect=blazepose (the default detector, simulated,
+      makes its detections from ground truth).
+
+    Returns (cfg, data), composed again when something changed."""
     from hydra import compose
     from omegaconf import OmegaConf
 
-    from eventcap.apps.jobs import FRAMELESS_PIPELINE, frameless_source
+    from eventcap.apps.jobs import FRAMELESS_PIPELINE, REAL_DETECTOR, frameless_source, ground_truth_detect_nodes, \
+        groundless_detect_nodes
 
-    if any(o.partition("=")[0].lstrip("+~") == "pipeline" for o in overrides):
+    chosen = {o.partition("=")[0].lstrip("+~") for o in overrides}
+    extra: list[str] = []
+    why = None if "pipeline" in chosen else frameless_source(data)
+    if why is not None:
+        log.info("%s: running pipeline=%s (images reconstructed from the events stand in for frames; give "
+                 "pipeline=... to choose another)", why, FRAMELESS_PIPELINE)
+        extra.append(f"pipeline={FRAMELESS_PIPELINE}")
+    nodes, why = groundless_detect_nodes(data)
+    nodes = [n for n in nodes if not {f"stages/{n}", f"stages.{n}.stage"} & chosen
+             and (config_dir() / "stages" / n / f"{REAL_DETECTOR}.yaml").is_file()]
+    src = data.get("source") or {}
+    simulated = [n for n in ground_truth_detect_nodes(data) if not {f"stages/{n}", f"stages.{n}.stage"} & chosen]
+    if simulated and src.get("stage") == "recording" and _holds_ground_truth(src):  # a simulated capture
+        log.info("%s holds the ground truth of a simulated capture: %s detects from it with the simulated detector "
+                 "(stages/%s=%s runs a real one on its images)", src.get("path"), simulated[0], simulated[0],
+                 REAL_DETECTOR)
+    if nodes:
+        log.info("%s: detecting with %s (the default detector is simulated from ground truth; give %s to choose "
+                 "another, e.g. stages/%s=file stages.%s.path=<detections made elsewhere>)", why,
+                 " ".join(f"stages/{n}={REAL_DETECTOR}" for n in nodes), " ".join(f"stages/{n}=..." for n in nodes),
+                 nodes[0], nodes[0])
+        extra += [f"stages/{n}={REAL_DETECTOR}" for n in nodes]
+    if not extra:
         return cfg, data
-    why = frameless_source(data)
-    if why is None:
-        return cfg, data
-    log.info("%s: running pipeline=%s (images reconstructed from the events stand in for frames; give pipeline=... "
-             "to choose another)", why, FRAMELESS_PIPELINE)
-    cfg = compose(config_name="config", overrides=[*overrides, f"pipeline={FRAMELESS_PIPELINE}"])
+    try:
+        cfg = compose(config_name="config", overrides=[*overrides, *extra])
+    except Exception as exc:  # noqa: BLE001 - a setting of the stage given up (e.g. a key of the simulated detector)
+        from eventcap.core.config import ConfigError
+
+        argv = [*overrides, *extra]
+        cause = stage_override_message(exc, argv, config_dir()) or unknown_override_message(exc, argv, config_dir()) \
+            or typed_override_message(exc, argv) or \
+            " ".join(f"{exc}: {exc.__cause__ or ''}".split())
+        raise ConfigError(f"the settings given do not fit {' '.join(extra)}, chosen for this recording: {cause}; "
+                          f"or choose yourself: {' '.join(e.split('=')[0] + '=...' for e in extra)}") from None
     return cfg, OmegaConf.to_container(cfg, resolve=True)
+
+
+def _holds_ground_truth(src) -> bool:
+    from eventcap.io.readers import recording_has_ground_truth
+
+    path = Path(str(src.get("path") or ""))
+    return bool(src.get("path")) and path.exists() and recording_has_ground_truth(path, src.get("format") or None)
 
 
 def cmd_run(argv: list[str]) -> int:
@@ -100,6 +150,9 @@ def cmd_run(argv: list[str]) -> int:
 
     cdir = str(config_dir())
     _RUN_FAILURES.clear()
+    argv = source_shorthands(argv)
+    if {"--help", "-h"} & set(argv):
+        return _print_run_help([a for a in argv if a not in ("--help", "-h")], cdir)
 
     @hydra.main(version_base="1.3", config_path=cdir, config_name="config")
     def _main(cfg) -> None:
@@ -138,6 +191,23 @@ def cmd_run(argv: list[str]) -> int:
         else:
             os.environ["HYDRA_FULL_ERROR"] = full_error
     return 1 if _RUN_FAILURES else 0
+
+
+def _print_run_help(argv: list[str], cdir: str) -> int:
+    """``eventcap run [overrides] --help``: the groups, the composed pipeline's nodes and where each node's settings
+    live (eventcap/apps/runhelp.py); the composed config itself stays ``--cfg job``."""
+    from eventcap.apps.runhelp import run_help
+
+    overrides = [a for a in argv if "=" in a and not a.startswith("-")]
+    try:
+        print(run_help(overrides, cdir))
+    except Exception as exc:  # noqa: BLE001 - an override that does not compose: said as the run would say it
+        msg = stage_override_message(exc, overrides, cdir) or unknown_override_message(exc, overrides, cdir) or \
+            typed_override_message(exc, overrides) or \
+            f"{exc}" + (f": {exc.__cause__}" if exc.__cause__ is not None else "")
+        print(f"eventcap run: {msg}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def stage_override_message(exc: BaseException, argv: list[str], cdir: str | Path) -> str | None:
@@ -327,25 +397,38 @@ def _known_keys(parent: str, override_key: str, argv: list[str], cdir) -> tuple[
     return known, stage_fields, stage_name, where_file
 
 
+#: Top-level keys and config groups of conf/config.yaml: a bare ``key=value`` naming one of them is never a source's.
 _TOP_LEVEL = {"name", "cache_dir", "batches", "log_level", "export", "outputs", "pipeline", "source", "executor",
-              "template", "stages"}
+              "template", "stages", "experiment", "hydra"}
+
+
+def source_shorthands(argv: list[str]) -> list[str]:
+    """``key=value`` for a key of a source stage (``motion=jumping_jack``, ``duration_s=1``, ``seed=0``,
+    ``path=FILE``) -> ``source.key=value``, as ``eventcap run`` and ``eventcap simulate`` both take it. Top-level keys
+    and config groups keep their meaning; any other argument passes unchanged (a key the chosen source does not
+    have is then refused naming ``source.<key>``)."""
+    import dataclasses
+
+    from eventcap.core.registry import load_registry
+
+    keys = {f.name for spec in load_registry().specs() if spec.kind == "source"
+            for f in dataclasses.fields(spec.config)} - _TOP_LEVEL
+    out = []
+    for arg in argv:
+        key = arg.split("=", 1)[0]
+        out.append(f"source.{arg}" if "=" in arg and not arg.startswith(("-", "+", "~")) and key in keys else arg)
+    return out
 
 
 def cmd_simulate(argv: list[str]) -> int:
     """``eventcap simulate motion=karate_kick duration_s=1 seed=0``: a synthetic recording, written to the run folder.
 
-    Bare keys are the synthetic source's parameters (``motion=...`` means ``source.motion=...``); anything else is a
-    normal Hydra override. The recording lands in ``runs/simulate/<timestamp>/source.recording.zarr``.
+    Keys of the source may be given bare, as ``eventcap run`` takes them (``motion=...`` means ``source.motion=...``:
+    :func:`source_shorthands`); anything else is a normal Hydra override. The recording lands in
+    ``runs/simulate/<timestamp>/source.recording.zarr``.
     """
-    mapped = []
-    for arg in argv:
-        key = arg.split("=", 1)[0]
-        if "=" in arg and not arg.startswith(("-", "+", "~")) and "." not in key and "/" not in key \
-                and key not in _TOP_LEVEL:
-            arg = f"source.{arg}"
-        mapped.append(arg)
     return cmd_run(["pipeline=simulate", "source=synthetic", "name=simulate", "export=[source.recording]",
-                    "outputs.poses=null", *mapped])
+                    "outputs.poses=null", *argv])
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -569,6 +652,15 @@ def _read_for_preview(args):
     return rec, raw.format
 
 
+def preview_path(recording, out=None) -> Path:
+    """Where ``eventcap preview`` writes its PNG: ``out`` (a folder: the name inside it), else the current folder;
+    never beside the recording (a data folder, or a checkout's tests/data/, is no place for it)."""
+    name = f"{Path(recording).name.split('.')[0] or 'recording'}.preview.png"
+    if out is None or str(out) == "":
+        return Path(name)
+    return Path(out) / name if Path(out).is_dir() else Path(out)
+
+
 def cmd_preview(args) -> int:
     """A PNG of a recording in any readable format: frame (or image from events), true sharp image, events,
     ground-truth skeleton; by default at the recording's most active moment. Says what it read."""
@@ -611,21 +703,20 @@ def cmd_preview(args) -> int:
     except (ArtifactError, FileNotFoundError, ValueError) as exc:  # RecordingError is a ValueError
         print(f"eventcap preview: {exc}", file=sys.stderr)
         return 2
-    stem = Path(args.recording).name.split(".")[0] or "recording"
-    out = Path(args.out or Path(args.recording).parent / f"{stem}.preview.png")
+    out = preview_path(args.recording, args.out)
     cv2.imwrite(str(out), img)
     print(f"showing {what}; wrote {out} ({img.shape[1]}x{img.shape[0]})")
     return 0
 
 
 def cmd_view(args) -> int:
-    """Open a run's Rerun recording (``capture.rrd``; built from the run folder when missing), or say how."""
-    import subprocess
-
+    """Show a run in the Rerun viewer: its ``capture.rrd``, else one built from the run folder into the view cache
+    (the run folder is only read). The viewer runs in the foreground and ends with this command, however it is
+    stopped (:func:`eventcap.apps.viewer.run_viewer`)."""
     from eventcap.apps.outputs import build_run_recording
     from eventcap.core.runrecord import RunRecordError
     from eventcap.apps.viewer import RRD_NAME, ViewError, has_display, how_to_view, require_rerun, rerun_command, \
-        web_viewer_command, web_viewer_url
+        run_viewer, view_cache_dir, web_viewer_command, web_viewer_url
 
     try:
         require_rerun()
@@ -633,36 +724,33 @@ def cmd_view(args) -> int:
         print(f"eventcap view: {exc}", file=sys.stderr)
         return 2
     target = Path(args.target)
+    again = args.rebuild or args.recompute
     try:
         if target.is_file() and target.suffix == ".rrd":
             rrd = target
         elif target.is_dir():
-            rrd = target / RRD_NAME
-            if args.rebuild or args.recompute or not rrd.is_file():
-                print(f"eventcap view: building {rrd} from the run (its config.yaml, run.json and the cache)",
-                      file=sys.stderr)
-                rrd = build_run_recording(target, recompute=args.recompute)
+            rrd, built = target / RRD_NAME, view_cache_dir(target) / RRD_NAME
+            if again or not rrd.is_file():
+                rrd = built
+            if again or not rrd.is_file():
+                print(f"eventcap view: building {rrd} from the run (its config.yaml, run.json and the cache; the run "
+                      f"folder is only read)", file=sys.stderr)
+                rrd = build_run_recording(target, recompute=args.recompute, out_dir=built.parent)
         else:
             raise ViewError(f"{target}: expected a run folder (runs/<name>/<timestamp>/) or an .rrd file")
     except (ViewError, RunRecordError) as exc:
         print(f"eventcap view: {exc}", file=sys.stderr)
         return 2
-    cmd = [*rerun_command(), str(rrd)]
     if args.web:
-        cmd = [*rerun_command(), *web_viewer_command(rrd, args.port, args.grpc_port)]
         print(f"eventcap view: serving the web viewer of {rrd}: open {web_viewer_url(args.port, args.grpc_port)} "
-              f"(Ctrl-C stops)", flush=True)
-        try:
-            return subprocess.call(cmd)
-        except KeyboardInterrupt:
-            return 0
+              f"(Ctrl-C stops it)", flush=True)
+        return run_viewer([*rerun_command(), *web_viewer_command(rrd, args.port, args.grpc_port)])
     if has_display() and not args.no_open:
-        subprocess.Popen(cmd, start_new_session=True)
-        print(f"eventcap view: opened {rrd} in the Rerun viewer")
-        return 0
+        print(f"eventcap view: showing {rrd} in the Rerun viewer (closing it or Ctrl-C ends both)", flush=True)
+        return run_viewer([*rerun_command(), str(rrd)])
     why = "" if args.no_open else "no display here; "
     print(f"eventcap view: {rrd} ({rrd.stat().st_size / 1e6:.1f} MB): {why}"
-          f"{how_to_view(rrd, args.port, args.grpc_port)}")
+          f"{how_to_view(rrd, args.port, args.grpc_port, target)}")
     return 0
 
 
@@ -864,7 +952,8 @@ def _add_preview_parser(sub) -> None:
     p.add_argument("--time-unit", default="", help="unit of array/text time columns: s | ms | us | ns")
     p.add_argument("--calibration", default="", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3])")
     p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
-    p.add_argument("--out", help="output PNG (default: next to the recording)")
+    p.add_argument("--out", help="output PNG, or a folder for it (default: <name>.preview.png in the current "
+                                 "folder)")
     p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
     p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
     p.add_argument("--reconstruct", action="store_true", help="add the image reconstructed from the events alone "
@@ -904,7 +993,9 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     _add_preview_parser(sub)
     p = sub.add_parser("view", help="the run in the Rerun viewer (capture.rrd; built from the run folder if missing)")
     p.add_argument("target", metavar="RUN_DIR", help="a run folder (runs/<name>/<timestamp>/) or an .rrd file")
-    p.add_argument("--rebuild", action="store_true", help="write capture.rrd again even if the run folder has one")
+    p.add_argument("--rebuild", action="store_true", help="build the recording again (into the view cache: "
+                                                           "$EVENTCAP_VIEW_DIR or ~/.cache/eventcap/views) even if "
+                                                           "the run folder or the cache has one")
     p.add_argument("--recompute", action="store_true", help="run the run's config again first (cache hits; "
                                                              "recomputes entries gone from the cache)")
     p.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 (for a browser)")
@@ -935,7 +1026,53 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     return parser, sub
 
 
+class _PipeSafeStdout:
+    """sys.stdout that a closed reader (``eventcap stages | head``) silences instead of breaking: the first write
+    after the reader went away points the file descriptor at /dev/null, and the command goes on quietly (its log
+    file still gets everything). Anything else is the wrapped stream's."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _gone(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())
+        os.close(devnull)
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._gone()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._gone()
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The ``eventcap`` command; returns its exit code. Output piped into a reader that stops early (``| head``)
+    ends quietly (:class:`_PipeSafeStdout`), whichever the subcommand."""
+    stdout = sys.stdout
+    try:
+        stdout.fileno()
+        sys.stdout = _PipeSafeStdout(stdout)
+    except (AttributeError, OSError, ValueError):  # not a file (e.g. pytest's capture): nothing to protect
+        pass
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout.flush()
+        sys.stdout = stdout
+
+
+def _main(argv: list[str] | None = None) -> int:
     _pin_threads()  # before anything imports numpy
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in ("run", "simulate", "benchmark"):

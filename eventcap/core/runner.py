@@ -462,7 +462,7 @@ class Runner:
                     self._roots[(node.name, None)] = not_run
                     plans.setdefault(node.name, [])
                     batch_keys.setdefault(node.name, {})
-                    log.error("%s: skipped, %s", label, not_run)
+                    log.debug("%s: skipped, %s", label, not_run)  # counted once in the run's closing summary
                     continue
                 try:
                     if not node.spec.per_batch:
@@ -494,8 +494,9 @@ class Runner:
         n_comp = result.computed_keys()
         n_hit = sum(r.cached for r in reports.values())
         n_fail = sum(len(r.failed) for r in reports.values())
-        log.info("run finished in %.1f s: %d computed, %d cached, %d failed", time.perf_counter() - t_run,
-                 n_comp, n_hit, n_fail)
+        n_skip = sum(r.skipped for r in reports.values())
+        log.info("run finished in %.1f s: %d computed, %d cached, %d failed%s", time.perf_counter() - t_run,
+                 n_comp, n_hit, n_fail, f", {n_skip} skipped" if n_skip else "")
         if run_dir is not None:
             self._write_summary(Path(run_dir), result, node_keys, batch_keys)
         return result
@@ -549,8 +550,8 @@ class Runner:
         cause = f"upstream failed: {root}"
         rep.skip_causes.append({"batch": batch, "cause": cause})
         self._roots[(rep.node, batch)] = root
-        if label is not None:
-            log.error("%s: skipped, %s", label, cause)
+        if label is not None:  # the failure was logged where it happened; the skips are counted in the run's summary
+            log.debug("%s: skipped, %s", label, cause)
 
     def _fail_node(self, node: Node, rep: NodeReport, label: str, exc: BaseException) -> None:
         error = f"{type(exc).__name__}: {exc}"
@@ -689,7 +690,7 @@ class Runner:
                             for r in same if b.index not in batch_keys.get(r.node, {}))
             if root is not None:
                 self._skip(rep, b.index, root, None)
-                log.warning("%s: batch %d skipped, upstream failed: %s", node.name, b.index, root)
+                log.debug("%s: batch %d skipped, upstream failed: %s", node.name, b.index, root)
                 continue
             refs, keydoc = self._input_specs(node, node_keys, batch_keys, plans, b)
             doc = {**base, "inputs": keydoc, "batch": b.as_key()}
@@ -722,10 +723,15 @@ class Runner:
                     log.info("%s: batch %d/%d committed by another run meanwhile (waited %.2f s): loaded, not "
                              "recomputed", node.name, res.batch + 1, len(batches), res.elapsed_s)
                 else:
+                    first = next((f["batch"] for f in rep.failed if f["status"] == res.failure_status), None)
                     rep.failed.append({"batch": res.batch, "status": res.failure_status, "error": res.error,
                                        "key": res.key})
                     self._roots[(node.name, res.batch)] = f"{node.name}[batch {res.batch}]: {res.error}"
-                    log.error("%s: batch %d FAILED (%s): %s", node.name, res.batch, res.failure_status, res.error)
+                    if first is None:
+                        log.error("%s: batch %d FAILED (%s): %s", node.name, res.batch, res.failure_status, res.error)
+                    else:  # one cause's error in full once; every one is in run.json
+                        log.error("%s: batch %d FAILED (%s, as batch %d)", node.name, res.batch, res.failure_status,
+                                  first)
         finally:
             bar.close()
 

@@ -112,6 +112,19 @@ def recording_has_frames(path, format: str | None = None) -> bool:
     return source.frames() is not None
 
 
+def recording_has_ground_truth(path, format: str | None = None) -> bool:
+    """Whether a recording carries a body's ground truth (what the simulated detector and the evaluation need).
+    Only the project's zarr format can: a synthetic capture keeps it in its ``ground_truth`` group. The other formats
+    never give one (what some store, such as the rpg dataset's camera poses, is not a body's motion). Cheap: reads
+    no data."""
+    p = Path(path)
+    if format not in (None, "", "eventcap"):
+        return False
+    if (p / "zarr.json").is_file() or (p / ".zgroup").is_file():
+        return (p / "ground_truth").is_dir()
+    return False
+
+
 def read_recording(path, format: str | None = None, time_window_us: tuple[int, int] | None = None,
                    roi: Roi | tuple[int, int, int, int] | None = None, *, width: int | None = None,
                    height: int | None = None, time_unit: str | None = None, columns=None,
