@@ -206,11 +206,11 @@ def test_outputs_c3d_needs_the_c3d_package(tmp_path, monkeypatch):
     from eventcap.apps.outputs import OutputsConfig, check_outputs_config
     from eventcap.core.runner import Runner
 
-    with pytest.raises(ValueError, match=r"outputs\.c3d: expected true or false, got 'yes'"):
-        OutputsConfig.from_mapping({"c3d": "yes"})
+    with pytest.raises(ValueError, match=r"outputs\.c3d: expected true or false, got 'maybe'"):
+        OutputsConfig.from_mapping({"c3d": "maybe"})
     with pytest.raises(ValueError, match=r"outputs\.up_axis: expected one of y \| z, got 'x'"):
         OutputsConfig.from_mapping({"up_axis": "x"})
-    with pytest.raises(ValueError, match=r"outputs\.units: expected one of m \| cm \| mm, got 'ft'"):
+    with pytest.raises(ValueError, match=r"outputs\.units: expected one of m \| cm \| mm \| None, got 'ft'"):
         OutputsConfig.from_mapping({"units": "ft"})
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "c3d" else real(name, *a))

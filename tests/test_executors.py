@@ -73,7 +73,7 @@ def test_dask_worker_killed_mid_run_still_identical(toy_cfg, tmp_path):
 def test_unknown_executor_key_is_named(toy_cfg):
     cfg = toy_cfg()
     cfg["executor"] = {"kind": "dask", "adress": "tcp://x:1"}
-    with pytest.raises(ValueError, match="executor.adress: unknown key"):
+    with pytest.raises(ValueError, match="executor.adress: no config key named 'adress' in executor; did you mean 'address'"):
         Runner(cfg)
 
 

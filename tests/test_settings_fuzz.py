@@ -146,7 +146,7 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
     ({"kind": "dask", "retries": -1}, "executor.retries: expected an integer >= 0, got -1"),
     ({"kind": "threads"}, "executor.kind: expected one of serial | processes | dask, got 'threads'"),
     ({"kind": "dask", "address": "scheduler"}, "executor.address: expected tcp://host:port"),
-    ({"kind": "dask", "wrokers": 2}, "executor.wrokers: unknown key"),
+    ({"kind": "dask", "wrokers": 2}, "executor.wrokers: no config key named 'wrokers' in executor"),
 ])
 def test_executor_settings(values, message):
     with pytest.raises(ValueError) as err:

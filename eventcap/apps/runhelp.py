@@ -78,7 +78,11 @@ def run_help(overrides: list[str], cdir: str | Path) -> str:
             rows.append((node.name, node.spec.name, node.config_path, picks))
         rows.insert(0, ("node", "stage", "settings", "stage picked by"))
         w = [max(len(r[i]) for r in rows) for i in range(3)]
-        out += [f"  {n:<{w[0]}}  {s:<{w[1]}}  {k:<{w[2]}}  {p}".rstrip() for n, s, k, p in rows]
+        indent = 2 + w[0] + 2 + w[1] + 2 + w[2] + 2
+        for n, s, k, p in rows:  # the last column wrapped under itself
+            lines = textwrap.wrap(p, max(20, WIDTH - indent), subsequent_indent="  ") or [""]
+            out.append(f"  {n:<{w[0]}}  {s:<{w[1]}}  {k:<{w[2]}}  {lines[0]}".rstrip())
+            out += [" " * indent + line for line in lines[1:]]
         if choices.get("source") == "recording":
             from eventcap.apps.jobs import FRAMELESS_PIPELINE, REAL_DETECTOR, ground_truth_detect_nodes
 
