@@ -66,8 +66,12 @@ def test_a_few_events_outside_every_known_sensor_are_dropped_and_noted(tmp_path,
     idx = rng.choice(N, 50, replace=False)  # 0.05 %, spread from 400 to 4000: no gap rule catches them
     x[idx] = np.linspace(400, 4000, 50).astype(int)
     rec = read_recording(npy(tmp_path / "few.npy", x, y), columns="t,x,y,p")
-    assert len(rec.events) == N - int((x >= 1280).sum()) and rec.width == int(x[x < 1280].max()) + 1
-    assert any("outside every known sensor (1280 × 960 px)" in r for r in rec.repairs)
+    # those beyond every known sensor, and those beyond the DAVIS346's edge that the others fill (issue 48: not a
+    # 1,200-pixel-wide sensor)
+    assert len(rec.events) == N - 50 and (rec.width, rec.height) == (346, 260)
+    assert any(f"dropped 50 outlier event(s): {int((x >= 1280).sum())} event(s) outside every known sensor (1280 × "
+               f"960 px); {int(((x >= 346) & (x < 1280)).sum())} event(s) at x >= 346, outside the 346 × 260 block "
+               f"(DAVIS346) the others fill" in r for r in rec.repairs)
 
 
 def test_all_zero_events_are_not_a_one_pixel_sensor(tmp_path):

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import errno
+import os
+import stat
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -157,6 +160,45 @@ def check_fits_in_memory(path, nbytes: int, what: str) -> None:
         raise RecordingError(path, f"{what} would need {nbytes / 1e9:.1f} GB, more than half the available "
                                    f"memory ({avail / 1e9:.1f} GB): a corrupted size, or a file to stream with "
                                    f"iter_event_chunks")
+
+
+_KINDS = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def check_regular(path, folder: bool = True) -> None:
+    """Refuse at once, in one line, a path that is not a regular file (or, when ``folder``, a folder): a named pipe
+    (opening one waits for a writer, possibly forever), a device (/dev/zero never ends), a socket, a symbolic link
+    loop or a dangling link. Only ``stat`` is called: nothing is opened."""
+    path = Path(path)
+    try:
+        st = os.stat(path)  # follows links; never blocks, whatever the file is
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise RecordingError(path, "a loop of symbolic links (the link leads back to itself): not a file") \
+                from None
+        if exc.errno == errno.ENOENT:
+            if os.path.islink(path):
+                raise RecordingError(path, f"a symbolic link to {os.readlink(path)}, which does not exist") from None
+            raise RecordingError(path, "no such file or folder") from None
+        raise RecordingError(path, f"cannot read it: {exc.strerror or exc}") from None
+    if stat.S_ISREG(st.st_mode) or (folder and stat.S_ISDIR(st.st_mode)):
+        return
+    if stat.S_ISDIR(st.st_mode):
+        raise RecordingError(path, "a folder, expected a file")
+    kind = next((name for test, name in _KINDS if test(st.st_mode)), "not a regular file")
+    link = f" (a link to {os.path.realpath(path)})" if os.path.islink(path) else ""
+    raise RecordingError(path, f"{kind}{link}, not a recording file: refused without opening it (reading it could "
+                               f"wait forever or never end)")
+
+
+def regular_sibling(path) -> bool:
+    """Whether an optional file beside a recording (images.txt, calib.txt, ...) is there: ``False`` when absent,
+    ``True`` when a regular file; anything else (a pipe, a device, a link loop) is refused by :func:`check_regular`."""
+    if not os.path.lexists(path):
+        return False
+    check_regular(path, folder=False)
+    return True
 
 
 def file_size(path: Path) -> int:
