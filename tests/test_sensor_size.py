@@ -109,7 +109,13 @@ def test_an_evt3_file_cut_inside_an_event_group_is_noted(tmp_path):
     cut.write_bytes(data[:len(data) - 40 + 2 * (last_y + 1)])
     rec = read_recording(cut)
     assert len(rec.events) == 1999
-    assert any("the file ends inside an EVT3 event group: its last word is an EVT_ADDR_Y" in r for r in rec.repairs)
+    assert any("the file ends inside an EVT3 event group: an EVT_ADDR_Y (the row of the events that follow it) is "
+               "followed by no event (only 0 time word(s))" in r for r in rec.repairs)
+    # issue 48: a time word after the ADDR_Y (as faery writes ADDR_Y, TIME_LOW, ADDR_X when time moves on)
+    time_low = next(int(w) for w in words[::-1] if w >> 12 == 0x6)
+    cut.write_bytes(data[:len(data) - 40 + 2 * (last_y + 1)] + np.array([time_low], "<u2").tobytes())
+    rec = read_recording(cut)
+    assert len(rec.events) == 1999 and any("is followed by no event (only 1 time word(s))" in r for r in rec.repairs)
     whole = tmp_path / "whole.raw"
     whole.write_bytes(data)
     assert not any("truncated" in r for r in read_recording(whole).repairs)

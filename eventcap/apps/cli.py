@@ -374,9 +374,10 @@ def _read_for_preview(args):
     line saying what was read."""
     from eventcap.io.convert import is_project_recording, recording_from_raw
 
+    from eventcap.io.source import check_regular
+
     path = Path(args.recording)
-    if not path.exists():
-        raise FileNotFoundError(f"{path} does not exist")
+    check_regular(path)  # a pipe, a device, a link loop: refused at once, never opened
     if args.format in ("", None, "eventcap") and is_project_recording(path):
         import zarr
 
@@ -386,7 +387,8 @@ def _read_for_preview(args):
     from eventcap.io import read_recording
 
     raw = read_recording(path, format=args.format or None, width=args.width or None, height=args.height or None,
-                         time_unit=args.time_unit or None, columns=args.columns or None)
+                         time_unit=args.time_unit or None, columns=args.columns or None,
+                         max_gap_s=getattr(args, "max_gap_s", None))
     rec = recording_from_raw(raw, calibration=args.calibration or None, hint="give --calibration")
     return rec, raw.format
 
@@ -430,7 +432,7 @@ def cmd_preview(args) -> int:
                        f"to choose)"
             img = recording_overview(rec, frame_index=args.frame, scale=args.scale, latent=latent,
                                      reconstruct=True if args.reconstruct else None, rate_hz=args.rate, t_us=t_us)
-    except (ArtifactError, FileNotFoundError, ValueError) as exc:  # RecordingError is a ValueError
+    except (ArtifactError, OSError, ValueError) as exc:  # RecordingError is a ValueError
         print(f"eventcap preview: {exc}", file=sys.stderr)
         return 2
     stem = Path(args.recording).name.split(".")[0] or "recording"
@@ -514,7 +516,7 @@ def cmd_convert(args) -> int:
                                   calibration=args.calibration, width=args.width, height=args.height,
                                   time_window_us=window, roi=roi, time_unit=args.time_unit,
                                   overwrite=args.overwrite, progress=progress, columns=args.columns or None,
-                                  y_up=args.y_up)
+                                  y_up=args.y_up, max_gap_s=args.max_gap_s)
     except (RecordingError, ValueError, OSError) as exc:
         if shown["any"] and tty:
             print(file=sys.stderr)
@@ -684,6 +686,9 @@ def _add_preview_parser(sub) -> None:
     p.add_argument("--height", type=int, default=0, help="sensor height for files that do not store it")
     p.add_argument("--columns", default="", help="column order of unnamed array/text columns, e.g. x,y,t,p")
     p.add_argument("--time-unit", default="", help="unit of array/text time columns: s | ms | us | ns")
+    p.add_argument("--max-gap-s", type=float, default=None, metavar="S",
+                   help="longest pause between neighbouring events taken as real (default 60 s); longer jumps in "
+                        "time are refused or repaired")
     p.add_argument("--calibration", default="", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3])")
     p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
     p.add_argument("--out", help="output PNG (default: next to the recording)")
@@ -751,6 +756,9 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     p.add_argument("--time-unit", help="unit of array/text time columns when the default is wrong (s, ms, us, ns)")
     p.add_argument("--columns", help="column order of unnamed array/text columns, e.g. x,y,t,p")
     p.add_argument("--y-up", action="store_true", help="the file's y axis points up (origin bottom-left)")
+    p.add_argument("--max-gap-s", type=float, default=None, metavar="S",
+                   help="longest pause between neighbouring events taken as real (default 60 s); longer jumps in "
+                        "time are refused or repaired")
     p.add_argument("--chunk-events", type=int, default=1 << 20, metavar="N",
                    help="events decoded per chunk (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
