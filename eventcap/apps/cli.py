@@ -77,22 +77,10 @@ def _run_job(cfg) -> bool:
 
 
 def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
-    """The default command on a recording without intensity frames: when no pipeline was chosen, the run takes
-    pipeline=events_only (images reconstructed from the events) and the log says why. Returns (cfg, data)."""
-    from hydra import compose
-    from omegaconf import OmegaConf
+    """The default command on a recording without intensity frames (see :func:`eventcap.apps.jobs.job_config`)."""
+    from eventcap.apps.jobs import job_config
 
-    from eventcap.apps.jobs import FRAMELESS_PIPELINE, frameless_source
-
-    if any(o.partition("=")[0].lstrip("+~") == "pipeline" for o in overrides):
-        return cfg, data
-    why = frameless_source(data)
-    if why is None:
-        return cfg, data
-    log.info("%s: running pipeline=%s (images reconstructed from the events stand in for frames; give pipeline=... "
-             "to choose another)", why, FRAMELESS_PIPELINE)
-    cfg = compose(config_name="config", overrides=[*overrides, f"pipeline={FRAMELESS_PIPELINE}"])
-    return cfg, OmegaConf.to_container(cfg, resolve=True)
+    return job_config(cfg, data, overrides)
 
 
 def cmd_run(argv: list[str]) -> int:
@@ -251,8 +239,7 @@ def _known_keys(parent: str, override_key: str, argv: list[str], cdir) -> tuple[
     return known, stage_fields, stage_name, where_file
 
 
-_TOP_LEVEL = {"name", "cache_dir", "batches", "log_level", "export", "outputs", "pipeline", "source", "executor",
-              "template", "stages"}
+from eventcap.apps.jobs import TOP_LEVEL_KEYS as _TOP_LEVEL  # noqa: E402 - the keys simulate's shorthands avoid
 
 
 def cmd_simulate(argv: list[str]) -> int:

@@ -5,6 +5,7 @@ was a cycle)."""
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import logging
 from collections.abc import Mapping, Sequence
@@ -27,10 +28,8 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     from eventcap.core.registry import UnknownStageError
     from eventcap.core.runner import Runner
 
-    from eventcap.core.config import log_level_number
-
     try:
-        log_level_number(data.get("log_level", "INFO"))
+        preflight(data)
         runner = Runner(data)
         outputs_cfg = check_outputs_config(runner)
         result = runner.run(run_dir)
@@ -51,6 +50,101 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
         log.error("run incomplete: %s", msg)
         failures.append(f"{run_dir}: {msg}")
     return runner, result
+
+
+#: The top-level keys of conf/config.yaml (and its groups): any other key given with '+' is refused.
+TOP_LEVEL_KEYS = ("name", "cache_dir", "batches", "log_level", "export", "outputs", "pipeline", "source", "executor",
+                  "template", "stages", "experiment")
+
+
+def preflight(data: Mapping[str, Any], overrides: Sequence[str] = ()) -> None:
+    """Every check of a composed config that needs no stage to run, writing nothing (no run folder, no cache
+    folder): the log level, unknown top-level keys, keys added with '+' that no node reads, the pipeline and each
+    node's settings (bounds from the stages' config declarations, and their ``check`` hooks), the executor, the
+    batch selection and the outputs. Raises ``ValueError`` (a ConfigError, PipelineError, ...) naming the key.
+
+    ``eventcap run`` calls it from a Hydra callback before the run folder is made (:class:`RefuseBadSettings`), and
+    :func:`run_job` again before running (benchmarks and tests call run_job directly)."""
+    from types import SimpleNamespace
+
+    from eventcap.apps.outputs import check_outputs_config
+    from eventcap.core.config import ConfigError, log_level_number
+    from eventcap.core.pipeline import build_pipeline
+    from eventcap.core.registry import load_registry, unknown_name_message
+    from eventcap.core.runner import ExecutorConfig, _parse_selection
+
+    log_level_number(data.get("log_level", "INFO"))
+    for key in data:
+        if key not in TOP_LEVEL_KEYS and key != "hydra":
+            raise ConfigError(f"{key}: " + unknown_name_message("config key", str(key), list(TOP_LEVEL_KEYS),
+                                                               "the top-level config"))
+    nodes = build_pipeline(data, load_registry())
+    node_paths = [n.config_path for n in nodes]
+    for override in overrides:
+        if not override.startswith("+") or "=" not in override:
+            continue
+        key = override.lstrip("+").partition("=")[0]
+        parts = key.split(".")
+        read = (parts[0] in TOP_LEVEL_KEYS and parts[0] not in ("stages", "pipeline")
+                or (parts[0] == "pipeline" and len(parts) > 1 and parts[1] == "nodes")
+                or any(key == p or key.startswith(p + ".") for p in node_paths))
+        if not read:
+            raise ConfigError(f"{key}: added with '+', but nothing reads it: no node of the pipeline takes its config "
+                              f"from {key.rpartition('.')[0] or key} (the nodes read: {', '.join(node_paths)})")
+    ExecutorConfig.from_mapping(data.get("executor"))
+    _parse_selection(data.get("batches"))
+    check_outputs_config(SimpleNamespace(cfg=data, by_name={n.name: n for n in nodes}))
+
+
+try:
+    from hydra.experimental.callback import Callback as _HydraCallback
+except ImportError:  # pragma: no cover - hydra is a dependency
+    _HydraCallback = object
+
+
+class RefuseBadSettings(_HydraCallback):
+    """Hydra callback (``hydra.callbacks.settings`` in conf/config.yaml, listed before ``run_folder``): run
+    :func:`preflight` on the composed config before the run folder is claimed, so that a refused setting leaves
+    nothing on disk. It exits with status 1 and one line naming the key. Sweeps (``-m``) are checked per job, when
+    each runs."""
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        import sys
+
+        from hydra.core.hydra_config import HydraConfig
+        from omegaconf import OmegaConf, open_dict
+
+        HydraConfig.instance().set_config(config)  # ${hydra:...} resolves; Hydra sets it again for the job
+        overrides = list(config.hydra.overrides.task or [])
+        try:
+            cfg = OmegaConf.masked_copy(config, [k for k in config if k != "hydra"])
+            with open_dict(cfg):
+                data = OmegaConf.to_container(cfg, resolve=True)
+            data = job_config(cfg, data, overrides, announce=False)[1]
+            preflight(data, overrides)
+        except Exception as exc:  # noqa: BLE001 - any refusal: one line, nothing written
+            if not isinstance(exc, ValueError) and not type(exc).__module__.startswith(("omegaconf", "hydra")):
+                raise
+            print(f"eventcap run: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(1) from None
+
+
+def job_config(cfg, data: dict, overrides: Sequence[str], announce: bool = True):
+    """The config a job runs: on a recording without intensity frames, when no pipeline was chosen, the one of
+    :data:`FRAMELESS_PIPELINE` (the log says why, when ``announce``). Returns (cfg, data)."""
+    from hydra import compose
+    from omegaconf import OmegaConf
+
+    if any(o.partition("=")[0].lstrip("+~") == "pipeline" for o in overrides):
+        return cfg, data
+    why = frameless_source(data)
+    if why is None:
+        return cfg, data
+    if announce:
+        log.info("%s: running pipeline=%s (images reconstructed from the events stand in for frames; give "
+                 "pipeline=... to choose another)", why, FRAMELESS_PIPELINE)
+    cfg = compose(config_name="config", overrides=[*overrides, f"pipeline={FRAMELESS_PIPELINE}"])
+    return cfg, OmegaConf.to_container(cfg, resolve=True)
 
 
 #: The pipeline a recording without intensity frames runs when the user chose none (conf/pipeline/events_only.yaml).
@@ -74,14 +168,28 @@ def frameless_source(data: Mapping[str, Any]) -> str | None:
             return None  # refused with its reason when the source runs
         return None if preset.frames else f"camera {preset.name} ({preset.sensor}) has no intensity frames"
     if stage == "recording" and src.get("path") not in (None, "", "???"):
-        from eventcap.io.readers import recording_has_frames
-
         try:
-            has = recording_has_frames(src["path"], src.get("format") or None)
+            has = _has_frames(str(src["path"]), str(src.get("format") or ""))
         except (OSError, ValueError):
             return None  # the source stage reports what is wrong with the file
         return None if has else f"{src['path']} holds no intensity frames (an event-only recording)"
     return None
+
+
+def _has_frames(path: str, fmt: str) -> bool:
+    """Whether the recording holds intensity frames, decoded once per file version (the settings check before the
+    run and the run itself both ask)."""
+    import os
+
+    st = os.stat(path)
+    return _has_frames_of(path, fmt, st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=8)
+def _has_frames_of(path: str, fmt: str, mtime_ns: int, size: int) -> bool:
+    from eventcap.io.readers import recording_has_frames
+
+    return recording_has_frames(path, fmt or None)
 
 
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:

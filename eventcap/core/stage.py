@@ -93,11 +93,17 @@ def allowed_values(f: dataclasses.Field) -> str | None:
     return None
 
 
+#: A number beyond this size, in a field that declares no bound on that side, is refused: no setting means it, and
+#: such values overflow the integer microseconds and counts they become (source.duration_s=1e308).
+MAX_MAGNITUDE = 1e9
+
+
 def check_value(f: dataclasses.Field, value: Any) -> str | None:
     """Why ``value`` is not allowed in config field ``f`` (declared with :func:`param`), or None when it is.
 
     Numbers (and the numbers of a list) must be finite (unless ``finite=False``; NaN never passes), integers when
-    the field is an integer, and within the field's declared bounds. Booleans, strings and None are left to the
+    the field is an integer, within the field's declared bounds, and no larger in size than
+    :data:`MAX_MAGNITUDE` on a side the field does not bound itself. Booleans, strings and None are left to the
     field's type and choices."""
     meta = f.metadata
     if isinstance(value, (list, tuple)):
@@ -110,6 +116,11 @@ def check_value(f: dataclasses.Field, value: Any) -> str | None:
         return None
     integer = _is_integer_field(f)
     bounds = meta.get("bounds", {})
+    if value == value and value not in (float("inf"), float("-inf")) and (
+            (value > MAX_MAGNITUDE and "le" not in bounds and "lt" not in bounds)
+            or (value < -MAX_MAGNITUDE and "ge" not in bounds and "gt" not in bounds)):
+        return (f"expected {_allowed(meta, integer)}, no larger than {MAX_MAGNITUDE:g} in size (a bound every setting "
+                f"without its own has), got {value!r}")
     bad = (value != value  # NaN
            or (meta.get("finite", True) and value in (float("inf"), float("-inf")))
            or (integer and float(value) != int(value))
@@ -155,6 +166,10 @@ class StageSpec:
     run: str
     per_batch: bool = False
     origin: str = ""  # where the registry found it (filled by the registry)
+    #: optional ``"module:function"`` called with the built config when the pipeline is built (before anything
+    #: runs): checks that involve several keys or values taken from elsewhere (a preset); raises ``ValueError``
+    #: naming the key. Single values are bounded by their ``param`` declarations, never here.
+    check: str = ""
 
     def __post_init__(self) -> None:
         where = f"stage spec {self.name!r}" + (f" ({self.origin})" if self.origin else "")
@@ -177,6 +192,8 @@ class StageSpec:
                     raise StageSpecError(f"{where}: config field {f.name!r}: its default {problem}")
         if ":" not in self.run:
             raise StageSpecError(f"{where}: run must be 'module:function', got {self.run!r}")
+        if self.check and ":" not in self.check:
+            raise StageSpecError(f"{where}: check must be 'module:function', got {self.check!r}")
         for direction, ports in (("input", self.inputs), ("output", self.outputs)):
             for pname, port in ports.items():
                 if not isinstance(port, Port) or not (isinstance(port.type, type) and issubclass(port.type, Artifact)):
@@ -195,6 +212,17 @@ class StageSpec:
 
     def file_fields(self) -> list[str]:
         return [f.name for f in dataclasses.fields(self.config) if f.metadata.get("file", False)]
+
+    def load_check(self) -> Callable[[Any], None] | None:
+        """The config check function (``check``), or None."""
+        if not self.check:
+            return None
+        module, _, attr = self.check.partition(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as exc:
+            raise StageSpecError(f"stage {self.name!r}: cannot import its check function {self.check!r}: {exc}") \
+                from exc
 
     def load_run(self) -> Callable[..., Mapping[str, Artifact]]:
         module, _, attr = self.run.partition(":")
