@@ -366,11 +366,9 @@ def _read_for_preview(args):
     path = Path(args.recording)
     check_regular(path)  # a pipe, a device, a link loop: refused at once, never opened
     if args.format in ("", None, "eventcap") and is_project_recording(path):
-        import zarr
+        from eventcap.io.convert import read_project_recording
 
-        from eventcap.artifacts.recording import Recording
-
-        return Recording.from_zarr(zarr.open_group(str(path), mode="r"), where=str(path)), "eventcap (zarr)"
+        return read_project_recording(path), "eventcap (zarr)"
     from eventcap.io import read_recording
 
     raw = read_recording(path, format=args.format or None, width=args.width or None, height=args.height or None,

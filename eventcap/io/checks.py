@@ -62,7 +62,8 @@ def times_to_us(path, t, unit: str | None, what: str, locate: Callable[[int], st
         bad = ~np.isfinite(t_us) | (np.abs(t_us) >= _MAX_ABS_US)
         if bad.any():
             i = int(np.argmax(bad))
-            raise RecordingError(path, f"{what} {t[i].item()} {unit} is not a finite number within ±2^62 µs",
+            raise RecordingError(path, f"{what} {t[i].item()} {unit} is not a finite number within ±2^62 µs (the "
+                                       f"column is taken as {unit}; if it is in another unit, set source.time_unit)",
                                  locate(i))
         return np.rint(t_us).astype(np.int64)
     if t.dtype.kind not in "iu":
@@ -359,6 +360,8 @@ TIME_OUTLIER_BUDGET = 100
 JUMP_FACTOR = 10_000
 JUMP_WINDOW = 64
 JUMP_MIN_US = 1_000_000
+#: At most this many of the first events are dropped for lying far from the others (before a pace is known).
+HEAD_OUTLIERS = 8
 #: The fastest event sensors read out about 1-2 G events/s; more than this many events per µs no sensor makes.
 MAX_EVENTS_PER_US = 2_000
 #: Below this mean rate no event camera records (background noise alone gives more): with an integer time column
@@ -496,8 +499,9 @@ class TimeGuard:
         """The end of the file: a group still held is outliers (dropped); returns the events still to keep."""
         if self._group:
             self._drop_group("at the end of the file")
-        head, self._head = self._head, []
-        return np.concatenate(head) if head else np.empty(0, dtype=EVENT_DTYPE)
+        if not self._head:
+            return np.empty(0, dtype=EVENT_DTYPE)
+        return self._clean_head()
 
     # ------------------------------------------------------------------------------------------------- logic
     def _jump_limits(self, t: np.ndarray) -> np.ndarray:
@@ -546,9 +550,30 @@ class TimeGuard:
         self._head.append(one)  # held: a jump soon after the first events makes them the outliers
         if self.accepted > self.budget:
             self._head_done = True
-            head, self._head = self._head, []
-            return [np.concatenate(head)]
+            return [self._clean_head()]
         return []
+
+    def _clean_head(self) -> np.ndarray:
+        """The first events, released: a few (at most HEAD_OUTLIERS) whose time lies far from the others' (beyond
+        JUMP_FACTOR times their mean gap and JUMP_MIN_US from their median) are dropped; the jump rule cannot see
+        them while it has no pace to compare with."""
+        head, self._head = np.concatenate(self._head), []
+        if len(head) < 16:
+            return head
+        t = head["t"]
+        lo, mid, hi = np.percentile(t, [10, 50, 90])
+        gap = (hi - lo) / (0.8 * len(t))
+        far = np.abs(t - mid) > max(JUMP_MIN_US, JUMP_FACTOR * gap)
+        k = int(far.sum())
+        if 0 < k <= HEAD_OUTLIERS:
+            first = int(np.argmax(far))
+            self._note_drop(head[far], self.row - len(head) + 1 + first,
+                            f"among the first {len(head)} events, {_span_words(abs(int(t[first]) - int(mid)))} "
+                            f"from the others")
+            head = head[~far]
+            self._recent = np.sort(head["t"])[-JUMP_WINDOW - 1:]
+            self.ref = int(head["t"][-1])
+        return head
 
     def _step(self, one: np.ndarray, row: int, force: bool = False) -> list[np.ndarray]:
         t = int(one["t"][0])
@@ -591,16 +616,17 @@ class TimeGuard:
                 self.shift += w
                 self._undone.append((row, w, jump))
                 return self._replay(group, w)
-        if abs(jump) <= self.max_gap_us:  # a pause (or a step back) followed by many events: the camera's
+        times = np.array([int(one["t"][0]) for _, one in group])
+        still = bool(np.all(times == times[0]))
+        if abs(jump) <= self.max_gap_us and not still:  # a pause (or a step back) and events after it: the camera's
             return self._replay(group, force_first=True)
-        if not self._head_done:  # the few events before the jump are the strays
+        if not self._head_done and not still:  # the few events before the jump are the strays
             head, self._head = np.concatenate(self._head), []
             self._note_drop(head, row - len(head), f"the first {len(head)} event(s) of the file, before a jump of "
                                                    f"{_span_words(jump)} at event index {row}")
             self.accepted, self.ref, self._recent = 0, None, self._recent[:0]
             return self._replay(group)
-        times = np.array([int(one["t"][0]) for _, one in group])
-        if np.all(times == times[0]):
+        if still:
             self.cut_at = row
             self._cut_dropped += len(group)
             self._cut_why = (f"time jumps by {_span_words(jump)} there (from {before} to {after} µs, file time) and "

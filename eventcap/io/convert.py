@@ -49,6 +49,23 @@ def is_project_recording(path) -> bool:
     return project_recording_problem(path) is None
 
 
+def read_project_recording(path) -> Recording:
+    """A recording in the project's format (a zarr group written from a Recording), read whole; any failure of the
+    zarr reader on damaged metadata or chunks is a :class:`RecordingError` naming the folder."""
+    import zarr
+
+    path = Path(path)
+    try:
+        return Recording.from_zarr(zarr.open_group(str(path), mode="r"), where=str(path))
+    except (ArtifactError, RecordingError):
+        raise
+    except (KeyboardInterrupt, SystemExit, MemoryError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - zarr's and numcodecs' own errors on damaged files
+        raise RecordingError(path, f"a damaged recording in the project's format: {type(exc).__name__}: "
+                                   f"{str(exc).strip()[:300]}") from exc
+
+
 def window_from_seconds(t_start_s: float | None, t_end_s: float | None) -> tuple[int, int] | None:
     """A time window in seconds from the first event → ``(start, end)`` µs, half-open; ``None`` when both are 0
     or ``None`` (everything). ``t_end_s`` 0 or ``None`` means to the end."""
