@@ -354,7 +354,7 @@ def sort_and_dedup(ev: np.ndarray) -> tuple[np.ndarray, OrderReport]:
 MAX_GAP_US = 60_000_000
 #: At most this many events cut off from the rest by jumps in time are dropped as outliers (and named).
 TIME_OUTLIER_BUDGET = 100
-#: A few events are also cut off from the rest by a jump longer than JUMP_FACTOR times the mean gap between the
+#: A few events are also cut off from the rest by a jump longer than JUMP_FACTOR times the median gap between the
 #: JUMP_WINDOW events before it (and longer than JUMP_MIN_US): a corrupted time word moves a handful of events far
 #: from their neighbours. Such a jump with many events after it is a pause, and kept.
 JUMP_FACTOR = 10_000
@@ -422,7 +422,7 @@ class TimeGuard:
     bounded memory (it holds back at most ``budget`` + 1 events), what to do with each:
 
     - a few events (at most ``budget``) cut off from their neighbours by jumps (longer than ``max_gap_us``, or than
-      JUMP_FACTOR times the recent mean gap and JUMP_MIN_US) are dropped as outliers: a single wild timestamp, a
+      JUMP_FACTOR times the recent median gap and JUMP_MIN_US) are dropped as outliers: a single wild timestamp, a
       corrupted time word's events, stray first or last events;
     - a jump within 1/16 of a decoder's counter range (``wraps_us``: a corrupted time word made time go backwards
       and the decoder took it for a wrap-around) is undone: that range is subtracted from every later event;
@@ -440,6 +440,8 @@ class TimeGuard:
     budget: int = TIME_OUTLIER_BUDGET
     wraps_us: tuple[int, ...] = ()
     how: str = "pass max_gap_s= (source.max_gap_s, --max-gap-s) to accept pauses that long"
+    #: the outlier rule's jumps relative to the pace (off when the caller set max_gap_us: every shorter pause is real)
+    relative: bool = True
     row: int = 0  # index in the file of the next event
     ref: int | None = None  # time of the last accepted event (after undone wraps)
     shift: int = 0  # subtracted from every event (undone decoder wraps)
@@ -504,21 +506,14 @@ class TimeGuard:
         return self._clean_head()
 
     # ------------------------------------------------------------------------------------------------- logic
-    def _jump_limits(self, t: np.ndarray) -> np.ndarray:
-        """For each of the times ``t`` (all accepted, in order, after ``_recent``): the step from its predecessor
-        beyond which it is a jump for the outlier rule (JUMP_FACTOR × the mean gap of the JUMP_WINDOW accepted
-        events before it, at least JUMP_MIN_US; max_gap_us while fewer than 16 came before)."""
-        prev = np.concatenate([self._recent, t[:-1]]).astype(np.int64)
-        r = len(self._recent)
-        last = np.arange(len(t)) + r - 1  # index in prev of each event's predecessor
-        first = np.maximum(last - JUMP_WINDOW, 0)
-        count = last - first
-        ok = count >= 16
-        gap = np.zeros(len(t))
-        if ok.any():
-            gap[ok] = (prev[last[ok]] - prev[first[ok]]) / count[ok]
-        limit = np.maximum(JUMP_FACTOR * np.maximum(gap, 0), JUMP_MIN_US)
-        return np.where(ok, np.minimum(limit, self.max_gap_us), self.max_gap_us)
+    def _jump_limit(self, prev: np.ndarray) -> float:
+        """The step beyond which the next event is a jump for the outlier rule, given the accepted times before it
+        (``prev``, in order): JUMP_FACTOR times the median gap of the last JUMP_WINDOW of them, at least
+        JUMP_MIN_US, at most max_gap_us (and max_gap_us while fewer than 3 came before)."""
+        if len(prev) < 3 or not self.relative:
+            return float(self.max_gap_us)
+        gap = float(np.median(np.abs(np.diff(prev[-JUMP_WINDOW - 1:]))))
+        return float(min(max(JUMP_FACTOR * gap, JUMP_MIN_US), self.max_gap_us))
 
     def _near_wrap(self, d):
         d = np.asarray(d)
@@ -528,10 +523,16 @@ class TimeGuard:
         return out
 
     def _first_suspicious(self, t: np.ndarray) -> int:
-        """How many of ``t`` (after ``ref``, nothing held) pass as one accepted stretch."""
+        """How many of ``t`` (after ``ref``, nothing held) pass as one accepted stretch. Only steps longer than
+        JUMP_MIN_US (or of a counter's range) can be jumps: the pace before each of those few is looked at."""
         d = np.diff(t, prepend=self.ref)
-        bad = (np.abs(d) > self._jump_limits(t)) | self._near_wrap(d)
-        return int(np.argmax(bad)) if bad.any() else len(t)
+        floor = JUMP_MIN_US if self.relative else self.max_gap_us
+        cand = np.flatnonzero((np.abs(d) > floor) | self._near_wrap(d))
+        for i in cand:
+            prev = np.concatenate([self._recent, t[max(0, i - JUMP_WINDOW - 1):i]])
+            if abs(d[i]) > self._jump_limit(prev) or self._near_wrap(d[i]):
+                return int(i)
+        return len(t)
 
     def _accepted_times(self, t: np.ndarray) -> None:
         self.ref = int(t[-1])
@@ -540,8 +541,7 @@ class TimeGuard:
 
     def _is_jump(self, a: int, b: int) -> bool:
         """Whether the step from time ``a`` (the last accepted or held event) to ``b`` is a jump now."""
-        limit = self._jump_limits(np.array([b], np.int64))[0]
-        return bool(abs(b - a) > limit or self._near_wrap(b - a))
+        return bool(abs(b - a) > self._jump_limit(self._recent) or self._near_wrap(b - a))
 
     def _accept(self, one: np.ndarray) -> list[np.ndarray]:
         self._accepted_times(one["t"])
@@ -555,14 +555,14 @@ class TimeGuard:
 
     def _clean_head(self) -> np.ndarray:
         """The first events, released: a few (at most HEAD_OUTLIERS) whose time lies far from the others' (beyond
-        JUMP_FACTOR times their mean gap and JUMP_MIN_US from their median) are dropped; the jump rule cannot see
+        JUMP_FACTOR times their median gap and JUMP_MIN_US from their median time) are dropped; the jump rule cannot see
         them while it has no pace to compare with."""
         head, self._head = np.concatenate(self._head), []
-        if len(head) < 16:
+        if len(head) < 16 or not self.relative:
             return head
         t = head["t"]
-        lo, mid, hi = np.percentile(t, [10, 50, 90])
-        gap = (hi - lo) / (0.8 * len(t))
+        mid = np.median(t)
+        gap = float(np.median(np.abs(np.diff(t))))
         far = np.abs(t - mid) > max(JUMP_MIN_US, JUMP_FACTOR * gap)
         k = int(far.sum())
         if 0 < k <= HEAD_OUTLIERS:

@@ -117,9 +117,10 @@ def _converter(source: Source, width, height) -> ColumnConverter:
     return ColumnConverter(source.events_path, width, height, source.time_unit, source.t_add_us)
 
 
-def _max_gap_us(max_gap_s) -> int:
+def _max_gap_us(max_gap_s) -> int | None:
+    """max_gap_s in µs; None when not given (the default, with the outlier rule relative to the events' pace)."""
     if max_gap_s is None:
-        return MAX_GAP_US
+        return None
     try:
         v = float(max_gap_s)
     except (TypeError, ValueError):
@@ -129,8 +130,9 @@ def _max_gap_us(max_gap_s) -> int:
     return int(round(v * 1e6))
 
 
-def _time_guard(source: Source, max_gap_us: int) -> TimeGuard:
-    return TimeGuard(source.events_path, max_gap_us, wraps_us=DECODER_WRAPS_US.get(source.format, ()))
+def _time_guard(source: Source, max_gap_us: int | None) -> TimeGuard:
+    return TimeGuard(source.events_path, MAX_GAP_US if max_gap_us is None else max_gap_us,
+                     wraps_us=DECODER_WRAPS_US.get(source.format, ()), relative=max_gap_us is None)
 
 
 def _check_rate(source: Source, conv: ColumnConverter, n: int, span_us: int) -> None:

@@ -5,7 +5,7 @@ streamed): both feed :class:`CoordinateStats` (histograms of x and y and a few c
 :meth:`CoordinateStats.judge` for the size. Coordinates far outside the dense block of the others are outliers,
 never a wider sensor:
 
-- a few events (at most 0.1 %, at least 8 and at most 100) beyond a gap of 25 % (and 16 px) past the others' largest coordinate
+- a few events (at most 0.5 %, at most 100) beyond a gap of 25 % (and 16 px) past the others' largest coordinate
   are dropped;
 - events beyond the edge of a known sensor (:data:`KNOWN_SENSORS`) that the others fill, lying there at a tenth of
   the density or less, with a sharp edge, are outliers: dropped when they are at most 0.1 % of the events (at most
@@ -50,8 +50,8 @@ _SIDE = 1 << 16  # coordinates are uint16
 
 
 def outlier_budget(n: int) -> int:
-    """How many far events (beyond a gap) are dropped at most among ``n``: 0.1 %, at least 8, at most 100."""
-    return min(OUTLIER_BUDGET_MAX, max(8, n // 1000))
+    """How many far events (beyond a gap) are dropped at most among ``n``: 0.5 %, at least 1, at most 100."""
+    return min(OUTLIER_BUDGET_MAX, max(1, n // 200))
 
 
 def few(k: int, n: int) -> bool:
