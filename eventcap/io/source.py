@@ -137,6 +137,46 @@ def native_call(path, what: str, where: str | None = None):
         raise RecordingError(path, f"{what} failed: {type(exc).__name__}: {message}", where) from exc
 
 
+#: Seconds a decoding library may spend on a file's structure in a probe before the file is refused.
+PROBE_TIMEOUT_S = 10.0
+
+
+def probe_in_child(path, what: str, fn: Callable[[], object], timeout_s: float = PROBE_TIMEOUT_S) -> None:
+    """Run ``fn`` in a forked child first, and refuse the file if it does not finish within ``timeout_s``.
+
+    A C library can loop forever on damaged metadata (HDF5 reading a corrupted attribute does), and a call into
+    it cannot be interrupted in-process. The child's own errors are ignored: the caller then runs ``fn``'s work
+    itself and reports them. Where ``fork`` is missing, nothing is probed."""
+    import signal
+    import time
+
+    if not hasattr(os, "fork"):
+        return
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+            os.dup2(devnull, 2)
+            fn()
+        except BaseException:  # noqa: BLE001 - reported by the caller's own run
+            pass
+        os._exit(0)
+    deadline = time.monotonic() + timeout_s
+    delay = 0.001
+    while True:
+        done, _ = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            raise RecordingError(path, f"{what} did not finish reading the file's structure within {timeout_s:g} s "
+                                       f"(damaged metadata that the library loops on): refused")
+        time.sleep(delay)
+        delay = min(delay * 2, 0.05)
+
+
 def available_memory_bytes() -> int | None:
     """MemAvailable from /proc/meminfo, or ``None`` where it cannot be read."""
     try:
