@@ -130,6 +130,9 @@ class ColumnConverter:
     #: whether every time value so far was a whole number, and the unit they were taken in (for the rate check)
     time_integral: bool = True
     unit_used: str | None = None
+    #: the unit of the time column is a guess (an array or text format without one): checked on the first events
+    unit_guessed: bool = False
+    _first: list = field(default_factory=list)
     _last_t32: int | None = None
     _polarity: str | None = None  # "01" or "pm1" once seen
     _polarity_row: int = -1
@@ -162,6 +165,14 @@ class ColumnConverter:
         self.unit_used = self.time_unit or ("s" if floating else "us")
         if floating and self.time_integral:
             self.time_integral = bool(np.all(t == np.floor(t)))
+        if self.unit_guessed and len(out):
+            # the unit is checked on the first events, before the time checks: a wrong one makes every gap a jump
+            self._first.append(out[:MIN_EVENTS_FOR_RATE * 10])
+            first = np.concatenate(self._first)
+            if len(first) >= MIN_EVENTS_FOR_RATE:
+                if self.time_integral:
+                    check_time_unit(self.path, first, self.unit_used)
+                self.unit_guessed, self._first = False, []
         return out
 
     def _unwrap32(self, t: np.ndarray, row0: int) -> np.ndarray:
@@ -373,18 +384,25 @@ MIN_EVENTS_FOR_RATE = 100
 DECODER_WRAPS_US = {"evt2": (2**34,), "evt3": (2**24,), "dat": (2**32,), "aedat2": (2**32,), "aedat3": (2**31, 2**32)}
 
 
-def check_event_rate(path, n: int, span_us: int, *, integral: bool, unit: str | None, unit_given: bool) -> None:
+def check_event_rate(path, n: int, span_us: int) -> None:
     """Refuse a recording whose events come faster than any sensor makes them (``n`` events in ``span_us`` + 1 µs:
-    a broken time column), or, for a file whose time unit is a guess (``unit`` not None, ``unit_given`` False)
-    and whose time column holds whole numbers only, slower than any camera records (the unit is wrong: the message
-    names ``source.time_unit`` and the units that would give a camera's rate)."""
+    a broken time column)."""
     if n > MAX_EVENTS_PER_US and n / (span_us + 1) > MAX_EVENTS_PER_US:
         raise RecordingError(path, f"{n:,} events within {_span_words(span_us + 1)}: {n / (span_us + 1):.3g} events per "
                                    f"µs, more than any event sensor makes (at most {MAX_EVENTS_PER_US:,}): the time "
                                    f"column is broken (all one value? the wrong column?)")
-    if unit is None or unit_given or not integral or n < MIN_EVENTS_FOR_RATE or span_us <= 0:
+
+
+def check_time_unit(path, t_us: np.ndarray, unit: str) -> None:
+    """Refuse a time column of whole numbers whose unit is a guess when its first events (``t_us``, at least
+    MIN_EVENTS_FOR_RATE, as read in ``unit``) come slower than any camera records: the median gap between them,
+    robust to a few wild values, gives the rate. The message names ``source.time_unit`` and the units that would
+    give a camera's rate."""
+    gaps = np.diff(np.sort(np.asarray(t_us, np.int64)))
+    gap = float(np.median(gaps)) if len(gaps) else 0.0
+    if gap <= 0:
         return
-    rate = n / (span_us / 1e6)
+    rate = 1e6 / gap
     if rate >= MIN_EVENT_RATE_HZ:
         return
     scale = TIME_UNITS_TO_US[unit]
@@ -392,11 +410,11 @@ def check_event_rate(path, n: int, span_us: int, *, integral: bool, unit: str | 
             <= MAX_EVENTS_PER_US * 1e6]
     hint = " or ".join(f"source.time_unit={u} ({rate * scale / TIME_UNITS_TO_US[u]:.3g} events/s)" for u in fits)
     raise RecordingError(path, f"the time column holds whole numbers; read as {unit} (the default for "
-                               f"{'floating-point' if unit == 's' else 'integer'} columns) they give {n:,} events over "
-                               f"{_span_words(span_us)}, {rate:.2g} events/s, below any event camera's rate (noise "
-                               f"alone makes more than {MIN_EVENT_RATE_HZ:g}/s): the unit is wrong. Set it: "
-                               f"{hint or 'source.time_unit=s|ms|us|ns'} (read_recording(time_unit=...), "
-                               f"eventcap convert/preview --time-unit)")
+                               f"{'floating-point' if unit == 's' else 'integer'} columns) its first {len(t_us):,} "
+                               f"events come {_span_words(int(gap))} apart (the median), {rate:.2g} events/s, below "
+                               f"any event camera's rate (noise alone makes more than {MIN_EVENT_RATE_HZ:g}/s): the "
+                               f"unit is wrong. Set it: {hint or 'source.time_unit=s|ms|us|ns'} "
+                               f"(read_recording(time_unit=...), eventcap convert/preview --time-unit)")
 
 
 def _span_words(us: int) -> str:
@@ -645,6 +663,13 @@ class TimeGuard:
 
     def _note_drop(self, ev: np.ndarray, row: int, why: str) -> None:
         self._dropped += len(ev)
+        if self._dropped > max(self.budget, self.row // 100):
+            first = self._dropped_first[0] if self._dropped_first else (row, int(ev["t"][0]) + self.shift, 0, why)
+            raise RecordingError(self.path, f"time jumps at many places: {self._dropped} of the first {self.row + 1} "
+                                            f"events are cut off from the others by jumps (the first at event index "
+                                            f"{first[0]}, {first[3]}): not a few wild timestamps but a broken time "
+                                            f"column, a wrong time unit (source.time_unit) or a recording with pauses "
+                                            f"({self.how})", f"event index {row}")
         if len(self._dropped_first) < 3:
             self._dropped_first.append((row, int(ev["t"][0]) + self.shift, len(ev), why))
 

@@ -114,7 +114,9 @@ def _sensor_size(source: Source, width: int | None, height: int | None) -> tuple
 
 
 def _converter(source: Source, width, height) -> ColumnConverter:
-    return ColumnConverter(source.events_path, width, height, source.time_unit, source.t_add_us)
+    conv = ColumnConverter(source.events_path, width, height, source.time_unit, source.t_add_us)
+    conv.unit_guessed = source.time_unit is None and source.format in COLUMN_FORMATS
+    return conv
 
 
 def _max_gap_us(max_gap_s) -> int | None:
@@ -135,11 +137,9 @@ def _time_guard(source: Source, max_gap_us: int | None) -> TimeGuard:
                      wraps_us=DECODER_WRAPS_US.get(source.format, ()), relative=max_gap_us is None)
 
 
-def _check_rate(source: Source, conv: ColumnConverter, n: int, span_us: int) -> None:
+def _check_rate(source: Source, n: int, span_us: int) -> None:
     """The whole recording's event rate against what sensors make (:func:`eventcap.io.checks.check_event_rate`)."""
-    check_event_rate(source.events_path, n, span_us, integral=conv.time_integral,
-                     unit=None if source.format not in COLUMN_FORMATS else (conv.time_unit or conv.unit_used),
-                     unit_given=conv.time_unit is not None)
+    check_event_rate(source.events_path, n, span_us)
 
 
 def recording_has_frames(path, format: str | None = None) -> bool:
@@ -193,7 +193,7 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
     if len(events) == 0:
         raise RecordingError(path, "the recording contains no events" + "".join(f"; {n}" for n in source.notes))
     events, order = sort_and_dedup(events)
-    _check_rate(source, conv, len(events), int(events["t"][-1]) - int(events["t"][0]))
+    _check_rate(source, len(events), int(events["t"][-1]) - int(events["t"][0]))
     frame_data = source.frames()
     repairs = [*source.notes, *conv.repairs(), *guard.repairs(), *order.repairs()]
     if width is None:
@@ -398,7 +398,7 @@ class EventChunks:
                 chunk["y"] = self.height - 1 - chunk["y"]
             yield chunk
         if n:
-            _check_rate(self._source, self._conv, n, last - self.t_offset_us)
+            _check_rate(self._source, n, last - self.t_offset_us)
         for repair in self.repairs:
             logger.warning("%s: %s", self.path, repair)
 
