@@ -198,4 +198,39 @@ def test_the_real_cli_refuses_before_anything_runs(tmp_path, override, message):
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 1 and message in out and "Traceback" not in out
-    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("manifest.json"))
+    assert list(tmp_path.iterdir()) == []  # issue 48: a refused setting leaves nothing on disk (no run folder, cache)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("source.duration_s=1e308", "source.duration_s: expected a finite number in (0, 3600], got 1e+308"),
+    ("source.exposure_us=0", "source.exposure_us: expected an integer >= 1, got 0"),
+    ("+foo=1", "foo: no config key named 'foo' in the top-level config"),
+    ("+stages.bogus.weight=1", "stages.bogus.weight: added with '+', but nothing reads it: no node of the pipeline "
+                               "takes its config from stages.bogus"),
+    ("+source.foo=1", "source.foo: no config key named 'foo' in the config of stage 'synthetic'"),
+    ("source.roi=[0,0,500,500]", "source.roi: expected [x, y, width, height] inside the 240x180 sensor"),
+    ("outputs.join=sometimes", "outputs.join: expected one of later, mean, got 'sometimes'"),
+])
+def test_a_refused_setting_leaves_nothing_on_disk(tmp_path, monkeypatch, capsys, override, message):
+    """Issue 48: the settings are checked by a Hydra callback before the run folder is claimed (in-process: the
+    same main() the command runs)."""
+    from eventcap.apps.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("EVENTCAP_CACHE_DIR", str(tmp_path / "cache"))
+    assert main(["run", "experiment=quick", override]) == 1
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_preflight_names_unknown_keys(registry):
+    from eventcap.apps.jobs import preflight
+    from eventcap.core.config import ConfigError
+
+    data = composed("default")
+    preflight(data, ["+stages.track.max_features=10"])  # added to a node the pipeline runs: read
+    with pytest.raises(ConfigError, match="foo: no config key named 'foo' in the top-level config"):
+        preflight({**data, "foo": 1}, ["+foo=1"])
+    with pytest.raises(ConfigError, match="stages.nope.x: added with '\\+', but nothing reads it"):
+        preflight(data, ["+stages.nope.x=1"])
