@@ -84,6 +84,8 @@ def preflight(data: Mapping[str, Any], overrides: Sequence[str] = ()) -> None:
         if not override.startswith("+") or "=" not in override:
             continue
         key = override.lstrip("+").partition("=")[0]
+        if "/" in key or "@" in key:  # a config group added (+stages/signal=...): Hydra checks those
+            continue
         parts = key.split(".")
         read = (parts[0] in TOP_LEVEL_KEYS and parts[0] not in ("stages", "pipeline")
                 or (parts[0] == "pipeline" and len(parts) > 1 and parts[1] == "nodes")

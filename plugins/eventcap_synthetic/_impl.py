@@ -76,11 +76,12 @@ def resolve_camera(config, where: str = "source") -> tuple[CameraPreset, dict, l
 
 
 def _check_values(config, eff: dict, where: str = "source") -> None:
-    """The values taken from the camera preset (keys left null) against the same declarations as the keys
-    (plugins/eventcap_synthetic/spec.py: each bound is stated once, there), and the ROI against the sensor size;
-    a ValueError names the key (``where.<key>``)."""
+    """Every value, those taken from the camera preset (keys left null) included, against the keys' declarations
+    (plugins/eventcap_synthetic/spec.py: each bound is stated once, there; a config built in code is checked here
+    too), and the ROI against the sensor size; a ValueError names the key (``where.<key>``)."""
     fields = {f.name: f for f in dataclasses.fields(type(config))}
-    for key, value in eff.items():
+    values = {**{f.name: getattr(config, f.name) for f in fields.values()}, **eff}  # a config built in code too
+    for key, value in values.items():
         problem = check_value(fields[key], value) if key in fields else None
         if problem:
             given = getattr(config, key, None) is not None
