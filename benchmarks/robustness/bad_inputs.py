@@ -178,6 +178,30 @@ BAD_SETTINGS = [
 ]
 
 
+def memory_rows(work: Path, n: int = 3_000_000, timeout_s: float = 300.0) -> list[dict]:
+    """Peak memory of preview and convert on ``n`` events spanning 0.5 s and spanning 10 hours (npy, 240 x 180):
+    what is held must not grow with the time span."""
+    rows = []
+    rng = np.random.default_rng(5)
+    for label, span in (("0.5 s", 500_000), ("10 h", 36_000 * 10**6)):
+        ev = np.empty(n, EVENT_DTYPE)
+        ev["t"] = np.sort(rng.integers(0, span, n)) + 1_633_000_000_000_000
+        ev["x"], ev["y"] = rng.integers(0, W, n), rng.integers(0, H, n)
+        ev["p"] = rng.choice(np.array([-1, 1], np.int8), n)
+        path = save_npy(work / f"span_{span}.npy", ev)
+        case = f"{n / 1e6:g} M events over {label} (npy, {path.stat().st_size / 1e6:.0f} MB)"
+        o = run(["preview", str(path), "--out", str(work / "m.png"), "--width", str(W), "--height", str(H)], work,
+                timeout_s)
+        rows.append(_table_row(case, "preview", o))
+        out = work / "m.zarr"
+        shutil.rmtree(out, ignore_errors=True)
+        o = run(["convert", str(path), str(out), "--width", str(W), "--height", str(H)], work, timeout_s)
+        rows.append(_table_row(case, "convert", o))
+        shutil.rmtree(out, ignore_errors=True)
+        path.unlink()
+    return rows
+
+
 def _table_row(case: str, how: str, o: Outcome) -> dict:
     return {"case": case, "command": how, "exit": "HANG" if o.code is None else o.code, "seconds": o.seconds,
             "peak_mb": o.peak_mb, "outcome": o.line(), "left": o.left}
@@ -263,9 +287,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--timeout", type=float, default=60.0, help="seconds before a command counts as stuck")
     ap.add_argument("--no-settings", action="store_true", help="leave out the bad settings (eventcap run)")
+    ap.add_argument("--memory-events", type=int, default=3_000_000, help="events of the memory rows (0: none)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="eventcap-bad-") as tmp:
         rows = issue_table(Path(tmp), [] if args.no_settings else None, args.timeout)
+        if args.memory_events:
+            rows += memory_rows(Path(tmp), args.memory_events)
     print_table(rows)
     bad = [r for r in rows if r["exit"] == "HANG" or r["outcome"].startswith(("TRACEBACK", "HANG")) or r["left"]]
     return 1 if bad else 0

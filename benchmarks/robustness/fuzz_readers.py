@@ -547,6 +547,7 @@ def main(argv=None) -> int:
 
         with tempfile.TemporaryDirectory(prefix="eventcap-bad-") as tmp:
             rows = bad_inputs.issue_table(Path(tmp), [] if args.no_settings else None)
+            rows += bad_inputs.memory_rows(Path(tmp))
         print("issue 48's cases, run through the command line:")
         bad_inputs.print_table(rows)
         print()

@@ -86,22 +86,28 @@ def check_picture_size(width: int, height: int, scale: int) -> None:
 def most_active_time(events: np.ndarray, window_us: int = 20_000) -> tuple[int, int]:
     """The centre (µs) of the ``window_us`` window holding the most events, and that count: the recording's most
     active moment (windows start every ``window_us / 8`` from the first event; the first of equal ones wins).
-    ``(0, 0)`` without events. Only windows that hold events are counted, so memory grows with the events, not
-    with the time they span."""
+    ``(0, 0)`` without events. Memory and time grow with the events, not with the time they span: a best window
+    can always be moved forward to start in the grid cell of its first event, so only those cells are counted,
+    then the earliest start with the same count is looked for just before the best ones."""
     t = events["t"]
     if t.size == 0:
         return 0, 0
     t0, window = int(t[0]), int(window_us)
     step = max(1, window // 8)
     last_k = (max(int(t[-1]) - window, t0) - t0 + step - 1) // step  # starts t0 + k*step < max(t[-1] - w, t0) + step
-    own = np.unique((t.astype(np.int64) - t0) // step)
-    reach = -(-window // step)  # windows starting up to this many steps before an event's own step hold it
-    ks = np.unique((own[:, None] - np.arange(reach + 1)[None, :]).ravel())
-    ks = ks[(ks >= 0) & (ks <= last_k)]
-    starts = t0 + ks * step
-    counts = np.searchsorted(t, starts + window) - np.searchsorted(t, starts)
-    i = int(np.argmax(counts))
-    return int(starts[i]) + window // 2, int(counts[i])
+
+    def counts(ks: np.ndarray) -> np.ndarray:
+        starts = t0 + ks * step
+        return np.searchsorted(t, starts + window) - np.searchsorted(t, starts)
+
+    own = np.unique(np.minimum((t.astype(np.int64) - t0) // step, last_k))
+    c = counts(own)
+    best = int(c.max())
+    reach = -(-window // step)  # an earlier start holds the same events only within this many steps
+    near = np.unique((own[c == best][:, None] - np.arange(reach + 1)[None, :]).ravel())
+    near = near[near >= 0]
+    k = int(near[np.argmax(counts(near) == best)])
+    return t0 + k * step + window // 2, best
 
 
 def describe_recording(rec) -> str:
