@@ -52,14 +52,15 @@ def committed_entries(cache_dir) -> list:
 
 
 # --- a failed source: the cause, every later node skipped with it, run.json and config.yaml written -------------------
-def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cache, caplog):
+def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cache, caplog, capsys):
     caplog.set_level(logging.INFO)
     run_dir = tmp_path / "neg"
-    # a value outside its declared range is refused before anything runs (issue 38): no run, no summary
+    # a value outside its declared range is refused before anything runs (issue 38), before the run folder is
+    # made (issue 48): no run, no summary, no folder
     code, log_text = run_main(tmp_path / "refused", *SMALL, "source.duration_s=-1", f"cache_dir={shared_cache}",
                               caplog=caplog)
-    assert code == 1 and "source.duration_s: expected a finite number > 0, got -1" in log_text
-    assert not (tmp_path / "refused" / "run.json").exists()
+    assert code == 1 and "source.duration_s: expected a finite number in (0, 3600], got -1" in capsys.readouterr().err
+    assert not (tmp_path / "refused").exists()
     # a source that fails while it runs: every node after it is skipped with that cause
     code, log_text = run_main(run_dir, *SMALL, "source.motion=no_such_motion", f"cache_dir={shared_cache}",
                               caplog=caplog)
