@@ -79,11 +79,17 @@ def allowed_values(f: dataclasses.Field) -> str | None:
     return None
 
 
+#: A number beyond this size, in a field that declares no bound on that side, is refused: no setting means it, and
+#: such values overflow the integer microseconds and counts they become (source.duration_s=1e308).
+MAX_MAGNITUDE = 1e9
+
+
 def check_value(f: dataclasses.Field, value: Any) -> str | None:
     """Why ``value`` is not allowed in config field ``f`` (declared with :func:`param`), or None when it is.
 
     Numbers (and the numbers of a list) must be finite (unless ``finite=False``; NaN never passes), integers when
-    the field is an integer, and within the field's declared bounds. Booleans, strings and None are left to the
+    the field is an integer, within the field's declared bounds, and no larger in size than
+    :data:`MAX_MAGNITUDE` on a side the field does not bound itself. Booleans, strings and None are left to the
     field's type and choices."""
     meta = f.metadata
     if isinstance(value, (list, tuple)):
@@ -96,6 +102,11 @@ def check_value(f: dataclasses.Field, value: Any) -> str | None:
         return None
     integer = _is_integer_field(f)
     bounds = meta.get("bounds", {})
+    if value == value and value not in (float("inf"), float("-inf")) and (
+            (value > MAX_MAGNITUDE and "le" not in bounds and "lt" not in bounds)
+            or (value < -MAX_MAGNITUDE and "ge" not in bounds and "gt" not in bounds)):
+        return (f"expected {_allowed(meta, integer)}, no larger than {MAX_MAGNITUDE:g} in size (a bound every setting "
+                f"without its own has), got {value!r}")
     bad = (value != value  # NaN
            or (meta.get("finite", True) and value in (float("inf"), float("-inf")))
            or (integer and float(value) != int(value))

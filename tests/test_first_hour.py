@@ -15,7 +15,8 @@ import pytest
 from helpers.paths import REAL_DAVIS346, ROOT
 
 from eventcap.apps.cli import main, preview_path, source_shorthands
-from eventcap.apps.jobs import groundless_detect_nodes, metrics_table, run_folder_line
+from eventcap.apps.compose import groundless_detect_nodes
+from eventcap.apps.jobs import metrics_table, run_folder_line
 
 
 def run(tmp_path, name: str, *overrides: str) -> tuple[int, dict, list[str]]:
@@ -193,7 +194,7 @@ def test_preview_writes_to_the_current_folder_or_out_never_beside_its_input(tmp_
     work.mkdir()
     monkeypatch.chdir(work)
     assert main(["preview", str(rec)]) == 0
-    assert f"wrote rec.preview.png (" in capsys.readouterr().out
+    assert "wrote rec.preview.png (" in capsys.readouterr().out
     assert (work / "rec.preview.png").is_file() and sorted(p.name for p in data.iterdir()) == ["rec.h5"]
     out_dir = tmp_path / "pngs"
     out_dir.mkdir()

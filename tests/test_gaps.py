@@ -137,7 +137,7 @@ def test_confidence_is_zero_out_of_view_and_where_nothing_supports_the_estimate(
 
 
 def test_a_recording_without_frames_picks_the_event_only_pipeline():
-    from eventcap.apps.jobs import frameless_source
+    from eventcap.apps.compose import frameless_source
 
     assert frameless_source({"source": {"stage": "synthetic", "camera": "davis240c", "frames": None}}) is None
     assert "dvxplorer" in frameless_source({"source": {"stage": "synthetic", "camera": "dvxplorer", "frames": None}})

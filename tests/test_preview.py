@@ -99,7 +99,7 @@ def test_preview_refuses_what_it_cannot_read_naming_the_file(tmp_path, capsys):
     code, out, err = preview(capsys, bad)
     assert code == 2 and str(bad) in err and "No group found" not in err
     code, out, err = preview(capsys, tmp_path / "missing.h5")
-    assert code == 2 and "does not exist" in err
+    assert code == 2 and f"{tmp_path / 'missing.h5'}: no such file or folder" in err
 
 
 def test_preview_of_the_real_davis346_recording(tmp_path, capsys):

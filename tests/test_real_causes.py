@@ -38,10 +38,12 @@ def shared_cache(tmp_path_factory):
     return tmp_path_factory.mktemp("cache")
 
 
-def run_main(run_dir, *argv, caplog=None) -> tuple[int, str]:
+def run_main(run_dir, *argv, caplog=None, capsys=None) -> tuple[int, str]:
     code = main(["run", f"hydra.run.dir={run_dir}", *argv])
     text = (run_dir / "eventcap.log").read_text() if (run_dir / "eventcap.log").exists() else ""
-    return code, text + ("\n" + caplog.text if caplog is not None else "")
+    # a setting refused before the run folder is made is printed on stderr (issue 48), not logged into the folder
+    err = capsys.readouterr().err if capsys is not None else ""
+    return code, text + ("\n" + caplog.text if caplog is not None else "") + err
 
 
 def summary(run_dir) -> dict:
@@ -53,14 +55,15 @@ def committed_entries(cache_dir) -> list:
 
 
 # --- a failed source: the cause, every later node skipped with it, run.json and config.yaml written -------------------
-def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cache, caplog):
+def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cache, caplog, capsys):
     caplog.set_level(logging.INFO)
     run_dir = tmp_path / "neg"
-    # a value outside its declared range is refused before anything runs (issue 38): no run, no summary
+    # a value outside its declared range is refused before anything runs (issue 38), before the run folder is
+    # made (issue 48): no run, no summary, no folder
     code, log_text = run_main(tmp_path / "refused", *SMALL, "source.duration_s=-1", f"cache_dir={shared_cache}",
                               caplog=caplog)
-    assert code == 1 and "source.duration_s: expected a finite number > 0, got -1" in log_text
-    assert not (tmp_path / "refused" / "run.json").exists()
+    assert code == 1 and "source.duration_s: expected a finite number in (0, 3600], got -1" in capsys.readouterr().err
+    assert not (tmp_path / "refused").exists()
     # a source that fails while it runs: every node after it is skipped with that cause
     code, log_text = run_main(run_dir, *SMALL, "source.motion=no_such_motion", f"cache_dir={shared_cache}",
                               caplog=caplog)
@@ -139,15 +142,17 @@ def test_damaged_or_missing_chunk_is_located(tmp_path):
 
 
 # --- batches= ---------------------------------------------------------------------------------------------------------
-def test_reversed_or_empty_batches_are_refused_before_anything_runs(toy, tmp_path, caplog):
+def test_reversed_or_empty_batches_are_refused_before_anything_runs(toy, tmp_path, caplog, capsys):
     for i, (value, why) in enumerate([("5:2", "batches='5:2': an empty slice (stop 2 is not after start 5)"),
                                       ("0", "batches=0: N=0 selects no batch"),
                                       ("-2:", "batches='-2:': batch indices count from 0")]):
         run_dir = tmp_path / f"r{i}"
-        code, log_text = run_main(run_dir, *TOY, f"cache_dir={tmp_path / 'cache'}", f"batches={value}", caplog=caplog)
+        code, log_text = run_main(run_dir, *TOY, f"cache_dir={tmp_path / 'cache'}", f"batches={value}", caplog=caplog,
+                                  capsys=capsys)
         assert code == 1
         assert why in log_text
         assert not committed_entries(tmp_path / "cache"), "nothing may run"
+        assert not run_dir.exists()
 
 
 def test_batches_beyond_the_plan_name_its_size(toy, tmp_path, caplog):
@@ -183,17 +188,17 @@ def test_batches_beyond_the_plan_of_a_real_capture(tmp_path, shared_cache, caplo
 
 
 # --- invalid choices and mistyped keys: refused before anything runs ------------------------------------------------
-def test_invalid_choice_is_refused_before_anything_runs(tmp_path, caplog):
+def test_invalid_choice_is_refused_before_anything_runs(tmp_path, caplog, capsys):
     run_dir = tmp_path / "side"
     code, log_text = run_main(run_dir, *SMALL, f"cache_dir={tmp_path / 'cache'}", "stages.track.direction=sideways",
-                              caplog=caplog)
+                              caplog=caplog, capsys=capsys)
     assert code == 1
     assert ("node 'track': stages.track.direction: expected one of both | forward | backward, got 'sideways' "
             "(stage 'eklt')") in log_text
     assert log_text.count("sideways") == 1 + log_text.count("overrides:")  # said once, not once per batch
-    assert not committed_entries(tmp_path / "cache") and not (run_dir / "run.json").exists()
+    assert not committed_entries(tmp_path / "cache") and not run_dir.exists()
     code, log_text = run_main(tmp_path / "loss", *SMALL, f"cache_dir={tmp_path / 'cache'}", "stages.refine.terms.sil.loss=hubber",
-                              caplog=caplog)
+                              caplog=caplog, capsys=capsys)
     assert code == 1 and "expected one of l2 | huber, got 'hubber' (stage 'silhouette'); did you mean 'huber'?" \
         in log_text
 

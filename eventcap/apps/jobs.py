@@ -26,10 +26,8 @@ def run_job(data: dict, run_dir: Path, config_yaml: str, failures: list[str]):
     from eventcap.core.registry import UnknownStageError
     from eventcap.core.runner import Runner
 
-    from eventcap.core.config import log_level_number
-
     try:
-        log_level_number(data.get("log_level", "INFO"))
+        preflight(data)
         runner = Runner(data)
         outputs_cfg = check_outputs_config(runner)
         result = runner.run(run_dir)
@@ -100,73 +98,85 @@ def run_folder_line(run_dir: Path) -> str:
         shown = run_dir
     names = sorted(p.name + ("/" if p.is_dir() else "") for p in run_dir.iterdir() if not p.name.startswith("."))
     return f"run folder {shown}/: {', '.join(names) or 'empty'}"
+#: The top-level keys of conf/config.yaml (and its groups): any other key given with '+' is refused.
+TOP_LEVEL_KEYS = ("name", "cache_dir", "batches", "log_level", "export", "outputs", "pipeline", "source", "executor",
+                  "template", "stages", "experiment")
 
 
-#: The pipeline a recording without intensity frames runs when the user chose none (conf/pipeline/events_only.yaml).
-FRAMELESS_PIPELINE = "events_only"
+def preflight(data: Mapping[str, Any], overrides: Sequence[str] = ()) -> None:
+    """Every check of a composed config that needs no stage to run, writing nothing (no run folder, no cache
+    folder): the log level, unknown top-level keys, keys added with '+' that no node reads, the pipeline and each
+    node's settings (bounds from the stages' config declarations, and their ``check`` hooks), the executor, the
+    batch selection and the outputs. Raises ``ValueError`` (a ConfigError, PipelineError, ...) naming the key.
+
+    ``eventcap run`` calls it from a Hydra callback before the run folder is made (:class:`RefuseBadSettings`), and
+    :func:`run_job` again before running (benchmarks and tests call run_job directly)."""
+    from types import SimpleNamespace
+
+    from eventcap.apps.outputs import check_outputs_config
+    from eventcap.core.config import ConfigError, log_level_number
+    from eventcap.core.pipeline import build_pipeline
+    from eventcap.core.registry import load_registry, unknown_name_message
+    from eventcap.core.runner import ExecutorConfig, _parse_selection
+
+    log_level_number(data.get("log_level", "INFO"))
+    for key in data:
+        if key not in TOP_LEVEL_KEYS and key != "hydra":
+            raise ConfigError(f"{key}: " + unknown_name_message("config key", str(key), list(TOP_LEVEL_KEYS),
+                                                               "the top-level config"))
+    nodes = build_pipeline(data, load_registry())
+    node_paths = [n.config_path for n in nodes]
+    for override in overrides:
+        if not override.startswith("+") or "=" not in override:
+            continue
+        key = override.lstrip("+").partition("=")[0]
+        if "/" in key or "@" in key:  # a config group added (+stages/signal=...): Hydra checks those
+            continue
+        parts = key.split(".")
+        read = (parts[0] in TOP_LEVEL_KEYS and parts[0] not in ("stages", "pipeline")
+                or (parts[0] == "pipeline" and len(parts) > 1 and parts[1] == "nodes")
+                or any(key == p or key.startswith(p + ".") for p in node_paths))
+        if not read:
+            raise ConfigError(f"{key}: added with '+', but nothing reads it: no node of the pipeline takes its config "
+                              f"from {key.rpartition('.')[0] or key} (the nodes read: {', '.join(node_paths)})")
+    ExecutorConfig.from_mapping(data.get("executor"))
+    _parse_selection(data.get("batches"))
+    check_outputs_config(SimpleNamespace(cfg=data, by_name={n.name: n for n in nodes}))
 
 
-def frameless_source(data: Mapping[str, Any]) -> str | None:
-    """Why the composed config's source yields no intensity frames (a sentence for the log), or None when it has
-    them or cannot tell (then the run says so itself). A synthetic camera without frames (its preset's, or
-    source.frames=false), a recording asked to leave its frames out, or a file without any."""
-    src = data.get("source") or {}
-    stage = src.get("stage")
-    if src.get("frames") is False:
-        return "source.frames=false: the recording's intensity frames are left out"
-    if stage == "synthetic" and src.get("frames") is None and src.get("camera"):
-        from eventcap.camera_presets import load_preset
+try:
+    from hydra.experimental.callback import Callback as _HydraCallback
+except ImportError:  # pragma: no cover - hydra is a dependency
+    _HydraCallback = object
 
+
+class RefuseBadSettings(_HydraCallback):
+    """Hydra callback (``hydra.callbacks.settings`` in conf/config.yaml, listed before ``run_folder``): run
+    :func:`preflight` on the composed config before the run folder is claimed, so that a refused setting leaves
+    nothing on disk. It exits with status 1 and one line naming the key. Sweeps (``-m``) are checked per job, when
+    each runs."""
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        import sys
+
+        from hydra.core.hydra_config import HydraConfig
+        from omegaconf import OmegaConf, open_dict
+
+        HydraConfig.instance().set_config(config)  # ${hydra:...} resolves; Hydra sets it again for the job
+        overrides = list(config.hydra.overrides.task or [])
         try:
-            preset = load_preset(str(src["camera"]))
-        except ValueError:
-            return None  # refused with its reason when the source runs
-        return None if preset.frames else f"camera {preset.name} ({preset.sensor}) has no intensity frames"
-    if stage == "recording" and src.get("path") not in (None, "", "???"):
-        from eventcap.io.readers import recording_has_frames
+            cfg = OmegaConf.masked_copy(config, [k for k in config if k != "hydra"])
+            with open_dict(cfg):
+                data = OmegaConf.to_container(cfg, resolve=True)
+            from eventcap.apps.compose import job_config
 
-        try:
-            has = recording_has_frames(src["path"], src.get("format") or None)
-        except (OSError, ValueError):
-            return None  # the source stage reports what is wrong with the file
-        return None if has else f"{src['path']} holds no intensity frames (an event-only recording)"
-    return None
-
-
-#: The detector a recording without ground truth runs when the user chose none (conf/stages/detect/blazepose.yaml).
-REAL_DETECTOR = "blazepose"
-#: Stages that make their detections from the recording's ground truth (conf/stages/detect/simulated.yaml).
-GROUND_TRUTH_DETECTORS = ("simulated",)
-
-
-def ground_truth_detect_nodes(data: Mapping[str, Any]) -> list[str]:
-    """The composed pipeline's nodes that run a detector made from ground truth (the simulated one)."""
-    nodes = []
-    for name, node in ((data.get("pipeline") or {}).get("nodes") or {}).items():
-        where = (node or {}).get("config") or f"stages.{name}"
-        cfg: Any = data
-        for part in str(where).split("."):
-            cfg = cfg.get(part) if isinstance(cfg, Mapping) else None
-        if isinstance(cfg, Mapping) and cfg.get("stage") in GROUND_TRUTH_DETECTORS:
-            nodes.append(name)
-    return nodes
-
-
-def groundless_detect_nodes(data: Mapping[str, Any]) -> tuple[list[str], str | None]:
-    """The pipeline's nodes running a detector made from ground truth (the simulated one) on a source without any,
-    and why the source has none (a sentence for the log); ``([], None)`` when the source has ground truth (a
-    synthetic capture, a simulated recording in the project's format) or cannot be read (the source stage then
-    says what is wrong with it)."""
-    src = data.get("source") or {}
-    if src.get("stage") != "recording" or src.get("path") in (None, "", "???"):
-        return [], None
-    from eventcap.io.readers import recording_has_ground_truth
-
-    path = Path(str(src["path"]))
-    if not path.exists() or recording_has_ground_truth(path, src.get("format") or None):
-        return [], None
-    return ground_truth_detect_nodes(data), f"{path} has no ground truth (a recording from a camera, not a " \
-                                            f"simulated capture)"
+            data = job_config(cfg, data, overrides, announce=False)[1]
+            preflight(data, overrides)
+        except Exception as exc:  # noqa: BLE001 - any refusal: one line, nothing written
+            if not isinstance(exc, ValueError) and not type(exc).__module__.startswith(("omegaconf", "hydra")):
+                raise
+            print(f"eventcap run: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(1) from None
 
 
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> Path:

@@ -84,7 +84,7 @@ def run_help(overrides: list[str], cdir: str | Path) -> str:
             out.append(f"  {n:<{w[0]}}  {s:<{w[1]}}  {k:<{w[2]}}  {lines[0]}".rstrip())
             out += [" " * indent + line for line in lines[1:]]
         if choices.get("source") == "recording":
-            from eventcap.apps.jobs import FRAMELESS_PIPELINE, REAL_DETECTOR, ground_truth_detect_nodes
+            from eventcap.apps.compose import FRAMELESS_PIPELINE, REAL_DETECTOR, ground_truth_detect_nodes
 
             for name in ground_truth_detect_nodes(data):
                 out.append(f"On a file without ground truth the run takes stages/{name}={REAL_DETECTOR} by itself, "

@@ -75,6 +75,10 @@ class StageSpec:
     origin: str = ""  # where the registry found it (filled by the registry)
     #: settings that moved: {old key: new dotted key}; an old key is refused naming its new one
     renamed: Mapping[str, str] = field(default_factory=dict)
+    #: optional ``"module:function"`` called with the built config when the pipeline is built (before anything
+    #: runs): checks that involve several keys or values taken from elsewhere (a preset); raises ``ValueError``
+    #: naming the key. Single values are bounded by their ``param`` declarations, never here.
+    check: str = ""
 
     def __post_init__(self) -> None:
         where = f"stage spec {self.name!r}" + (f" ({self.origin})" if self.origin else "")
@@ -87,6 +91,8 @@ class StageSpec:
         self._check_settings(where)
         if ":" not in self.run:
             raise StageSpecError(f"{where}: run must be 'module:function', got {self.run!r}")
+        if self.check and ":" not in self.check:
+            raise StageSpecError(f"{where}: check must be 'module:function', got {self.check!r}")
         for direction, ports in (("input", self.inputs), ("output", self.outputs)):
             for pname, port in ports.items():
                 if not isinstance(port, Port) or not (isinstance(port.type, type) and issubclass(port.type, Artifact)):
@@ -135,6 +141,17 @@ class StageSpec:
 
     def file_fields(self) -> list[str]:
         return [k for k, f in leaves(self.config) if f.metadata.get("file", False)]
+
+    def load_check(self) -> Callable[[Any], None] | None:
+        """The config check function (``check``), or None."""
+        if not self.check:
+            return None
+        module, _, attr = self.check.partition(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as exc:
+            raise StageSpecError(f"stage {self.name!r}: cannot import its check function {self.check!r}: {exc}") \
+                from exc
 
     def load_run(self) -> Callable[..., Mapping[str, Artifact]]:
         module, _, attr = self.run.partition(":")
