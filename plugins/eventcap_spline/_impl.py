@@ -357,11 +357,12 @@ def run_spline(inputs, config, ctx):
     # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.
     first = int(np.flatnonzero(np.isfinite(poses[:, 0]))[0])
     poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[first, 27:30] / (2.0 * np.pi))
+    sigma = res.covariance.joint_sigma_mm(spline.basis(t_win), poses, template).astype(np.float32)  # the Laplace σ
     log_window(ctx, config, res, where, (a, z), t_det, scope, b, spline)
     energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
     iters = int(sum(s.iterations for s in res.solves))
-    return {"poses": PoseSequence(t_us=t_win, poses=poses, status=res.solves[-1].status, iterations=iters,
-                                  energies=energies)}
+    return {"poses": PoseSequence(t_us=t_win, poses=poses, sigma_mm=sigma, status=res.solves[-1].status,
+                                  iterations=iters, energies=energies)}
 
 
 def log_window(ctx, config, res, where, window, t_det, scope, b, spline) -> None:

@@ -42,6 +42,7 @@ from eventcap.energy.detections import FIT_DAMP, FrameDetections, FrameFitter, f
 from eventcap.energy.errors import EnergyError, SolveFailed
 from eventcap.energy.factor import Layout
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
+from eventcap.energy.laplace import UnitCovariance, laplace_covariance
 from eventcap.energy.prior import context_smoothing
 from eventcap.energy.problem import FactorProblem, SplinePoses
 from eventcap.energy.silence import Silence, measure_stillness
@@ -78,6 +79,8 @@ class WindowResult:
     #: per ICP round after the first: how far its association moved the residuals (px, RMS, the largest over the
     #: factors that associate; the last below ``icp_settle_px`` ended the rounds without a solve)
     association_change_px: tuple[float, ...] = ()
+    #: the control points' covariance at the solution (the Laplace approximation, :mod:`eventcap.energy.laplace`)
+    covariance: UnitCovariance | None = None
 
 
 class SplineSolver:
@@ -309,9 +312,13 @@ def _result(solver, spline, inputs, x, fits, solves, seconds, n_fits, changes) -
         energies.update({k: v for k, v in rep.items() if k.startswith("n_")})
     lines = tuple(line for line in (f.describe() for f in solver.factors) if line)
     U, _ = prob.split(x)
+    t0 = time.perf_counter()
+    covariance = laplace_covariance(prob, x)
+    seconds["laplace"] = time.perf_counter() - t0
     return WindowResult(spline=spline, control=U.copy(), aux=prob.aux(x), fits=fits, energies=energies,
                         solves=tuple(solves), seconds=seconds, fits_computed=n_fits, reports=reports, lines=lines,
-                        stillness=inputs.measured().get("stillness"), association_change_px=changes)
+                        stillness=inputs.measured().get("stillness"), association_change_px=changes,
+                        covariance=covariance)
 
 
 __all__ = ["NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "clear_fits", "fit_window",

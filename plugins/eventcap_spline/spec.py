@@ -125,9 +125,9 @@ SPLINE_RENAMED = {
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=11,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
+    name="spline", kind="solve", version=12,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
     # widths; 10: window_step (a batch another window keeps returns no frames); 11: nested settings, energies named
-    # by the terms' groups
+    # by the terms' groups; 12: each joint's Laplace σ (sigma_mm)
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
                 "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
@@ -153,7 +153,8 @@ class StitchConfig:
 
 
 STITCH = StageSpec(
-    name="stitch", kind="fuse", version=3,  # 3: windows advancing by several batches; windows that only touch
+    name="stitch", kind="fuse", version=4,  # 3: windows advancing by several batches; windows that only touch;
+    # 4: the windows' σ blended
     description="the spline solve's overlapping windows blended into one motion over the whole recording, each "
                 "window weighted by a C² bump over its span (no seam where batches meet; not in the paper)",
     config=StitchConfig,
@@ -169,7 +170,7 @@ class CutConfig:
 
 
 CUT = StageSpec(
-    name="cut", kind="fuse", version=1,
+    name="cut", kind="fuse", version=2,  # 2: with the motion's σ
     description="a batch's frames of the stitched whole-recording motion",
     config=CutConfig,
     inputs={"motion": Port(PoseSequence, "the stitch stage's motion"), "batches": Port(BatchPlan)},

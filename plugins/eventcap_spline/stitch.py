@@ -20,6 +20,9 @@ NaN beyond them: never extrapolated); a window that saw nothing (status ``gap``)
 covers are a gap: NaN, never interpolated. Root angles
 are moved by multiples of 2π so each window continues the ones before it. ``cut`` (per batch) gives each batch its
 frames of the blended motion, so everything downstream (evaluate, outputs) keeps the batch boundaries.
+
+Each window's joint σ (the Laplace approximation of its solve, ``PoseSequence.sigma_mm``) is blended with the same
+weights, as variances (:func:`blend_sigma`), and cut with the poses.
 """
 
 from __future__ import annotations
@@ -73,18 +76,13 @@ def blend(windows: list[tuple[np.ndarray, np.ndarray]], taper: float,
     spans = _covered_spans(windows)
     num = np.zeros((t_all.size, 33))
     den = np.zeros(t_all.size)
-    for t, P in windows:
-        t = np.asarray(t, dtype=np.int64)
+    for (_, P), (idx, w) in zip(windows, window_weights(windows, taper, t_all, spans)):
         P = np.asarray(P, dtype=np.float64).copy()
-        idx = np.searchsorted(t_all, t)
         have = den[idx] > 0  # the blend so far: the root branch of this window continues it
         if have.any():
             j = int(np.flatnonzero(have)[0])
             ref = num[idx[j], 27:30] / den[idx[j]]
             P[:, 27:30] -= 2.0 * np.pi * np.round((P[j, 27:30] - ref) / (2.0 * np.pi))
-        a, b = int(t[0]), int(t[-1])
-        sa, sb = next(s for s in spans if s[0] <= a and b <= s[1])
-        w = window_weight(t, a, b, taper, a == sa, b == sb)
         num[idx] += w[:, None] * P
         den[idx] += w
     inside = np.zeros(t_all.size, dtype=bool)
@@ -98,6 +96,37 @@ def blend(windows: list[tuple[np.ndarray, np.ndarray]], taper: float,
     return t_all, out
 
 
+def window_weights(windows: list[tuple[np.ndarray, np.ndarray]], taper: float, t_all: np.ndarray,
+                   spans: list[tuple[int, int]] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each estimated window's (rows of t_all at its times, its blending weights there) (:func:`blend`)."""
+    spans = _covered_spans(windows) if spans is None else spans
+    out = []
+    for t, _ in windows:
+        t = np.asarray(t, dtype=np.int64)
+        a, b = int(t[0]), int(t[-1])
+        sa, sb = next(s for s in spans if s[0] <= a and b <= s[1])
+        out.append((np.searchsorted(t_all, t), window_weight(t, a, b, taper, a == sa, b == sb)))
+    return out
+
+
+def blend_sigma(windows: list[tuple[np.ndarray, np.ndarray]], sigmas: list[np.ndarray | None], taper: float,
+                t_all: np.ndarray) -> np.ndarray:
+    """(T, 24) the windows' joint σ (mm; sigmas[k] (T_k, 24) at window k's times, or None) blended as variances with
+    the weights the poses are blended with, σ = sqrt(Σ w_k σ_k² / Σ w_k): the windows share most of their data, so
+    their errors are not independent and averaging does not shrink the variance. NaN where no window has a σ."""
+    num = np.zeros((t_all.size, 24))
+    den = np.zeros((t_all.size, 24))
+    for (idx, w), sig in zip(window_weights(windows, taper, t_all), sigmas):
+        if sig is None:
+            continue
+        v = np.asarray(sig, dtype=np.float64) ** 2
+        ok = np.isfinite(v)
+        num[idx] += np.where(ok, w[:, None] * v, 0.0)
+        den[idx] += np.where(ok, w[:, None], 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, np.sqrt(num / np.where(den > 0, den, 1.0)), np.nan)
+
+
 def run_stitch(inputs, config, ctx):
     seq = inputs["windows"]
     K = len(seq)
@@ -106,10 +135,11 @@ def run_stitch(inputs, config, ctx):
     if not (math.isfinite(config.taper) and 0.0 < config.taper <= 0.5):
         raise StageFailed(f"stages.stitch.taper: expected a fraction in (0, 0.5], got {config.taper!r}",
                           status="invalid_config")
-    windows, kept = [], []
+    windows, kept, sigmas = [], [], {}
     for k in range(K):
         p = seq[k]
         windows.append((np.asarray(p.t_us, dtype=np.int64), np.asarray(p.poses)))
+        sigmas[k] = None if p.sigma_mm is None else np.asarray(p.sigma_mm)
         if p.status == "in_window" and windows[-1][0].size:
             raise StageFailed(f"stitch: batch {seq.batches[k].index} says another batch's window keeps it (status "
                               f"in_window) but holds {windows[-1][0].size} frames", status="invalid_input")
@@ -120,16 +150,24 @@ def run_stitch(inputs, config, ctx):
     check_cover(windows, kept, b)
     t_all = np.unique(np.concatenate([windows[k][0] for k in kept]))
     # a window's estimate spans its observed frames only (NaN beyond, never extrapolated): blend that part
-    estimated = {k: (t[np.isfinite(P).all(axis=1)], P[np.isfinite(P).all(axis=1)])
-                 for k, (t, P) in ((k, windows[k]) for k in kept)}
+    rows = {k: np.isfinite(windows[k][1]).all(axis=1) for k in kept}
+    estimated = {k: (windows[k][0][rows[k]], windows[k][1][rows[k]]) for k in kept}
     gaps = [k for k in kept if estimated[k][0].size < 2]
     if len(gaps) == len(kept):
         raise StageFailed(f"stitch: none of the {len(kept)} windows estimated anything (nothing observed in any)",
                           status="gap")
+    used = [k for k in kept if k not in gaps]
     try:
-        t_out, poses = blend([estimated[k] for k in kept if k not in gaps], float(config.taper), t_all)
+        t_out, poses = blend([estimated[k] for k in used], float(config.taper), t_all)
     except ValueError as exc:
         raise StageFailed(f"stitch: {exc}", status="invalid_input") from exc
+    sigma = None
+    if any(sigmas[k] is not None for k in used):
+        sigma = blend_sigma([estimated[k] for k in used],
+                            [None if sigmas[k] is None else sigmas[k][rows[k]] for k in used], float(config.taper),
+                            t_out)
+        sigma[~np.isfinite(poses).all(axis=1)] = np.nan
+        sigma = sigma.astype(np.float32)
     missing = int(np.sum(~np.isfinite(poses).all(axis=1)))
     named = ", ".join(str(b[k].index) for k in gaps[:10]) + (" ..." if len(gaps) > 10 else "")
     if missing:
@@ -148,7 +186,8 @@ def run_stitch(inputs, config, ctx):
                  t_out.size, max(seams, default=0.0))
     ctx.stats.update({"windows": len(kept), "seam_rad_max": max(seams, default=0.0),
                       "seam_rad_median": float(np.median(seams or [0]))})
-    return {"motion": PoseSequence(t_us=t_out, poses=poses, status="stitched", iterations=0, energies={})}
+    return {"motion": PoseSequence(t_us=t_out, poses=poses, sigma_mm=sigma, status="stitched", iterations=0,
+                                   energies={})}
 
 
 def check_cover(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int], batches) -> None:
@@ -194,6 +233,8 @@ def run_cut(inputs, config, ctx):
         raise StageFailed(f"cut: the stitched motion has no frames spanning batch {b.index} [{b.t0_us}, {b.t1_us}] "
                           "us", status="invalid_input")
     poses = np.asarray(motion.poses)[sel].copy()
+    sigma = None if motion.sigma_mm is None else np.asarray(motion.sigma_mm)[sel].copy()
     status = "stitched" if np.isfinite(poses).all() else ("gap" if not np.isfinite(poses).all(axis=1).any()
                                                            else "stitched, with a gap")
-    return {"poses": PoseSequence(t_us=t[sel].copy(), poses=poses, status=status, iterations=0, energies={})}
+    return {"poses": PoseSequence(t_us=t[sel].copy(), poses=poses, sigma_mm=sigma, status=status, iterations=0,
+                                  energies={})}
