@@ -125,25 +125,33 @@ def test_up_axis_and_units(tmp_path, up_axis, units, scale):
         assert np.abs(P - want).max() < 1e-4 * scale
 
 
-def test_point_residuals_take_a_confidence():
+def test_point_residuals_are_the_uncertainty_and_minus_one_only_in_gaps():
     valid = np.array([[True, True, False], [True, True, True]])
     assert point_residuals(valid).tolist() == [[0, 0, -1], [0, 0, 0]]
-    conf = np.array([[0.9, np.nan, 1.0], [0.0, 0.4, 1.0]])
-    assert point_residuals(valid, conf).tolist() == [[0, -1, -1], [-1, 0, 0]]  # unobserved: -1, as gaps
-    with pytest.raises(ValueError, match=r"confidence: expected shape \(2, 3\) \(frames, points\), got \(3,\)"):
+    unc = np.array([[12.5, np.nan, 3.0], [0.0, 400.0, 7.0]])
+    # the uncertainty where there is a point, however large; none known: 0; -1 only where no point is (a gap)
+    assert point_residuals(valid, unc).tolist() == [[12.5, 0, -1], [0, 400, 7]]
+    with pytest.raises(ValueError, match=r"uncertainty: expected shape \(2, 3\) \(frames, points\), got \(3,\)"):
         point_residuals(valid, np.ones(3))
-    with pytest.raises(ValueError, match=r"confidence: expected values in \[0, 1\] \(NaN: not observed\), got "
-                                         r"\[0, 2\]"):
-        point_residuals(valid, np.array([[0, 1, 2], [1, 1, 1.0]]))
+    with pytest.raises(ValueError, match=r"uncertainty: expected values >= 0 \(NaN: none known\), got -2"):
+        point_residuals(valid, np.array([[0, 1, -2], [1, 1, 1.0]]))
 
 
-def test_a_confidence_marks_unobserved_points_invalid_in_the_file(tmp_path):
+@pytest.mark.parametrize("units, factor", [("mm", 1.0), ("m", 0.001)])
+def test_the_file_holds_each_points_uncertainty_in_its_unit_as_the_residual(tmp_path, units, factor):
     t = np.arange(4, dtype=np.int64) * 1000
-    conf = np.ones((4, 24))
-    conf[2, JOINT_INDEX["l_wrist"]] = np.nan
-    path = write_c3d(tmp_path / "c.c3d", t, np.zeros((4, 24, 3)), confidence=conf)
-    r = read_with_c3d(path)
-    assert r["residual"][2, JOINT_INDEX["l_wrist"]] == -1 and (r["residual"] == -1).sum() == 1
+    unc = np.full((4, 24), 20.0)
+    unc[2, JOINT_INDEX["l_wrist"]] = 350.0  # far out: still a point, its residual saturated at 255 mm
+    unc[1, JOINT_INDEX["l_knee"]] = 0.2  # tiny: 1 mm, the least a residual reads (0 would say "modelled")
+    unc[3, JOINT_INDEX["head"]] = np.nan  # none known
+    path = write_c3d(tmp_path / "c.c3d", t, np.zeros((4, 24, 3)), units=units, uncertainty_mm=unc)
+    # read by the c3d package, which decodes word 4 as the C3D guide says (low byte the residual in |POINT:SCALE|,
+    # high byte the cameras); ezc3d 1.7.2 swaps the two bytes of a float file's word 4, so it is no check here
+    r = read_with_c3d(path)["residual"]
+    assert (r != -1).all()
+    assert r[2, JOINT_INDEX["l_wrist"]] == pytest.approx(255.0 * factor)
+    assert r[1, JOINT_INDEX["l_knee"]] == pytest.approx(1.0 * factor) and r[3, JOINT_INDEX["head"]] == 0.0
+    assert r[0, 0] == pytest.approx(20.0 * factor)
 
 
 def test_bad_input_is_refused_with_a_message_and_leaves_nothing(tmp_path):

@@ -9,18 +9,20 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
   with gaps (batches that failed or were not selected, windows that saw nothing) is cut there into
   ``motion_partNN.bvh``, one file per stretch, and the log names them.
 - ``motion.npz``: ``t_us``, ``poses`` (T, 33), ``joints`` (T, 24, 3) metres (:func:`eventcap.export.bvh.write_motion_npz`),
-  ``estimated`` (T,) (False: a gap, NaN poses and joints), ``gaps_us`` (the spans of the gaps), and ``confidence``
-  (T, 24) in [0, 1] per joint when the pipeline has a confidence node (:mod:`eventcap.analysis.confidence`: below 0.5
-  unobserved or not trusted).
+  ``estimated`` (T,) (False: a gap, NaN poses and joints), ``gaps_us`` (the spans of the gaps), and when the
+  pipeline has a confidence node ``uncertainty_mm`` (T, 24) per joint (the RMS 3D distance to the truth one expects,
+  calibrated: :mod:`eventcap.analysis.uncertainty`; NaN in gaps) and ``confidence`` (T, 24) in [0, 1] derived from it
+  (below 0.5 unobserved or not trusted). The BVH's first line says so (BVH cannot hold it).
 - ``overlay.mp4``: every ``video_every_ms`` of the motion (at most ``video_max_frames`` frames: the step widens
   to cover the whole motion), the sharpened latent image (else the nearest intensity frame) with the events of the
   last ``video_events_ms`` (red positive, blue negative), the template's silhouette outline (yellow) and skeleton
-  (green) of the estimate projected into the camera, the ground-truth skeleton (grey) when the recording has one,
-  and beside it an orthographic side view of the 3D skeleton. ``overlay_frames/`` keeps ``video_png_frames`` of its
+  (green; its joints coloured by their uncertainty, with a legend, when the run has one) of the estimate projected
+  into the camera, the ground-truth skeleton (grey) when the recording has one, and beside it an orthographic side
+  view of the 3D skeleton. ``overlay_frames/`` keeps ``video_png_frames`` of its
   frames as PNG. The file appears atomically (written as ``overlay.partial.mp4``, then renamed).
 - ``motion.c3d`` (``c3d: true``): the joint centres and the template's surface markers (Plug-in Gait) at the
-  tracking rate, for mocap tools (:mod:`eventcap.export.c3d`); residual -1 (invalid) for a gap and for a joint (or a
-  marker's joint) whose confidence is below 0.5.
+  tracking rate, for mocap tools (:mod:`eventcap.export.c3d`); each point's residual is its uncertainty (a marker's:
+  its joint's) in the file's unit, -1 (invalid) only in a gap.
 - ``up_axis`` (y | z) and ``units`` (m | cm | mm; null: BVH in m, C3D in mm) set the frame of motion.bvh and
   motion.c3d (:mod:`eventcap.worldframe`); motion.npz stays in the internal frame (y up, metres) and says so in its
   ``world_frame`` field. Each file states the time of its first frame (``t0_us``).
@@ -174,19 +176,19 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
         return skip("the motion has no estimated frame: nothing was seen (every window of the solve was a gap)")
     joints = np.full((t_us.size, 24, 3), np.nan)
     joints[est] = joint_positions(poses[est], template)
-    conf = _confidence_on(_first_output(runner, result, JointConfidence), t_us)
+    conf, unc = _confidence_on(_first_output(runner, result, JointConfidence), t_us)
     if (~est).any():
         log.warning("outputs: %d of %d frames are a gap (not estimated: nothing seen there); motion.npz marks them "
                     "(estimated false, NaN), the BVH is cut at them, the C3D marks them invalid (residual -1)",
                     int((~est).sum()), t_us.size)
     step = frame_step_us(t_us[est]) or 1000
     te, Pe, Je = t_us[est], poses[est], joints[est]
-    Ce = None if conf is None else conf[est]
+    Ue = None if unc is None else unc[est]
     jobs = []
     if cfg.bvh:
-        jobs.append(("bvh", lambda: _write_bvh(run_dir / "motion.bvh", te, Pe, template, step, cfg)))
+        jobs.append(("bvh", lambda: _write_bvh(run_dir / "motion.bvh", te, Pe, template, step, cfg, unc is not None)))
     if cfg.npz:
-        jobs.append(("npz", lambda: _write_npz(run_dir / "motion.npz", t_us, poses, joints, est, conf, cfg)))
+        jobs.append(("npz", lambda: _write_npz(run_dir / "motion.npz", t_us, poses, joints, est, conf, cfg, unc)))
     if cfg.video:
         if rec is None:
             summary["skipped"]["video"] = "no recording in this run (the video needs its camera)"
@@ -194,12 +196,12 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
         else:
             latent = _first_output(runner, result, LatentFrames)
             jobs.append(("video", lambda: write_overlay_video(run_dir, rec, template, te, Pe, Je, cfg,
-                                                              latent=latent)))
+                                                              latent=latent, uncertainty_mm=Ue)))
     if cfg.c3d:
-        jobs.append(("c3d", lambda: _write_c3d(run_dir / "motion.c3d", te, Pe, Je, template, step, cfg, Ce)))
+        jobs.append(("c3d", lambda: _write_c3d(run_dir / "motion.c3d", te, Pe, Je, template, step, cfg, Ue)))
     if cfg.rerun:
         jobs.append(("rerun", lambda: _write_rerun(run_dir, runner, result, te, Pe, Je, rec, template,
-                                                   cfg, summary, Ce)))
+                                                   cfg, summary, None if conf is None else conf[est], Ue)))
     # Plausibility warnings (eventcap/analysis/plausibility.py): logged, and written to plausibility.json; never change the motion
     jobs.append(("plausibility", lambda: write_plausibility(run_dir / "plausibility.json", te, Je,
                                                             rec.camera if rec is not None else None)))
@@ -214,16 +216,19 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     return summary
 
 
-def _confidence_on(conf, t_us: np.ndarray) -> np.ndarray | None:
-    """The run's joint confidence (a JointConfidence, or None) at the motion's frames (0 where it has none)."""
+def _confidence_on(conf, t_us: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The run's joint confidence and uncertainty (mm) (a JointConfidence, or None) at the motion's frames: (T, 24)
+    each, confidence 0 and uncertainty NaN where it has none (gaps)."""
     if conf is None:
-        return None
+        return None, None
     t = np.asarray(conf.t_us, dtype=np.int64)
     k = np.searchsorted(t, t_us)
     hit = (k < t.size) & (t[np.minimum(k, max(t.size - 1, 0))] == t_us) if t.size else np.zeros(t_us.size, bool)
-    out = np.zeros((t_us.size, 24))
-    out[hit] = np.asarray(conf.confidence, dtype=np.float64)[k[hit]]
-    return out
+    c = np.zeros((t_us.size, 24))
+    c[hit] = np.asarray(conf.confidence, dtype=np.float64)[k[hit]]
+    u = np.full((t_us.size, 24), np.nan)
+    u[hit] = np.asarray(conf.uncertainty_mm, dtype=np.float64)[k[hit]]
+    return c, u
 
 
 def with_gap_frames(t_us: np.ndarray, poses: np.ndarray, step_us: int) -> tuple[np.ndarray, np.ndarray]:
@@ -248,9 +253,15 @@ def motion_segments(t_us: np.ndarray, step_us: int) -> list[slice]:
     return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
-def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConfig) -> Path | str:
+#: What the BVH's first line says of the uncertainty (BVH cannot hold it).
+BVH_NOTE = "each joint's uncertainty (mm) and confidence per frame: motion.npz (uncertainty_mm, confidence)"
+
+
+def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConfig,
+               with_uncertainty: bool = False) -> Path | str:
     """motion.bvh of the estimated frames; a motion with gaps (BVH has no way to mark one) is cut there into
-    motion_partNN.bvh, one file per stretch, each with its own time origin (the log names them)."""
+    motion_partNN.bvh, one file per stretch, each with its own time origin (the log names them). with_uncertainty:
+    the first line's comment says where the joints' uncertainty is (:data:`BVH_NOTE`)."""
     from eventcap.export.bvh import write_bvh
     from eventcap.worldframe import unit_scale
 
@@ -263,7 +274,8 @@ def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConf
         grid, S, _ = uniform_motion(t_us[seg], poses[seg], step_us)
         out = path if len(segments) == 1 else path.with_name(f"{path.stem}_part{n:02d}{path.suffix}")
         written.append(write_bvh(out, S, template.rest_joints, frame_time_s=step_us * 1e-6,
-                                 scale=unit_scale(cfg.units or "m"), up_axis=cfg.up_axis, t0_us=int(grid[0])))
+                                 scale=unit_scale(cfg.units or "m"), up_axis=cfg.up_axis, t0_us=int(grid[0]),
+                                 note=BVH_NOTE if with_uncertainty else ""))
     if len(segments) > 1:
         spans = ", ".join(f"{t_us[s][0] / 1e3:.0f}-{t_us[s][-1] / 1e3:.0f} ms" for s in segments)
         log.warning("outputs: the motion has gaps: no motion.bvh; %d BVH files, one per stretch (%s)", len(written),
@@ -274,9 +286,10 @@ def _write_bvh(path: Path, t_us, poses, template, step_us: int, cfg: OutputsConf
     return written[0]
 
 
-def _write_npz(path: Path, t_us, poses, joints, est, conf, cfg: OutputsConfig) -> Path:
-    """motion.npz: every frame of the joined motion, gaps included (NaN, ``estimated`` false), its ``confidence``
-    per joint (0 in gaps; when the run has a confidence node) and the time spans of its gaps."""
+def _write_npz(path: Path, t_us, poses, joints, est, conf, cfg: OutputsConfig, unc=None) -> Path:
+    """motion.npz: every frame of the joined motion, gaps included (NaN, ``estimated`` false), its ``uncertainty_mm``
+    and ``confidence`` per joint (NaN and 0 in gaps; when the run has a confidence node) and the time spans of its
+    gaps."""
     from eventcap.export.bvh import write_motion_npz
     from eventcap.worldframe import describe
 
@@ -287,35 +300,37 @@ def _write_npz(path: Path, t_us, poses, joints, est, conf, cfg: OutputsConfig) -
              "world_frame": np.array(describe("y", "m")), "estimated": est, "gaps_us": gaps}
     if conf is not None:
         extra["confidence"] = conf.astype(np.float32)
+    if unc is not None:
+        extra["uncertainty_mm"] = unc.astype(np.float32)
     return write_motion_npz(path, t, poses, joints, extra=extra, estimated=est)
 
 
 def _write_c3d(path: Path, t_us, poses, joints, template, step_us: int, cfg: OutputsConfig,
-               conf: np.ndarray | None = None) -> Path:
+               unc: np.ndarray | None = None) -> Path:
     from eventcap.body.markers import plug_in_gait_markers
     from eventcap.export.c3d import write_c3d
-    from eventcap.analysis.confidence import OBSERVED
 
     keep = on_grid(t_us, step_us)  # C3D has one frame rate: intensity frames between two grid times stay in motion.npz
     markers = plug_in_gait_markers(template)
-    point_conf = None
-    if conf is not None:  # a joint below OBSERVED is unobserved or not trusted: residual -1; markers follow a joint
-        c = np.where(conf[keep] >= OBSERVED, conf[keep], 0.0)
-        point_conf = np.concatenate([c, c[:, np.argmax(markers.weights, axis=1)]], axis=1)  # a marker's main joint
+    point_unc = None
+    if unc is not None:  # the residual: each point's uncertainty; a marker takes its main joint's
+        u = unc[keep]
+        point_unc = np.concatenate([u, u[:, np.argmax(markers.weights, axis=1)]], axis=1)
     return write_c3d(path, np.asarray(t_us)[keep], np.asarray(joints)[keep],
                      markers.positions(np.asarray(poses)[keep], template), step_us, marker_names=markers.names,
                      marker_descriptions=markers.descriptions, up_axis=cfg.up_axis, units=cfg.units or "mm",
-                     confidence=point_conf)
+                     uncertainty_mm=point_unc)
 
 
 def _write_rerun(run_dir: Path, runner, result, t_us, poses, joints, rec, template, cfg: OutputsConfig,
-                 summary: dict[str, Any], conf: np.ndarray | None = None) -> Path:
+                 summary: dict[str, Any], conf: np.ndarray | None = None, unc: np.ndarray | None = None) -> Path:
     from eventcap.artifacts.tracking import LatentFrames
     from eventcap.apps.viewer import RRD_NAME, collect_run_content, write_recording
 
     content = collect_run_content(runner, result, t_us, poses, joints, rec, template,
                                   _first_output(runner, result, LatentFrames), cfg.poses)
     content.confidence = conf
+    content.uncertainty_mm = unc
     content.name = f"{content.name or 'run'}/{run_dir.name}"  # the recording id: runs of one name stay apart
     stats = write_recording(run_dir / RRD_NAME, content, cfg.rerun_events_ms, cfg.rerun_every_ms,
                             cfg.rerun_max_frames, cfg.rerun_outline_every_ms)
@@ -404,10 +419,14 @@ class OverlayRenderer:
         contours, _ = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(img, contours, -1, OUTLINE, 1, cv2.LINE_AA)
 
-    def draw_skeleton(self, img: np.ndarray, joints: np.ndarray, colour, width: int) -> None:
+    def draw_skeleton(self, img: np.ndarray, joints: np.ndarray, colour, width: int,
+                      uncertainty_mm: np.ndarray | None = None) -> None:
+        """Bones in ``colour``; joints too, or coloured by their uncertainty (24,) mm when given
+        (:func:`eventcap.imaging.viz.uncertainty_rgb`)."""
         import cv2
 
         from eventcap.body.skeleton import PARENTS
+        from eventcap.imaging.viz import uncertainty_rgb
 
         px = self.cam_big.project(joints)
         if not np.all(np.isfinite(px)):
@@ -416,8 +435,10 @@ class OverlayRenderer:
         for child, parent in enumerate(PARENTS):
             if parent >= 0:
                 cv2.line(img, tuple(p[parent]), tuple(p[child]), colour, width, cv2.LINE_AA)
-        for q in p:
-            cv2.circle(img, tuple(q), width + 1, colour, -1, cv2.LINE_AA)
+        cols = [colour] * len(p) if uncertainty_mm is None else \
+            [tuple(int(v) for v in c[::-1]) for c in uncertainty_rgb(uncertainty_mm)]
+        for q, c in zip(p, cols):
+            cv2.circle(img, tuple(q), width + (2 if uncertainty_mm is not None else 1), c, -1, cv2.LINE_AA)
 
     def side_view(self, joints: np.ndarray, truth: np.ndarray | None) -> np.ndarray:
         import cv2
@@ -454,18 +475,26 @@ class OverlayRenderer:
         w = (t_us - gt.t_us[k - 1]) / (gt.t_us[k] - gt.t_us[k - 1])
         return (1 - w) * gt.joints[k - 1] + w * gt.joints[k]
 
-    def frame(self, t_us: int, S: np.ndarray, joints: np.ndarray, caption: str = "") -> np.ndarray:
+    def frame(self, t_us: int, S: np.ndarray, joints: np.ndarray, caption: str = "",
+              uncertainty_mm: np.ndarray | None = None) -> np.ndarray:
+        """One frame; with the joints' uncertainty (24,) mm, the estimate's joints are coloured by it and the side
+        panel shows the legend."""
         img, what = self.background(t_us)
         n_ev = self.draw_events(img, t_us)
         self.draw_outline(img, S)
         truth = self.truth_at(t_us)
         if truth is not None:
             self.draw_skeleton(img, truth, TRUTH, 1)
-        self.draw_skeleton(img, joints, ESTIMATE, 2)
+        self.draw_skeleton(img, joints, ESTIMATE, 2, uncertainty_mm)
         _label(img, f"t = {t_us / 1000:.1f} ms  {caption}", (6, 16))
         _label(img, f"{what}, {n_ev} events in the last {self.events_us / 1000:g} ms", (6, 34))
         _label(img, "estimate" + (" / ground truth (grey)" if truth is not None else ""), (6, self.H - 8))
-        return np.concatenate([img, self.side_view(joints, truth)], axis=1)
+        side = self.side_view(joints, truth)
+        if uncertainty_mm is not None:
+            from eventcap.imaging.viz import draw_uncertainty_legend
+
+            draw_uncertainty_legend(side, (8, 40), min(150, side.shape[1] - 16))
+        return np.concatenate([img, side], axis=1)
 
 
 class _Encoder:
@@ -528,9 +557,11 @@ class _Encoder:
 
 
 def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, poses: np.ndarray, joints: np.ndarray,
-                        cfg: OutputsConfig, latent=None, name: str = "overlay.mp4") -> Path:
+                        cfg: OutputsConfig, latent=None, name: str = "overlay.mp4",
+                        uncertainty_mm: np.ndarray | None = None) -> Path:
     """Write ``<run_dir>/overlay.mp4`` (and PNGs of a few of its frames in ``overlay_frames/``); returns its path.
-    The log names the codec (:class:`_Encoder`)."""
+    uncertainty_mm (T, 24): the joints are coloured by it, with a legend. The log names the codec
+    (:class:`_Encoder`)."""
     import cv2
 
     run_dir = Path(run_dir)
@@ -552,7 +583,8 @@ def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, po
              cfg.video_fps, out, writer.codec)
     try:
         for n, i in enumerate(idx):
-            img = r.frame(int(t_us[i]), poses[i], joints[i], f"frame {n + 1}/{idx.size}")
+            img = r.frame(int(t_us[i]), poses[i], joints[i], f"frame {n + 1}/{idx.size}",
+                          None if uncertainty_mm is None else uncertainty_mm[i])
             writer.write(img)
             if n in pngs:
                 png_dir.mkdir(exist_ok=True)

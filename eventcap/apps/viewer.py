@@ -98,7 +98,8 @@ class RunContent:
     pose_nodes: dict[str, dict[int, Any]] = field(default_factory=dict)  # per-batch node -> batch -> PoseSequence
     batch_nodes: dict[str, dict[str, Any]] = field(default_factory=dict)  # per-batch node -> committed/failed batches
     errors: Any = None  # JointErrors
-    confidence: np.ndarray | None = None  # (T, 24) in [0, 1] at the motion's frames (eventcap.analysis.confidence)
+    confidence: np.ndarray | None = None  # (T, 24) in [0, 1] at the motion's frames (eventcap.analysis.uncertainty)
+    uncertainty_mm: np.ndarray | None = None  # (T, 24) mm at the motion's frames (NaN: none)
     name: str = ""
 
 
@@ -209,6 +210,8 @@ def _blueprint(rrb, has_speed: bool):
                          rrb.Spatial3DView(origin="world", name="3D"), column_shares=[3, 2])
     bottom = [rrb.TimeSeriesView(origin="speed", name="end-effector speed (m/s)")] if has_speed else []
     bottom += [rrb.TimeSeriesView(origin="error", name="joint error (mm)"),
+               rrb.TimeSeriesView(origin="uncertainty", name="joint uncertainty (mm)"),
+               rrb.TextDocumentView(origin="legend", name="joint colours"),
                rrb.TextLogView(origin="batches", name="batches")]
     return rrb.Blueprint(rrb.Vertical(top, rrb.Horizontal(*bottom), row_shares=[3, 2]), collapse_panels=True)
 
@@ -399,40 +402,62 @@ def _log_tracks(rr, s, c: RunContent, counts) -> None:
         counts["track points"] = n_points
 
 
-#: joint colours by confidence: observed (>= 0.5) and unobserved or not trusted
-_SEEN, _UNSEEN = np.array([60, 200, 90], np.uint8), np.array([230, 60, 50], np.uint8)
-
-
 def _keypoint_columns(rr, cls, P: np.ndarray, class_id: int, draw_order: float | None = None,
-                      confidence: np.ndarray | None = None) -> list:
-    """Columns of (T, K, dims) key points, one row of K per time; coloured by confidence (T, K) when given."""
+                      uncertainty_mm: np.ndarray | None = None) -> list:
+    """Columns of (T, K, dims) key points, one row of K per time; coloured by their uncertainty (T, K) mm when given
+    (eventcap.imaging.viz.uncertainty_rgb; the legend: :func:`_log_legend`)."""
+    from eventcap.imaging.viz import uncertainty_rgb
+
     T, K = P.shape[:2]
     kw = {"draw_order": np.full(T * K, draw_order, np.float32)} if draw_order is not None else {}
-    if confidence is not None:
-        kw["colors"] = np.where((np.asarray(confidence) >= 0.5).reshape(-1, 1), _SEEN, _UNSEEN)
+    if uncertainty_mm is not None:
+        kw["colors"] = uncertainty_rgb(np.asarray(uncertainty_mm).reshape(-1))
     cols = cls.columns(positions=P.reshape(T * K, -1), class_ids=np.full(T * K, class_id, np.uint16),
                        keypoint_ids=np.tile(np.arange(K, dtype=np.uint16), T), show_labels=np.zeros(T * K, bool),
                        **kw)
     return [*cols.partition(np.full(T, K))]
 
 
+def _log_legend(rr, s) -> None:
+    """What the estimate's joint colours mean (a text panel): the uncertainty's colour stops."""
+    from eventcap.imaging.viz import UNCERTAINTY_STOPS, UNKNOWN_RGB
+
+    def swatch(rgb):
+        return "#%02x%02x%02x" % tuple(rgb)
+
+    rows = "\n".join(f"| {mm:g} mm | {swatch(rgb)} |" for mm, rgb in UNCERTAINTY_STOPS)
+    text = ("## Joint colours: the uncertainty\n\nEach joint of the estimate is coloured by its uncertainty (the RMS 3D "
+            "distance to the truth one expects, calibrated: within 2 of it 90-97 % of the time; `uncertainty_mm` in "
+            "motion.npz), log-interpolated between these colours:\n\n| uncertainty | colour |\n|---|---|\n" + rows +
+            f"\n| none (a gap) | {swatch(UNKNOWN_RGB)} |\n\nAbove stages.confidence.trusted_mm (100 mm by default) a joint is not trusted (confidence < 0.5).")
+    s.log("legend", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
+
+
 def _log_motion(rr, s, c: RunContent, counts) -> None:
     T = c.t_us.size
-    conf = c.confidence
+    conf, unc = c.confidence, c.uncertainty_mm
     rr.send_columns("world/skeleton/estimate", indexes=_times(rr, c.t_us),
-                    columns=_keypoint_columns(rr, rr.Points3D, c.joints, CLASS_ESTIMATE, confidence=conf),
+                    columns=_keypoint_columns(rr, rr.Points3D, c.joints, CLASS_ESTIMATE, uncertainty_mm=unc),
                     recording=s)
     counts["3D skeleton frames"] = T
     if conf is not None:  # how much of the motion was seen: the share of joints observed, per frame
         rr.send_columns("confidence/observed_share", indexes=_times(rr, c.t_us),
                         columns=rr.Scalars.columns(scalars=(np.asarray(conf) >= 0.5).mean(axis=1)), recording=s)
         counts["confidence frames"] = T
+    if unc is not None:  # the joints' uncertainty: its median and largest per frame, and the colours' legend
+        u = np.asarray(unc, dtype=np.float64)
+        ok = np.isfinite(u).any(axis=1)
+        for what, f in (("median", np.nanmedian), ("largest", np.nanmax)):
+            rr.send_columns(f"uncertainty/{what}_mm", indexes=_times(rr, c.t_us[ok]),
+                            columns=rr.Scalars.columns(scalars=f(u[ok], axis=1)), recording=s)
+        _log_legend(rr, s)
+        counts["uncertainty frames"] = int(ok.sum())
     if c.rec is not None:
         px = c.rec.camera.project(c.joints.reshape(-1, 3)).reshape(T, -1, 2)
         ok = np.all(np.isfinite(px), axis=(1, 2))
         rr.send_columns("world/camera/image/skeleton", indexes=_times(rr, c.t_us[ok]),
                         columns=_keypoint_columns(rr, rr.Points2D, px[ok], CLASS_ESTIMATE, 30.0,
-                                                  None if conf is None else np.asarray(conf)[ok]), recording=s)
+                                                  None if unc is None else np.asarray(unc)[ok]), recording=s)
         counts["projected skeleton frames"] = int(ok.sum())
 
 

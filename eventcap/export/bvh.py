@@ -319,13 +319,14 @@ def _remove(p: Path) -> None:
 
 
 def write_bvh(path, poses, rest_joints, frame_time_s: float = 0.001, scale: float = 1.0, decimals: int = 8,
-              unwrap: bool = True, up_axis: str = "y", t0_us: int | None = None) -> Path:
+              unwrap: bool = True, up_axis: str = "y", t0_us: int | None = None, note: str = "") -> Path:
     """Write a skeletal motion as a BVH file; returns the path.
 
     poses: S (T, 33) in the skeleton layout (default: one pose every millisecond, ``frame_time_s = 0.001``).
     rest_joints: the template's rest joints (24, 3) metres, or the Template. ``scale``: factor on all lengths
     (1 = metres, 100 = centimetres). ``decimals``: digits after the point of every number. ``up_axis``: y | z.
-    ``t0_us``: time of the first frame on the run's time axis, stated in the first line's comment. The file appears
+    ``t0_us``: time of the first frame on the run's time axis, stated in the first line's comment; ``note``: more of
+    that comment (one line: where the motion's per-joint uncertainty is, which BVH cannot hold). The file appears
     atomically (written beside it as ``<name>.partial``, then renamed); on error nothing is left behind.
     """
     path = Path(path)
@@ -340,6 +341,10 @@ def write_bvh(path, poses, rest_joints, frame_time_s: float = 0.001, scale: floa
     comment = f"eventcap: {describe(up_axis, unit)}"
     if t0_us is not None:
         comment += f"; first frame at t = {int(t0_us)} us on the run's time axis, then every {frame_time_s * 1e6:g} us"
+    if note:
+        if "\n" in note or "\r" in note:
+            raise ValueError("note: expected one line (it goes into the first line's comment)")
+        comment += f"; {note}"
     header = (hierarchy_text(rest, scale, decimals, up_axis, comment)
               + f"MOTION\nFrames: {S.shape[0]}\nFrame Time: {frame_time_s!r}\n")
     tmp = _partial(path)

@@ -12,8 +12,13 @@ pure-Python ``c3d`` package (MIT, on PyPI), and read back in the tests by it and
   viewers which axis is up (``+X``/``+Y`` for y up, ``+X``/``+Z`` for z up).
 - C3D needs a constant rate: the frames lie on the grid ``t_us[0] + k * step``; grid frames the run did not
   estimate are *invalid* points (residual -1, the C3D convention for a gap), never interpolated, and the log says
-  how many. The residual column comes from :func:`point_residuals` (0 for an estimated point today; the per-point
-  confidence of the trust work goes there, -1 where nothing was observed).
+  how many. The residual column (:func:`point_residuals`) is what Vicon means by it, the point's quality: each
+  point's uncertainty (the RMS 3D distance to the truth one expects, calibrated: :mod:`eventcap.analysis.uncertainty`)
+  in the file's length unit, 0 when the run has none; -1 only where there is no estimate (a gap), which mocap tools
+  (Nexus, Visual3D, OpenSim) read as missing data. ``EVENTCAP:RESIDUAL`` says so in the file. C3D keeps a residual
+  in one byte, in units of |POINT:SCALE| (which scales nothing else in a float file): the scale is 1 mm in the file's
+  unit, so a residual reads in steps of 1 mm from 1 mm up to 255 mm, where it saturates (a point that uncertain is
+  not to be trusted anyway; motion.npz keeps the exact value).
 - Time origin: the first frame's number is its time on the run's time axis in frames, plus one (C3D counts from 1:
   frame n lies at ``(n - 1) / rate``): the header's first-frame word and ``TRIAL:ACTUAL_START_FIELD`` hold it,
   so a viewer's time axis shows the run's times. ``EVENTCAP:T0_US`` holds the first frame's time in microseconds
@@ -41,12 +46,14 @@ from pathlib import Path
 import numpy as np
 
 from eventcap.body.skeleton import JOINT_NAMES
-from eventcap.worldframe import check_frame, to_export
+from eventcap.worldframe import check_frame, to_export, unit_scale
 
 log = logging.getLogger("eventcap.export.c3d")
 
 #: Frame numbers past this need the long-file parameters (16-bit header words and POINT:FRAMES).
 MAX_SHORT_FRAME = 65535
+#: The residual's step (|POINT:SCALE|, mm): C3D keeps a residual in one byte, so it reads 1-255 steps.
+RESIDUAL_STEP_MM = 1.0
 #: Bytes of one point in a float C3D frame (x, y, z, residual word).
 _POINT_BYTES = 16
 
@@ -56,28 +63,24 @@ def c3d_labels(marker_names: Sequence[str] = ()) -> list[str]:
     return list(JOINT_NAMES) + list(marker_names)
 
 
-def point_residuals(valid: np.ndarray, confidence: np.ndarray | None = None) -> np.ndarray:
-    """The C3D residual of every point in every frame, (frames, points): -1 marks a point that is not there.
+def point_residuals(valid: np.ndarray, uncertainty: np.ndarray | None = None) -> np.ndarray:
+    """The C3D residual of every point in every frame, (frames, points): -1 marks a point that is not there (a gap).
 
-    valid: (frames, points) bool, the points the run estimated. confidence: optional (frames, points) in [0, 1]
-    (NaN: not observed). Without it every valid point has residual 0 (the C3D value of a point with no error
-    estimate). With it, a point whose confidence is 0 or NaN (nothing observed) is invalid (-1), the rest keep 0
-    until the confidence comes with a calibrated error in length units.
+    valid: (frames, points) bool, the points the run estimated. uncertainty: optional (frames, points), each point's
+    uncertainty in the file's length unit (>= 0; NaN: none known). A valid point's residual is its uncertainty, 0
+    where it has none (the C3D value of a point without an error estimate); only a point that is not there is -1.
     """
     valid = np.asarray(valid, dtype=bool)
     out = np.where(valid, 0.0, -1.0)
-    if confidence is None:
+    if uncertainty is None:
         return out
-    c = np.asarray(confidence, dtype=np.float64)
-    if c.shape != valid.shape:
-        raise ValueError(f"confidence: expected shape {valid.shape} (frames, points), got {c.shape}")
-    finite = c[np.isfinite(c)]
-    if finite.size and (finite.min() < 0.0 or finite.max() > 1.0):
-        raise ValueError(f"confidence: expected values in [0, 1] (NaN: not observed), got [{finite.min():g}, "
-                         f"{finite.max():g}]")
-    unobserved = ~np.isfinite(c) | (c <= 0.0)
-    out[unobserved] = -1.0
-    return out
+    u = np.asarray(uncertainty, dtype=np.float64)
+    if u.shape != valid.shape:
+        raise ValueError(f"uncertainty: expected shape {valid.shape} (frames, points), got {u.shape}")
+    finite = u[np.isfinite(u)]
+    if finite.size and finite.min() < 0.0:
+        raise ValueError(f"uncertainty: expected values >= 0 (NaN: none known), got {finite.min():g}")
+    return np.where(valid, np.where(np.isfinite(u), u, 0.0), -1.0)
 
 
 def _c3d():
@@ -131,14 +134,15 @@ def _points(t: np.ndarray, joints, markers, marker_names) -> np.ndarray:
 
 def write_c3d(path, t_us, joints, markers=None, step_us: int | None = None, *, marker_names: Sequence[str] = (),
               marker_descriptions: Sequence[str] | None = None, up_axis: str = "y", units: str = "mm",
-              confidence: np.ndarray | None = None) -> Path:
+              uncertainty_mm: np.ndarray | None = None) -> Path:
     """Write the points of a motion as a C3D file; returns the path.
 
     t_us: (T,) int64 microseconds, strictly increasing (the estimated frames), on the grid ``t_us[0] + k * step_us``
     (default step: the median step; 1000 us -> 1000 Hz). joints: (T, 24, 3) metres, internal world frame (y up).
     markers: optional (T, M, 3) metres named by ``marker_names`` (M,), described by ``marker_descriptions``.
-    up_axis ``y | z`` and units ``m | cm | mm``: the file's frame (:mod:`eventcap.worldframe`). confidence:
-    optional (T, 24 + M) per point, passed to :func:`point_residuals`.
+    up_axis ``y | z`` and units ``m | cm | mm``: the file's frame (:mod:`eventcap.worldframe`). uncertainty_mm:
+    optional (T, 24 + M) per point, mm (NaN: none known), written as the residual in the file's unit
+    (:func:`point_residuals`).
     """
     path = Path(path)
     check_frame(up_axis, units)
@@ -149,14 +153,16 @@ def write_c3d(path, t_us, joints, markers=None, step_us: int | None = None, *, m
     n_frames, n = int(k[-1]) + 1, len(labels)
     valid = np.zeros((n_frames, n), dtype=bool)
     valid[k] = True
-    conf = None
-    if confidence is not None:
-        c = np.asarray(confidence, dtype=np.float64)
-        if c.shape != (t.size, n):
-            raise ValueError(f"confidence: expected shape ({t.size}, {n}) (T, points), got {c.shape}")
-        conf = np.full((n_frames, n), np.nan)
-        conf[k] = c
-    residuals = point_residuals(valid, conf)
+    unc = None
+    if uncertainty_mm is not None:
+        u = np.asarray(uncertainty_mm, dtype=np.float64)
+        if u.shape != (t.size, n):
+            raise ValueError(f"uncertainty_mm: expected shape ({t.size}, {n}) (T, points), got {u.shape}")
+        unc = np.full((n_frames, n), np.nan)
+        unc[k] = u / 1000.0 * unit_scale(units)
+    residuals = point_residuals(valid, unc)
+    step = RESIDUAL_STEP_MM / 1000.0 * unit_scale(units)
+    residuals = np.where(residuals > 0, np.clip(residuals, step, 255 * step), residuals)  # one byte of |POINT:SCALE|
     gaps = n_frames - t.size
     if gaps:
         log.warning("c3d: %d of %d frames (at %g Hz) were not estimated (gaps between batches); they are marked "
@@ -170,7 +176,7 @@ def write_c3d(path, t_us, joints, markers=None, step_us: int | None = None, *, m
         raise ValueError(f"marker_descriptions: expected {len(marker_names)} descriptions, got "
                          f"{len(descriptions) - len(JOINT_NAMES)}")
     first_frame = _first_frame_number(int(t[0]), step_us)
-    writer = _writer(frames, labels, descriptions, 1e6 / step_us, units, up_axis, first_frame, int(t[0]))
+    writer = _writer(frames, labels, descriptions, 1e6 / step_us, units, up_axis, first_frame, int(t[0]), step)
     tmp = path.with_name(path.stem + ".partial.c3d")
     tmp.unlink(missing_ok=True)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -198,9 +204,10 @@ def _first_frame_number(t0_us: int, step_us: int) -> int:
 
 
 def _writer(frames: np.ndarray, labels, descriptions, rate: float, units: str, up_axis: str, first_frame: int,
-            t0_us: int):
+            t0_us: int, residual_step: float):
     c3d = _c3d()
-    w = c3d.Writer(point_rate=float(rate), point_scale=-1.0, point_units=units)
+    # a negative scale: float coordinates; its magnitude is the residual's unit (module doc)
+    w = c3d.Writer(point_rate=float(rate), point_scale=-float(residual_step), point_units=units)
     empty = np.zeros((0, 0), np.float32)
     w.add_frames([(f, empty) for f in frames])
     w.set_point_labels(labels)
@@ -211,6 +218,10 @@ def _writer(frames: np.ndarray, labels, descriptions, rate: float, units: str, u
     g = w.add_group(w.numeric_key_next, "EVENTCAP", "EventCap export")
     g.add_str("T0_US", "Time of the first frame on the run's time axis, microseconds", str(t0_us), len(str(t0_us)))
     g.add_str("UP_AXIS", "Vertical axis of the world frame", up_axis, 1)
+    text = (f"residual: the point's uncertainty in {units} (expected RMS 3D distance to the truth after a per-frame "
+            "rigid alignment, calibrated: within 2 of it 90-97 % of the time), 1 mm steps up to 255 mm (saturated); "
+            "0: none known; -1: no estimate (gap)")
+    g.add_str("RESIDUAL", "What the points' residual is", text, len(text))
     return w
 
 

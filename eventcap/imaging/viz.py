@@ -233,3 +233,43 @@ def label(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.42)
     box = img[max(0, y - h - 3):min(img.shape[0], y + base + 1), max(0, x - 3):min(img.shape[1], x + w + 3)]
     box //= 3
     cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+#: The uncertainty's colour scale: (mm, RGB) stops, from well known (green) to not trusted (red, at 100 mm: the
+#: confidence stage's trusted_mm by default) and beyond (magenta); log-interpolated between stops.
+UNCERTAINTY_STOPS: tuple[tuple[float, tuple[int, int, int]], ...] = (
+    (20.0, (40, 190, 80)), (50.0, (230, 220, 40)), (100.0, (235, 60, 40)), (300.0, (200, 40, 200)))
+#: The colour of a joint without an uncertainty (a gap, or a run without a confidence node).
+UNKNOWN_RGB = (150, 150, 150)
+
+
+def uncertainty_rgb(u_mm) -> np.ndarray:
+    """(..., 3) uint8 RGB colours of uncertainties (mm) on :data:`UNCERTAINTY_STOPS` (clamped at its ends); NaN:
+    :data:`UNKNOWN_RGB`."""
+    u = np.asarray(u_mm, dtype=np.float64)
+    stops = np.log([s for s, _ in UNCERTAINTY_STOPS])
+    cols = np.array([c for _, c in UNCERTAINTY_STOPS], dtype=np.float64)
+    x = np.log(np.clip(np.where(np.isfinite(u), u, 1.0), 1e-3, None))
+    rgb = np.stack([np.interp(x, stops, cols[:, k]) for k in range(3)], axis=-1)
+    rgb = np.where(np.isfinite(u)[..., None], rgb, np.array(UNKNOWN_RGB, dtype=np.float64))
+    return np.round(rgb).astype(np.uint8)
+
+
+def draw_uncertainty_legend(img: np.ndarray, org: tuple[int, int], width: int = 150) -> None:
+    """A colour bar of :func:`uncertainty_rgb` from 10 to 400 mm with its stops labelled, in a BGR image, its top-left
+    corner at org: what the joints' colours mean."""
+    import cv2
+
+    x0, y0 = org
+    lo, hi = np.log(10.0), np.log(400.0)
+    u = np.exp(lo + (hi - lo) * (np.arange(width) + 0.5) / width)
+    bar = uncertainty_rgb(u)[:, ::-1]  # BGR
+    h, w = img.shape[:2]
+    if x0 < 0 or y0 < 14 or x0 + width > w or y0 + 22 > h:
+        return
+    img[y0:y0 + 8, x0:x0 + width] = bar[None]
+    for mm, _ in UNCERTAINTY_STOPS:
+        x = x0 + int(round((np.log(mm) - lo) / (hi - lo) * width))
+        cv2.line(img, (x, y0 + 8), (x, y0 + 11), (255, 255, 255), 1)
+        cv2.putText(img, f"{mm:g}", (x - 8, y0 + 21), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (255, 255, 255), 1, cv2.LINE_AA)
+    label(img, "joint uncertainty (mm)", (x0, y0 - 3), 0.35)

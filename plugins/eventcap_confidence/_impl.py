@@ -5,8 +5,18 @@ from __future__ import annotations
 import numpy as np
 
 from eventcap.artifacts.pose import JointConfidence
-from eventcap.analysis.confidence import OBSERVED, motion_confidence
+from eventcap.analysis.confidence import OBSERVED, joints_in_view
 from eventcap.analysis.motion import join_batches
+from eventcap.analysis.uncertainty import (
+    UncertaintyModel,
+    at_times,
+    confidence_of,
+    detection_residuals,
+    event_gap_mm,
+    joined_sigma,
+    joint_uncertainty,
+    out_of_view,
+)
 from eventcap.core.stage import StageFailed
 
 
@@ -37,6 +47,49 @@ def event_support(rec, template, t_us: np.ndarray, poses: np.ndarray, config) ->
     return np.where(np.isfinite(seen[b]), seen[b], 0.0)
 
 
+def model_of(config) -> UncertaintyModel:
+    """The uncertainty's settings from the stage's config (StageFailed naming a key whose value cannot work)."""
+    if float(config.unseen_mm) < float(config.trusted_mm):
+        raise StageFailed(f"stages.confidence.unseen_mm: expected at least trusted_mm ({config.trusted_mm:g} mm: a "
+                          f"joint out of view must never be marked observed), got {config.unseen_mm:g}",
+                          status="invalid_config")
+    return UncertaintyModel(scale=float(config.scale), detection_2d=float(config.detection_2d),
+                            detection_3d=float(config.detection_3d), events=float(config.events),
+                            unseen_mm=float(config.unseen_mm), floor_mm=float(config.floor_mm),
+                            fallback_mm=float(config.fallback_mm))
+
+
+def motion_cues(rec, det, parts, config) -> dict:
+    """What the uncertainty is made of at every frame of the joined per-batch poses (eventcap.analysis.uncertainty):
+    ``t_us`` (T,), ``estimated`` (T,), ``sigma`` (T, 24) the solve's σ (None: the poses carry none), the detections'
+    residuals ``r2``, ``r3`` (T, 24) mm interpolated between the frames, the events' ``gap`` (T, 24) mm, ``in_view``
+    (T, 24)."""
+    tpl, cam = rec.template, rec.camera
+    t_us, poses, _ = join_batches(parts, "later")
+    est = np.isfinite(poses).all(axis=1)
+    t_det = np.asarray(det.t_us, dtype=np.int64)
+    idx = np.searchsorted(t_us, t_det)
+    hit = (idx < t_us.size) & (t_us[np.minimum(idx, t_us.size - 1)] == t_det)
+    P_det = np.full((t_det.size, 33), np.nan)
+    P_det[hit] = poses[idx[hit]]
+    r2, r3 = detection_residuals(tpl, cam, P_det, det.keypoints_2d, det.observed(), det.joints_3d, det.confidence_3d)
+    ev = event_support(rec, tpl, t_us, poses, config) if est.any() else np.zeros((t_us.size, 24))
+    return {"t_us": t_us, "estimated": est, "sigma": joined_sigma(parts, t_us), "r2": at_times(t_us, t_det, r2),
+            "r3": at_times(t_us, t_det, r3), "gap": event_gap_mm(tpl, cam, t_us, poses, t_det[hit], ev),
+            "events": ev, "poses": poses}
+
+
+def motion_uncertainty(rec, cues: dict, config) -> tuple[np.ndarray, np.ndarray]:
+    """(uncertainty (T, 24) mm, in view (T, 24)) from the cues (:func:`motion_cues`) with the stage's settings: a
+    joint is in view with ``view_margin`` times its uncertainty around it, and one out of view is raised to
+    ``unseen_mm``."""
+    model = model_of(config)
+    u = joint_uncertainty(model, cues["sigma"], cues["r2"], cues["r3"], cues["gap"], cues["estimated"])
+    seen = joints_in_view(rec.template, rec.camera, cues["poses"],
+                          float(config.view_margin) * np.nan_to_num(u) / 1000.0)
+    return out_of_view(u, seen, model.unseen_mm), seen
+
+
 def run_confidence(inputs, config, ctx):
     from eventcap.worldframe import upright
 
@@ -46,20 +99,34 @@ def run_confidence(inputs, config, ctx):
         raise StageFailed(f"stage 'confidence' needs the actor template, but recording {rec.name or rec.source!r} "
                           "has none", status="missing_template")
     parts = [seq[i] for i in range(len(seq))]
-    t_us, poses, _ = join_batches(parts, "later")
-    est = np.isfinite(poses).all(axis=1)
-    ev = event_support(rec, rec.template, t_us, poses, config) if est.any() else np.zeros((t_us.size, 24))
-    c = motion_confidence(rec.template, rec.camera, t_us, poses, np.asarray(det.t_us, dtype=np.int64),
-                          np.asarray(det.keypoints_2d, dtype=np.float64), det.observed(),
-                          np.asarray(det.confidence_2d, dtype=np.float64), ev, float(config.detection_frac),
-                          float(config.still_frac))
+    cues = motion_cues(rec, det, parts, config)
+    t_us, est = cues["t_us"], cues["estimated"]
+    u, seen = motion_uncertainty(rec, cues, config)
+    c = confidence_of(u, float(config.trusted_mm))
+    if cues["sigma"] is None:
+        ctx.log.warning("confidence: the poses carry no σ of their solve (a solve without a Laplace approximation): "
+                        "stages.confidence.fallback_mm (%g mm) stands for it, so the uncertainty is only that of "
+                        "where the cues disagree, not calibrated for this solve", float(config.fallback_mm))
     observed = (c >= OBSERVED).mean(axis=0)
-    ctx.log.info("confidence: %d frames (%d without an estimate); joints observed (confidence >= %.1f) on average "
-                 "%.0f%% of the estimated frames, the least seen: %s", t_us.size, int((~est).sum()), OBSERVED,
+    ctx.log.info("confidence: %d frames (%d without an estimate); uncertainty median %.0f mm (joints in view), %.0f "
+                 "mm (out of view); joints observed (confidence >= %.1f) on average %.0f%% of the estimated frames, "
+                 "the least seen: %s", t_us.size, int((~est).sum()), _median(u[est][seen[est]]),
+                 _median(u[est][~seen[est]]), OBSERVED,
                  100.0 * float((c[est] >= OBSERVED).mean()) if est.any() else 0.0,
                  ", ".join(f"{n} {100 * observed[j]:.0f}%" for j, n in _least_seen(observed)))
-    ctx.stats.update({"observed_share": [round(float(v), 4) for v in observed], "gap_frames": int((~est).sum())})
-    return {"confidence": JointConfidence(t_us=t_us, confidence=c.astype(np.float32), estimated=est)}
+    ctx.stats.update({"observed_share": [round(float(v), 4) for v in observed], "gap_frames": int((~est).sum()),
+                      "uncertainty_median_mm": [round(float(v), 1) for v in _column_medians(u[est])],
+                      "solve_sigma": cues["sigma"] is not None})
+    return {"confidence": JointConfidence(t_us=t_us, confidence=c.astype(np.float32),
+                                          uncertainty_mm=u.astype(np.float32), estimated=est)}
+
+
+def _median(x: np.ndarray) -> float:
+    return float(np.median(x)) if x.size else float("nan")
+
+
+def _column_medians(u: np.ndarray) -> np.ndarray:
+    return np.median(u, axis=0) if u.size else np.full(24, np.nan)
 
 
 def _least_seen(observed: np.ndarray, n: int = 3):

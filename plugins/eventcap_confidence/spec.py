@@ -1,5 +1,5 @@
-"""Spec of the confidence stage: a confidence per frame and joint of the estimated motion, from what the run
-observed (no ground truth). Declarations only."""
+"""Spec of the confidence stage: an uncertainty in millimetres per frame and joint of the estimated motion, and the
+confidence derived from it, from what the run observed (no ground truth). Declarations only."""
 
 from __future__ import annotations
 
@@ -12,12 +12,28 @@ from eventcap.core.stage import Port, StageSpec, param
 
 @dataclass
 class ConfidenceConfig:
-    detection_frac: float = param(0.05, gt=0, help="a detected landmark supports its joint as exp(-(r/r0)²), r the "
-                                                   "estimate's reprojection residual, r0 this fraction of the "
-                                                   "person's height in the image")
-    still_frac: float = param(0.05, ge=0, help="a joint whose estimated image position moves less than this fraction "
-                                               "of the body's image height between two intensity frames was still: "
-                                               "the frames' support holds between them without events")
+    scale: float = param(1.0, gt=0, help="calibration of the solve's own σ (its Laplace approximation, the energy read "
+                                         "as a negative log-likelihood): the σ in the uncertainty is this times the "
+                                         "solve's (dimensionless)")
+    detection_2d: float = param(0.0, ge=0, help="weight of the detected landmarks' reprojection residual, carried to "
+                                                "the joint's depth (mm), in the uncertainty (added as a variance; "
+                                                "dimensionless)")
+    detection_3d: float = param(0.0, ge=0, help="weight of the 3D detection's residual after the best translation "
+                                                "(mm) in the uncertainty (added as a variance; dimensionless)")
+    events: float = param(0.0, ge=0, help="weight of the joint's image displacement the events leave unconfirmed "
+                                          "between two intensity frames (mm at its depth) in the uncertainty (added "
+                                          "as a variance; dimensionless)")
+    floor_mm: float = param(0.0, ge=0, help="the least uncertainty of any joint, mm (added as a variance)")
+    fallback_mm: float = param(100.0, gt=0, help="the uncertainty that stands for the solve's σ where the solve "
+                                                 "gives none (a solve without a Laplace approximation), mm")
+    trusted_mm: float = param(100.0, gt=0, help="the uncertainty at which the confidence is 0.5: confidence = 1 / "
+                                                "(1 + (u / trusted_mm)²), mm; above it a joint is not trusted")
+    unseen_mm: float = param(300.0, gt=0, help="the least uncertainty of a joint out of view (outside the image with "
+                                               "the body around it), mm; at least trusted_mm, so that such a joint is "
+                                               "never marked observed")
+    view_margin: float = param(1.0, ge=0, help="a joint counts as in view when the ball of this many times its "
+                                               "uncertainty around it (or of its body's depth, if larger) projects "
+                                               "inside every image edge (dimensionless)")
     bin_ms: float = param(10.0, gt=0, help="time bins of the event support, ms")
     event_radius_px: int = param(6, ge=0, help="events counted in this half-side box around samples along each bone "
                                                "(eventcap.energy.silence.measure_silence)")
@@ -26,10 +42,11 @@ class ConfidenceConfig:
 
 
 CONFIDENCE = StageSpec(
-    name="confidence", kind="analyse", version=1,
-    description="confidence per frame and joint of the estimated motion from measurable support: detections "
-                "agreeing with it at the intensity frames, events along its bones between them, the joint in view "
-                "(no ground truth; below 0.5: unobserved or not trusted)",
+    name="confidence", kind="analyse", version=2,  # 2: the uncertainty in mm, the confidence derived from it
+    description="uncertainty (mm) per frame and joint of the estimated motion: the solve's own σ (its Laplace "
+                "approximation, calibrated) inflated where the detections, the events and the estimate disagree, "
+                "and for joints out of view; the confidence in [0, 1] derived from it (no ground truth; below 0.5: "
+                "not trusted)",
     config=ConfidenceConfig,
     inputs={"recording": Port(Recording), "detections": Port(Detections),
             "poses": Port(PoseSequence, "the motion's per-batch poses", all_batches=True)},

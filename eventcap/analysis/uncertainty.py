@@ -1,0 +1,291 @@
+"""An uncertainty per joint and frame in millimetres, and how to judge one: does it rank the error, does it cover it.
+
+The uncertainty u (mm) of joint j at frame t says how far from the truth the joint is likely to be, after the
+evaluation's per-frame rigid alignment (``stages.evaluate.align=procrustes``: the error the paper reports, and the
+one every figure of this module measures): the true 3D distance lies within 2 u about 90-97 % of the time
+(calibrated on the open benchmark's tuning seeds; docs/results/uncertainty.md). It is made of (:func:`joint_uncertainty`):
+
+1. **The solve's own curvature**: σ_L, the Laplace approximation of the solve (:mod:`eventcap.energy.laplace`), times
+   a global ``scale`` (the energy is not a negative log-likelihood of unit noise: its scale is calibrated).
+2. **Where the cues disagree**, each a distance in mm that the curvature cannot see (it measures how tightly the
+   terms hold the solution, not whether they agree), added as variances:
+
+   - the detections against the solution at the intensity frames (:func:`detection_residuals`): a landmark's
+     reprojection residual, carried to the joint's depth (r_px · z / f), and the 3D detection's residual after the
+     best translation (E_3D's t'), interpolated in time between the frames;
+   - the events along the bones between the frames: a joint that moved while no events outline its bones where the
+     solve puts it (1 - the event support of :mod:`eventcap.analysis.confidence`, growing away from the frames as
+     4τ(1 - τ)), times the joint's image displacement carried to its depth;
+
+3. **Out of view**: a joint outside the image has at least ``unseen_mm``: nobody saw it. Its place is only known to
+   within its uncertainty, so a joint counts as in view only when the ball of its body's depth around it, and of
+   ``view_margin`` times its uncertainty, projects inside every edge (:func:`eventcap.analysis.confidence.joints_in_view`):
+   a joint the solve puts just inside the edge, where the detector extrapolates a landmark, is not claimed.
+
+The confidence in [0, 1] follows from it (:func:`confidence_of`): 1 / (1 + (u / trusted_mm)²): 0.5 at u =
+``trusted_mm``, below it a joint is not trusted (what the outputs mark as such).
+
+Judging an uncertainty (Ilg et al., ECCV 2018, for optical flow): :func:`spearman` (rank correlation of u and the
+error), :func:`sparsification` (drop the most uncertain first: the mean error left, against the oracle that drops the
+largest errors first; the area between the two curves, AUSE, against a random ranking's), :func:`coverage` (the share
+of errors within k u).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from eventcap.body.kinematics import joint_positions, landmark_positions
+from eventcap.body.skeleton import NUM_JOINTS, PARENTS
+from eventcap.camera import Camera
+
+
+# --------------------------------------------------------------------------------------------- judging
+def _pairs(u, e) -> tuple[np.ndarray, np.ndarray]:
+    u, e = np.asarray(u, dtype=np.float64).ravel(), np.asarray(e, dtype=np.float64).ravel()
+    if u.shape != e.shape:
+        raise ValueError(f"uncertainty and error differ in size: {u.size} and {e.size}")
+    ok = np.isfinite(u) & np.isfinite(e)
+    return u[ok], e[ok]
+
+
+def spearman(u, e) -> float:
+    """Spearman's rank correlation of the uncertainty and the error over their finite pairs (NaN for fewer than 3)."""
+    from scipy.stats import spearmanr
+
+    u, e = _pairs(u, e)
+    return float(spearmanr(u, e).statistic) if u.size >= 3 else float("nan")
+
+
+def sparsification(u, e, steps: int = 50) -> dict:
+    """The sparsification curves of an uncertainty: at each fraction f in [0, 1) (``steps`` of them), the mean error
+    of what is left after dropping the f most uncertain (``curve``), the f largest errors (``oracle``), or a random
+    f (``random``: the mean error, in expectation). ``ause``: the area between curve and oracle; ``ause_random``:
+    between random and oracle; ``ratio``: their quotient (1: no better than random, 0: the oracle's order)."""
+    u, e = _pairs(u, e)
+    n = e.size
+    f = np.arange(steps) / steps
+    if n == 0:
+        nan = np.full(steps, np.nan)
+        return {"fraction": f, "curve": nan, "oracle": nan, "random": nan, "ause": np.nan, "ause_random": np.nan,
+                "ratio": np.nan}
+    keep = np.maximum(n - np.floor(f * n).astype(np.int64), 1)
+
+    def left(order):  # mean of the first `keep` after sorting by order (ascending: the kept ones first)
+        c = np.cumsum(e[order])
+        return c[keep - 1] / keep
+
+    curve = left(np.lexsort((e, u)))  # ties: the smaller error kept first (no credit for ties)
+    oracle = left(np.argsort(e, kind="stable"))
+    random = np.full(steps, e.mean())
+    ause, ause_r = float(np.mean(curve - oracle)), float(np.mean(random - oracle))
+    return {"fraction": f, "curve": curve, "oracle": oracle, "random": random, "ause": ause,
+            "ause_random": ause_r, "ratio": ause / ause_r if ause_r > 0 else float("nan")}
+
+
+def coverage(u, e, k: float = 2.0) -> float:
+    """The share of finite (uncertainty, error) pairs whose error lies within k uncertainties."""
+    u, e = _pairs(u, e)
+    return float(np.mean(e <= k * u)) if u.size else float("nan")
+
+
+# --------------------------------------------------------------------------------------------- cues
+def _joint_neighbours() -> list[np.ndarray]:
+    out = []
+    for j in range(NUM_JOINTS):
+        nb = list(np.flatnonzero(PARENTS == j))
+        if PARENTS[j] >= 0:
+            nb.append(int(PARENTS[j]))
+        out.append(np.array(sorted(nb), dtype=np.int64))
+    return out
+
+
+_NEIGHBOURS = _joint_neighbours()
+
+
+def fill_from_neighbours(values: np.ndarray, has: np.ndarray) -> np.ndarray:
+    """(D, 24): the joints without a value of their own (``has`` (24,) False) take the mean of their skeleton
+    neighbours' (through the neighbours that have one, as spine2 through spine1 and spine3); NaN stays NaN."""
+    v = np.array(values, dtype=np.float64)
+    has = np.array(has, dtype=bool)
+    todo = set(np.flatnonzero(~has).tolist())
+    while todo:
+        ready = {j: [n for n in _NEIGHBOURS[j] if has[n]] for j in todo}
+        ready = {j: nb for j, nb in ready.items() if nb}
+        if not ready:
+            break
+        for j, nb in ready.items():
+            x = v[:, nb]
+            n = np.isfinite(x).sum(axis=1)
+            v[:, j] = np.where(n > 0, np.nansum(x, axis=1) / np.maximum(n, 1), np.nan)
+        for j in ready:
+            has[j] = True
+            todo.discard(j)
+    return v
+
+
+def detection_residuals(template, camera: Camera, poses: np.ndarray, keypoints: np.ndarray, observed: np.ndarray,
+                        joints_3d: np.ndarray, confidence_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(r2, r3), each (D, 24) mm: how far the detections at D frames are from the estimate there (poses (D, 33)).
+
+    r2: each observed landmark's reprojection residual (keypoints (D, L, 2) px, observed (D, L)) carried to the
+    depth of its joint, r_px · z / f (the largest of a joint's landmarks); a joint without a landmark of its own takes
+    its neighbours' (:func:`fill_from_neighbours`). r3: the 3D detection (joints_3d (D, 24, 3) root-relative,
+    confidence_3d (D, 24)) against the estimate's joints after the best translation (the detected joints' weighted
+    mean offset: E_3D's t'). NaN where there is nothing to compare (not detected, no estimate)."""
+    P = np.asarray(poses, dtype=np.float64)
+    D = P.shape[0]
+    r2 = np.full((D, NUM_JOINTS), np.nan)
+    r3 = np.full((D, NUM_JOINTS), np.nan)
+    est = np.isfinite(P).all(axis=1)
+    if not est.any():
+        return r2, r3
+    Pe = P[est]
+    L = landmark_positions(Pe, template)  # (De, L, 3)
+    De, nL = L.shape[:2]
+    px = camera.project(L.reshape(-1, 3)).reshape(De, nL, 2)
+    z = camera.depth(L.reshape(-1, 3)).reshape(De, nL)
+    f = 0.5 * (camera.fx + camera.fy)
+    kp = np.asarray(keypoints, dtype=np.float64)[est]
+    obs = np.asarray(observed, dtype=bool)[est] & np.isfinite(kp).all(-1) & np.isfinite(px).all(-1) & (z > 0.05)
+    r_mm = np.where(obs, np.linalg.norm(np.where(obs[..., None], px - kp, 0.0), axis=-1) * z / f * 1000.0, np.nan)
+    lj = np.asarray(template.landmark_joint)
+    own = np.full((De, NUM_JOINTS), np.nan)
+    for k, j in enumerate(lj):
+        own[:, j] = np.fmax(own[:, j], r_mm[:, k])
+    has = np.zeros(NUM_JOINTS, dtype=bool)
+    has[lj] = True
+    r2[est] = fill_from_neighbours(own, has)
+    J = joint_positions(Pe, template)
+    rel = J - J[:, :1]
+    j3 = np.asarray(joints_3d, dtype=np.float64)[est]
+    c3 = np.asarray(confidence_3d, dtype=np.float64)[est]
+    c3 = np.where(np.isfinite(j3).all(-1), c3, 0.0)
+    w = c3.sum(axis=1, keepdims=True)
+    diff = rel - np.where(c3[..., None] > 0, j3, 0.0)
+    t = np.where(w > 0, (c3[..., None] * diff).sum(axis=1) / np.maximum(w, 1e-12), 0.0)  # (De, 3)
+    res = np.linalg.norm(diff - t[:, None, :], axis=-1) * 1000.0
+    r3[est] = np.where(c3 > 0, res, np.nan)
+    return r2, r3
+
+
+def at_times(t_us: np.ndarray, t_det: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(T, 24) values (D, 24) given at the detection frames t_det (D,), linearly interpolated at t_us (T,) between
+    the nearest frames on either side that have one (NaN: none; held beyond the first and last)."""
+    t = np.asarray(t_us, dtype=np.float64)
+    td = np.asarray(t_det, dtype=np.float64)
+    V = np.asarray(values, dtype=np.float64)
+    out = np.full((t.size, V.shape[1]), np.nan)
+    for j in range(V.shape[1]):
+        ok = np.isfinite(V[:, j])
+        if ok.any():
+            out[:, j] = np.interp(t, td[ok], V[ok, j])
+    return out
+
+
+def between_frames(t_us: np.ndarray, t_det: np.ndarray) -> np.ndarray:
+    """(T,) 4τ(1 - τ): 0 at an intensity frame, 1 half way between two (τ the fraction of the interval); 1 beyond
+    the first and last frame."""
+    t = np.asarray(t_us, dtype=np.float64)
+    td = np.asarray(t_det, dtype=np.float64)
+    if td.size < 2:
+        return np.where(np.isin(t, td), 0.0, 1.0)
+    k = np.clip(np.searchsorted(td, t, side="right") - 1, 0, td.size - 2)
+    tau = np.clip((t - td[k]) / np.maximum(td[k + 1] - td[k], 1.0), 0.0, 1.0)
+    m = 4.0 * tau * (1.0 - tau)
+    return np.where((t < td[0]) | (t > td[-1]), 1.0, m)
+
+
+def event_gap_mm(template, camera: Camera, t_us: np.ndarray, poses: np.ndarray, t_det: np.ndarray,
+                 event_support: np.ndarray) -> np.ndarray:
+    """(T, 24) mm: how far the events leave each joint unconfirmed between two intensity frames: (1 - e) · 4τ(1 - τ)
+    · d, e the event support of its bones (T, 24) in [0, 1], τ the fraction of the interval, d the joint's image
+    displacement over the interval in the estimate (between its two frames) carried to its depth (px · z / f, mm).
+    0 at the frames; NaN where the motion has no estimate."""
+    t = np.asarray(t_us, dtype=np.int64)
+    P = np.asarray(poses, dtype=np.float64)
+    est = np.isfinite(P).all(axis=1)
+    out = np.full((t.size, NUM_JOINTS), np.nan)
+    if not est.any():
+        return out
+    J = joint_positions(np.where(est[:, None], P, 0.0), template)
+    z = camera.depth(J.reshape(-1, 3)).reshape(t.size, NUM_JOINTS)
+    px = np.full((t.size, NUM_JOINTS, 2), np.nan)
+    front = (z > 0.05) & est[:, None]
+    px[front] = camera.project(J[front])
+    td = np.asarray(t_det, dtype=np.int64)
+    td = td[(td >= t[0]) & (td <= t[-1])]
+    k = np.searchsorted(t, td)
+    d = np.zeros((t.size, NUM_JOINTS))
+    if td.size >= 2:
+        step = np.linalg.norm(px[k[1:]] - px[k[:-1]], axis=-1)  # (D - 1, 24) px over each interval
+        seg = np.clip(np.searchsorted(td, t, side="right") - 1, 0, td.size - 2)
+        d = np.nan_to_num(step[seg]) * np.where(z > 0.05, z, np.nan) / (0.5 * (camera.fx + camera.fy)) * 1000.0
+    m = between_frames(t, td)[:, None]
+    gap = (1.0 - np.clip(np.asarray(event_support, dtype=np.float64), 0.0, 1.0)) * m * np.nan_to_num(d)
+    out[est] = gap[est]
+    return out
+
+
+def joined_sigma(parts, t_us: np.ndarray) -> np.ndarray | None:
+    """(T, 24) the per-batch pose sequences' ``sigma_mm`` at the joined motion's times t_us (a time two batches hold:
+    the later batch's, as :func:`eventcap.analysis.motion.join_batches` with ``later``); NaN where a batch has none;
+    None when no batch has one."""
+    if all(getattr(p, "sigma_mm", None) is None for p in parts):
+        return None
+    t_all = np.asarray(t_us, dtype=np.int64)
+    out = np.full((t_all.size, NUM_JOINTS), np.nan)
+    for p in sorted((p for p in parts if np.asarray(p.t_us).size), key=lambda p: int(p.t_us[0])):
+        k = np.searchsorted(t_all, np.asarray(p.t_us, dtype=np.int64))
+        out[k] = np.nan if p.sigma_mm is None else np.asarray(p.sigma_mm, dtype=np.float64)
+    return out
+
+
+# --------------------------------------------------------------------------------------------- the uncertainty
+@dataclass(frozen=True)
+class UncertaintyModel:
+    """How the uncertainty is made (module doc): ``scale`` of the solve's σ_L; the weights of the detections' 2D and
+    3D residuals and of the events' missing support; ``unseen_mm`` the least uncertainty of a joint out of view;
+    ``floor_mm`` the least of any joint; ``fallback_mm`` σ_L's stand-in where the solve gives none."""
+
+    scale: float
+    detection_2d: float
+    detection_3d: float
+    events: float
+    unseen_mm: float
+    floor_mm: float
+    fallback_mm: float
+
+
+def joint_uncertainty(model: UncertaintyModel, sigma_mm: np.ndarray | None, r2_mm: np.ndarray, r3_mm: np.ndarray,
+                      event_gap_mm: np.ndarray, estimated: np.ndarray) -> np.ndarray:
+    """(T, 24) the uncertainty (mm; module doc, 1-2) from σ_L (T, 24; None or NaN: ``fallback_mm``), the detections'
+    residuals at the frames interpolated in time (T, 24, mm; NaN: none), the events' missing support carried to mm
+    (T, 24) and whether each frame has an estimate (T,): NaN where not. Out of view: :func:`out_of_view`."""
+    T = np.asarray(estimated).shape[0]
+    sig = np.full((T, NUM_JOINTS), np.nan) if sigma_mm is None else np.asarray(sigma_mm, dtype=np.float64)
+    var = np.where(np.isfinite(sig), model.scale * sig, model.fallback_mm) ** 2
+    var = var + (model.detection_2d * np.nan_to_num(r2_mm)) ** 2 + (model.detection_3d * np.nan_to_num(r3_mm)) ** 2
+    var = var + (model.events * np.nan_to_num(event_gap_mm)) ** 2 + model.floor_mm ** 2
+    return np.where(np.asarray(estimated, dtype=bool)[:, None], np.sqrt(var), np.nan)
+
+
+def out_of_view(u_mm: np.ndarray, in_view: np.ndarray, unseen_mm: float) -> np.ndarray:
+    """The uncertainty (T, 24) with every joint out of view (in_view (T, 24) False) raised to at least unseen_mm
+    (module doc, 3); NaN stays NaN."""
+    u = np.asarray(u_mm, dtype=np.float64)
+    return np.where(np.asarray(in_view, dtype=bool) | ~np.isfinite(u), u, np.maximum(u, unseen_mm))
+
+
+def confidence_of(u_mm: np.ndarray, trusted_mm: float) -> np.ndarray:
+    """Confidence in [0, 1] from the uncertainty (module doc): 1 / (1 + (u / trusted_mm)²); 0 where u is NaN (a
+    gap)."""
+    u = np.asarray(u_mm, dtype=np.float64)
+    return np.where(np.isfinite(u), 1.0 / (1.0 + (np.nan_to_num(u) / trusted_mm) ** 2), 0.0)
+
+
+__all__ = ["UncertaintyModel", "at_times", "between_frames", "confidence_of", "coverage", "detection_residuals",
+           "event_gap_mm", "fill_from_neighbours", "joined_sigma", "joint_uncertainty", "out_of_view", "sparsification",
+           "spearman"]
