@@ -1,10 +1,12 @@
-"""The confidence stage (plugins/eventcap_confidence): per frame and joint, how much of what the run observed supports
-the estimated motion, without ground truth. Conformance, and its answer on the truth against a misplaced motion
-(eventcap/analysis/confidence.py holds the measures; tests/test_gaps.py the frames without an estimate)."""
+"""The confidence stage (plugins/eventcap_confidence): per frame and joint, an uncertainty in millimetres and the
+confidence derived from it, without ground truth. Conformance, and its answer on the truth against a motion whose
+arm is wrong (eventcap/analysis/uncertainty.py holds the measures; tests/test_uncertainty.py tests them;
+tests/test_gaps.py the frames without an estimate and the joints out of view)."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import PoseSequence
@@ -16,9 +18,11 @@ from helpers.poses import detect, posed_recording
 from helpers.spline_scene import EXACT, BatchSeq
 
 
-def inputs(shift_m: float = 0.0):
+def inputs(arm_rad: float = 0.0, sigma_mm: float | None = 20.0):
     """3 batches of a jumping jack with exact detections at its 4 intensity frames (no events), and the true motion
-    per batch, moved ``shift_m`` metres along x."""
+    per batch with the right shoulder turned by arm_rad, each frame with a solve's σ of sigma_mm (None: none)."""
+    from eventcap.body.skeleton import DOF_INDEX
+
     rec = posed_recording("jumping_jack", n_frames=4, speed=1.0, with_template=True)
     det = detect("simulated", rec, **EXACT)
     plan = BatchPlan.between_frames(rec.frames.t_us)
@@ -27,31 +31,57 @@ def inputs(shift_m: float = 0.0):
         b = plan.batch(k)
         t = np.arange(b.t0_us, b.t1_us + 1, 1_000, dtype=np.int64)
         S = gt.poses[np.searchsorted(gt.t_us, t)].copy()
-        S[:, 30] += shift_m
-        poses.append(PoseSequence(t_us=t, poses=S, status="Solve_Succeeded"))
+        S[:, DOF_INDEX["r_shoulder_flex"]] += arm_rad
+        sig = None if sigma_mm is None else np.full((t.size, 24), sigma_mm, np.float32)
+        poses.append(PoseSequence(t_us=t, poses=S, sigma_mm=sig, status="Solve_Succeeded"))
     return {"recording": rec, "detections": det, "poses": BatchSeq(poses, plan.batches())}
 
 
-def confidence(shift_m: float = 0.0, **config):
+def confidence(arm_rad: float = 0.0, sigma_mm: float | None = 20.0, **config):
     spec = load_registry().get("confidence")
-    return spec.load_run()(inputs(shift_m), build_config(spec, config, "stages.confidence"),
+    return spec.load_run()(inputs(arm_rad, sigma_mm), build_config(spec, config, "stages.confidence"),
                            StageContext(node="confidence", stage="confidence"))["confidence"]
 
 
 class TestConfidenceConformance(StageConformance):
     stage_name = "confidence"
-    sensitive = ("detection_frac", 0.1)
+    sensitive = ("scale", 2.0)
 
     def make_inputs(self):
         return inputs()
 
 
-def test_the_true_motion_is_trusted_at_the_frames_and_a_misplaced_one_is_not():
-    true, off = confidence(), confidence(0.1)
+WEIGHTS = {"scale": 1.5, "detection_2d": 0.5, "detection_3d": 0.5, "floor_mm": 5.0, "events": 0.0}
+
+
+def test_the_uncertainty_is_the_solves_sigma_on_the_truth_and_grows_where_the_detections_disagree():
+    from eventcap.body.skeleton import JOINT_INDEX
+
+    true, off = confidence(**WEIGHTS), confidence(1.0, **WEIGHTS)
     frames = np.searchsorted(true.t_us, inputs()["recording"].frames.t_us)
-    assert true.confidence.shape == (121, 24) and true.estimated.all()
-    assert np.all((true.confidence >= 0) & (true.confidence <= 1))
-    # every joint of the true motion is supported by its detection at every intensity frame ...
-    assert (true.confidence[frames] >= 0.5).all()
-    # ... and none of the motion moved by 10 cm (several pixels in these images, beyond detection_frac's scale)
-    assert (off.confidence[frames] < 0.5).all() and off.confidence.mean() < 0.5 * true.confidence.mean()
+    assert true.uncertainty_mm.shape == true.confidence.shape == (121, 24) and true.estimated.all()
+    # on the truth with exact detections: the calibrated σ and the floor (30 and 5 mm), within the residuals' rounding
+    assert np.allclose(true.uncertainty_mm, np.hypot(1.5 * 20.0, 5.0), atol=1.5)
+    assert (true.confidence > 0.9).all()  # 30 mm of a trusted 100 mm
+    # the right arm turned by 1 rad: the detections disagree there (tens of cm at the wrist), not at the left arm
+    arm = [JOINT_INDEX[n] for n in ("r_elbow", "r_wrist", "r_hand")]
+    left = [JOINT_INDEX[n] for n in ("l_elbow", "l_wrist", "l_hand")]
+    wrist = JOINT_INDEX["r_wrist"]
+    assert (off.uncertainty_mm[np.ix_(frames, arm)] > true.uncertainty_mm[np.ix_(frames, arm)] + 5.0).all()
+    assert (off.uncertainty_mm[frames, wrist] > 2.0 * true.uncertainty_mm[frames, wrist]).all()
+    assert off.confidence[frames, wrist].mean() < true.confidence[frames, wrist].mean() - 0.2
+    # (the other joints take a little: the 3D detections' best translation is their mean offset, the arm's included)
+    assert np.allclose(off.uncertainty_mm[np.ix_(frames, left)], true.uncertainty_mm[np.ix_(frames, left)], atol=6.0)
+
+
+def test_without_the_solves_sigma_the_fallback_stands_for_it(caplog):
+    c = confidence(sigma_mm=None, **WEIGHTS, fallback_mm=70.0)
+    assert np.allclose(c.uncertainty_mm, np.hypot(70.0, 5.0), atol=1.5)
+    assert "the poses carry no σ of their solve" in caplog.text
+
+
+def test_settings_that_cannot_work_are_refused_by_name():
+    from eventcap.core.stage import StageFailed
+
+    with pytest.raises(StageFailed, match=r"stages.confidence.unseen_mm: expected at least trusted_mm \(100 mm"):
+        confidence(unseen_mm=50.0)

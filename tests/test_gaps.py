@@ -4,9 +4,8 @@
 - A window whose frames hold no observation at all is a gap: no motion there (NaN), nothing extrapolated beyond a
   window's observed frames, and stitch leaves the gap as it is.
 - Outputs mark the gaps: motion.npz (``estimated``, NaN, ``gaps_us``), BVH cut into one file per stretch, C3D
-  residual -1; and carry a confidence per joint.
-- The confidence: in view, detections agreeing at the frames, events between them; an out-of-view joint is never
-  marked observed.
+  residual -1 (there only); and carry an uncertainty and a confidence per joint.
+- In view: a joint out of the image, or within its uncertainty of the edge, is never marked observed.
 - A recording without intensity frames picks the event-only pipeline by itself.
 """
 
@@ -19,7 +18,7 @@ import pytest
 
 from eventcap.artifacts.pose import Detections
 from eventcap.body.kinematics import joint_positions
-from eventcap.analysis.confidence import in_image, interval_support, motion_confidence
+from eventcap.analysis.confidence import in_image
 from helpers.spline_scene import run_stage, stage_inputs, stitch
 
 
@@ -95,45 +94,45 @@ def test_the_outputs_mark_gaps_and_cut_the_bvh(tmp_path):
     assert "motion_part02.bvh" in str(written)
 
 
-def test_confidence_is_zero_out_of_view_and_where_nothing_supports_the_estimate():
-    """At the truth with exact detections every joint in view is observed at the frames; a joint pushed out of the
-    image is 0; a landmark not observed gives its joint no support; between two frames a joint that moved and has
-    no event support decays to 0 half way, a still one keeps its support."""
-    from helpers.poses import detect
-    from helpers.spline_scene import EXACT
+def test_a_joint_out_of_view_is_never_marked_observed_not_even_at_the_edge():
+    """At the truth, every joint in view with its body and uncertainty around it; a joint pushed out of the image
+    is not, nor one the solve puts just inside the edge when its uncertainty reaches past it: out of view it gets at
+    least unseen_mm, so its confidence is below 0.5."""
+    from eventcap.analysis.confidence import joints_in_view
+    from eventcap.analysis.uncertainty import confidence_of, out_of_view
 
-    inputs = stage_inputs()
-    rec = inputs["recording"]
-    det = detect("simulated", rec, **EXACT)  # exact landmarks; those hidden by the body are not observations
-    gt = rec.ground_truth
-    t_det = np.asarray(det.t_us, dtype=np.int64)
-    t = np.arange(t_det[0], t_det[-1] + 1, 1000, dtype=np.int64)
-    P = gt.poses[np.searchsorted(gt.t_us, t)]
-    cam = rec.camera
-    ones = np.ones((t.size, 24))
-    c = motion_confidence(rec.template, cam, t, P, t_det, np.asarray(det.keypoints_2d, np.float64),
-                          det.observed(), np.asarray(det.confidence_2d, np.float64), ones, 0.05, 0.05)
-    at = np.searchsorted(t, t_det)
-    seen = in_image(cam, joint_positions(P, rec.template))
-    assert c.shape == (t.size, 24) and c.min() >= 0 and c.max() <= 1
-    lj = np.asarray(rec.template.landmark_joint)
-    obs = det.observed()
-    for d, k in enumerate(at):  # every joint whose own landmark is observed: as sure as the detector (exact data)
-        joints = np.unique(lj[obs[d]])
-        assert (c[k, joints] > 0.89).all(), (d, c[k, joints])  # the detector says 0.9 for a sharp landmark
-    assert not (c[~seen] > 0).any()  # out of view: never marked seen
-    # no observation of the right wrist's landmark at frame 1: its support there is gone
-    bad = det.observed().copy()
-    from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX
+    rec = stage_inputs()["recording"]
+    gt, cam = rec.ground_truth, rec.camera
+    P = gt.poses[::20][:5].copy()
+    seen = joints_in_view(rec.template, cam, P)
+    assert seen.all()  # the scene's actor is in view
+    P[2, 30] += 40.0  # moved far to the side: nothing of it in view
+    P[3] = np.nan  # a gap: not in view, not estimated
+    J = joint_positions(P[[4]], rec.template)[0]
+    px = cam.project(J)
+    w = 20  # l_wrist: put the pose so that the wrist is 3 px inside the right edge
+    for _ in range(30):  # along the camera's x axis (world: its rotation's first row), to within a hundredth of a px
+        shift_px = (cam.width - 0.5 - 3.0) - px[w, 0]
+        P[4, 30:33] += shift_px * cam.depth(J[w:w + 1])[0] / cam.fx * np.asarray(cam.R)[0]
+        J = joint_positions(P[[4]], rec.template)[0]
+        px = cam.project(J)
+    assert px[w, 0] == pytest.approx(cam.width - 3.5, abs=0.01)
+    mm_per_px = cam.depth(J[w:w + 1])[0] / cam.fx * 1000.0
+    assert joint_radii_px(rec, P[4], w) < 2.5  # the wrist's body alone would leave it in view, 3 px from the edge
+    u = np.full((5, 24), 2.0 * mm_per_px)  # 2 px of uncertainty: still in view
+    assert joints_in_view(rec.template, cam, P, u / 1000.0)[4, w]
+    u = np.full((5, 24), 6.0 * mm_per_px)  # 6 px: it may well be outside
+    seen = joints_in_view(rec.template, cam, P, u / 1000.0)
+    assert not seen[2].any() and not seen[3].any() and not seen[4, w]
+    c = confidence_of(out_of_view(u, seen, 2.0 * u[0, 0]), 1.5 * u[0, 0])  # unseen_mm above trusted_mm
+    assert (c[~seen & np.isfinite(P).all(axis=1)[:, None]] < 0.5).all() and (c[seen] > 0.5).all()
 
-    bad[1, LANDMARK_INDEX["r_wrist"]] = False
-    c2 = motion_confidence(rec.template, cam, t, P, t_det, np.asarray(det.keypoints_2d, np.float64), bad,
-                           np.asarray(det.confidence_2d, np.float64), ones, 0.05, 0.05)
-    assert c2[at[1], JOINT_INDEX["r_wrist"]] == 0.0 < c[at[1], JOINT_INDEX["r_wrist"]]
-    # between two frames: a moving joint without events decays to 0 half way, a still one keeps its support
-    s = interval_support(np.array([0, 500, 1000]), np.array([0, 1000]), np.ones((2, 24)),
-                         np.tile(np.arange(24) % 2 == 0, (1, 1)), np.zeros((3, 24)))
-    assert np.allclose(s[[0, 2]], 1.0) and np.allclose(s[1, 0::2], 0.0) and np.allclose(s[1, 1::2], 1.0)
+
+def joint_radii_px(rec, pose, j) -> float:
+    from eventcap.analysis.confidence import joint_radii
+
+    z = rec.camera.depth(joint_positions(pose[None], rec.template)[0, j:j + 1])[0]
+    return float(max(rec.camera.fx, rec.camera.fy) * joint_radii(rec.template)[j] / z)
 
 
 def test_a_recording_without_frames_picks_the_event_only_pipeline():

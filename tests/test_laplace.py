@@ -193,3 +193,32 @@ def test_on_an_energy_that_is_a_likelihood_the_joints_sigma_is_the_spread_of_the
     assert np.abs(sigma / rms - 1).max() < 0.15  # 400 draws: the RMS itself is known to about 3.5 %
     world = joint_sigma_mm(cov.pose_covariance(np.eye(n)), truth, rec.template, align="none")
     assert np.all(world >= sigma - 1e-9)  # the alignment only removes variance
+
+
+def test_the_joint_limits_bound_what_no_term_observes():
+    """A term that observes only the first 20 angles: without a prior the others are held by the proximal pull alone
+    (variance 1 / (2 λ_damp)); with the limits read as a prior of weight w, by it: variance (max - min)² / (12 w)."""
+    from eventcap.energy.laplace import limits_precision
+
+    rec = posed_recording("jumping_jack", n_frames=3, with_template=True)
+    lo, hi = pose_bounds()
+    f = GaussianPoses(GaussConfig(weight=100.0), rec.template, rec.camera, 2)
+    f.t_us = np.array([0, 1000])
+    f.y = rec.ground_truth.poses[[10, 20]]
+    mask = np.zeros(M)
+    mask[:20] = 1.0
+    f.linearize = lambda S, aux, order, f=f: Linearization(
+        0.0, None, np.broadcast_to(2.0 * f.weight * np.diag(mask), (f.n, M, M)).copy() if order >= 2 else None)
+    prob = FactorProblem(FramePoses(2), [f], IpoptSettings(max_iter=5, tol=1e-6, mumps_pivot_order=0), lo, hi,
+                         damp=1e-4)
+    prob.set_window(f.t_us)
+    x = f.y.ravel()
+    var0 = np.diag(laplace_covariance(prob, x).block(0, 0))
+    assert np.allclose(var0[:20], 1.0 / (200.0 + 2e-4)) and np.allclose(var0[20:], 1.0 / 2e-4)
+    p = limits_precision(lo, hi, 0.01)
+    assert np.all(p[27:] == 0) and np.allclose(p[:27], 0.12 / (hi[:27] - lo[:27]) ** 2)
+    var = np.diag(laplace_covariance(prob, x, p).block(0, 0))
+    assert np.allclose(var[20:27], 1.0 / (p[20:27] + 2e-4))  # the limits' spread over the weight
+    assert np.allclose(var[27:], 1.0 / 2e-4) and np.allclose(var[:20], 1.0 / (200.0 + p[:20] + 2e-4))
+    with pytest.raises(Exception, match=r"expected a prior precision >= 0 per pose parameter \(33,\)"):
+        laplace_covariance(prob, x, np.ones(5))

@@ -213,15 +213,38 @@ def banded_inverse(Lb: np.ndarray) -> np.ndarray:
     return S
 
 
-def laplace_covariance(problem, x: np.ndarray) -> UnitCovariance:
+def limits_precision(lower: np.ndarray, upper: np.ndarray, weight: float) -> np.ndarray:
+    """(33,) the precision of the joint limits read as a prior, times ``weight``: a uniform distribution over
+    [lower, upper] has variance (upper - lower)² / 12, so each joint angle gets weight · 12 / (upper - lower)²; the
+    root's 6 parameters none (the evaluation's rigid alignment removes them)."""
+    lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    out = np.zeros(_NP)
+    span = hi[:27] - lo[:27]
+    ok = np.isfinite(span) & (span > 0)
+    out[:27][ok] = float(weight) * 12.0 / span[ok] ** 2
+    return out
+
+
+def laplace_covariance(problem, x: np.ndarray, prior_precision: np.ndarray | None = None) -> UnitCovariance:
     """The covariance of the problem's pose units at its solution x (module doc), within the Hessian's band.
 
     The solve's exact Hessian need not be positive definite at its solution (robust losses, the second-order parts
     of the image terms, a solve stopped at its tolerance): then H_U + δ I, δ just enough to make it so plus the
     proximal pull's curvature 2 λ_damp (1e-9 of H_U's mean diagonal without one) (:func:`banded_cholesky`): its
-    directions of negative curvature are left as uncertain as the proximal pull alone makes a direction."""
+    directions of negative curvature are left as uncertain as the proximal pull alone makes a direction.
+
+    prior_precision: (33,) added to every unit's diagonal (:func:`limits_precision`): what bounds the directions no
+    term observes (a limb out of view) by the joint limits rather than by the proximal pull alone, whose curvature is
+    tiny (it only keeps the solve from drifting). Without it such a limb's σ reaches metres, and the rigid alignment
+    spreads that over every joint (it aligns on all 24)."""
     Hb, Hua, Haa = problem.hessian_parts(np.asarray(x, dtype=np.float64))
     Hu = schur_banded(Hb, Hua, Haa)
+    if prior_precision is not None:
+        p = np.asarray(prior_precision, dtype=np.float64)
+        if p.shape != (_NP,) or not np.all(np.isfinite(p) & (p >= 0)):
+            raise EnergyError(f"laplace: expected a prior precision >= 0 per pose parameter ({_NP},), got {p.shape}")
+        Hu = Hu.copy()
+        Hu[:, 0] += np.diag(p)
     floor = 2.0 * float(problem.damp)
     if floor <= 0:
         floor = 1e-9 * max(float(np.mean(np.einsum("npp->np", Hu[:, 0]))), 1e-12)
@@ -290,4 +313,4 @@ def joint_sigma_mm(pose_cov: np.ndarray, poses: np.ndarray, rest_joints: np.ndar
 
 
 __all__ = ["UnitCovariance", "banded_cholesky", "banded_inverse", "joint_jacobians", "joint_sigma_mm",
-           "from_lapack_band", "laplace_covariance", "rigid_projector", "schur_banded", "to_lapack_band"]
+           "from_lapack_band", "laplace_covariance", "limits_precision", "rigid_projector", "schur_banded", "to_lapack_band"]

@@ -42,7 +42,7 @@ from eventcap.energy.detections import FIT_DAMP, FrameDetections, FrameFitter, f
 from eventcap.energy.errors import EnergyError, SolveFailed
 from eventcap.energy.factor import Layout
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
-from eventcap.energy.laplace import UnitCovariance, laplace_covariance
+from eventcap.energy.laplace import UnitCovariance, laplace_covariance, limits_precision
 from eventcap.energy.prior import context_smoothing
 from eventcap.energy.problem import FactorProblem, SplinePoses
 from eventcap.energy.silence import Silence, measure_stillness
@@ -313,7 +313,8 @@ def _result(solver, spline, inputs, x, fits, solves, seconds, n_fits, changes) -
     lines = tuple(line for line in (f.describe() for f in solver.factors) if line)
     U, _ = prob.split(x)
     t0 = time.perf_counter()
-    covariance = laplace_covariance(prob, x)
+    covariance = laplace_covariance(prob, x, limits_precision(solver.lower, solver.upper,
+                                                              float(solver.config.uncertainty_limits)))
     seconds["laplace"] = time.perf_counter() - t0
     return WindowResult(spline=spline, control=U.copy(), aux=prob.aux(x), fits=fits, energies=energies,
                         solves=tuple(solves), seconds=seconds, fits_computed=n_fits, reports=reports, lines=lines,

@@ -86,6 +86,11 @@ class SplineSolveConfig:
     damp: float = param(1e-4, ge=0, help="proximal pull of the control points towards each solve's start (rad and m "
                                          "alike; not a term of the energy: it keeps directions nothing observes "
                                          "from drifting)")
+    uncertainty_limits: float = param(0.01, ge=0, help="weight of the joint limits read as a prior (each angle's "
+                                                       "variance over its range, (max - min)² / 12) in the Laplace "
+                                                       "approximation of each joint's σ, relative to the energy "
+                                                       "(dimensionless; 0: none, only the proximal pull bounds what "
+                                                       "no term observes); not in the solve itself")
     landmarks: str = param("widths", choices=("template", "widths"),
                            help="the hip and shoulder landmarks of E_2D: the template's joints (template), or where "
                                 "the detector puts them on this person, their widths measured over the capture from "
