@@ -213,3 +213,24 @@ def test_label_stays_inside_its_box_and_is_readable():
     assert changed[:, 1].max() <= 6 + w + 3 and changed[:, 0].min() >= 18 - h - 3
     box = img[18 - h - 3:18 + base + 1, 3:6 + w + 3]
     assert (box <= 66).mean() > 0.5 and box.max() >= 200  # dark box, white glyphs
+
+
+def test_the_overlay_colours_each_joint_by_its_uncertainty_and_shows_the_legend():
+    from eventcap.apps.outputs import OverlayRenderer
+    from eventcap.imaging.viz import uncertainty_rgb
+    from helpers.poses import posed_recording
+
+    rec = posed_recording("jumping_jack", n_frames=3, with_template=True)
+    gt = rec.ground_truth
+    S, J = gt.poses[20], gt.joints[20]
+    r = OverlayRenderer(rec, rec.template, gt.joints[:40], scale=2)
+    u = np.geomspace(15.0, 400.0, 24)
+    img = r.frame(int(gt.t_us[20]), S, J, "", uncertainty_mm=u)
+    plain = r.frame(int(gt.t_us[20]), S, J, "")
+    px = np.round(r.cam_big.project(J)).astype(int)
+    for j in (0, 12, 23):  # each joint's dot is its uncertainty's colour (BGR in the image)
+        x, y = px[j]
+        assert np.array_equal(img[y, x], uncertainty_rgb(u[j])[::-1]), j
+    side = img[:, r.W:]
+    assert (side[40:48, 8:158] != plain[:, r.W:][40:48, 8:158]).any()  # the legend's colour bar on the side view
+    assert np.array_equal(side[44, 8], uncertainty_rgb(10.0 * (400 / 10.0) ** (0.5 / 150))[::-1])

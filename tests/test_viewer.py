@@ -192,6 +192,33 @@ def test_speeds_are_central_differences_and_skip_gaps():
     assert np.allclose(v[:, 20], 2.0) and np.allclose(v[:, 0], 2 * t[idx] * 1e-6) and np.all(v[:, 1] == 0)
 
 
+def test_the_joints_are_coloured_by_their_uncertainty_with_a_legend(tmp_path):
+    """A motion with an uncertainty: the estimate's joints carry the colour scale's colours (grey where none is
+    known), its median and largest per frame are series, and a text panel says what the colours mean."""
+    from eventcap.apps.viewer import RunContent, write_recording
+    from eventcap.imaging.viz import UNKNOWN_RGB, uncertainty_rgb
+
+    t = np.arange(0, 10_000, 1000, dtype=np.int64)
+    J = np.random.default_rng(0).normal(0, 0.3, (t.size, 24, 3))
+    u = np.tile(np.geomspace(10.0, 500.0, 24), (t.size, 1))
+    u[3, 5] = np.nan
+    c = RunContent(t_us=t, joints=J, uncertainty_mm=u, confidence=1.0 / (1.0 + (np.nan_to_num(u) / 100.0) ** 2),
+                   name="colours")
+    stats = write_recording(tmp_path / "c.rrd", c)
+    assert stats["counts"]["uncertainty frames"] == t.size
+    rows, times, chunks = read_rrd(tmp_path / "c.rrd")
+    colours = np.array(column(chunks, "/world/skeleton/estimate", "colors"), dtype=np.int64)  # packed RGBA
+    rgb = np.stack([(colours >> 24) & 255, (colours >> 16) & 255, (colours >> 8) & 255], axis=-1)
+    assert np.array_equal(rgb, uncertainty_rgb(u).astype(np.int64))
+    assert tuple(rgb[3, 5]) == UNKNOWN_RGB and tuple(rgb[0, 0]) != tuple(rgb[0, 23])  # green-ish to magenta
+    assert np.array_equal(times["/uncertainty/median_mm"], t) and np.array_equal(times["/uncertainty/largest_mm"], t)
+    med = column(chunks, "/uncertainty/median_mm", "scalars")
+    assert np.allclose(np.ravel(med), np.nanmedian(u, axis=1))
+    assert "/legend" in rows and "/legend" not in times  # static
+    text = next(c.to_record_batch() for c in chunks if c.entity_path == "/legend")
+    assert "uncertainty" in str(text.to_pylist())
+
+
 def test_decimation_is_logged_and_respected(finished_run, caplog):
     tmp, run_dir, runner, result = finished_run
     from eventcap.apps.viewer import collect_run_content, write_recording
