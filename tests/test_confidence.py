@@ -51,7 +51,7 @@ class TestConfidenceConformance(StageConformance):
         return inputs()
 
 
-WEIGHTS = {"scale": 1.5, "detection_2d": 0.5, "detection_3d": 0.5, "floor_mm": 5.0, "events": 0.0}
+WEIGHTS = {"scale": 1.5, "detection_2d": 0.5, "detection_3d": 0.5, "floor_mm": 5.0, "events": 0.0, "trusted_mm": 100.0}
 
 
 def test_the_uncertainty_is_the_solves_sigma_on_the_truth_and_grows_where_the_detections_disagree():
@@ -84,4 +84,4 @@ def test_settings_that_cannot_work_are_refused_by_name():
     from eventcap.core.stage import StageFailed
 
     with pytest.raises(StageFailed, match=r"stages.confidence.unseen_mm: expected at least trusted_mm \(100 mm"):
-        confidence(unseen_mm=50.0)
+        confidence(unseen_mm=50.0, trusted_mm=100.0)

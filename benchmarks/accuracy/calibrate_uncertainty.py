@@ -133,8 +133,8 @@ def main(argv=None) -> int:
             names.append(label)
     print(f"{len(runs)} tuning runs: " + ", ".join(f"{n} ({g})" for n, g in zip(names, groups)))
     # 1. relative weights, by ranking
-    grid = {"detection_3d": [0.0, 0.2, 0.4, 0.7, 1.0, 1.5], "detection_2d": [0.0, 0.3, 0.7, 1.5],
-            "events": [0.0, 0.5], "floor_mm": [0.0, 20.0, 50.0]}
+    grid = {"detection_3d": [0.0, 0.4, 1.0, 1.5, 2.5, 4.0, 6.0], "detection_2d": [0.0, 0.3, 0.7, 1.5, 3.0],
+            "events": [0.0, 0.5, 1.0, 2.0, 4.0], "floor_mm": [0.0, 20.0, 50.0]}
     best = None
     for vals in itertools.product(*grid.values()):
         w = dict(zip(grid, vals))
@@ -151,7 +151,7 @@ def main(argv=None) -> int:
     lo, hi = 1e-3, 1e3
     for _ in range(60):
         factor = np.sqrt(lo * hi)
-        u, e = pooled(runs, lambda r: uncertainty(r, w, factor))
+        u, e = pooled(runs, lambda r, f=factor: uncertainty(r, w, f))
         cov = float(np.mean(e <= 2 * u))
         lo, hi = (factor, hi) if cov < TARGET else (lo, factor)
     # 3. trusted_mm and unseen_mm from the joints in view of whole-body captures with frames

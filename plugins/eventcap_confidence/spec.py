@@ -12,13 +12,13 @@ from eventcap.core.stage import Port, StageSpec, param
 
 @dataclass
 class ConfidenceConfig:
-    scale: float = param(1.0, gt=0, help="calibration of the solve's own σ (its Laplace approximation, the energy read "
+    scale: float = param(0.65, gt=0, help="calibration of the solve's own σ (its Laplace approximation, the energy read "
                                          "as a negative log-likelihood): the σ in the uncertainty is this times the "
                                          "solve's (dimensionless)")
-    detection_2d: float = param(0.0, ge=0, help="weight of the detected landmarks' reprojection residual, carried to "
+    detection_2d: float = param(0.455, ge=0, help="weight of the detected landmarks' reprojection residual, carried to "
                                                 "the joint's depth (mm), in the uncertainty (added as a variance; "
                                                 "dimensionless)")
-    detection_3d: float = param(0.0, ge=0, help="weight of the 3D detection's residual after the best translation "
+    detection_3d: float = param(1.63, ge=0, help="weight of the 3D detection's residual after the best translation "
                                                 "(mm) in the uncertainty (added as a variance; dimensionless)")
     events: float = param(0.0, ge=0, help="weight of the joint's image displacement the events leave unconfirmed "
                                           "between two intensity frames (mm at its depth) in the uncertainty (added "
@@ -26,9 +26,9 @@ class ConfidenceConfig:
     floor_mm: float = param(0.0, ge=0, help="the least uncertainty of any joint, mm (added as a variance)")
     fallback_mm: float = param(100.0, gt=0, help="the uncertainty that stands for the solve's σ where the solve "
                                                  "gives none (a solve without a Laplace approximation), mm")
-    trusted_mm: float = param(100.0, gt=0, help="the uncertainty at which the confidence is 0.5: confidence = 1 / "
+    trusted_mm: float = param(221.0, gt=0, help="the uncertainty at which the confidence is 0.5: confidence = 1 / "
                                                 "(1 + (u / trusted_mm)²), mm; above it a joint is not trusted")
-    unseen_mm: float = param(300.0, gt=0, help="the least uncertainty of a joint out of view (outside the image with "
+    unseen_mm: float = param(266.0, gt=0, help="the least uncertainty of a joint out of view (outside the image with "
                                                "the body around it), mm; at least trusted_mm, so that such a joint is "
                                                "never marked observed")
     view_margin: float = param(1.0, ge=0, help="a joint counts as in view when the ball of this many times its "
