@@ -49,6 +49,7 @@ class IpoptSettings:
     acceptable_iter: int = 10
     mu_init: float = 1e-7  # initial barrier parameter of the (warm-started) batch solves
     bound_push: float = 1e-4  # how far batch solves move the warm start away from the bounds (relative)
+    barrier: str = "monotone"  # the warm-started solves' barrier: monotone from mu_init, or IPOPT's adaptive one
 
     def __post_init__(self) -> None:
         if isinstance(self.max_iter, bool) or int(self.max_iter) != self.max_iter or self.max_iter < 0:
@@ -57,13 +58,16 @@ class IpoptSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"IpoptSettings.{name}: expected a number > 0, got {v!r}")
+        if self.barrier not in ("monotone", "adaptive"):
+            raise ValueError(f"IpoptSettings.barrier: expected monotone | adaptive, got {self.barrier!r}")
         if self.mumps_pivot_order not in range(8):
             raise ValueError(f"IpoptSettings.mumps_pivot_order: expected 0..7, got {self.mumps_pivot_order!r}")
 
     @classmethod
     def from_config(cls, config) -> IpoptSettings:
         """The pinned settings with a solve's stated options (:class:`eventcap.energy.settings.IpoptConfig`)."""
-        return cls(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
+        return cls(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order,
+                   barrier=str(getattr(config, "barrier", "monotone")))
 
     def options(self, warm: bool) -> dict:
         """nlpsol options; ``warm``: for the warm-started batch solves (else: the detection fits)."""
@@ -77,7 +81,9 @@ class IpoptSettings:
             "ipopt.acceptable_tol": float(self.acceptable_tol), "ipopt.acceptable_iter": int(self.acceptable_iter),
             "calc_lam_p": False, "no_nlp_grad": True, "error_on_fail": False,
         }
-        if warm:
+        if warm and self.barrier == "adaptive":  # IPOPT's defaults: mu from 0.1, bounds pushed by 1e-2
+            opts.update({"ipopt.mu_strategy": "adaptive"})
+        elif warm:
             opts.update({"ipopt.mu_strategy": "monotone", "ipopt.mu_init": float(self.mu_init),
                          "ipopt.bound_push": float(self.bound_push), "ipopt.bound_frac": float(self.bound_push)})
         return opts

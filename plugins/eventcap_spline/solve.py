@@ -80,6 +80,19 @@ class WindowResult:
     association_change_px: tuple[float, ...] = ()
 
 
+class FitSolver:
+    """The per-frame fits' built pieces for a template and camera (the paper's initialisation, and what the capture's
+    measures start from): the fitter with the solve's bounds, IPOPT settings and E_2D / E_3D weights. Much cheaper to
+    build than a :class:`SplineSolver` (no window problem)."""
+
+    def __init__(self, template: Template, camera: Camera, config, where: str = "stages.solve"):
+        self.template, self.camera, self.config = template, camera, config
+        self.lower, self.upper = bounds_with(config.limits, f"{where}.limits")
+        self.settings = IpoptSettings.from_config(config.ipopt)
+        self.fit_weights = fit_weights(config.terms)
+        self.fitter = FrameFitter(template, camera, self.settings, self.lower, self.upper, self.fit_weights[2])
+
+
 class SplineSolver:
     """The spline solve's built pieces for windows of one layout (template, camera, config): the factor problem
     (:class:`FactorProblem` over a spline's control points) and the per-frame fitter. ``config`` is the stage's
@@ -100,7 +113,7 @@ class SplineSolver:
 
 
 # --------------------------------------------------------------------------------------------- per-frame fits
-def frame_fit(solver: SplineSolver, det: FrameDetections, d: int):
+def frame_fit(solver: SplineSolver | FitSolver, det: FrameDetections, d: int):
     """The per-frame fit of detection frame d, ((S, t', stats), whether it was computed now). A frame's fit is a
     deterministic function of its detections and the fitter's settings, so neighbouring windows of this process
     share it (keyed by value)."""
@@ -280,7 +293,7 @@ def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds):
         t1 = time.perf_counter()
         est = Estimate(_curve(spline, x[:prob.nU].reshape(prob.n_units, _NP)), r, inputs, solver.template,
                        solver.camera, associate=rounds > 0)
-        if r > 0:
+        if r > 0 and float(c.icp_settle_px) > 0:  # (0: every round; nothing to measure)
             moved = [v for v in (f.association_change(est) for f in solver.factors) if v is not None]
             if moved:
                 changes.append(max(moved))
@@ -314,5 +327,5 @@ def _result(solver, spline, inputs, x, fits, solves, seconds, n_fits, changes) -
                         stillness=inputs.measured().get("stillness"), association_change_px=changes)
 
 
-__all__ = ["NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "clear_fits", "fit_window",
+__all__ = ["FitSolver", "NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "clear_fits", "fit_window",
            "frame_fit", "frame_fits", "observed_frames", "solve_window", "window_context", "window_stillness"]
