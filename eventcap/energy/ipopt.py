@@ -7,6 +7,8 @@ plugin without change in behaviour).
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import time
 from dataclasses import dataclass
@@ -68,6 +70,10 @@ class IpoptSettings:
         """The pinned settings with a solve's stated options (:class:`eventcap.energy.settings.IpoptConfig`)."""
         return cls(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order,
                    barrier=str(getattr(config, "barrier", "monotone")))
+
+    def restart(self) -> IpoptSettings:
+        """The settings of a solve that starts from an earlier solution: a monotone barrier from ``mu_init``."""
+        return dataclasses.replace(self, barrier="monotone")
 
     def options(self, warm: bool) -> dict:
         """nlpsol options; ``warm``: for the warm-started batch solves (else: the detection fits)."""

@@ -287,6 +287,12 @@ class FactorProblem:
         self.hessian = ca.Function("hessian", [X], [cb_h(X)])
         opts = dict(self.settings.options(True), grad_f=grad_f, hess_lag=hess_lag)
         self.solver = ca.nlpsol(self.name, "ipopt", {"x": X, "p": P, "f": cb_f(X)}, opts)
+        #: the solver of a solve that restarts from a solution (a later ICP round): a monotone barrier from a tiny
+        #: mu (the same one unless the settings choose another barrier for the first solve)
+        self.restart_solver = self.solver
+        if self.settings.barrier != "monotone":
+            again = dict(self.settings.restart().options(True), grad_f=grad_f, hess_lag=hess_lag)
+            self.restart_solver = ca.nlpsol(f"{self.name}_again", "ipopt", {"x": X, "p": P, "f": cb_f(X)}, again)
 
     # ------------------------------------------------------------------ data of one window
     def set_window(self, span, x_ref: np.ndarray | None = None) -> None:
@@ -457,14 +463,16 @@ class FactorProblem:
         ubx = np.concatenate([np.tile(self.upper, self.n_units), np.full(self.nA, np.inf)])
         return lbx, ubx
 
-    def solve(self, x0: np.ndarray, what: str, fixed_units: Sequence[int] = ()) -> tuple[np.ndarray, SolveStats]:
-        """One IPOPT solve from x0 (clipped into the bounds); fixed_units stay where x0 has them."""
+    def solve(self, x0: np.ndarray, what: str, fixed_units: Sequence[int] = (),
+              restart: bool = False) -> tuple[np.ndarray, SolveStats]:
+        """One IPOPT solve from x0 (clipped into the bounds); fixed_units stay where x0 has them. restart: x0 is an
+        earlier solve's solution (a later ICP round): the barrier for a solve that starts there."""
         lbx, ubx = self.bounds()
         x0 = np.clip(np.asarray(x0, dtype=np.float64), lbx, ubx)
         for u in fixed_units:
             sl = slice(u * _NP, (u + 1) * _NP)
             lbx[sl] = ubx[sl] = x0[sl]
-        return run_ipopt(self.solver, x0, np.zeros(0), lbx, ubx, what)
+        return run_ipopt(self.restart_solver if restart else self.solver, x0, np.zeros(0), lbx, ubx, what)
 
 
 __all__ = ["FactorProblem", "FramePoses", "SplinePoses", "coupling_band"]

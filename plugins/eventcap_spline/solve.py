@@ -305,7 +305,7 @@ def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds):
         prob.set_reference(x)
         t2 = time.perf_counter()
         label = f"ICP round {r + 1}" if rounds > 0 else "no correspondences"
-        x, st = prob.solve(x, f"{what}: spline solve ({label})")
+        x, st = prob.solve(x, f"{what}: spline solve ({label})", restart=r > 0)
         n_cor = sum(int(f.report().get("n_correspondences", 0)) for f in solver.factors)
         solves.append(SolveStats(st.status, st.iterations, st.seconds, n_cor))
         seconds["relinearize"] += t2 - t1
