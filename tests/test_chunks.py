@@ -13,6 +13,7 @@ from eventcap.core.pipeline import build_pipeline
 from eventcap.core.registry import load_registry
 from eventcap.core.runner import Runner
 from eventcap.core.stage import StageFailed
+from eventcap.core.testing import StageConformance
 
 
 def _grouped(cfg, size=2):
@@ -109,3 +110,17 @@ def test_the_spline_pipeline_solves_a_chunk_per_task_and_resumes(tmp_path):
     assert main(["run", *args, f"hydra.run.dir={tmp_path / 'b'}"]) == 0
     again = json.loads((tmp_path / "b" / "run.json").read_text())["nodes"]
     assert sum(n["computed"] for n in again.values()) == 0
+
+
+class TestChunksConformance(StageConformance):
+    stage_name = "chunks"
+    sensitive = ("seconds", 0.5)
+
+    def make_inputs(self):
+        t = np.arange(0, 400_001, 40_000)
+        return {"batches": BatchPlan(t0_us=t[:-1], t1_us=t[1:], frame0=np.arange(10))}
+
+    def test_the_chunks_cover_the_batches_once(self):
+        out = self.run_once(seconds=0.12)["chunks"]
+        assert out.t0_us.tolist() == [0, 120_000, 240_000] and out.t1_us.tolist() == [120_000, 240_000, 400_000]
+        assert out.frame0.tolist() == [0, 3, 6]  # the last chunk took the tail of one batch
