@@ -33,6 +33,10 @@ _NP = NUM_POSE_PARAMS
 PARAM_NAMES = DOF_NAMES + ROOT_ROTATION_NAMES + ROOT_TRANSLATION_NAMES
 
 
+#: the adaptive barrier's largest mu in the warm-started solves (see IpoptSettings.options)
+ADAPTIVE_MU_MAX = 1e-3
+
+
 @dataclass(frozen=True)
 class IpoptSettings:
     """IPOPT options that are pinned for speed and reproducibility (fixed when the problem is built). The three a
@@ -88,7 +92,10 @@ class IpoptSettings:
             "calc_lam_p": False, "no_nlp_grad": True, "error_on_fail": False,
         }
         if warm and self.barrier == "adaptive":  # IPOPT's defaults: mu from 0.1, bounds pushed by 1e-2
-            opts.update({"ipopt.mu_strategy": "adaptive"})
+            # The barrier never grows above ADAPTIVE_MU_MAX: from a warm start, IPOPT's own cap (1e5) let the oracle
+            # raise mu and jump a window with a missed detection into a far basin (the body 15 m deep, a higher
+            # energy, "Solve_Succeeded"); capped, the same window stays at the monotone solve's minimum.
+            opts.update({"ipopt.mu_strategy": "adaptive", "ipopt.mu_max": ADAPTIVE_MU_MAX})
         elif warm:
             opts.update({"ipopt.mu_strategy": "monotone", "ipopt.mu_init": float(self.mu_init),
                          "ipopt.bound_push": float(self.bound_push), "ipopt.bound_frac": float(self.bound_push)})

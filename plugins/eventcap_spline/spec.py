@@ -127,9 +127,9 @@ SPLINE_RENAMED = {
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=12,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
+    name="spline", kind="solve", version=13,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
     # widths; 10: window_step (a batch another window keeps returns no frames); 11: nested settings, energies named
-    # by the terms' groups; 12: a unit may be a chunk of batches
+    # by the terms' groups; 12: a unit may be a chunk of batches; 13: the adaptive barrier capped
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
                 "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
