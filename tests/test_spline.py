@@ -685,6 +685,9 @@ def test_bad_config_and_missing_detections_are_named():
     few = dict(inputs, batches=BatchPlan(t0_us=np.array([5_000, 47_000]), t1_us=np.array([47_000, 85_000]),
                                          frame0=np.array([0, 1])))
     with pytest.raises(StageFailed, match="no detection row at t = \\[47000\\]"):
+        run_stage(few, few["batches"].batch(0))
+    # a unit that is no batch (nor chunk of batches) of the plan is named with the plan's batches
+    with pytest.raises(StageFailed, match=r"none of the recording's 2 batches lies in it \(5000\.\.45000 us\)"):
         run_stage(few, b)
 
 

@@ -257,7 +257,9 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, inputs: Wind
         x = _warm(solver, x, start)
     prob.set_window(spline)
     seconds["fit"] = time.perf_counter() - t0
-    x, solves, changes = _icp(solver, spline, inputs, x, what, seconds)
+    # a start from a solution (any finite row) restarts as a later ICP round does; an all-NaN start is the cold start
+    warm = start is not None and bool(np.isfinite(start[0]).any())
+    x, solves, changes = _icp(solver, spline, inputs, x, what, seconds, warm)
     return _result(solver, spline, inputs, x, fits, solves, seconds, counter[0], changes)
 
 
@@ -280,7 +282,7 @@ def _warm(solver: SplineSolver, x: np.ndarray, start) -> np.ndarray:
     return x
 
 
-def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds):
+def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds, warm: bool = False):
     """``icp_rounds`` alternations of relinearising every factor at the current spline and solving (one solve
     without association when icp_rounds is 0). From the second round on, when every factor that associates would
     move its residuals by less than ``icp_settle_px`` (:meth:`Factor.association_change`), the rounds end: the last
@@ -305,7 +307,7 @@ def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds):
         prob.set_reference(x)
         t2 = time.perf_counter()
         label = f"ICP round {r + 1}" if rounds > 0 else "no correspondences"
-        x, st = prob.solve(x, f"{what}: spline solve ({label})", restart=r > 0)
+        x, st = prob.solve(x, f"{what}: spline solve ({label})", restart=r > 0 or warm)
         n_cor = sum(int(f.report().get("n_correspondences", 0)) for f in solver.factors)
         solves.append(SolveStats(st.status, st.iterations, st.seconds, n_cor))
         seconds["relinearize"] += t2 - t1
