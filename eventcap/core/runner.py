@@ -110,8 +110,10 @@ def artifact_nbytes(a: Artifact) -> int:
 
 
 #: Artifacts this process loaded or committed, by (cache root, stage, key, port): a node's outputs are read by the
-#: nodes after it without reading them back (bounded by count and by their arrays' bytes).
-_ARTIFACTS = ProcessCache("runner.inputs", maxsize=256, max_bytes=256 << 20, weigh=artifact_nbytes)
+#: nodes after it without reading them back. Bounded by count and by their arrays' bytes; the bytes bound is well
+#: above a long capture's recording: a recording evicted by smaller entries would be read again by every task that
+#: needs it (a 20 s capture read its recording 265 times with a 256 MB bound, and the process grew to 3.1 GB).
+_ARTIFACTS = ProcessCache("runner.inputs", maxsize=32, max_bytes=2 << 30, weigh=artifact_nbytes)
 
 
 def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact]) -> Artifact:
