@@ -254,12 +254,12 @@ def test_a_closed_pipe_ends_the_output_quietly(args):
     assert p.returncode == 0 and p.stderr == ""
 
 
-def test_a_setting_of_the_simulated_detector_on_a_real_file_says_what_to_choose(tmp_path):
+def test_a_setting_of_the_simulated_detector_on_a_real_file_says_what_to_choose(tmp_path, capsys):
     run_dir = tmp_path / "r"
     assert main(["run", "source=recording", f"source.path={REAL_DAVIS346}", "stages.detect.sigma_px=3",
                  f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"]) == 1
-    log = (run_dir / "eventcap.log").read_text()
+    err = capsys.readouterr().err
     assert "the settings given do not fit stages/detect=blazepose, chosen for this recording: stages.detect.sigma_px: " \
-           "no config key named 'sigma_px' in stages.detect (config group stages/detect=blazepose" in log
-    assert log.rstrip().endswith("or choose yourself: stages/detect=...")
-    assert not (run_dir / "run.json").exists()  # refused before anything ran
+           "no config key named 'sigma_px' in stages.detect (config group stages/detect=blazepose" in err
+    assert err.rstrip().endswith("or choose yourself: stages/detect=...")
+    assert not run_dir.exists()  # refused before the run folder was claimed

@@ -217,7 +217,7 @@ def test_the_real_cli_refuses_before_anything_runs(tmp_path, override, message):
                                "takes its config from stages.bogus"),
     ("+source.foo=1", "source.foo: no config key named 'foo' in the config of stage 'synthetic'"),
     ("source.roi=[0,0,500,500]", "source.roi: expected [x, y, width, height] inside the 240x180 sensor"),
-    ("outputs.join=sometimes", "outputs.join: expected one of later, mean, got 'sometimes'"),
+    ("outputs.join=sometimes", "outputs.join: expected one of later | mean, got 'sometimes'"),
 ])
 def test_a_refused_setting_leaves_nothing_on_disk(tmp_path, monkeypatch, capsys, override, message):
     """Issue 48: the settings are checked by a Hydra callback before the run folder is claimed (in-process: the

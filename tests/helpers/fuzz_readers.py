@@ -541,7 +541,7 @@ def main(argv=None) -> int:
     logging.getLogger("eventcap.io").setLevel(logging.ERROR)  # the corpus' own repair notes are expected
     failed = False
     if not args.no_table:
-        import bad_inputs
+        from . import bad_inputs
 
         with tempfile.TemporaryDirectory(prefix="eventcap-bad-") as tmp:
             rows = bad_inputs.issue_table(Path(tmp), [] if args.no_settings else None)
