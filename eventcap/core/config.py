@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from eventcap.core.registry import unknown_name_message
-from eventcap.core.stage import StageSpec, allowed_values, check_value
+from eventcap.core.stage import StageSpec, allowed_values, check_value, given_fields
 
 
 class ConfigError(ValueError):
@@ -50,18 +50,26 @@ def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
     missing = [f.name for f in dataclasses.fields(obj) if getattr(obj, f.name) is dataclasses.MISSING]
     if missing:
         raise ConfigError(f"{where}.{missing[0]}: required by stage {spec.name!r} but not set")
+    _check_fields(obj, where, spec.name)
+    return obj
+
+
+def _check_fields(obj: Any, where: str, stage: str) -> None:
+    """Choices and bounds of every field of ``obj``, and of the fields of its nested groups (``where.group.key``)."""
     for f in dataclasses.fields(obj):
         choices = f.metadata.get("choices")
         value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            _check_fields(value, f"{where}.{f.name}", stage)
+            continue
         if choices is not None and value not in choices:
             close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1, cutoff=0.5)
             hint = f"; did you mean {close[0]!r}?" if close else ""
             raise ConfigError(f"{where}.{f.name}: expected one of {' | '.join(str(c) for c in choices)}, got "
-                              f"{value!r} (stage {spec.name!r}){hint}")
+                              f"{value!r} (stage {stage!r}){hint}")
         problem = check_value(f, value)
         if problem:
-            raise ConfigError(f"{where}.{f.name}: {problem} (stage {spec.name!r})")
-    return obj
+            raise ConfigError(f"{where}.{f.name}: {problem} (stage {stage!r})")
 
 
 #: The values ``log_level`` takes (case-insensitive).
@@ -122,9 +130,25 @@ def _plain(v):
 
 
 def result_config(spec: StageSpec, config: Any) -> dict[str, Any]:
-    """Only the fields that affect the stage's result: what goes into the cache key."""
+    """Only the fields that affect the stage's result: what goes into the cache key. A nested group whose every
+    value is null (unset, e.g. ``source.actor``) is left out, so adding such a group keeps the keys of the results
+    made before it existed."""
     full = config_to_dict(config)
-    return {k: full[k] for k in spec.result_fields()}
+    out: dict[str, Any] = {}
+    meta = {f.name: f.metadata for f in dataclasses.fields(config)}
+    for k in spec.result_fields():
+        if _unset_group(getattr(config, k)):
+            continue
+        out[k] = _plain(meta[k]["unset"]) if "unset" in meta[k] and full[k] is None else full[k]
+    given = given_fields(config)
+    if given:  # what the user stated changes the result even where it equals the unset value
+        out["given"] = given
+    return out
+
+
+def _unset_group(value: Any) -> bool:
+    return (dataclasses.is_dataclass(value) and not isinstance(value, type)
+            and all(getattr(value, f.name) is None for f in dataclasses.fields(value)))
 
 
 def file_digest(path: str | Path, chunk: int = 1 << 22) -> str:

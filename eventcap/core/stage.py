@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -33,8 +33,13 @@ def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool
           file: bool | Callable[[Any], list[str]] = False,
           default_factory: Any = dataclasses.MISSING, choices: tuple[Any, ...] | None = None,
           ge: float | None = None, gt: float | None = None, le: float | None = None, lt: float | None = None,
-          finite: bool = True, odd: bool = False):
+          finite: bool = True, odd: bool = False, unset: Any = dataclasses.MISSING):
     """A config field. ``affects_result=False`` keeps it out of the cache key (e.g. logging, sleeps, workers).
+
+    ``unset=<value>`` (with a null default) makes a field the user may leave unsaid: null means "not given", the
+    stage then uses ``value`` (:func:`given_or_unset`) and may treat what was given differently from what was not
+    (a template's stated height is kept, an unstated one estimated). While null, the key material holds ``value``,
+    as before the field could be null; the names of the given ones are added to the key (``given``).
 
     ``file=True`` marks a path whose *content digest* enters the cache key (input recordings, templates).
     ``file=<function>`` is for a field whose value only sometimes names files (a motion name or a clip's path):
@@ -55,9 +60,25 @@ def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool
         meta["finite"] = False
     if odd:
         meta["odd"] = True
+    if unset is not dataclasses.MISSING:
+        meta["unset"] = unset
     if default_factory is not dataclasses.MISSING:
         return field(default_factory=default_factory, metadata=meta)
     return field(default=default, metadata=meta)
+
+
+def given_or_unset(config: Any, name: str) -> Any:
+    """The value of field ``name`` of a config: as given, or its ``unset`` value (see :func:`param`) when null."""
+    value = getattr(config, name)
+    if value is not None:
+        return value
+    f = next(f for f in dataclasses.fields(config) if f.name == name)
+    return f.metadata.get("unset")
+
+
+def given_fields(config: Any) -> list[str]:
+    """The fields declared with ``unset`` (:func:`param`) that the config gives (not null), in declaration order."""
+    return [f.name for f in dataclasses.fields(config) if "unset" in f.metadata and getattr(config, f.name) is not None]
 
 
 def _allowed(meta: Mapping[str, Any], integer: bool) -> str:
@@ -155,6 +176,10 @@ class StageSpec:
     run: str
     per_batch: bool = False
     origin: str = ""  # where the registry found it (filled by the registry)
+    #: The input ports a config reads, ``uses(config) -> names`` (None: every input). An input a config does not
+    #: read is neither loaded nor part of the node's cache key: e.g. the synthetic source filming an actor of its
+    #: own does not recompute its capture when the template changes.
+    uses: Callable[[Any], Collection[str]] | None = None
 
     def __post_init__(self) -> None:
         where = f"stage spec {self.name!r}" + (f" ({self.origin})" if self.origin else "")
@@ -192,6 +217,16 @@ class StageSpec:
     # -- config ---------------------------------------------------------------------------------------------------
     def result_fields(self) -> list[str]:
         return [f.name for f in dataclasses.fields(self.config) if f.metadata.get("affects_result", True)]
+
+    def used_inputs(self, config: Any) -> list[str]:
+        """The input ports ``config`` reads (see ``uses``), in declaration order."""
+        if self.uses is None:
+            return list(self.inputs)
+        used = set(self.uses(config))
+        unknown = sorted(used - set(self.inputs))
+        if unknown:
+            raise StageSpecError(f"stage spec {self.name!r}: uses() names unknown input(s) {unknown}")
+        return [p for p in self.inputs if p in used]
 
     def file_fields(self) -> list[str]:
         return [f.name for f in dataclasses.fields(self.config) if f.metadata.get("file", False)]
