@@ -22,6 +22,7 @@ from eventcap.body.motions import motion_poses
 from eventcap.body.proportions import SEGMENTS, fit_body, floor_depths, seen_segments, segment_lengths
 from eventcap.camera import Camera, look_at
 from eventcap.core.stage import StageContext
+from eventcap.core.testing import StageConformance
 from eventcap.events import EVENT_DTYPE
 
 ACTOR = dict(height_m=1.62, build=0.3, muscle=0.4, sex=-0.7)
@@ -146,3 +147,15 @@ def test_evaluate_measures_the_body_and_the_stated_template_against_the_truth(ac
     assert out["body_error_mm"] < 1e-6
     assert out["stated_body_error_mm"] == pytest.approx(10 * err_cm(anny_rest_joints(**START)), rel=1e-6)
     assert set(out["stated_body_error_by_segment_mm"]) == set(SEGMENTS)
+
+
+class TestProportionsConformance(StageConformance):
+    stage_name = "proportions"
+    sensitive = ("prior_sigma", 0.3)
+
+    def make_inputs(self):
+        body = anny_template(**ACTOR, seed=2)
+        t = np.arange(8) / 25.0
+        S = motion_poses("jumping_jack", t, seed=1, template=body)
+        cam = camera(1.6)
+        return {"recording": recording(cam), "detections": detections(body, S, cam, t), "template": anny_template()}
