@@ -169,9 +169,6 @@ def floor_depths(camera, keypoints_2d: np.ndarray, confidence_2d: np.ndarray, jo
 FITTED_PHENOTYPES = ("sex", "muscle")
 #: The statures a fit may reach (m): adults, within ANNY's range.
 STATURE_RANGE_M = (1.40, 2.10)
-#: Which quantile of the per-image scale (the floor's depth over the fitted one) the stature takes: a foot off the
-#: floor (a jump, a kick) puts the person farther and taller, never nearer
-SCALE_QUANTILE = 0.5
 #: Robust loss scale of the relative length residuals (soft-L1): a seen length this far off counts less.
 RESIDUAL_SCALE = 0.08
 
@@ -248,7 +245,6 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
 
     # the depths a start body would be seen at: each image's median over its segments
     B0 = lengths(params)
-    z0 = np.full(n_img, np.nan)
     per = [[] for _ in range(n_img)]
     for k, n in enumerate(names):
         for i, u, o in zip(idx[n], seen.unit[n], seen.offset[n]):
@@ -272,7 +268,8 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
         if ok.sum() < MIN_IMAGES:
             break
         # the model at `height` is seen at depth z; the person at the floor's depth is k times as tall
-        k = float(np.quantile(fz[ok] / x[len(pheno):][ok], SCALE_QUANTILE))
+        k = float(np.median(fz[ok] / x[len(pheno):][ok]))  # (a lower quantile, against feet off the floor, did
+        # no better on the tuning captures)
         height = float(np.clip(height * k, *STATURE_RANGE_M))
         floor_images = int(ok.sum())
         scale_from = "floor"
