@@ -39,7 +39,8 @@ class AnnyConfig:
     height_m: float | None = param(None, gt=0, unset=1.75, help="stature of the person in metres (1.2-2.3); null: "
                                                                "not stated (1.75, estimated by the body stage)")
     build: float | None = param(None, ge=-1, le=1, unset=0.0, help="thin (-1) to heavy (+1): ANNY's weight "
-                                                                   "phenotype; null: not stated (0, estimated)")
+                                                                   "phenotype; null: not stated (0; not estimated: "
+                                                                   "it moves no joint)")
     muscle: float | None = param(None, ge=-1, le=1, unset=0.0, help="-1 to +1: ANNY's muscle phenotype; null: not "
                                                                     "stated (0, estimated)")
     sex: float | None = param(None, ge=-1, le=1, unset=0.0, help="-1 female, 0 ANNY's mean body, +1 male; null: not "
