@@ -216,7 +216,10 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     if "height_m" in free and floor_z is not None and camera_height_m is not None:
         fz = np.asarray(floor_z, dtype=np.float64)
         dist = float(np.nanmedian(fz)) if np.isfinite(fz).any() else float("nan")
-        if not (np.isfinite(dist) and camera_height_m >= MIN_FLOOR_ELEVATION * dist):
+        if not np.isfinite(dist):
+            scale_from = "template default (no sole of a supporting foot seen on the floor)"
+            floor_z = None
+        elif camera_height_m < MIN_FLOOR_ELEVATION * dist:
             scale_from = (f"template default (the camera {camera_height_m:.2f} m high, the person ~{dist:.1f} m away: "
                           f"too low for the floor to tell the depth, below {MIN_FLOOR_ELEVATION} x the distance)")
             floor_z = None
@@ -266,6 +269,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
         fz = np.asarray(floor_z, dtype=np.float64)[images]
         ok = np.isfinite(fz) & (fz > 0)
         if ok.sum() < MIN_IMAGES:
+            scale_from = f"template default (the supporting foot's sole seen on the floor in {int(ok.sum())} images)"
             break
         # the model at `height` is seen at depth z; the person at the floor's depth is k times as tall
         k = float(np.median(fz[ok] / x[len(pheno):][ok]))  # (a lower quantile, against feet off the floor, did
