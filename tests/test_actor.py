@@ -13,7 +13,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import small_capture_config
+from helpers.runs import small_capture_config
 from eventcap.body.anny import anny_from_json, anny_rest_joints, anny_template
 from eventcap.body.proportions import rest_skeleton_from_motion, segment_lengths
 from eventcap.core.config import ConfigError, build_config, result_config
@@ -39,8 +39,10 @@ def test_an_unset_actor_keeps_the_key_material_and_reads_the_template():
     assert set(result_config(syn, plain)) == OLD_FIELDS
     assert syn.used_inputs(plain) == ["template"]
     given = build_config(syn, {"actor": {"height_m": 1.6}}, "source")
-    assert result_config(syn, given)["actor"] == {"height_m": 1.6, "build": None, "muscle": None, "sex": None,
-                                                   "seed": None}
+    key = result_config(syn, given)
+    assert {k: v for k, v in key.items() if k.startswith("actor.")} == {
+        "actor.height_m": 1.6, "actor.build": None, "actor.muscle": None, "actor.sex": None, "actor.seed": None}
+    assert set(key) == OLD_FIELDS | {"actor.height_m", "actor.build", "actor.muscle", "actor.sex", "actor.seed"}
     assert syn.used_inputs(given) == []  # the template is neither loaded nor part of the key
     with pytest.raises(ConfigError, match=r"source\.actor\.sex: expected a finite number in \[-1, 1\], got 2"):
         build_config(syn, {"actor": {"sex": 2}}, "source")

@@ -7,8 +7,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -22,11 +20,6 @@ from eventcap.events import EVENT_DTYPE, make_events
 from eventcap.core.registry import load_registry
 from eventcap.core.stage import StageContext
 from eventcap.core.testing import StageConformance
-
-try:
-    import eventcap_detect  # noqa: F401
-except ImportError:  # not installed yet: use the source tree
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))
 
 from eventcap_detect import blazepose as bp  # noqa: E402
 

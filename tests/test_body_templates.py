@@ -16,6 +16,8 @@ from eventcap.body import skeleton as sk
 from eventcap.body.mesh import load_mesh_template
 from eventcap.body.smpl import SMPL_NUM_VERTICES, load_smpl
 from eventcap.body.template import Template, pattern_albedo
+from eventcap.core.stage import StageContext, StageFailed
+from eventcap.core.testing import StageConformance
 
 #: The stand-in model lives in SMPL's own placement: pelvis near the origin, feet around y = -1.
 SMPL_SHIFT = np.array([0.02, -1.17, 0.01])
@@ -369,3 +371,46 @@ def test_load_mesh_template_errors(tmp_path):
         load_mesh_template(tmp_path / "mm.ply", rig_path)
     with pytest.raises(ValueError, match="file not found"):
         load_mesh_template(tmp_path / "none.ply", rig_path)
+
+
+# --- the template stages (smpl, mesh) -----------------------------------------------------------------------------
+class TestSmplStage(StageConformance):
+    stage_name = "smpl"
+    sensitive = ("betas", [0.5])
+
+    @pytest.fixture(autouse=True)
+    def _model(self, tmp_path):
+        path = tmp_path / "SMPL_STANDIN.npz"
+        np.savez(path, **stand_in_smpl_arrays())
+        self.config_overrides = {"path": str(path)}
+
+    def make_inputs(self):
+        return {}
+
+    def test_the_stage_gives_the_loaders_template_and_needs_its_file(self):
+        t = self.run_once()["template"]
+        assert t.name == "smpl:SMPL_STANDIN" and t.equals(load_smpl(self.config_overrides["path"]))
+        with pytest.raises(StageFailed, match=r"template=smpl needs template.path=<SMPL model file>"):
+            self.spec().load_run()({}, self.config(path=""), StageContext(node="template", stage="smpl"))
+
+
+class TestMeshStage(StageConformance):
+    stage_name = "mesh"
+
+    @pytest.fixture(autouse=True)
+    def _scan(self, tmp_path):
+        mesh_path, rig_path, *_ = write_scan(tmp_path)
+        (tmp_path / "other").mkdir()
+        other_mesh, *_ = write_scan(tmp_path / "other", shift=(0.0, 0.0, 0.0))
+        self.config_overrides = {"mesh_path": str(mesh_path), "rig_path": str(rig_path)}
+        self.sensitive = ("mesh_path", str(other_mesh))  # another file: another key (its content is hashed)
+
+    def make_inputs(self):
+        return {}
+
+    def test_the_stage_gives_the_loaders_template_and_needs_both_files(self):
+        t = self.run_once()["template"]
+        assert t.name == "mesh:scan"
+        assert t.equals(load_mesh_template(self.config_overrides["mesh_path"], self.config_overrides["rig_path"]))
+        with pytest.raises(StageFailed, match=r"template=mesh needs template.mesh_path and template.rig_path"):
+            self.spec().load_run()({}, self.config(rig_path=""), StageContext(node="template", stage="mesh"))

@@ -3,13 +3,9 @@ degenerate tracks, input layout and bad input."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))  # eventcap_track without an install
 
 from eventcap_track import bspline
 

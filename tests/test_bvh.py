@@ -34,6 +34,7 @@ from eventcap.export.bvh import (
     write_bvh,
     write_motion_npz,
 )
+from helpers.bvh_reference import axis_rotation, positions_via_bvh_package, stacked
 
 TOL_M = 1e-6
 
@@ -53,60 +54,6 @@ def odd_skeleton() -> np.ndarray:
     """A rest skeleton unlike the default one (scaled, bones not axis-aligned), seeded."""
     rng = np.random.default_rng(7)
     return DEFAULT_REST_JOINTS * 1.08 + rng.normal(0.0, 0.01, DEFAULT_REST_JOINTS.shape)
-
-
-def _rot(axis: str, deg: np.ndarray) -> np.ndarray:
-    a = np.radians(deg)
-    c, s = np.cos(a), np.sin(a)
-    R = np.zeros(a.shape + (3, 3))
-    if axis == "X":
-        R[..., 0, 0] = 1
-        R[..., 1, 1], R[..., 1, 2], R[..., 2, 1], R[..., 2, 2] = c, -s, s, c
-    elif axis == "Y":
-        R[..., 1, 1] = 1
-        R[..., 0, 0], R[..., 0, 2], R[..., 2, 0], R[..., 2, 2] = c, s, -s, c
-    else:
-        R[..., 2, 2] = 1
-        R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1] = c, -s, s, c
-    return R
-
-
-def positions_via_bvh_package(path) -> dict[str, np.ndarray]:
-    """World joint positions (T, 3) per joint name from a file parsed by the `bvh` package, with the BVH
-    conventions: rotation channels are intrinsic in listed order, offsets in the parent's frame, root position
-    channels added to the root offset."""
-    mocap = bvh.Bvh(open(path).read())
-    data = np.array(mocap.frames, dtype=np.float64)
-    assert data.shape[0] == mocap.nframes
-    T = data.shape[0]
-    world_R: dict[str, np.ndarray] = {}
-    world_p: dict[str, np.ndarray] = {}
-    col = 0
-    for name in mocap.get_joints_names():
-        channels = mocap.joint_channels(name)
-        offset = np.array(mocap.joint_offset(name))
-        R = np.broadcast_to(np.eye(3), (T, 3, 3))
-        local_p = np.broadcast_to(offset, (T, 3)).copy()
-        for ch in channels:
-            v = data[:, col]
-            col += 1
-            if ch.endswith("rotation"):
-                R = R @ _rot(ch[0], v)
-            else:
-                local_p[:, "XYZ".index(ch[0])] += v
-        parent = mocap.joint_parent(name)
-        if parent is None:
-            world_R[name], world_p[name] = R, local_p
-        else:
-            pn = parent.name
-            world_p[name] = world_p[pn] + np.einsum("tij,j->ti", world_R[pn], offset)
-            world_R[name] = world_R[pn] @ R
-    assert col == data.shape[1]
-    return world_p
-
-
-def stacked(positions: dict[str, np.ndarray]) -> np.ndarray:
-    return np.stack([positions[n] for n in JOINT_NAMES], axis=1)
 
 
 def test_random_poses_round_trip_through_an_independent_parser(tmp_path):
@@ -217,7 +164,7 @@ def test_euler_round_trip_and_gimbal_lock(order):
     assert np.all(b[:100, 2] == 0.0) and np.allclose(np.abs(b[:100, 1]), np.pi / 2)  # locked: third angle 0
     # the intrinsic convention: R_a(a0) @ R_b(a1) @ R_c(a2)
     x = np.array([0.3, -0.2, 0.5])
-    want = _rot(order[0], np.degrees(x[0])) @ _rot(order[1], np.degrees(x[1])) @ _rot(order[2], np.degrees(x[2]))
+    want = axis_rotation(order[0], np.degrees(x[0])) @ axis_rotation(order[1], np.degrees(x[1])) @ axis_rotation(order[2], np.degrees(x[2]))
     assert np.allclose(matrix_from_euler(x, order), want, atol=1e-15)
 
 

@@ -173,11 +173,11 @@ def test_a_run_writes_motion_c3d_equal_to_motion_npz(tmp_path):
     """outputs.c3d=true on a tiny run (tests/test_outputs.py's known-poses capture): the file's joints are motion.npz's
     joints in mm, its markers the template's Plug-in Gait markers skinned with the same poses, at the tracking rate;
     none of the markers is a joint centre."""
-    from test_outputs import config, run
+    from helpers.runs import known_poses_config, run_with_outputs
 
     from eventcap.body.markers import plug_in_gait_markers
 
-    runner, result, summary = run(config(tmp_path / "cache", c3d=True, bvh=False, video=False), tmp_path / "run")
+    runner, result, summary = run_with_outputs(known_poses_config(tmp_path / "cache", c3d=True, bvh=False, video=False), tmp_path / "run")
     assert summary["problems"] == [] and set(summary["written"]) == {"npz", "c3d", "plausibility"}
     assert json.loads((tmp_path / "run" / "run.json").read_text())["outputs"]["written"]["c3d"].endswith("motion.c3d")
     m = read_motion_npz(tmp_path / "run" / "motion.npz")
@@ -201,18 +201,18 @@ def test_a_run_writes_motion_c3d_equal_to_motion_npz(tmp_path):
 def test_outputs_c3d_needs_the_c3d_package(tmp_path, monkeypatch):
     import importlib.util
 
-    from test_outputs import config
+    from helpers.runs import known_poses_config
 
     from eventcap.apps.outputs import OutputsConfig, check_outputs_config
     from eventcap.core.runner import Runner
 
-    with pytest.raises(ValueError, match=r"outputs\.c3d: expected true or false, got 'yes'"):
-        OutputsConfig.from_mapping({"c3d": "yes"})
+    with pytest.raises(ValueError, match=r"outputs\.c3d: expected true or false, got 'maybe'"):
+        OutputsConfig.from_mapping({"c3d": "maybe"})
     with pytest.raises(ValueError, match=r"outputs\.up_axis: expected one of y \| z, got 'x'"):
         OutputsConfig.from_mapping({"up_axis": "x"})
-    with pytest.raises(ValueError, match=r"outputs\.units: expected one of m \| cm \| mm, got 'ft'"):
+    with pytest.raises(ValueError, match=r"outputs\.units: expected one of m \| cm \| mm \| None, got 'ft'"):
         OutputsConfig.from_mapping({"units": "ft"})
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "c3d" else real(name, *a))
     with pytest.raises(ValueError, match=r"outputs\.c3d=true needs the c3d package: pip install c3d"):
-        check_outputs_config(Runner(config(tmp_path, c3d=True)))
+        check_outputs_config(Runner(known_poses_config(tmp_path, c3d=True)))

@@ -8,7 +8,8 @@ import sys
 
 import pytest
 
-from conftest import TESTS, toy_env
+from helpers.paths import TESTS
+from helpers.toy import toy_env
 
 TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy"]
 

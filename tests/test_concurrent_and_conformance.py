@@ -11,7 +11,8 @@ from eventcap.artifacts import BatchPlan
 from eventcap.core.cache import Cache
 from eventcap.core.testing import StageConformance
 
-from conftest import TESTS, run_concurrently
+from helpers.paths import TESTS
+from helpers.toy import run_concurrently
 
 
 def test_two_sweeps_concurrently_on_one_cache(tmp_path):

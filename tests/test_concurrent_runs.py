@@ -17,10 +17,9 @@ import pytest
 from eventcap.core.cache import Cache, EntryLock, clean_stale_locks
 from eventcap.core.rundir import LOCK_NAME, claim, release
 
-from conftest import TESTS, run_concurrently, toy_env
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
-from kill_resume import survivors  # noqa: E402
+from helpers.paths import TESTS
+from helpers.toy import run_concurrently, toy_env
+from helpers.kill_resume import survivors
 
 TOY = [sys.executable, "-m", "eventcap.apps.cli", "run", f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy",
        "outputs.poses=null"]
@@ -319,14 +318,14 @@ def test_an_entry_another_process_holds_is_put_off_then_waited_for(toy_cfg, tmp_
 
 @pytest.mark.slow
 def test_the_issues_two_real_runs_at_once_keep_their_own_folders(tmp_path):
-    # issue 19's report: a default run and a stages.refine.lambda_sil=2 run started in the same second shared one
+    # issue 19's report: a default run and a stages.solve.terms.sil.weight=2 run started in the same second shared one
     # folder, ending with .hydra/config.yaml from one and config.yaml / metrics.json from the other
     tiny = ["pipeline=paper", "experiment=quick", "source.duration_s=0.09", "template=procedural",
             "template.target_faces=2000", "source.n_track_points=20", "outputs.video=false",
             f"cache_dir={tmp_path / 'cache'}"]  # the issue's runs: the paper's pipeline, whose refine node it varies
     procs = [subprocess.Popen([sys.executable, "-m", "eventcap.apps.cli", "run", *tiny, *extra], cwd=tmp_path,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for extra in ([], ["stages.refine.lambda_sil=2"])]
+             for extra in ([], ["stages.solve.terms.sil.weight=2"])]
     outs = [p.communicate(timeout=900) for p in procs]
     assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
     folders = sorted((tmp_path / "runs" / "quick").iterdir())
@@ -335,8 +334,8 @@ def test_the_issues_two_real_runs_at_once_keep_their_own_folders(tmp_path):
 
     seen = set()
     for d in folders:
-        ours = yaml.safe_load((d / "config.yaml").read_text())["stages"]["refine"]["lambda_sil"]
-        hydras = yaml.safe_load((d / ".hydra" / "config.yaml").read_text())["stages"]["refine"]["lambda_sil"]
+        ours = yaml.safe_load((d / "config.yaml").read_text())["stages"]["solve"]["terms"]["sil"]["weight"]
+        hydras = yaml.safe_load((d / ".hydra" / "config.yaml").read_text())["stages"]["solve"]["terms"]["sil"]["weight"]
         assert ours == hydras
         seen.add(float(ours))
         assert (d / "motion.npz").exists() and "evaluate.metrics" in json.loads((d / "metrics.json").read_text())

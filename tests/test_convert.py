@@ -26,8 +26,7 @@ from eventcap.io.convert import (
 )
 from eventcap.core.testing import StageConformance
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
-from fuzz_readers import synthetic_recording
+from helpers.fuzz_readers import synthetic_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # shipped (tests/data/real/SOURCE.md)

@@ -1,6 +1,6 @@
 """The docs name only files that are in the repository.
 
-Scans README.md and docs/*.md for relative Markdown links (``[text](path)``, resolved from the file's folder) and for
+Scans README.md and docs/**/*.md for relative Markdown links (``[text](path)``, resolved from the file's folder) and for
 repository paths in code (inline backticks and fenced blocks: ``benchmarks/x.py``, ``conf/...yaml``, ``docs/x.md``,
 ``eventcap/...py``, ``plugins/...``, ``tests/...``, ``tools/...``), resolved from the repository's root, and asserts
 each exists. Paths under ``runs/`` (made by runs) and paths with a placeholder (``<name>``, ``*``, ``{a,b}``,
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 
 #: top-level folders whose paths the docs name in code
 PREFIXES = ("benchmarks", "conf", "docs", "eventcap", "plugins", "tests", "tools")

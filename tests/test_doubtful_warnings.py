@@ -6,13 +6,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy"))
 
 from eventcap.core.config import build_config
 from eventcap.core.registry import load_registry
@@ -21,7 +17,7 @@ from eventcap.core.stage import StageContext
 
 @functools.lru_cache(maxsize=1)
 def _edi_recording():
-    import bench_edi as scenes
+    from helpers import edi_scenes as scenes
 
     from eventcap.artifacts.recording import EventStream, FrameStack, Recording
     from eventcap.camera import Camera
@@ -56,7 +52,7 @@ def test_edi_contrast_at_the_edge_of_its_range_warns(caplog, c_range, at_edge):
 
 
 def test_solve_with_zero_correspondences_warns(caplog):
-    from test_solve import N, T0, stage_inputs
+    from helpers.batch_scene import N, T0, stage_inputs
 
     from eventcap.artifacts import Batch
 
@@ -75,7 +71,7 @@ def test_solve_with_zero_correspondences_warns(caplog):
 
 @pytest.mark.slow  # builds the refinement NLP (~10 s)
 def test_refine_with_zero_matched_boundary_pixels_warns(caplog):
-    from test_refine import run_stage, stage_inputs
+    from helpers.refine_scene import run_stage, stage_inputs
 
     from eventcap.artifacts.recording import EventStream
 

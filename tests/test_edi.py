@@ -3,21 +3,15 @@ motions against the true sharp image, automatic contrast, bad input."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "plugins"))  # eventcap_track without an install
-sys.path.insert(0, str(ROOT / "benchmarks" / "accuracy"))  # the synthetic scenes of bench_edi
-
-import bench_edi as scenes
-from eventcap.imaging import edi
-
 from eventcap.events import EVENT_DTYPE, make_events
+from eventcap.imaging import edi
 from eventcap.sim.events import SensorConfig
+from helpers import edi_scenes as scenes
+
 
 EPS = edi.DEFAULT_LOG_EPS
 

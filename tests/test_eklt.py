@@ -1,29 +1,19 @@
 """Tests of the event feature trackers (plugins/eventcap_track/eklt.py, klt.py) against exact ground truth.
 
-The scenes are simulated (``benchmarks/accuracy/bench_tracking.py``): textured patterns at 240x180 moving fast with known
+The scenes are simulated (``tests/helpers/tracking_scenes.py``, also used by ``benchmarks/accuracy/bench_tracking.py``): textured patterns at 240x180 moving fast with known
 motion, turned into events by ``eventcap.sim.events``; every texture point's true position is known at any time.
 Thresholds are conservative versions of the benchmark's numbers (see the module docstring of eklt.py).
 """
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-try:
-    import eventcap_track  # noqa: F401
-except ImportError:  # not installed: use the source tree
-    sys.path.insert(0, str(ROOT / "plugins"))
-sys.path.insert(0, str(ROOT / "benchmarks" / "accuracy"))
-
-import bench_tracking as bt  # noqa: E402
-from eventcap.events import EVENT_DTYPE, make_events  # noqa: E402
-from eventcap_track import eklt, klt  # noqa: E402
-from eventcap_track.eklt import (  # noqa: E402
+from eventcap.events import EVENT_DTYPE, make_events
+from eventcap_track import eklt, klt
+from eventcap_track.eklt import (
     KIND_BACKWARD,
     KIND_FORWARD,
     KIND_STITCHED,
@@ -35,6 +25,7 @@ from eventcap_track.eklt import (  # noqa: E402
     track,
     track_bidirectional,
 )
+from helpers import tracking_scenes as bt
 
 T0, T1 = bt.T0_US, bt.T1_US
 

@@ -16,7 +16,8 @@ import pytest
 from eventcap.core.cache import Cache, CacheError
 from eventcap.core.runner import Runner
 
-from conftest import TESTS, toy_env
+from helpers.paths import TESTS
+from helpers.toy import toy_env
 
 
 def entries(cache_dir) -> dict[str, dict]:
@@ -72,7 +73,7 @@ def test_dask_worker_killed_mid_run_still_identical(toy_cfg, tmp_path):
 def test_unknown_executor_key_is_named(toy_cfg):
     cfg = toy_cfg()
     cfg["executor"] = {"kind": "dask", "adress": "tcp://x:1"}
-    with pytest.raises(ValueError, match="executor.adress: unknown key"):
+    with pytest.raises(ValueError, match="executor.adress: no config key named 'adress' in executor; did you mean 'address'"):
         Runner(cfg)
 
 

@@ -9,10 +9,17 @@ import sys
 
 import numpy as np
 import pytest
-from test_solve import N, joint_error_mm, problem, scene
-
+from eventcap.artifacts import BatchPlan
+from eventcap.artifacts.pose import PoseSequence
+from eventcap.body.motions import motion_poses
+from eventcap.core.config import build_config
+from eventcap.core.registry import load_registry
+from eventcap.core.stage import StageContext
+from eventcap.core.testing import StageConformance
 from eventcap_solve.batch import FrameDetections, select_detections, solve_batch
 from eventcap_solve.fusion import innovation_rho, place, pose_graph
+from helpers.batch_scene import N, joint_error_mm, problem, scene
+from helpers.spline_scene import BatchSeq
 
 
 def _objective(X, fits, steps, rho):
@@ -22,7 +29,7 @@ def _objective(X, fits, steps, rho):
 # ------------------------------------------------------------------------------------------------ odometry mode
 def test_odometry_mode_follows_the_events_from_the_first_fit_and_ignores_frame_n():
     rec, det, t_us, S, xy, valid = scene()
-    prob = problem(mode="odometry", edge_margin_px=0.0)
+    prob = problem(mode="odometry", **{"tracks.edge_margin_px": 0.0})
     ends = select_detections(det, t_us[[0, N]])
     res = solve_batch(prob, t_us, xy, valid, ends)
     fit0, _, _ = prob.fit_frame(ends, 0)
@@ -98,6 +105,64 @@ def test_place_anchors_both_ends_and_keeps_the_shape_when_it_fits():
     np.testing.assert_allclose(P[0], x0, atol=1e-12)
     np.testing.assert_allclose(P[-1], x1, atol=1e-12)
     np.testing.assert_allclose(place(x0, x0 + shape[-1], shape, t), x0 + shape, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------ the stages
+FRAMES_US = 5_000 + 40_000 * np.arange(5, dtype=np.int64)  # 4 batches of 40 ms
+
+
+def odometry(start_error: float = 0.0) -> BatchSeq:
+    """What the solve gives in mode odometry: each batch's 1 ms poses of a known motion, from its first frame's fit
+    (off by ``start_error`` rad on every parameter, a different sign per batch) following the events exactly."""
+    plan = BatchPlan.between_frames(FRAMES_US)
+    out = []
+    for k in range(len(plan)):
+        b = plan.batch(k)
+        t = np.arange(b.t0_us, b.t1_us + 1, 1_000, dtype=np.int64)
+        S = motion_poses("jumping_jack", t * 1e-6) + start_error * (-1) ** k
+        out.append(PoseSequence(t_us=t, poses=S, status="Solve_Succeeded", iterations=7))
+    return BatchSeq(out, plan.batches())
+
+
+def run_stage(stage: str, inputs, **config):
+    spec = load_registry().get(stage)
+    return spec.load_run()(inputs, build_config(spec, config, f"stages.{stage}"), StageContext(node=stage, stage=stage))
+
+
+class TestFuseConformance(StageConformance):
+    stage_name = "fuse"
+    config_overrides = {"rho": 1.0}
+    sensitive = ("rho", 4.0)
+
+    def make_inputs(self):
+        return {"odometry": odometry(0.01)}
+
+
+class TestPlaceConformance(StageConformance):
+    stage_name = "place"
+
+    def make_inputs(self):
+        odo = odometry(0.01)
+        anchors = run_stage("fuse", {"odometry": odo}, rho=1.0)["anchors"]
+        return {"odometry": odo[1], "anchors": anchors}
+
+
+def test_fuse_and_place_average_the_fits_errors_through_exact_odometry():
+    """Fits off by +-0.01 rad by turns, exact steps between them: the fused anchors lie nearer the truth than the fits
+    (the errors average out through the steps), at every frame; place puts each batch's trajectory on its two
+    anchors and keeps its shape."""
+    odo = odometry(0.01)
+    anchors = run_stage("fuse", {"odometry": odo}, rho=10.0)["anchors"]
+    assert np.array_equal(anchors.t_us, FRAMES_US)
+    err = np.abs(anchors.poses - motion_poses("jumping_jack", FRAMES_US * 1e-6))
+    assert np.all(np.isfinite(anchors.poses)) and err.max() < 0.5 * 0.01
+    for k in range(len(odo)):
+        placed = run_stage("place", {"odometry": odo[k], "anchors": anchors})["poses"]
+        np.testing.assert_allclose(placed.poses[[0, -1]], anchors.poses[[k, k + 1]], atol=1e-12)
+        shape = odo[k].poses - odo[k].poses[0]
+        drift = placed.poses - placed.poses[0] - shape  # the end mismatch, spread linearly in time
+        np.testing.assert_allclose(drift, np.linspace(0, 1, 41)[:, None] * drift[-1], atol=1e-12)
+        assert placed.status == odo[k].status and placed.iterations == 7
 
 
 # ------------------------------------------------------------------------------------------------ pipeline

@@ -16,11 +16,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-from test_spline import _run_stage, _stitch, stage_inputs
 
 from eventcap.artifacts.pose import Detections
 from eventcap.body.kinematics import joint_positions
 from eventcap.analysis.confidence import in_image, interval_support, motion_confidence
+from helpers.spline_scene import run_stage, stage_inputs, stitch
 
 
 def _without(det: Detections, frames: list[int]) -> Detections:
@@ -38,8 +38,8 @@ def test_a_missed_detection_is_a_missing_observation_not_a_failed_window():
     missing frame stay near the truth (the other frames, the events and the prior carry them)."""
     inputs = stage_inputs()
     rec, plan = inputs["recording"], inputs["batches"]
-    full, _ = _run_stage(inputs, plan.batch(1))
-    missed, ctx = _run_stage(dict(inputs, detections=_without(inputs["detections"], [2])), plan.batch(1))
+    full, _ = run_stage(inputs, plan.batch(1))
+    missed, ctx = run_stage(dict(inputs, detections=_without(inputs["detections"], [2])), plan.batch(1))
     p = missed["poses"]
     assert p.status == "Solve_Succeeded" and np.isfinite(p.poses).all()
     assert ctx.stats["fits_computed"] <= 3  # no fit of the frame without an observation
@@ -60,12 +60,12 @@ def test_a_window_without_observations_is_a_gap_and_nothing_is_extrapolated():
     plan = inputs["batches"]
     t_det = np.asarray(inputs["detections"].t_us)
     inputs = dict(inputs, detections=_without(inputs["detections"], [2, 3, 4, 5]))
-    windows = [_run_stage(inputs, plan.batch(k))[0]["poses"] for k in range(len(plan))]
+    windows = [run_stage(inputs, plan.batch(k))[0]["poses"] for k in range(len(plan))]
     assert windows[3].status == "gap" and np.isnan(windows[3].poses).all()
     for w in windows:  # nothing beyond a window's observed frames
         t, ok = w.t_us, np.isfinite(w.poses).all(axis=1)
         assert not ok[(t > t_det[1]) & (t < t_det[6])].any()
-    motion, cut, _ = _stitch(windows, plan)
+    motion, cut, _ = stitch(windows, plan)
     t, ok = motion.t_us, np.isfinite(motion.poses).all(axis=1)
     assert ok[t <= t_det[1]].all() and not ok[t > t_det[1]].any()
     assert [c.status for c in cut][2:5] == ["gap", "gap", "gap"]
@@ -99,8 +99,8 @@ def test_confidence_is_zero_out_of_view_and_where_nothing_supports_the_estimate(
     """At the truth with exact detections every joint in view is observed at the frames; a joint pushed out of the
     image is 0; a landmark not observed gives its joint no support; between two frames a joint that moved and has
     no event support decays to 0 half way, a still one keeps its support."""
-    from test_detect import detect
-    from test_spline import EXACT
+    from helpers.poses import detect
+    from helpers.spline_scene import EXACT
 
     inputs = stage_inputs()
     rec = inputs["recording"]
@@ -137,7 +137,7 @@ def test_confidence_is_zero_out_of_view_and_where_nothing_supports_the_estimate(
 
 
 def test_a_recording_without_frames_picks_the_event_only_pipeline():
-    from eventcap.apps.jobs import frameless_source
+    from eventcap.apps.compose import frameless_source
 
     assert frameless_source({"source": {"stage": "synthetic", "camera": "davis240c", "frames": None}}) is None
     assert "dvxplorer" in frameless_source({"source": {"stage": "synthetic", "camera": "dvxplorer", "frames": None}})

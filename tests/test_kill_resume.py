@@ -1,15 +1,12 @@
 """A run killed with SIGKILL at random moments and resumed ends with identical outputs and recomputes nothing
-committed. The quick version runs 3 trials; the full 20-trial soak is `slow` (and benchmarks/robustness/kill_resume.py)."""
+committed. The quick version runs 3 trials; the full 20-trial soak is `slow` (and benchmarks/robustness/kill_resume.py;
+the harness: tests/helpers/kill_resume.py)."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "robustness"))
-import kill_resume  # noqa: E402
+from helpers import kill_resume
 
 
 def test_kill_resume_quick(capsys):

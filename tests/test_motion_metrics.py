@@ -3,8 +3,6 @@ batch against values worked out by hand on analytic trajectories, and the evalua
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +11,6 @@ from eventcap.analysis.metrics import (END_EFFECTORS, central_derivative, depth_
                               root_relative, truth_at)
 from eventcap.analysis.motion import on_grid, tracking_times_us, uniform_motion
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def still_body(T: int) -> np.ndarray:
@@ -183,7 +180,7 @@ def test_bad_input():
 
 # -- the evaluate stage's columns ------------------------------------------------------------------------------------
 def test_evaluate_stage_reports_motion_detail(monkeypatch):
-    import test_evaluate as te
+    from helpers import evaluate_scene as te
     from eventcap.core.runner import reset_process_caches
 
     monkeypatch.setenv("EVENTCAP_STAGES", te.STAGES)

@@ -16,7 +16,7 @@ from eventcap.imaging.viz import most_active_time
 
 W, H = 240, 180
 BURST_US = 200_000  # a bar sweeps the sensor in the 10 ms around this time
-REAL_DAVIS346 = Path(__file__).resolve().parents[1] / "tests" / "data" / "davis346_lab_aps.aedat4"
+REAL_DAVIS346 = Path(__file__).resolve().parent / "data" / "real" / "davis346_lab_aps.aedat4"  # tests/data/real/SOURCE.md
 SHARED_DAVIS346 = Path("/work/shared/data/real/davis346_lab_aps.aedat4")
 
 
@@ -99,7 +99,7 @@ def test_preview_refuses_what_it_cannot_read_naming_the_file(tmp_path, capsys):
     code, out, err = preview(capsys, bad)
     assert code == 2 and str(bad) in err and "No group found" not in err
     code, out, err = preview(capsys, tmp_path / "missing.h5")
-    assert code == 2 and "does not exist" in err
+    assert code == 2 and f"{tmp_path / 'missing.h5'}: no such file or folder" in err
 
 
 def test_preview_of_the_real_davis346_recording(tmp_path, capsys):

@@ -125,8 +125,9 @@ def test_inferred_sensor_size_ignores_a_few_far_outliers_and_says_so(tmp_path):
     # eventcap convert has written them already when it finds them: it refuses and says how to crop them.
     from eventcap.io.convert import convert_recording
 
-    with pytest.raises(RecordingError, match=r"2 event\(s\) with x up to 60000 while the others stay below x = 64: "
-                                             r"corrupted events, .* crop them with --roi 0 0 64 48"):
+    with pytest.raises(RecordingError, match=r"2 event\(s\) are outliers \(2 event\(s\) with x up to 60000 \(beyond "
+                                             r"x = 63 of the others\)\): corrupted events, .* crop them with --roi 0 0 "
+                                             r"64 48"):
         convert_recording(p, tmp_path / "o.zarr", chunk_events=3000)
     assert not (tmp_path / "o.zarr").exists()
     assert convert_recording(p, tmp_path / "o.zarr", roi=(0, 0, 64, 48))["events"] == 19_998

@@ -17,11 +17,12 @@ import numpy as np
 import pytest
 import zarr
 
-from conftest import TESTS, toy_env
 
 from eventcap.artifacts import ArtifactError
 from eventcap.artifacts.base import read_array
 from eventcap.apps.cli import main
+from helpers.paths import TESTS
+from helpers.toy import toy_env
 
 TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy", "outputs.poses=null"]
 #: the real pipeline on a tiny capture with a light template (see conftest.small_capture_config)
@@ -37,10 +38,12 @@ def shared_cache(tmp_path_factory):
     return tmp_path_factory.mktemp("cache")
 
 
-def run_main(run_dir, *argv, caplog=None) -> tuple[int, str]:
+def run_main(run_dir, *argv, caplog=None, capsys=None) -> tuple[int, str]:
     code = main(["run", f"hydra.run.dir={run_dir}", *argv])
     text = (run_dir / "eventcap.log").read_text() if (run_dir / "eventcap.log").exists() else ""
-    return code, text + ("\n" + caplog.text if caplog is not None else "")
+    # a setting refused before the run folder is made is printed on stderr (issue 48), not logged into the folder
+    err = capsys.readouterr().err if capsys is not None else ""
+    return code, text + ("\n" + caplog.text if caplog is not None else "") + err
 
 
 def summary(run_dir) -> dict:
@@ -52,14 +55,15 @@ def committed_entries(cache_dir) -> list:
 
 
 # --- a failed source: the cause, every later node skipped with it, run.json and config.yaml written -------------------
-def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cache, caplog):
+def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cache, caplog, capsys):
     caplog.set_level(logging.INFO)
     run_dir = tmp_path / "neg"
-    # a value outside its declared range is refused before anything runs (issue 38): no run, no summary
+    # a value outside its declared range is refused before anything runs (issue 38), before the run folder is
+    # made (issue 48): no run, no summary, no folder
     code, log_text = run_main(tmp_path / "refused", *SMALL, "source.duration_s=-1", f"cache_dir={shared_cache}",
                               caplog=caplog)
-    assert code == 1 and "source.duration_s: expected a finite number > 0, got -1" in log_text
-    assert not (tmp_path / "refused" / "run.json").exists()
+    assert code == 1 and "source.duration_s: expected a finite number in (0, 3600], got -1" in capsys.readouterr().err
+    assert not (tmp_path / "refused").exists()
     # a source that fails while it runs: every node after it is skipped with that cause
     code, log_text = run_main(run_dir, *SMALL, "source.motion=no_such_motion", f"cache_dir={shared_cache}",
                               caplog=caplog)
@@ -73,9 +77,10 @@ def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cac
         assert s["nodes"][n]["skip_causes"] == [{"batch": None, "cause": cause}], n
         assert s["nodes"][n]["computed"] == 0 and s["nodes"][n]["failed"] == [], n
     assert "not in the cache" not in log_text
-    # the summary names the failure, the nodes skipped because of it and the first error, once
-    assert (f"run incomplete: source failed (ValueError); skipped because of it: {', '.join(DOWNSTREAM)}; first "
-            f"error: source: {fail['error']}") in log_text
+    # the error once, where it happened; the summary names the failure and counts the nodes skipped because of it
+    assert log_text.count(fail["error"]) == 1
+    assert (f"run incomplete: source failed (ValueError); skipped because of it: {len(DOWNSTREAM)} nodes "
+            f"({', '.join(DOWNSTREAM)}); the first error is above (source)") in log_text
 
 
 def _tiny_recording(path, n=3000):
@@ -137,15 +142,17 @@ def test_damaged_or_missing_chunk_is_located(tmp_path):
 
 
 # --- batches= ---------------------------------------------------------------------------------------------------------
-def test_reversed_or_empty_batches_are_refused_before_anything_runs(toy, tmp_path, caplog):
+def test_reversed_or_empty_batches_are_refused_before_anything_runs(toy, tmp_path, caplog, capsys):
     for i, (value, why) in enumerate([("5:2", "batches='5:2': an empty slice (stop 2 is not after start 5)"),
                                       ("0", "batches=0: N=0 selects no batch"),
                                       ("-2:", "batches='-2:': batch indices count from 0")]):
         run_dir = tmp_path / f"r{i}"
-        code, log_text = run_main(run_dir, *TOY, f"cache_dir={tmp_path / 'cache'}", f"batches={value}", caplog=caplog)
+        code, log_text = run_main(run_dir, *TOY, f"cache_dir={tmp_path / 'cache'}", f"batches={value}", caplog=caplog,
+                                  capsys=capsys)
         assert code == 1
         assert why in log_text
         assert not committed_entries(tmp_path / "cache"), "nothing may run"
+        assert not run_dir.exists()
 
 
 def test_batches_beyond_the_plan_name_its_size(toy, tmp_path, caplog):
@@ -181,17 +188,17 @@ def test_batches_beyond_the_plan_of_a_real_capture(tmp_path, shared_cache, caplo
 
 
 # --- invalid choices and mistyped keys: refused before anything runs ------------------------------------------------
-def test_invalid_choice_is_refused_before_anything_runs(tmp_path, caplog):
+def test_invalid_choice_is_refused_before_anything_runs(tmp_path, caplog, capsys):
     run_dir = tmp_path / "side"
     code, log_text = run_main(run_dir, *SMALL, f"cache_dir={tmp_path / 'cache'}", "stages.track.direction=sideways",
-                              caplog=caplog)
+                              caplog=caplog, capsys=capsys)
     assert code == 1
     assert ("node 'track': stages.track.direction: expected one of both | forward | backward, got 'sideways' "
             "(stage 'eklt')") in log_text
     assert log_text.count("sideways") == 1 + log_text.count("overrides:")  # said once, not once per batch
-    assert not committed_entries(tmp_path / "cache") and not (run_dir / "run.json").exists()
-    code, log_text = run_main(tmp_path / "loss", *SMALL, f"cache_dir={tmp_path / 'cache'}", "stages.refine.sil_loss=hubber",
-                              caplog=caplog)
+    assert not committed_entries(tmp_path / "cache") and not run_dir.exists()
+    code, log_text = run_main(tmp_path / "loss", *SMALL, f"cache_dir={tmp_path / 'cache'}", "stages.refine.terms.sil.loss=hubber",
+                              caplog=caplog, capsys=capsys)
     assert code == 1 and "expected one of l2 | huber, got 'hubber' (stage 'silhouette'); did you mean 'huber'?" \
         in log_text
 
@@ -213,12 +220,12 @@ def test_choices_are_checked_against_the_default_too():
 
 def test_mistyped_key_gets_did_you_mean_without_a_plus(tmp_path, capsys):
     code = main(["run", *SMALL, f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={tmp_path / 'r'}",
-                 "stages.solve.lamda_cor=1"])
+                 "stages.solve.icp_round=1"])
     err = capsys.readouterr().err
     assert code == 1
-    assert err.startswith("eventcap run: stages.solve.lamda_cor: no config key named 'lamda_cor' in stages.solve "
+    assert err.startswith("eventcap run: stages.solve.icp_round: no config key named 'icp_round' in stages.solve "
                           "(config group stages/solve=batch: ")
-    assert "conf/stages/solve/batch.yaml); did you mean 'lambda_cor'" in err
+    assert "conf/stages/solve/batch.yaml); did you mean 'icp_rounds'" in err
     assert "+stages" not in err and "not in struct" not in err
     assert not (tmp_path / "cache").exists()
     # a group name and a top-level key, each in its own file

@@ -10,30 +10,21 @@ silhouette within the batch window. Simulated sensor events are measured in benc
 from __future__ import annotations
 
 import functools
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_detect import posed_recording
 
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.artifacts.recording import EventStream, Recording
+from eventcap.artifacts.recording import Recording
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import pose_bounds
-from eventcap.core.config import build_config
 from eventcap.events import EVENT_DTYPE
 from eventcap.analysis.metrics import mean_joint_error
-from eventcap.core.registry import load_registry
 from eventcap.imaging.render import rasterize
-from eventcap.core.stage import StageContext, StageFailed
+from eventcap.core.stage import StageFailed
 from eventcap.core.testing import StageConformance
-
-try:
-    import eventcap_refine  # noqa: F401
-except ImportError:  # not installed yet: use the source tree
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))
 
 from eventcap.energy.boundary import (
     boundary_pixels,
@@ -44,11 +35,11 @@ from eventcap.energy.boundary import (
 )
 from eventcap.energy.event_search import EventIndex
 from eventcap_refine.refine import RefineProblem, refine_batch
-from eventcap_refine.spec import SilhouetteRefineConfig
+from eventcap.params import nest
+from helpers.refine_scene import N, T0, perturbed, run_stage, scene, stage_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE = "eventcap_refine.spec:SILHOUETTE"
-T0, N = 5_000, 40  # first batch of posed_recording: frames at 5 ms and 45 ms, tracking frames every 1 ms
 
 
 @pytest.fixture(autouse=True)
@@ -63,40 +54,6 @@ def refine_stage(monkeypatch):
 
 
 # ------------------------------------------------------------------------------------------------ inputs
-def boundary_events(template, camera, poses, t_us) -> np.ndarray:
-    """One event (+1) on every silhouette boundary pixel of the template posed with poses[f], at t_us[f]."""
-    frame, px, _ = boundary_pixels(silhouettes(template, camera, poses))
-    ev = np.zeros(frame.size, EVENT_DTYPE)
-    ev["t"], ev["x"], ev["y"], ev["p"] = t_us[frame], px[:, 0], px[:, 1], 1
-    return ev[np.argsort(ev["t"], kind="stable")]
-
-
-@functools.lru_cache(maxsize=2)
-def scene(motion: str = "high_knees", speed: float = 1.0):
-    """A moving actor's first batch with exact ground truth and events on the true silhouette boundary (module
-    doc): (recording, t_us (41,), ground-truth poses (41, 33), ground-truth masks (41, H, W))."""
-    rec = posed_recording(motion, n_frames=3, speed=speed, with_template=True)
-    t_us = T0 + 1_000 * np.arange(N + 1, dtype=np.int64)
-    gt = rec.ground_truth
-    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-    ev = boundary_events(rec.template, rec.camera, S, t_us)
-    rec = Recording(events=EventStream(events=ev, width=rec.camera.width, height=rec.camera.height),
-                    camera=rec.camera, frames=rec.frames, template=rec.template, ground_truth=rec.ground_truth,
-                    name=f"{rec.name}-boundary-events")
-    return rec, t_us, S, silhouettes(rec.template, rec.camera, S)
-
-
-def perturbed(S: np.ndarray, seed: int = 0, angles_rad: float = 0.05, root_rad: float = 0.05,
-              root_m: float = 0.02) -> np.ndarray:
-    """Ground truth with a known error, the same at every frame: N(0, angles_rad) on the 27 joint angles,
-    N(0, root_rad) on the root rotation and N(0, root_m) on the root translation; clipped into the joint bounds."""
-    rng = np.random.default_rng(seed)
-    out = S.copy()
-    out[:, :27] += rng.normal(0, angles_rad, 27)
-    out[:, 27:30] += rng.normal(0, root_rad, 3)
-    out[:, 30:] += rng.normal(0, root_m, 3)
-    lo, hi = pose_bounds()
-    return np.clip(out, lo, hi)
 
 
 def problem(**config) -> RefineProblem:
@@ -107,7 +64,11 @@ def problem(**config) -> RefineProblem:
 @functools.lru_cache(maxsize=4)
 def _problem(config: tuple) -> RefineProblem:
     rec = scene()[0]
-    return RefineProblem(rec.template, rec.camera, N + 1, SilhouetteRefineConfig(**dict(config)))
+    from eventcap.core.config import build_config
+    from eventcap.core.registry import load_registry
+
+    return RefineProblem(rec.template, rec.camera, N + 1,
+                         build_config(load_registry().get("silhouette"), nest(dict(config)), "stages.refine"))
 
 
 def joint_error_mm(rec, poses, truth, align: bool = True) -> float:
@@ -298,7 +259,7 @@ def test_refinement_lowers_joint_error_and_raises_silhouette_iou(seed):
     assert res.energies["sil"] < res.energies["sil_start"]
     assert np.all(res.poses >= lo - 1e-9) and np.all(res.poses <= hi + 1e-9)
     assert res.status == "Solve_Succeeded" and len(res.icp) == 4
-    weak = refine_batch(problem(lambda_stab=0.5), t_us, start, rec.events.events)
+    weak = refine_batch(problem(**{"terms.stab.weight": 0.5}), t_us, start, rec.events.events)
     err2, iou2 = joint_error_mm(rec, weak.poses, S, align=False), iou(rec, weak.poses, masks)
     assert err2 < 0.9 * err0 and iou2 > iou0 + 0.06, (err0, err2, iou0, iou2)  # measured: -20%, +0.09..0.17
 
@@ -311,25 +272,11 @@ def test_refinement_of_articulation_errors_lowers_the_aligned_error():
     res = refine_batch(problem(), t_us, start, rec.events.events)
     err1, iou1 = joint_error_mm(rec, res.poses, S), iou(rec, res.poses, masks)
     assert err1 < err0 - 0.2 and iou1 > iou0 + 0.015, (err0, err1, iou0, iou1)  # measured: 19.3 -> 18.9 mm
-    weak = refine_batch(problem(lambda_stab=0.5), t_us, start, rec.events.events)
+    weak = refine_batch(problem(**{"terms.stab.weight": 0.5}), t_us, start, rec.events.events)
     assert joint_error_mm(rec, weak.poses, S) < 0.93 * err0  # measured: 17.0 mm
 
 
 # ------------------------------------------------------------------------------------------------ the stage
-def stage_inputs(frames: int = N + 1, start: np.ndarray | None = None):
-    rec, t_us, S, _ = scene()
-    poses = perturbed(S) if start is None else start
-    est = PoseSequence(t_us=t_us[:frames].copy(), poses=poses[:frames].copy(), status="Solve_Succeeded")
-    plan = BatchPlan(t0_us=np.array([T0]), t1_us=np.array([T0 + 1000 * (frames - 1)]), frame0=np.array([0]))
-    return {"recording": rec, "poses": est, "batches": plan}
-
-
-def run_stage(inputs=None, **config):
-    spec = load_registry().get("silhouette")
-    inputs = inputs or stage_inputs()
-    plan = inputs["batches"]
-    ctx = StageContext(node="refine", stage="silhouette", batch=plan.batch(0))
-    return spec.load_run()(inputs, build_config(spec, config, "stages.refine"), ctx), ctx
 
 
 def test_stage_refines_and_records_diagnostics(caplog):
@@ -352,7 +299,7 @@ def test_stage_refines_and_records_diagnostics(caplog):
 @pytest.mark.parametrize("cap", [1, 2])
 def test_iteration_cap_fails_with_ipopts_status(cap):
     with pytest.raises(StageFailed, match="status Maximum_Iterations_Exceeded") as exc:
-        run_stage(max_iter=cap)
+        run_stage(**{"ipopt.max_iter": cap})
     assert exc.value.status == "Maximum_Iterations_Exceeded"
 
 
@@ -364,8 +311,10 @@ def test_unusable_inputs_fail_with_a_status():
         run_stage({**inputs, "recording": bare})
     assert exc.value.status == "missing_template"
     # an unknown loss is refused when the config is built (before anything runs), no longer by the stage per batch
-    with pytest.raises(ValueError, match=r"stages.refine.sil_loss: expected one of l2 \| huber, got 'cauchy'"):
-        run_stage(sil_loss="cauchy")
+    with pytest.raises(ValueError, match=r"stages.refine.terms.sil.loss: expected one of l2 \| huber, got 'cauchy'"):
+        run_stage(**{"terms.sil.loss": "cauchy"})
+    with pytest.raises(ValueError, match=r"stages.refine.sil_loss: this setting is now stages.refine.terms.sil.loss"):
+        run_stage(sil_loss="huber")
     late = BatchPlan(t0_us=np.array([T0 + 40_000]), t1_us=np.array([T0 + 80_000]), frame0=np.array([1]))
     with pytest.raises(StageFailed, match="outside the batch") as exc:
         run_stage({**inputs, "batches": late})
@@ -379,8 +328,8 @@ class TestSilhouetteConformance(StageConformance):
 
     stage_name = "silhouette"
     config_overrides = {"icp_iterations": 2}
-    sensitive = ("lambda_stab", 0.5)
-    insensitive = ("max_iter", 50)
+    sensitive = ("terms.stab.weight", 0.5)
+    insensitive = ("ipopt.max_iter", 50)
 
     def make_inputs(self):
         return stage_inputs(frames=5)

@@ -12,7 +12,8 @@ from eventcap.core.config import ConfigError, build_config
 from eventcap.core.pipeline import PipelineError, build_pipeline
 from eventcap.core.registry import UnknownStageError, load_registry
 
-from conftest import ROOT, toy_env
+from helpers.paths import ROOT
+from helpers.toy import toy_env
 
 
 def test_discovery_through_env_override(toy):

@@ -66,8 +66,10 @@ def test_a_few_events_outside_every_known_sensor_are_dropped_and_noted(tmp_path,
     idx = rng.choice(N, 50, replace=False)  # 0.05 %, spread from 400 to 4000: no gap rule catches them
     x[idx] = np.linspace(400, 4000, 50).astype(int)
     rec = read_recording(npy(tmp_path / "few.npy", x, y), columns="t,x,y,p")
-    assert len(rec.events) == N - int((x >= 1280).sum()) and rec.width == int(x[x < 1280].max()) + 1
-    assert any("outside every known sensor (1280 × 960 px)" in r for r in rec.repairs)
+    # those beyond every known sensor, and those beyond the DAVIS346's edge that the others fill (issue 48: not a
+    # 1,200-pixel-wide sensor)
+    assert len(rec.events) == N - 50 and (rec.width, rec.height) == (346, 260)
+    assert any("inferred 346 × 260" in r and "dropped 50 outlier event(s)" in r for r in rec.repairs)
 
 
 def test_all_zero_events_are_not_a_one_pixel_sensor(tmp_path):
@@ -105,7 +107,13 @@ def test_an_evt3_file_cut_inside_an_event_group_is_noted(tmp_path):
     cut.write_bytes(data[:len(data) - 40 + 2 * (last_y + 1)])
     rec = read_recording(cut)
     assert len(rec.events) == 1999
-    assert any("the file ends inside an EVT3 event group: its last word is an EVT_ADDR_Y" in r for r in rec.repairs)
+    assert any("the file ends inside an EVT3 event group: an EVT_ADDR_Y (the row of the events that follow it) is "
+               "followed by no event (only 0 time word(s))" in r for r in rec.repairs)
+    # issue 48: a time word after the ADDR_Y (as faery writes ADDR_Y, TIME_LOW, ADDR_X when time moves on)
+    time_low = next(int(w) for w in words[::-1] if w >> 12 == 0x6)
+    cut.write_bytes(data[:len(data) - 40 + 2 * (last_y + 1)] + np.array([time_low], "<u2").tobytes())
+    rec = read_recording(cut)
+    assert len(rec.events) == 1999 and any("is followed by no event (only 1 time word(s))" in r for r in rec.repairs)
     whole = tmp_path / "whole.raw"
     whole.write_bytes(data)
     assert not any("truncated" in r for r in read_recording(whole).repairs)

@@ -3,8 +3,8 @@
 The fuzz: every numeric key of every stage of the default and the main alternative pipelines, found from the stage
 specs at test time (keys added later are covered too) x {0, -1, nan, inf, "abc"}, through the pipeline builder
 in-process: a refusal (PipelineError naming ``<node config>.<key>``) where the value is outside what the field
-declares, acceptance where it is inside, no other exception, each in well under 5 s (a hang guard, not a speed
-claim). A handful go through the real CLI in subprocesses: exit 1, the key in the message, no traceback.
+declares, acceptance where it is inside, no other exception, and no stage's run function loaded (nothing runs). A
+handful go through the real CLI in subprocesses: exit 1, the key in the message, no traceback.
 """
 
 from __future__ import annotations
@@ -15,16 +15,17 @@ import math
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+
+from eventcap.params import leaves
 
 from eventcap.core.config import ConfigError, log_level_number
 from eventcap.core.pipeline import PipelineError, build_pipeline
 from eventcap.core.registry import load_registry
 from eventcap.core.runner import ExecutorConfig
-from eventcap.core.stage import check_value
+from eventcap.core.stage import StageSpec, check_value
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINES = ("default", "paper", "events_only", "frames_smooth")
@@ -54,7 +55,7 @@ def numeric_keys(data: dict, registry) -> list[tuple[str, dataclasses.Field]]:
         for part in path.split("."):
             values = values[part]
         spec = registry.get(values["stage"])
-        out += [(f"{path}.{f.name}", f) for f in dataclasses.fields(spec.config) if _type(f) in NUMERIC]
+        out += [(f"{path}.{key}", f) for key, f in leaves(spec.config) if _type(f) in NUMERIC]
     return out
 
 
@@ -85,9 +86,10 @@ def registry():
     return load_registry()
 
 
-def test_every_numeric_stage_key_is_refused_or_taken_before_anything_runs(registry):
+def test_every_numeric_stage_key_is_refused_or_taken_before_anything_runs(registry, monkeypatch):
     counts = {"keys": 0, "cases": 0, "refused": 0, "accepted": 0}
-    slowest = 0.0
+    loaded = []  # every run function the builder asks for: it must ask for none (nothing runs, nothing is imported)
+    monkeypatch.setattr(StageSpec, "load_run", lambda spec: loaded.append(spec.name))
     seen: set[tuple[str, int]] = set()  # a key of the same stage in another pipeline is checked once
     for pipeline in PIPELINES:
         data = composed(pipeline)
@@ -98,21 +100,22 @@ def test_every_numeric_stage_key_is_refused_or_taken_before_anything_runs(regist
         counts["keys"] += len(keys)
         for dotted, f in keys:
             for value in VALUES:
-                t0 = time.perf_counter()
                 try:
                     build_pipeline(with_value(data, dotted, value, f), registry)
                     accepted, problems = True, []
                 except PipelineError as exc:
                     accepted, problems = False, exc.problems
-                slowest = max(slowest, time.perf_counter() - t0)
                 counts["cases"] += 1
                 counts["accepted" if accepted else "refused"] += 1
-                assert accepted == legal(f, value), (pipeline, dotted, value, problems)
+                # the synthetic source's roi is [x, y, width, height] inside the sensor: its check hook refuses a
+                # one-item list before anything runs
+                expected = legal(f, value) and dotted != "source.roi"
+                assert accepted == expected, (pipeline, dotted, value, problems)
                 if not accepted:
                     assert len(problems) == 1 and f"{dotted}: expected " in problems[0], (dotted, value, problems)
-    print(f"settings fuzz: {counts}, slowest case {slowest * 1000:.0f} ms")
-    assert slowest < 5.0  # a hang guard: each case takes milliseconds
+    print(f"settings fuzz: {counts}")
     assert counts["refused"] > counts["accepted"] > 0
+    assert loaded == []
 
 
 def test_what_the_issue_found_is_refused_with_the_key(registry):
@@ -120,10 +123,18 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
     data = composed("default")
     cases = {("source.fps", math.nan): "source.fps: expected a finite number > 0, got nan",
              ("source.fps", 0): "source.fps: expected a finite number > 0, got 0",
-             ("source.duration_s", -1): "source.duration_s: expected a finite number > 0, got -1",
-             ("source.exposure_us", "abc"): "source.exposure_us: expected an integer >= 0, got 'abc'",
+             ("source.duration_s", -1): "source.duration_s: expected a finite number in (0, 3600], got -1",
+             ("source.exposure_us", "abc"): "source.exposure_us: expected an integer >= 1, got 'abc'",
+             # issue 48: the bound the stage used to apply itself is the declared one, and a huge value is refused
+             ("source.exposure_us", 0): "source.exposure_us: expected an integer >= 1, got 0",
+             ("source.camera_height_m", -1): "source.camera_height_m: expected a finite number > 0, got -1",
+             ("source.duration_s", 1e308): "source.duration_s: expected a finite number in (0, 3600], got 1e+308",
+             ("source.fps", 1e308): "source.fps: expected a finite number > 0, no larger than 1e+09 in size (a bound "
+                                    "every setting without its own has), got 1e+308",
+             ("stages.track.max_features", 10**30): "stages.track.max_features: expected an integer >= 1, no larger "
+                                                    "than 1e+09 in size",
              ("stages.track.patch_px", 24): "stages.track.patch_px: expected an odd integer >= 5, got 24",
-             ("stages.spline.knot_ms", math.inf): "stages.spline.knot_ms: expected a finite number > 0, got inf",
+             ("stages.solve.knot_ms", math.inf): "stages.solve.knot_ms: expected a finite number > 0, got inf",
              ("stages.detect.outlier_prob", 1.5): "stages.detect.outlier_prob: expected a finite number in [0, 1], "
                                                   "got 1.5"}
     for (key, value), message in cases.items():
@@ -132,8 +143,8 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
         with pytest.raises(PipelineError) as err:
             build_pipeline(with_value(data, key, value, f), registry)
         assert message in err.value.problems[0]
-    for key, value in (("stages.spline.lambda_sil", 0), ("stages.spline.prior_inertia_cap", math.inf),
-                       ("source.camera_height_m", -1)):
+    for key, value in (("stages.solve.terms.sil.weight", 0), ("stages.solve.terms.prior.inertia_cap", math.inf),
+                       ("source.camera_height_m", 2.5), ("source.duration_s", 3600)):
         f = next(f for k, f in numeric_keys(data, registry) if k == key)
         build_pipeline(with_value(data, key, value, f), registry)  # legal: 0 turns a term off
 
@@ -146,7 +157,7 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
     ({"kind": "dask", "retries": -1}, "executor.retries: expected an integer >= 0, got -1"),
     ({"kind": "threads"}, "executor.kind: expected one of serial | processes | dask, got 'threads'"),
     ({"kind": "dask", "address": "scheduler"}, "executor.address: expected tcp://host:port"),
-    ({"kind": "dask", "wrokers": 2}, "executor.wrokers: unknown key"),
+    ({"kind": "dask", "wrokers": 2}, "executor.wrokers: no config key named 'wrokers' in executor"),
 ])
 def test_executor_settings(values, message):
     with pytest.raises(ValueError) as err:
@@ -154,17 +165,25 @@ def test_executor_settings(values, message):
     assert message in str(err.value)
 
 
-def test_an_unreachable_scheduler_is_refused_quickly():
+def test_an_unreachable_scheduler_is_refused_after_one_bounded_attempt(monkeypatch):
+    """One TCP connection attempt, bounded by 3 s, and the refusal names what happened (refused, not timed out)."""
     import socket
 
+    attempts = []
+    connect = socket.create_connection
+
+    def counted(address, timeout=None, *args, **kwargs):
+        attempts.append((address, timeout))
+        return connect(address, timeout, *args, **kwargs)
+
+    monkeypatch.setattr(socket, "create_connection", counted)
     with socket.socket() as s:  # a port nothing listens on: bound, never listening
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-        t0 = time.perf_counter()
         with pytest.raises(ValueError, match=rf"executor.address: no Dask scheduler reachable at "
-                                             rf"tcp://127.0.0.1:{port} \(.*; waited at most 3 s\)"):
+                                             rf"tcp://127.0.0.1:{port} \(Connection refused; waited at most 3 s\)"):
             ExecutorConfig.from_mapping({"kind": "dask", "address": f"tcp://127.0.0.1:{port}"})
-    assert time.perf_counter() - t0 < 5.0  # a hang guard (the connection is refused at once)
+    assert attempts == [(("127.0.0.1", port), 3.0)]
 
 
 def test_log_level():
@@ -187,4 +206,39 @@ def test_the_real_cli_refuses_before_anything_runs(tmp_path, override, message):
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 1 and message in out and "Traceback" not in out
-    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("manifest.json"))
+    assert list(tmp_path.iterdir()) == []  # issue 48: a refused setting leaves nothing on disk (no run folder, cache)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("source.duration_s=1e308", "source.duration_s: expected a finite number in (0, 3600], got 1e+308"),
+    ("source.exposure_us=0", "source.exposure_us: expected an integer >= 1, got 0"),
+    ("+foo=1", "foo: no config key named 'foo' in the top-level config"),
+    ("+stages.bogus.weight=1", "stages.bogus.weight: added with '+', but nothing reads it: no node of the pipeline "
+                               "takes its config from stages.bogus"),
+    ("+source.foo=1", "source.foo: no config key named 'foo' in the config of stage 'synthetic'"),
+    ("source.roi=[0,0,500,500]", "source.roi: expected [x, y, width, height] inside the 240x180 sensor"),
+    ("outputs.join=sometimes", "outputs.join: expected one of later | mean, got 'sometimes'"),
+])
+def test_a_refused_setting_leaves_nothing_on_disk(tmp_path, monkeypatch, capsys, override, message):
+    """Issue 48: the settings are checked by a Hydra callback before the run folder is claimed (in-process: the
+    same main() the command runs)."""
+    from eventcap.apps.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("EVENTCAP_CACHE_DIR", str(tmp_path / "cache"))
+    assert main(["run", "experiment=quick", override]) == 1
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_preflight_names_unknown_keys(registry):
+    from eventcap.apps.jobs import preflight
+    from eventcap.core.config import ConfigError
+
+    data = composed("default")
+    preflight(data, ["+stages.track.max_features=10"])  # added to a node the pipeline runs: read
+    with pytest.raises(ConfigError, match="foo: no config key named 'foo' in the top-level config"):
+        preflight({**data, "foo": 1}, ["+foo=1"])
+    with pytest.raises(ConfigError, match="stages.nope.x: added with '\\+', but nothing reads it"):
+        preflight(data, ["+stages.nope.x=1"])

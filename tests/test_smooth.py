@@ -224,15 +224,15 @@ class TestSplitConformance(StageConformance):
 
 
 def test_frames_smooth_pipeline_composes_and_validates():
-    """pipeline=frames_smooth: fits in mode linear whatever stages/solve is, smooth, split, evaluate."""
+    """pipeline=frames_smooth: fits in mode linear, smooth, split (its node solve), evaluate."""
     from eventcap.apps.benchmark import compose_run
     from eventcap.apps.cli import config_dir
     from eventcap.core.pipeline import build_pipeline
     from eventcap.core.registry import load_registry
 
-    data, _ = compose_run(config_dir(), ["pipeline=frames_smooth", "stages/solve=per_frame",
+    data, _ = compose_run(config_dir(), ["pipeline=frames_smooth",
                                          "stages.smooth.pool=parameter"])
-    assert data["stages"]["frame_fits"]["mode"] == "linear" and data["stages"]["smooth"]["pool"] == "parameter"
+    assert data["stages"]["fits"]["mode"] == "linear" and data["stages"]["smooth"]["pool"] == "parameter"
     assert data["stages"]["smooth"]["criterion"] == "gcv"  # the stronger baseline on the 2 s suite
     nodes = {n.name: n for n in build_pipeline(data, load_registry())}
     assert nodes["fits"].spec.name == "batch" and nodes["fits"].config.mode == "linear"

@@ -2,60 +2,24 @@
 
 from __future__ import annotations
 
-import functools
 
 import numpy as np
 import pytest
-from test_detect import detect, posed_recording
 
-from eventcap.artifacts import Batch, BatchPlan
-from eventcap.artifacts.tracking import SlicedTracks
+from eventcap.artifacts import Batch
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import NUM_JOINTS, pose_bounds
-from eventcap.analysis.metrics import mean_joint_error
-from eventcap.sim.capture import _pick_track_points, _track_points
 from eventcap.core.stage import StageContext, StageFailed
 from eventcap.core.testing import StageConformance
 from eventcap.energy.cor import EventCorrespondences
 from eventcap.energy.correspondences import find_correspondences, temporal_indicator
 from eventcap.energy.errors import EnergyError, SolveFailed
-from eventcap.energy.factor import Layout, Window
+from eventcap.energy.window import Estimate, Tracks, WindowInputs
 from eventcap.energy.kernels import project_derivatives
 from eventcap_solve.batch import BatchProblem, interpolate_poses, select_detections, solve_batch
 from eventcap_solve.spec import BatchSolveConfig
-
-T0, N = 5_000, 40  # first batch of posed_recording: frames at 5 ms and 45 ms, tracking frames every 1 ms
-EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
-
-
-@functools.lru_cache(maxsize=2)
-def scene(motion: str = "high_knees", speed: float = 2.0, n_points: int = 200):
-    """A fast motion's first batch with exact detections and ground-truth surface tracks (no event simulation)."""
-    rec = posed_recording(motion, n_frames=3, speed=speed, with_template=True)
-    det = detect("simulated", rec, **EXACT)
-    t_us = T0 + 1_000 * np.arange(N + 1, dtype=np.int64)
-    gt = rec.ground_truth
-    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-    tri, bary = _pick_track_points(rec.template, rec.camera, lambda t: S[np.searchsorted(t_us, np.rint(t * 1e6))],
-                                   t_us[[0, N // 2, N]], n_points, seed=0)
-    xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
-    return rec, det, t_us, S, xy, valid
-
-
-def problem(**config) -> BatchProblem:
-    """The batch problem of the scene with the stage's config (defaults but for the changes given)."""
-    return _problem(tuple(sorted(config.items())))
-
-
-@functools.lru_cache(maxsize=8)
-def _problem(config: tuple) -> BatchProblem:
-    rec = scene()[0]
-    return BatchProblem(rec.template, rec.camera, N + 1, BatchSolveConfig(**dict(config)))
-
-
-def joint_error_mm(rec, poses, truth) -> np.ndarray:
-    rest = rec.template.rest_joints
-    return 1000 * mean_joint_error(joint_positions(poses, rest), joint_positions(truth, rest))
+from helpers.batch_scene import EXACT, N, T0, joint_error_mm, problem, scene, stage_inputs
+from helpers.poses import detect
 
 
 # ------------------------------------------------------------------------------------------------ derivatives
@@ -80,8 +44,14 @@ def test_correspondences_reproject_exactly_where_found():
     """A correspondence's point, posed with the pose it was found at, lies under its pixel (module doc)."""
     rec, det, t_us, S, xy, valid = scene()
     corr = find_correspondences(rec.template, rec.camera, S, xy, valid, edge_margin_px=0.0)
-    cor = EventCorrespondences(1.0, None, rec.template, rec.camera, Layout(n_cor=N + 1))
-    cor.prepare(Window(int(t_us[0]), int(t_us[-1]), t_cor_us=t_us, correspondences=corr))
+    cor = EventCorrespondences(EventCorrespondences.Config(weight=1.0), rec.template, rec.camera, N + 1)
+    inputs = WindowInputs(int(t_us[0]), int(t_us[-1]), tracks=Tracks(t_us, xy, valid, 0.0))
+    cor.collect(inputs)
+    rows = {int(t): i for i, t in enumerate(t_us)}
+    est = Estimate(lambda t, d=0: S[[rows[int(v)] for v in np.asarray(t).ravel()]], 0, inputs, rec.template,
+                   rec.camera)
+    cor.relinearize(est)
+    assert cor.corr.n == corr.n and np.array_equal(cor.corr.frame, corr.frame)  # the estimate's correspondences
     e_cor = cor.value(S)
     # Ground-truth tracks and ground-truth poses: E_cor vanishes (up to float32 pixel storage).
     assert e_cor / corr.n < (0.01 / np.sqrt(rec.camera.fx * rec.camera.fy)) ** 2
@@ -103,7 +73,7 @@ def test_batch_beats_linear_on_fast_motion_with_exact_data():
     rec, det, t_us, S, xy, valid = scene()
     ends = select_detections(det, t_us[[0, N]])
     # Exact tracks: no need to keep away from silhouette edges (on a 240x180 image that drops most limb points).
-    err = {m: joint_error_mm(rec, solve_batch(problem(mode=m, edge_margin_px=0.0), t_us, xy, valid, ends).poses, S)
+    err = {m: joint_error_mm(rec, solve_batch(problem(mode=m, **{"tracks.edge_margin_px": 0.0}), t_us, xy, valid, ends).poses, S)
            for m in ("linear", "per_frame", "batch")}
     # Exact detections: linear interpolation's error is the motion's non-linearity between the frames.
     assert err["linear"].mean() > 3.0
@@ -118,7 +88,7 @@ def test_linear_mode_is_the_interpolated_end_fits():
     rec, det, t_us, S, xy, valid = scene()
     res = solve_batch(problem(mode="linear"), t_us, xy, valid, select_detections(det, t_us[[0, N]]))
     np.testing.assert_allclose(res.poses, interpolate_poses(res.poses[0], res.poses[-1], t_us), atol=1e-12)
-    assert res.energies["n_correspondences"] == 0 and res.status == "Solve_Succeeded"
+    assert res.energies["n_correspondences"] == 0 and res.status == "Solve_Succeeded"  # mode linear: no search
 
 
 def test_all_mode_fits_every_frame():
@@ -180,24 +150,18 @@ def test_impossible_bound_is_refused_with_the_parameter_named():
 def test_iteration_cap_gives_a_failure_with_ipopts_status():
     rec, det, t_us, S, xy, valid = scene()
     with pytest.raises(SolveFailed, match="status Maximum_Iterations_Exceeded") as exc:
-        solve_batch(problem(max_iter=2), t_us, xy, valid, select_detections(det, t_us[[0, N]]))
+        solve_batch(problem(**{"ipopt.max_iter": 2}), t_us, xy, valid, select_detections(det, t_us[[0, N]]))
     assert exc.value.status == "Maximum_Iterations_Exceeded"
 
 
 # ------------------------------------------------------------------------------------------------ the stage
-def stage_inputs():
-    rec, det, t_us, S, xy, valid = scene()
-    sliced = SlicedTracks(t_us=t_us, xy=np.where(valid[..., None], xy, np.nan).astype(np.float32), valid=valid,
-                          track_id=np.arange(xy.shape[1], dtype=np.int32))
-    plan = BatchPlan(t0_us=np.array([T0]), t1_us=np.array([T0 + 1000 * N]), frame0=np.array([0]))
-    return {"recording": rec, "sliced": sliced, "detections": det, "batches": plan}
 
 
 class TestBatchStageConformance(StageConformance):
     stage_name = "batch"
-    config_overrides = {"icp_rounds": 1, "max_tracks": 60}
-    sensitive = ("lambda_cor", 10.0)
-    insensitive = ("max_iter", 50)
+    config_overrides = {"icp_rounds": 1, "tracks.max_tracks": 60}
+    sensitive = ("terms.cor.weight", 10.0)
+    insensitive = ("ipopt.max_iter", 50)
 
     def make_inputs(self):
         return stage_inputs()
@@ -213,7 +177,7 @@ def test_stage_records_solver_statistics():
     assert out.poses.shape == (N + 1, 33) and out.status == "Solve_Succeeded"
     assert out.iterations == ctx.stats["iterations"] > 0
     assert ctx.stats["n_correspondences"] > 0 and ctx.stats["solve_s"] > 0
-    assert {"cor", "2d", "3d", "temp", "total"} <= set(out.energies)
+    assert {"cor", "landmarks_2d", "joints_3d", "temp", "total"} <= set(out.energies)
 
 
 # ------------------------------------------------------------------------------------------------ in the pipeline
@@ -234,7 +198,7 @@ def test_failed_batches_are_recorded_and_only_they_are_recomputed(tmp_path):
     p, a = run("a", "batches=0:1")
     assert p.returncode == 0, p.stderr[-3000:]
     assert (a["computed"], a["cached"]) == (1, 0)
-    p, b = run("b", "batches=0:2", "stages.solve.max_iter=2")
+    p, b = run("b", "batches=0:2", "stages.solve.ipopt.max_iter=2")
     assert p.returncode == 1
     assert b["cached"] == 1 and b["computed"] == 0  # batch 0: the cap is not part of the key
     assert [(f["batch"], f["status"]) for f in b["failed"]] == [(1, "Maximum_Iterations_Exceeded")]
@@ -261,8 +225,8 @@ def test_neighbouring_batches_agree_on_their_shared_frame():
     np.testing.assert_array_equal(joint_positions(res.poses[-1], rec.template), joint_positions(next_start, rec.template))
     free = solve_batch(problem(boundary="free"), t_us, xy, valid, ends)
     assert np.abs(free.poses[-1] - res.poses[-1]).max() > 1e-6
-    with pytest.raises(EnergyError, match="boundary: expected one of"):
-        solve_batch(problem(boundary="loose"), t_us, xy, valid, ends)
+    with pytest.raises(ValueError, match=r"stages.solve.boundary: expected one of fixed \| free, got 'loose'"):
+        problem(boundary="loose")
 
 
 def test_stage_joint_limit_overrides_are_applied_and_checked():
@@ -274,7 +238,7 @@ def test_stage_joint_limit_overrides_are_applied_and_checked():
     run = spec.load_run()
 
     def solve(limits):
-        cfg = build_config(spec, {"icp_rounds": 1, "max_tracks": 60, "limits": limits}, "stages.solve")
+        cfg = build_config(spec, {"icp_rounds": 1, "tracks": {"max_tracks": 60}, "limits": limits}, "stages.solve")
         return run(stage_inputs(), cfg, StageContext(node="solve", stage="batch", batch=Batch(0, T0, T0 + 1000 * N, 0)))
 
     k = PARAM_NAMES.index("l_knee_flex")

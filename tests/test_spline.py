@@ -4,34 +4,26 @@ every term of the spline energy against finite differences, accuracy against gro
 from __future__ import annotations
 
 import dataclasses
-import functools
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_detect import detect, posed_recording
-from test_refine import boundary_events
 
 from eventcap.artifacts import BatchPlan
-from eventcap.artifacts.tracking import SlicedTracks
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import DOF_INDEX, pose_bounds
 from eventcap.energy.correspondences import find_correspondences
-from eventcap.energy.detections import select_detections
 from eventcap.energy.spline import UniformCubicBSpline
 from eventcap.analysis.metrics import mean_joint_error
-from eventcap.sim.capture import _pick_track_points, _track_points
-from eventcap.core.stage import StageContext, StageFailed
+from eventcap.core.stage import StageFailed
 from eventcap.core.testing import StageConformance
 from eventcap_spline._impl import cor_frames, window_of
 from eventcap.energy.errors import EnergyError
-from eventcap.energy.factor import Layout, Window
 from eventcap.energy.prior import gains_from_fits
-from eventcap_spline.solve import SplineSolver, solve_window
-from eventcap_spline.spec import SplineSolveConfig
-
-H_US = 10_000  # knot spacing of the test splines
-EXACT = dict(sigma_px=0.0, sigma_m=0.0, bias_m=0.0, outlier_prob=0.0, flip_prob=0.0, blur_gain=0.0)
+from eventcap.energy.window import Estimate, WindowInputs
+from eventcap.params import nest
+from helpers.spline_scene import (FAST, H_US, run_stage, scene, silhouette_events, solver,
+                                  stage_inputs, stitch, window)
 
 
 # ------------------------------------------------------------------------------------------------ the basis
@@ -163,46 +155,6 @@ def test_windows_cover_the_batch_and_shift_inwards_at_the_ends():
 
 
 # ------------------------------------------------------------------------------------------------ a window
-@functools.lru_cache(maxsize=3)
-def scene(exact: bool = False, n_frames: int = 4):
-    """4 intensity frames (3 batches, 120 ms; or n_frames) of a fast motion, simulated detections (default noise
-    unless exact), ground-truth surface tracks in the second batch."""
-    rec = posed_recording("high_knees", n_frames=n_frames, speed=1.0, with_template=True)
-    det = select_detections(detect("simulated", rec, **(EXACT if exact else {})), rec.frames.t_us)
-    t_det = rec.frames.t_us.astype(np.int64)
-    t_us = t_det[1] + 1_000 * np.arange(41, dtype=np.int64)
-    gt = rec.ground_truth
-    S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-    tri, bary = _pick_track_points(rec.template, rec.camera, lambda t: S[np.searchsorted(t_us, np.rint(t * 1e6))],
-                                   t_us[[0, 20, 40]], 100, seed=0)
-    xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
-    return rec, det, t_det, t_us, S, xy, valid
-
-
-T_SIL = slice(None, None, 5)  # E_sil at every 5th tracking frame of the scene: 9 frames
-
-
-def solver(**config) -> SplineSolver:
-    """The spline solver of the scene's window (3 batches, E_cor at the middle batch's 41 tracking frames, E_sil at 9
-    of them) with the stage's config (defaults but for the changes given)."""
-    return _solver(tuple(sorted(config.items())))
-
-
-@functools.lru_cache(maxsize=8)
-def _solver(config: tuple) -> SplineSolver:
-    rec, det, t_det = scene()[:3]
-    n_seg = int((t_det[-1] - t_det[0]) // H_US)
-    layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=41, n_sil=9)
-    return SplineSolver(rec.template, rec.camera, layout, SplineSolveConfig(**{"knot_ms": H_US / 1000, **dict(config)}))
-
-
-@functools.lru_cache(maxsize=1)
-def silhouette_events() -> np.ndarray:
-    """One event on every pixel of the true silhouette's boundary every millisecond of the scene (its 3 batches)."""
-    rec, _, t_det = scene()[:3]
-    gt = rec.ground_truth
-    t = np.arange(t_det[0], t_det[-1] + 1, 1000)
-    return boundary_events(rec.template, rec.camera, gt.poses[np.searchsorted(gt.t_us, t)], t)
 
 
 def joint_error_mm(rec, poses, truth) -> float:
@@ -224,10 +176,12 @@ def test_event_silence_term_is_the_image_velocity_of_the_still_joints():
     still = np.zeros((n_seg, 24))
     still[2:5, 4] = 1.0  # the left knee over three knot intervals
     still[7, 21] = 3.0  # the right wrist over one
-    term = EventSilence(1.0, None, rec.template, rec.camera, Layout(n_seg=n_seg))
-    window = Window(spl.t0_us, spl.t1_us, knots_us=spl.t0_us + H_US * np.arange(n_seg + 1), stillness=still,
-                    estimate=lambda t: spl.evaluate(C, t))
-    term.prepare(window)
+    term = EventSilence(EventSilence.Config(weight=1.0), rec.template, rec.camera, 3 * n_seg)
+    inputs = WindowInputs(spl.t0_us, spl.t1_us, knots_us=spl.t0_us + H_US * np.arange(n_seg + 1),
+                          evidence={"stillness": lambda: SimpleNamespace(stillness=still)})
+    curve = (lambda t, deriv=0: spl.evaluate(C, t, deriv))
+    term.collect(inputs)
+    term.relinearize(Estimate(curve, 0, inputs, rec.template, rec.camera))
     e = term.value(spl.evaluate(C, term.t_us, 1))
     t = np.arange(spl.t0_us, spl.t1_us, 10, dtype=np.float64) + 5.0  # 10 µs steps, interval midpoints
     rest = rec.template.rest_joints
@@ -238,17 +192,18 @@ def test_event_silence_term_is_the_image_velocity_of_the_still_joints():
     numeric = float(np.sum(still[seg] * np.sum(v ** 2, axis=-1)) * 10e-6)
     assert numeric > 1.0  # the knee and the wrist move in this scene
     assert e == pytest.approx(numeric, rel=0.02)
+    inputs.offer("stillness", lambda: SimpleNamespace(stillness=still[:, :23]))
     with pytest.raises(EnergyError, match=r"E_still: expected stillness of shape \(\d+, 24\)"):
-        term.prepare(dataclasses.replace(window, stillness=still[:, :23]))
+        term.relinearize(Estimate(curve, 0, inputs, rec.template, rec.camera))
 
 
 def test_spline_through_noisy_detections_beats_the_per_frame_fits():
     """Detections with the default simulated noise: the spline over 4 frames (no events) is nearer the truth in
     the middle batch than linear interpolation of the per-frame fits, and the joint limits hold at 1 kHz."""
     rec, det, t_det, t_us, S, xy, valid = scene()
-    sol = solver(icp_rounds=0, lambda_sil=0.0)
+    sol = solver(**{"icp_rounds": 0, "terms.sil.weight": 0.0})
     spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
-    res = solve_window(sol, spl, t_det, det, t_us, xy, valid)
+    res = window(sol, spl, det, xy, valid)
     assert all(s.status == "Solve_Succeeded" for s in res.solves[-1:])
     P = spl.evaluate(res.control, t_us)
     a = ((t_us - t_us[0]) / (t_us[-1] - t_us[0]))[:, None]
@@ -262,7 +217,7 @@ def test_spline_through_noisy_detections_beats_the_per_frame_fits():
 
 def test_cor_residuals_are_zero_on_exact_tracks_at_the_true_poses_and_shift_with_a_track():
     rec, det, t_det, t_us, S, xy, valid = scene()
-    cor = solver().factor("cor")
+    cor = solver().problem.factor("cor")
     corr = find_correspondences(rec.template, rec.camera, S, xy, valid)
     cor.set_correspondences(corr, relative=True)
     r = cor.residuals_px(S)
@@ -287,39 +242,40 @@ def test_silhouette_events_pull_the_spline_onto_the_true_outline():
     truth_px = cam.project(joint_positions(S, rest))
     err = {}
     for lam in (0.0, 50.0):  # the window's other terms as in SplineWeights' defaults before the factors
-        sol = solver(lambda_sil=lam, icp_rounds=3, lambda_prior=5e-4, lambda_still=0.0, lambda_context=0.0,
-                     prior_gain_max=1.0)
+        sol = solver(**{"terms.sil.weight": lam, "icp_rounds": 3, "terms.prior.weight": 5e-4,
+                        "terms.still.weight": 0.0, "terms.context.weight": 0.0, "terms.prior.gain_max": 1.0})
         spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
-        res = solve_window(sol, spl, t_det, det, t_us, xy[:, :0], valid[:, :0], events=silhouette_events(),
-                           t_sil_us=t_us[T_SIL])
+        res = window(sol, spl, det, xy[:, :0], valid[:, :0], events=silhouette_events())
         assert res.solves[-1].status == "Solve_Succeeded"
-        assert (res.energies["n_silhouette"] > 2000) == (lam > 0)
+        assert (res.energies.get("n_silhouette", 0) > 2000) == (lam > 0)
         px = cam.project(joint_positions(spl.evaluate(res.control, t_us), rest))
         err[lam] = float(np.mean(np.linalg.norm(px - truth_px, axis=-1)))
     assert err[0.0] > 0.9 and err[50.0] < 0.7 * err[0.0], err
 
 
-def test_a_base_gain_scales_the_prior_per_parameter():
-    """base_gain multiplies λ_prior per pose parameter: a gain of 0.1 everywhere is λ_prior / 10; a gain on one
-    parameter changes only how that one is smoothed (the start spline's too)."""
+def test_the_prior_weighs_each_parameter_by_its_inertia_gain():
+    """terms.prior.inertia: the prior's weight per pose parameter is its weight times each rotation's inertia gain
+    (reported), and a light part held less accelerates more; inertia 0 is one gain (none reported)."""
     rec, det, t_det, t_us, S, xy, valid = scene(exact=True)
 
-    def solve(prior, gain=None):
-        sol = solver(lambda_prior=prior, icp_rounds=1, lambda_still=0.0, lambda_context=0.0, lambda_sil=0.0)
+    def solve(**prior):
+        sol = solver(**{"icp_rounds": 1, "terms.still.weight": 0.0, "terms.context.weight": 0.0,
+                        "terms.sil.weight": 0.0, **{f"terms.prior.{k}": v for k, v in prior.items()}})
         spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
-        res = solve_window(sol, spl, t_det, det, t_us, xy, valid, base_gain=gain)
+        res = window(sol, spl, det, xy, valid)
         assert res.solves[-1].status == "Solve_Succeeded"
         return res
 
-    weak, tenth = solve(1e-5), solve(1e-4, np.full(33, 0.1))
-    np.testing.assert_allclose(tenth.control, weak.control, atol=1e-6)
-    assert tenth.prior_gain == pytest.approx(np.full(33, 0.1))
-    stiff_knee = np.ones(33)
-    stiff_knee[DOF_INDEX["l_knee_flex"]] = 1e4
-    plain, held = solve(1e-4), solve(1e-4, stiff_knee)
-    k = DOF_INDEX["l_knee_flex"]
-    acc = {name: np.abs(np.diff(r.control[:, k], 2)).max() for name, r in (("plain", plain), ("held", held))}
-    assert acc["held"] < 0.1 * acc["plain"], acc
+    weak = solve(weight=1e-5, inertia=0.0)
+    flat = solve(weight=1e-4, inertia=0.0)
+    assert "prior_gain" not in weak.reports["prior"] and "prior_gain" not in flat.reports["prior"]
+    assert np.abs(weak.control - flat.control).max() > 1e-3  # the weight matters
+    light = solve(weight=1e-4, inertia=1.5)
+    g = np.array(light.reports["prior"]["prior_gain"])
+    assert g[DOF_INDEX["l_elbow_flex"]] < 0.3 < g[DOF_INDEX["spine_twist"]]
+    k = DOF_INDEX["l_elbow_flex"]
+    acc = {n: np.abs(np.diff(r.control[:, k], 2)).max() for n, r in (("flat", flat), ("light", light))}
+    assert acc["light"] > acc["flat"], acc  # a light part held less accelerates more
 
 
 def test_robust_cor_weights_keep_drifting_tracks_from_pulling_the_motion():
@@ -332,18 +288,19 @@ def test_robust_cor_weights_keep_drifting_tracks_from_pulling_the_motion():
     bad[:, ::4, 1] -= drift
     poses = {}
     for name, tracks, sigma in (("clean", xy, 0.0), ("least squares", bad, 0.0), ("robust", bad, 0.5)):
-        sol = solver(lambda_2d=20.0, lambda_cor=2000.0, icp_rounds=3, robust_cor_px=sigma, lambda_prior=5e-4,
-                     lambda_still=0.0, lambda_context=0.0, lambda_sil=0.0, prior_gain_max=1.0)
+        sol = solver(**{"terms.landmarks_2d.weight": 20.0, "terms.cor.weight": 2000.0, "icp_rounds": 3,
+                        "terms.cor.robust_px": sigma, "terms.prior.weight": 5e-4, "terms.still.weight": 0.0,
+                        "terms.context.weight": 0.0, "terms.sil.weight": 0.0, "terms.prior.gain_max": 1.0})
         spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
-        res = solve_window(sol, spl, t_det, det, t_us, tracks, valid)
+        res = window(sol, spl, det, tracks, valid)
         assert res.solves[-1].status == "Solve_Succeeded"
         poses[name] = spl.evaluate(res.control, t_us)
     truth = {k: joint_error_mm(rec, v, S) for k, v in poses.items()}
     to_clean = {k: joint_error_mm(rec, v, poses["clean"]) for k, v in poses.items()}
     assert truth["robust"] < 0.75 * truth["least squares"], truth
     assert to_clean["robust"] < 0.5 * to_clean["least squares"], to_clean
-    with pytest.raises(EnergyError, match=r"robust_cor_px: expected a Cauchy scale in pixels >= 0, got -1"):
-        solve_window(solver(robust_cor_px=-1, lambda_sil=0.0), spl, t_det, det, t_us, bad, valid)
+    with pytest.raises(ValueError, match=r"stages.solve.terms.cor.robust_px: expected a finite number >= 0, got -1"):
+        solver(**{"terms.cor.robust_px": -1})
 
 
 def test_correspondence_change_counts_kept_found_and_lost_correspondences_in_pixels():
@@ -368,7 +325,7 @@ def test_correspondence_change_counts_kept_found_and_lost_correspondences_in_pix
                                     np.zeros((0, 2))) == 0.0
     # residuals_px_of: another set's residuals, the factor's own set untouched
     rec, det, t_det, t_us, S, xy, valid = scene()
-    cor = solver().factor("cor")
+    cor = solver().problem.factor("cor")
     a = find_correspondences(rec.template, rec.camera, S, xy, valid)
     moved = xy.copy()
     moved[:, 7] += np.array([3.0, -4.0])[None] * ((t_us - t_us[0]) / 1000.0)[:, None] / 40.0
@@ -390,17 +347,17 @@ def test_settled_correspondences_end_the_icp_rounds():
     rec, det, t_det, t_us, S, xy, valid = scene()
 
     def solve(**change):
-        sol = solver(lambda_sil=0.0, **change)
+        sol = solver(**{"terms.sil.weight": 0.0, **change})
         spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
-        return solve_window(sol, spl, t_det, det, t_us, xy, valid)
+        return window(sol, spl, det, xy, valid)
 
     every = solve(icp_rounds=3)
-    assert len(every.solves) == 3 and len(every.cor_change_px) == 2
-    first, second = every.cor_change_px
+    assert len(every.solves) == 3 and len(every.association_change_px) == 2
+    first, second = every.association_change_px
     assert 0 < second < first < 2.0, every.cor_change_px
     one = solve(icp_rounds=1)
     settled = solve(icp_rounds=3, icp_settle_px=first * 1.01)
-    assert len(settled.solves) == 1 and settled.cor_change_px == pytest.approx((first,))
+    assert len(settled.solves) == 1 and settled.association_change_px == pytest.approx((first,))
     np.testing.assert_array_equal(settled.control, one.control)
     assert settled.energies["n_correspondences"] == one.energies["n_correspondences"]
     between = solve(icp_rounds=3, icp_settle_px=(first + second) / 2)
@@ -413,89 +370,32 @@ def test_a_window_started_from_its_solution_needs_fewer_iterations_and_lands_the
     same spline; rows with a NaN start from the fits' spline (all NaN: the cold start exactly); a start of the
     wrong shape is refused, naming both shapes."""
     rec, det, t_det, t_us, S, xy, valid = scene()
-    sol = solver(lambda_sil=0.0, icp_rounds=2)
+    sol = solver(**{"terms.sil.weight": 0.0, "icp_rounds": 2})
     spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
-    cold = solve_window(sol, spl, t_det, det, t_us, xy, valid)
-    warm = solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(cold.control, cold.t_prime))
+    cold = window(sol, spl, det, xy, valid)
+    warm = window(sol, spl, det, xy, valid, start=(cold.control, cold.aux))
     assert warm.solves[0].iterations < 0.5 * cold.solves[0].iterations, (warm.solves, cold.solves)
     assert np.abs(warm.control - cold.control).max() < 0.05
     none = np.full_like(cold.control, np.nan)
-    again = solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(none, np.full_like(cold.t_prime, np.nan)))
+    again = window(sol, spl, det, xy, valid, start=(none, {k: np.full_like(v, np.nan) for k, v in cold.aux.items()}))
     np.testing.assert_array_equal(again.control, cold.control)
-    with pytest.raises(EnergyError, match=r"start: expected control points \(\d+, 33\) and t' \(4, 3\), got \(3, 33\)"):
-        solve_window(sol, spl, t_det, det, t_us, xy, valid, start=(none[:3], cold.t_prime))
+    with pytest.raises(EnergyError, match=r"start: expected control points \(\d+, 33\), got \(3, 33\)"):
+        window(sol, spl, det, xy, valid, start=(none[:3], cold.aux))
+    with pytest.raises(EnergyError, match=r"joints_3d's auxiliary variables: expected \(4, 3\), got \(3, 3\)"):
+        window(sol, spl, det, xy, valid, start=(cold.control, {"joints_3d": cold.aux["joints_3d"][:3]}))
 
 
 # ------------------------------------------------------------------------------------------------ the stage
-class _Seq(list):
-    """Stands in for the runner's lazy BatchSequence (a list with .batches)."""
-
-    def __init__(self, items, batches):
-        super().__init__(items)
-        self.batches = batches
-
-
-@functools.lru_cache(maxsize=2)
-def _stage_data(n_frames: int = 4):
-    rec, det_rows, t_det = scene(n_frames=n_frames)[:3]
-    det = detect("simulated", rec)
-    gt = rec.ground_truth
-    plan = BatchPlan.between_frames(t_det)
-    sliced = []
-    for k in range(len(plan)):  # exact surface tracks of every batch, each batch its own points
-        t_us = t_det[k] + 1_000 * np.arange(41, dtype=np.int64)
-        S = gt.poses[np.searchsorted(gt.t_us, t_us)]
-        tri, bary = _pick_track_points(rec.template, rec.camera,
-                                       lambda t, S=S, t_us=t_us: S[np.searchsorted(t_us, np.rint(t * 1e6))],
-                                       t_us[[0, 20, 40]], 60, seed=1 + k)
-        xy, valid = _track_points(rec.template, rec.camera, S, tri, bary)
-        sliced.append(SlicedTracks(t_us=t_us, xy=np.where(valid[..., None], xy, np.nan).astype(np.float32),
-                                   valid=valid, track_id=np.arange(xy.shape[1], dtype=np.int32)))
-    return rec, det, plan, _Seq(sliced, plan.batches())
-
-
-def stage_inputs(n_frames: int = 4):
-    """The stage's inputs on the scene: 3 batches of 40 ms (or n_frames - 1), every batch's tracks (as the runner
-    hands them)."""
-    rec, det, plan, sliced = _stage_data(n_frames)
-    return {"recording": rec, "sliced": sliced, "detections": det, "batches": plan}
-
-
-FAST = {"icp_rounds": 1, "half_window": 1, "knot_ms": 20.0, "cor_step": 4}
 
 
 class TestSplineStageConformance(StageConformance):
     stage_name = "spline"
-    config_overrides = FAST
-    sensitive = ("lambda_prior", 2e-3)
-    insensitive = ("max_iter", 50)
+    config_overrides = nest(FAST)
+    sensitive = ("terms.prior.weight", 2e-3)
+    insensitive = ("ipopt.max_iter", 50)
 
     def make_inputs(self):
         return stage_inputs()
-
-
-def _run_stage(inputs, batch, **changes):
-    from eventcap.core.config import build_config
-    from eventcap.core.registry import load_registry
-
-    spec = load_registry().get("spline")
-    ctx = StageContext(node="solve", stage="spline", batch=batch)
-    return spec.load_run()(inputs, build_config(spec, {**FAST, **changes}, "stages.solve"), ctx), ctx
-
-
-def _stitch(poses, plan, **changes):
-    from eventcap.core.config import build_config
-    from eventcap.core.registry import load_registry
-
-    reg = load_registry()
-    spec = reg.get("stitch")
-    ctx = StageContext(node="stitch", stage="stitch")
-    motion = spec.load_run()({"windows": _Seq(poses, plan.batches()[:len(poses)])},
-                             build_config(spec, changes, "stages.stitch"), ctx)["motion"]
-    cut = reg.get("cut")
-    return motion, [cut.load_run()({"motion": motion, "batches": plan}, build_config(cut, {}, "stages.cut"),
-                                   StageContext(node="cut", stage="cut", batch=plan.batch(k)))["poses"]
-                    for k in range(len(poses))], ctx
 
 
 def test_stitch_blends_overlapping_windows_without_a_seam():
@@ -519,7 +419,7 @@ def test_stitch_blends_overlapping_windows_without_a_seam():
         p[:, :27] += 0.05 if k == 1 else 0.0
         p[:, 27] -= 2 * np.pi if k == 2 else 0.0
         windows.append(PoseSequence(t_us=t[sel], poses=p, status="Solve_Succeeded", iterations=1, energies={}))
-    motion, cut, ctx = _stitch(windows, plan)
+    motion, cut, ctx = stitch(windows, plan)
     assert ctx.stats["seam_rad_max"] == pytest.approx(0.05)
     assert motion.t_us.tolist() == t.tolist()
     d1 = np.abs(np.diff(motion.poses, axis=0)).max()
@@ -543,13 +443,13 @@ def test_stitched_stage_output_is_smooth_where_batches_meet():
     outs = []
     for k in (0, 1, 2):
         inputs = stage_inputs()
-        out, ctx = _run_stage(inputs, inputs["batches"].batch(k), half_window=1)
+        out, ctx = run_stage(inputs, inputs["batches"].batch(k), half_window=1)
         outs.append(out["poses"])
         assert ctx.stats["window"] == [0, 2] and out["poses"].status == "Solve_Succeeded"
         assert out["poses"].t_us[0] == 5_000 and out["poses"].t_us[-1] == 125_000  # the whole window
     rest = rec.template.rest_joints
     inside = max(np.linalg.norm(np.diff(joint_positions(o.poses, rest), axis=0), axis=2).max() for o in outs)
-    motion, cut, ctx = _stitch(outs, stage_inputs()["batches"])
+    motion, cut, ctx = stitch(outs, stage_inputs()["batches"])
     J = joint_positions(motion.poses, rest)
     assert np.linalg.norm(np.diff(J, axis=0), axis=2).max() <= 1.05 * inside
     assert cut[0].poses[-1].tolist() == cut[1].poses[0].tolist() and cut[2].t_us[-1] == 125_000
@@ -562,10 +462,10 @@ def test_a_window_uses_the_tracks_of_all_its_batches():
     batch); with tracks=own (the default) each sees only its own batch's."""
     inputs = stage_inputs()
     plan = inputs["batches"]
-    out0, ctx0 = _run_stage(inputs, plan.batch(0), half_window=1, tracks="window")
-    out2, ctx2 = _run_stage(inputs, plan.batch(2), half_window=1, tracks="window")
+    out0, ctx0 = run_stage(inputs, plan.batch(0), half_window=1, **{"tracks.scope": "window"})
+    out2, ctx2 = run_stage(inputs, plan.batch(2), half_window=1, **{"tracks.scope": "window"})
     np.testing.assert_array_equal(out0["poses"].poses, out2["poses"].poses)
-    own = [_run_stage(inputs, plan.batch(k), half_window=1, tracks="own")[1].stats["n_correspondences"]
+    own = [run_stage(inputs, plan.batch(k), half_window=1, **{"tracks.scope": "own"})[1].stats["n_correspondences"]
            for k in (0, 1, 2)]
     assert ctx0.stats["n_correspondences"] == pytest.approx(sum(own), rel=0.1), (ctx0.stats, own)
     assert min(own) > 0 and ctx0.stats["n_correspondences"] > 2.5 * max(own)
@@ -607,54 +507,56 @@ def test_the_stage_fits_the_silhouette_at_every_sil_step_of_its_batch(caplog):
     inputs = dict(inputs, recording=dataclasses.replace(rec, events=events))
     b = inputs["batches"].batch(1)
     with caplog.at_level("INFO"):
-        out, ctx = _run_stage(inputs, b, lambda_sil=50.0, sil_step_ms=5.0)
+        out, ctx = run_stage(inputs, b, **{"terms.sil.weight": 50.0, "terms.sil.step_ms": 5.0})
     e = out["poses"].energies
     assert e["n_silhouette"] > 2000 and e["n_boundary"] >= e["n_silhouette"] and e["sil"] > 0
     assert "E_sil at 9 frames" in caplog.text
-    off, _ = _run_stage(inputs, b, lambda_sil=0.0)
-    assert off["poses"].energies["n_silhouette"] == 0
+    off, _ = run_stage(inputs, b, **{"terms.sil.weight": 0.0})
+    assert "n_silhouette" not in off["poses"].energies and "sil" not in off["poses"].energies
 
 
 def test_the_stage_holds_light_parts_less_with_prior_inertia():
-    """prior_inertia=1: the gains are the actor's inertias (the elbow's far below 1, the trunk's capped at 1), and
-    they change the solve; 0 (off): no gains."""
+    """terms.prior.inertia=1 (no gains from the fits: gain_max 1): the prior's gains are the actor's inertias (the
+    elbow's far below 1, the trunk's capped at 1), and they change the solve; 0 (off): no gains."""
     from eventcap.body.segments import inertia_prior_gain
 
     inputs = stage_inputs()
     b = inputs["batches"].batch(1)
-    on, ctx = _run_stage(inputs, b, prior_inertia=1.0)
-    g = np.array(ctx.stats["prior_inertia_gain"])
+    on, ctx = run_stage(inputs, b, **{"terms.prior.inertia": 1.0, "terms.prior.gain_max": 1.0})
+    g = np.array(ctx.stats["prior_gain"])
     np.testing.assert_allclose(g, inertia_prior_gain(inputs["recording"].template.rest_joints, 1.0, 1.0, 0.04))
     assert g[DOF_INDEX["l_elbow_flex"]] < 0.3 and g[DOF_INDEX["spine_twist"]] == 1.0
     assert g.min() == pytest.approx(0.04)  # the floor (the ankles)
-    off, ctx_off = _run_stage(inputs, b, prior_inertia=0.0)
-    assert "prior_inertia_gain" not in ctx_off.stats
+    off, ctx_off = run_stage(inputs, b, **{"terms.prior.inertia": 0.0, "terms.prior.gain_max": 1.0})
+    assert "prior_gain" not in ctx_off.stats
     assert np.abs(on["poses"].poses - off["poses"].poses).max() > 1e-4
 
 
 def test_the_prior_gains_are_chosen_only_at_frame_rates_that_sample_the_motion(caplog):
-    """The scene's intensity frames come at 25 fps: prior_gain_min_fps 20 chooses per-parameter gains (in the
-    stats), 30 does not and says why; the result then equals prior_gain_max=1."""
-    inputs = stage_inputs()
-    b = inputs["batches"].batch(1)
-    on, ctx_on = _run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv", prior_gain_min_fps=20.0)
+    """The scene's intensity frames come at 25 fps: smoothing.min_fps 20 chooses per-parameter gains from the 7 fits
+    around the window (in the stats), 30 does not and says why; the result then equals gain_max=1."""
+    inputs = stage_inputs(n_frames=7)  # 7 frames of context: enough for a smoothing spline (at least 5)
+    b = inputs["batches"].batch(3)
+    base = {"terms.prior.inertia": 0.0, "terms.prior.gain_max": 10.0, "smoothing.criterion": "gcv"}
+    on, ctx_on = run_stage(inputs, b, **base, **{"smoothing.min_fps": 20.0})
     assert len(ctx_on.stats["prior_gain"]) == 33
     with caplog.at_level("INFO"):
-        off, ctx_off = _run_stage(inputs, b, prior_gain_max=10.0, prior_gain_criterion="gcv",
-                                  prior_gain_min_fps=30.0)
+        off, ctx_off = run_stage(inputs, b, **base, **{"smoothing.min_fps": 30.0})
     assert "prior_gain" not in ctx_off.stats
-    assert ("batch 1: no per-parameter prior gains or context pull: intensity frames at 25.0 fps, below "
-            "stages.spline.prior_gain_min_fps (30)") in caplog.text
-    plain, _ = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
+    assert ("batch 3: no smoothing evidence from the fits around the window (no prior gains, no context pull): "
+            "intensity frames at 25.0 fps, below stages.solve.smoothing.min_fps (30)") in caplog.text
+    plain, _ = run_stage(inputs, b, **{"terms.prior.inertia": 0.0, "terms.prior.gain_max": 1.0,
+                                        "terms.context.weight": 0.0})
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
     # what `eventcap run` composes: gains up to 10 by GCV from 20 fps on (measured better at 25 fps, worse at 10)
     from eventcap.apps.benchmark import compose_run
     from eventcap.apps.cli import config_dir
 
     data, _ = compose_run(config_dir(), [])
-    spline = data["stages"]["spline"]
-    assert (spline["prior_gain_max"], spline["prior_gain_criterion"], spline["prior_gain_min_fps"]) == (10.0, "gcv",
-                                                                                                       20.0)
+    solve = data["stages"]["solve"]
+    assert solve["stage"] == "spline"
+    assert (solve["terms"]["prior"]["gain_max"], solve["smoothing"]["criterion"],
+            solve["smoothing"]["min_fps"]) == (10.0, "gcv", 20.0)
 
 
 def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
@@ -688,17 +590,20 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     inputs = stage_inputs(n_frames=7)  # 6 batches: 7 frames of context, enough for a smoothing spline
     b = inputs["batches"].batch(3)
     with caplog.at_level("INFO"):
-        on, ctx_on = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=20.0)
+        on, ctx_on = run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
+                                              "smoothing.min_fps": 20.0})
     frames = np.array(ctx_on.stats["context_pull_frames"])
     assert frames.shape == (33,) and np.all(frames >= 0) and frames.max() > 0.5
     assert "batch 3: context pull: median" in caplog.text
-    plain, _ = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=0.0)
+    plain, _ = run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 0.0})
     assert np.abs(on["poses"].poses - plain["poses"].poses).max() > 1e-4
-    off, ctx_off = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, prior_gain_min_fps=30.0)
+    off, ctx_off = run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
+                                            "smoothing.min_fps": 30.0})
     assert "context_pull_frames" not in ctx_off.stats
     np.testing.assert_array_equal(off["poses"].poses, plain["poses"].poses)
-    with pytest.raises(ValueError, match=r"stages.solve.lambda_context: expected a finite number >= 0, got -1.0"):
-        _run_stage(inputs, b, lambda_context=-1.0)
+    with pytest.raises(ValueError, match=r"stages.solve.terms.context.weight: expected a finite number >= 0, "
+                                         r"got -1.0"):
+        run_stage(inputs, b, **{"terms.context.weight": -1.0})
     # the gate's floor, with a body busy with events everywhere (the scene has none): the events alone (floor 0)
     # hold nothing, a floor of 0.1 holds a tenth of what no gate (1) holds
     import dataclasses
@@ -716,27 +621,28 @@ def test_the_context_pull_holds_only_what_the_events_call_still(caplog):
     inputs["recording"] = dataclasses.replace(rec, events=dataclasses.replace(rec.events, events=busy))
     frames = {}
     for floor in (0.0, 0.1, 1.0):
-        _, ctx_f = _run_stage(inputs, b, prior_gain_max=1.0, lambda_context=1.0, context_gate_floor=floor)
+        _, ctx_f = run_stage(inputs, b, **{"terms.prior.gain_max": 1.0, "terms.context.weight": 1.0,
+                                            "terms.context.gate_floor": floor})
         frames[floor] = np.array(ctx_f.stats["context_pull_frames"])
     assert frames[1.0].max() > 0.5
     np.testing.assert_allclose(frames[0.0], 0.0, atol=1e-6)
     np.testing.assert_allclose(frames[0.1], 0.1 * frames[1.0], rtol=1e-6, atol=1e-9)
-    with pytest.raises(ValueError, match=r"stages.solve.context_gate_floor: expected a finite number in \[0, 1\], "
-                                         r"got 2"):
-        _run_stage(inputs, b, context_gate_floor=2)
+    with pytest.raises(ValueError, match=r"stages.solve.terms.context.gate_floor: expected a finite number in "
+                                         r"\[0, 1\], got 2"):
+        run_stage(inputs, b, **{"terms.context.gate_floor": 2})
     # what `eventcap run` composes (measured on the suite at 25 fps: 0.01 / 0.03 / 0.1 / 0.3 gave MPJVE 198 / 196 /
     # 202 / 213 mm/s against 241 without)
     from eventcap.apps.benchmark import compose_run
     from eventcap.apps.cli import config_dir
 
-    spline = compose_run(config_dir(), [])[0]["stages"]["spline"]
-    assert (spline["lambda_context"], spline["context_gate_floor"]) == (0.03, 0.1)
+    context = compose_run(config_dir(), [])[0]["stages"]["solve"]["terms"]["context"]
+    assert (context["weight"], context["gate_floor"]) == (0.03, 0.1)
 
 
 def test_a_failed_window_raises_with_the_solver_status():
     inputs = stage_inputs()
     with pytest.raises(StageFailed) as err:
-        _run_stage(inputs, inputs["batches"].batch(0), max_iter=1)
+        run_stage(inputs, inputs["batches"].batch(0), **{"ipopt.max_iter": 1})
     assert err.value.status == "Maximum_Iterations_Exceeded" and "window of batches 0..2" in str(err.value)
 
 
@@ -746,38 +652,39 @@ def test_bad_config_and_missing_detections_are_named():
     # every value outside a field's declared range is refused when the config is built, before the stage runs
     for change, message in (
             ({"knot_ms": 0.0}, r"stages.solve.knot_ms: expected a finite number > 0, got 0.0"),
-            ({"still_hold_ms": float("nan")}, r"stages.solve.still_hold_ms: expected a finite number >= 0, got nan"),
-            ({"lambda_sil": -1.0}, r"stages.solve.lambda_sil: expected a finite number >= 0, got -1.0"),
-            ({"sil_step_ms": 0.0}, r"stages.solve.sil_step_ms: expected a finite number > 0, got 0.0"),
-            ({"robust_cor_px": -0.5}, r"stages.solve.robust_cor_px: expected a finite number >= 0, got -0.5"),
+            ({"stillness.hold_ms": float("nan")}, r"stages.solve.stillness.hold_ms: expected a finite number >= 0, "
+                                                  r"got nan"),
+            ({"terms.sil.weight": -1.0}, r"stages.solve.terms.sil.weight: expected a finite number >= 0, got -1.0"),
+            ({"terms.sil.step_ms": 0.0}, r"stages.solve.terms.sil.step_ms: expected a finite number > 0, got 0.0"),
+            ({"terms.cor.robust_px": -0.5}, r"stages.solve.terms.cor.robust_px: expected a finite number >= 0, "
+                                            r"got -0.5"),
             ({"icp_settle_px": -1.0}, r"stages.solve.icp_settle_px: expected a finite number >= 0, got -1.0"),
-            ({"prior_inertia": -1.0}, r"stages.solve.prior_inertia: expected a finite number >= 0, got -1.0"),
-            ({"prior_inertia_cap": 0.5}, r"stages.solve.prior_inertia_cap: expected a number >= 1, got 0.5"),
-            ({"prior_inertia_floor": 2.0}, r"stages.solve.prior_inertia_floor: expected a finite number in \[0, 1\], "
-                                           r"got 2.0"),
-            ({"prior_gain_min_fps": -1.0}, r"stages.solve.prior_gain_min_fps: expected a finite number >= 0, got -1.0"),
-            ({"still_rate_hz": 0.0}, r"stages.solve.still_rate_hz: expected a finite number > 0, got 0.0"),
-            ({"still_radius_px": -1}, r"stages.solve.still_radius_px: expected an integer >= 0, got -1"),
-            ({"still_radius_px": 2.5}, r"stages.solve.still_radius_px: expected an integer >= 0, got 2.5")):
+            ({"terms.prior.inertia": -1.0}, r"stages.solve.terms.prior.inertia: expected a finite number >= 0, "
+                                            r"got -1.0"),
+            ({"terms.prior.inertia_cap": 0.5}, r"stages.solve.terms.prior.inertia_cap: expected a number >= 1, "
+                                               r"got 0.5"),
+            ({"terms.prior.inertia_floor": 2.0}, r"stages.solve.terms.prior.inertia_floor: expected a finite number "
+                                                 r"in \[0, 1\], got 2.0"),
+            ({"smoothing.min_fps": -1.0}, r"stages.solve.smoothing.min_fps: expected a finite number >= 0, got -1.0"),
+            ({"stillness.rate_hz": 0.0}, r"stages.solve.stillness.rate_hz: expected a finite number > 0, got 0.0"),
+            ({"stillness.radius_px": -1}, r"stages.solve.stillness.radius_px: expected an integer >= 0, got -1"),
+            ({"stillness.radius_px": 2.5}, r"stages.solve.stillness.radius_px: expected an integer >= 0, got 2.5"),
+            ({"lambda_sil": 1.0}, r"stages.solve.lambda_sil: this setting is now stages.solve.terms.sil.weight"),
+            ({"terms": 3}, r"stages.solve.terms: a group of settings \(bones, context, cor"),
+            ({"terms.sill.weight": 1.0}, r"stages.solve.terms.sill: no config key named 'sill' .*did you mean .*"
+                                         r"'sil'")):
         with pytest.raises(ValueError, match=message):
-            _run_stage(inputs, b, **change)
-    # the stage keeps its own checks for configs built without the declarations (a library caller)
-    import dataclasses
-
-    from eventcap.core.config import build_config
-    from eventcap.core.registry import load_registry
-
-    spec = load_registry().get("spline")
-    bad = dataclasses.replace(build_config(spec, FAST, "stages.spline"), lambda_sil=-1.0)
-    with pytest.raises(StageFailed, match=r"stages.spline.lambda_sil: expected a number >= 0, got -1.0"):
-        spec.load_run()(inputs, bad, StageContext(node="solve", stage="spline", batch=b))
-    # an unknown prior is refused when the config is built, before anything runs
-    with pytest.raises(ValueError, match=r"\.prior: expected one of acceleration \| jerk, got 'snap'"):
-        _run_stage(inputs, b, prior="snap")
+            run_stage(inputs, b, **change)
+    # what spans several settings is checked by the stage
+    with pytest.raises(StageFailed, match=r"stages.solve.window_step: expected at most max\(1, 2·half_window\) = 2"):
+        run_stage(inputs, b, window_step=3)
+    # an unknown prior order is refused when the config is built, before anything runs
+    with pytest.raises(ValueError, match=r"\.terms\.prior\.order: expected one of acceleration \| jerk, got 'snap'"):
+        run_stage(inputs, b, **{"terms.prior.order": "snap"})
     few = dict(inputs, batches=BatchPlan(t0_us=np.array([5_000, 47_000]), t1_us=np.array([47_000, 85_000]),
                                          frame0=np.array([0, 1])))
     with pytest.raises(StageFailed, match="no detection row at t = \\[47000\\]"):
-        _run_stage(few, b)
+        run_stage(few, b)
 
 
 def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_and_says_so(caplog):
@@ -791,10 +698,11 @@ def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_
     b = inputs["batches"].batch(1)
     _impl._FLOORS.clear()
     with caplog.at_level("INFO"):
-        out, ctx = _run_stage(inputs, b, landmarks="widths", lambda_floor=100.0, lambda_slide=1.0, icp_rounds=1)
+        out, ctx = run_stage(inputs, b, landmarks="widths", icp_rounds=1,
+                              **{"terms.floor.weight": 100.0, "terms.slide.weight": 1.0})
     w = ctx.stats["landmark_widths"]
     assert set(w) == {"l_hip-r_hip", "l_shoulder-r_shoulder"} and all(0.9 < v < 1.1 for v in w.values()), w
-    assert "where the detector puts the joints, over the capture (stages.spline.landmarks=widths)" in caplog.text
+    assert "where the detector puts the joints, over the capture (stages.solve.landmarks=widths)" in caplog.text
     floor = [r.getMessage() for r in caplog.records if "the floor over the capture" in r.getMessage()]
     assert len(floor) == 1
     y = float(floor[0].split("y = ")[1].split(" m")[0])

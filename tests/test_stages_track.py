@@ -105,7 +105,7 @@ class TestEklt(StageConformance):
         assert (tr.xy[:, 0] >= 0).all() and (tr.xy[:, 0] < 240).all() and (tr.kind == 3).sum() >= 10
 
     def test_features_start_around_the_actor_given_detections(self):
-        from test_detect import detect
+        from helpers.poses import detect
 
         from eventcap.core.config import build_config
 

@@ -6,7 +6,6 @@ the stage naming the counts. The numbers on BlazePose and real captures: benchma
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,15 +15,9 @@ from eventcap.body.skeleton import LANDMARK_INDEX
 from eventcap.events import make_events
 from eventcap.core.stage import StageFailed
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_detect import detect, posed_recording, truth_2d, truth_3d  # noqa: E402
-
-try:
-    import eventcap_detect  # noqa: F401
-except ImportError:  # not installed yet: use the source tree
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))
 
 from eventcap_detect import checks  # noqa: E402
+from helpers.poses import detect, posed_recording, truth_2d, truth_3d
 
 N = 10  # images
 HEAD = [LANDMARK_INDEX[n] for n in ("nose", "r_eye", "l_eye", "r_ear", "l_ear")]
@@ -230,9 +223,8 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
     assert code == 1
     assert ("detect (blazepose v4): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
             "images; is there a person in view (eventcap preview FILE)?") in log
-    assert ("run incomplete: detect failed (no_person); skipped because of it: body, track, slice, solve, stitch, "
-            "cut, confidence, evaluate; first error: detect: StageFailed: blazepose (full, at latent): no person in 3 of 3 images") \
-        in log
+    assert ("run incomplete: detect failed (no_person); skipped because of it: 8 nodes (body, track, slice, solve, "
+            "stitch, cut, confidence, evaluate); the first error is above (detect)") in log
     assert "world frame: y up, the camera at the origin looking along -z, assumed level until the detect stage measures" in log
 
 

@@ -16,7 +16,7 @@ import pytest
 from eventcap.export.bvh import read_motion_npz
 
 pytest.importorskip("rerun")
-from conftest import small_capture_config
+from helpers.runs import small_capture_config
 from rerun.chunk import RrdReader  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
@@ -38,6 +38,12 @@ DEFAULT_LIKE = {"nodes": {
 }}
 
 pytestmark = pytest.mark.usefixtures("known_poses")  # conftest: tests/output_stages.py registered
+
+
+@pytest.fixture(autouse=True)
+def _view_cache(tmp_path, monkeypatch):
+    """What `eventcap view` builds goes to the test's own folder, not ~/.cache."""
+    monkeypatch.setenv("EVENTCAP_VIEW_DIR", str(tmp_path / "views"))
 
 
 def config(cache: Path, **outputs) -> dict:
@@ -208,29 +214,45 @@ def test_decimation_is_logged_and_respected(finished_run, caplog):
     assert not list(tmp.glob("*.partial*"))
 
 
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else b"<dir>") for p in folder.rglob("*")}
+
+
 def test_eventcap_view_builds_the_recording_of_a_finished_run(finished_run, tmp_path, capsys, monkeypatch):
+    """Built into the view cache, not into the run folder: reading a run writes nothing into it."""
     from eventcap.apps.cli import main
 
     _, run_dir, _, _ = finished_run
     copy = tmp_path / "run"
     shutil.copytree(run_dir, copy)
     (copy / "capture.rrd").unlink()
+    before = _snapshot(copy)
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     assert main(["view", str(copy)]) == 0
     out = capsys.readouterr()
+    built = next((tmp_path / "views").rglob("capture.rrd"))
+    assert built.parent.name == "run"  # the run folder's name: the recording's id carries it
     assert "building" in out.err and "no display here" in out.out
-    assert f"rerun {copy / 'capture.rrd'}" in out.out and "--serve-web --bind 127.0.0.1" in out.out
+    assert f"rerun {built}" in out.out and f"eventcap view {copy} --web\n" in out.out  # which ends the viewer
     # the address that loads the served recording, not the bare viewer (a welcome page)
     assert "open http://127.0.0.1:9090?url=rerun%2Bhttp%3A%2F%2Flocalhost%3A9876%2Fproxy" in out.out
     rows_a, times_a, _ = read_rrd(run_dir / "capture.rrd")
-    rows_b, times_b, _ = read_rrd(copy / "capture.rrd")
+    rows_b, times_b, _ = read_rrd(built)
     assert rows_a == rows_b and all(np.array_equal(times_a[k], times_b[k]) for k in times_a)
-    # recorded beside the run's other outputs in run.json
-    outputs = json.loads((copy / "run.json").read_text())["outputs"]
-    assert set(outputs["written"]) == {"npz", "rerun", "plausibility"}
+    assert _snapshot(copy) == before  # no capture.rrd, no plausibility.json, run.json untouched
+    assert sorted(p.name for p in built.parent.iterdir()) == ["capture.rrd"]
+    # a second look reuses what was built; --rebuild builds it again, still outside the run folder
+    assert main(["view", str(copy), "--no-open"]) == 0
+    assert "building" not in capsys.readouterr().err
+    assert main(["view", str(copy), "--no-open", "--rebuild"]) == 0
+    assert "building" in capsys.readouterr().err and _snapshot(copy) == before
+    # a run folder with its own capture.rrd (outputs.rerun=true) is shown as it is, and left as it is
+    before = _snapshot(run_dir)
+    assert main(["view", str(run_dir), "--no-open"]) == 0
+    assert f"rerun {run_dir / 'capture.rrd'}" in capsys.readouterr().out and _snapshot(run_dir) == before
     # an .rrd given directly, and --no-open
-    assert main(["view", str(copy / "capture.rrd"), "--no-open"]) == 0
+    assert main(["view", str(built), "--no-open"]) == 0
     assert "open it with the Rerun viewer" in capsys.readouterr().out
 
 
@@ -291,3 +313,171 @@ def test_the_quick_preset_through_the_real_pipeline(tmp_path):
     assert np.array_equal(times["/world/skeleton/estimate"], m["t_us"])
     for node in ("track", "slice", "solve", "refine"):
         assert rows[f"/batches/{node}"] == 6
+
+
+# -- the viewer's processes end with `eventcap view` ------------------------------------------------------------------
+#: A stand-in for the `rerun` binary (on PATH): it starts a child of its own (as the wheel's launcher script starts the
+#: binary), writes both pids, and serves nothing until it is killed.
+FAKE_RERUN = """#!{python}
+import os, subprocess, sys, time
+child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+with open(os.environ["FAKE_RERUN_PIDS"] + ".tmp", "w") as fh:
+    fh.write(f"{{os.getpid()}} {{child.pid}}")
+os.replace(os.environ["FAKE_RERUN_PIDS"] + ".tmp", os.environ["FAKE_RERUN_PIDS"])
+time.sleep(600)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split(")")[-1].split()[0] != "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return False
+
+
+def _start_view(tmp_path, *args):
+    import os
+    import subprocess
+    import time
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    fake = bin_dir / "rerun"
+    fake.write_text(FAKE_RERUN.format(python=sys.executable))
+    fake.chmod(0o755)
+    rrd = tmp_path / "x.rrd"
+    rrd.write_bytes(b"not read by the fake viewer")
+    pids = tmp_path / "pids"
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}", "FAKE_RERUN_PIDS": str(pids),
+           "DISPLAY": ":99"}
+    env.pop("RERUN_CLI_PATH", None)
+    proc = subprocess.Popen([sys.executable, "-m", "eventcap.apps.cli", "view", str(rrd), *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not pids.exists():
+        assert proc.poll() is None, proc.communicate()
+        if time.monotonic() > deadline:
+            raise TimeoutError("the fake viewer did not start within 60 s")
+        time.sleep(0.05)
+    return proc, [int(p) for p in pids.read_text().split()]
+
+
+def _gone(pids, timeout_s=10.0) -> bool:
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if not any(_alive(p) for p in pids):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.parametrize("how, args", [("SIGTERM", ["--web"]), ("SIGINT", ["--web"]), ("SIGHUP", ["--web"]),
+                                       ("SIGTERM", [])])
+def test_every_viewer_process_ends_with_eventcap_view(tmp_path, how, args):
+    """`kill PID` (or Ctrl-C, or a closed terminal) of `eventcap view --web` ends the viewer and what it started."""
+    import os
+    import signal
+
+    proc, pids = _start_view(tmp_path, *args)
+    try:
+        assert all(_alive(p) for p in pids)
+        os.kill(proc.pid, getattr(signal, how))
+        proc.wait(timeout=20)
+        assert _gone(pids), f"left running after {how}: {[p for p in pids if _alive(p)]}"
+        assert proc.returncode == (0 if how == "SIGINT" else 128 + getattr(signal, how))
+        assert "Traceback" not in proc.stderr.read()
+    finally:
+        for p in [proc.pid, *pids]:
+            if _alive(p):
+                os.kill(p, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_the_viewer_dies_with_a_killed_eventcap_view(tmp_path):
+    """`kill -9` gives `eventcap view` no chance to clean up: the kernel ends the viewer (PR_SET_PDEATHSIG)."""
+    import os
+    import signal
+
+    proc, (viewer, _grandchild) = _start_view(tmp_path, "--web")
+    try:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=20)
+        assert _gone([viewer])
+    finally:
+        for p in (viewer, _grandchild):
+            if _alive(p):
+                os.kill(p, signal.SIGKILL)
+
+
+def test_the_viewer_is_the_wheels_binary_not_its_launcher(tmp_path, monkeypatch):
+    """The rerun-sdk wheel's `rerun` script only starts its binary as a second process: the binary is run instead."""
+    from eventcap.apps.viewer import rerun_command
+
+    launcher = tmp_path / "rerun"
+    launcher.write_text(f"#!{sys.executable}\nfrom rerun_cli.__main__ import main\nmain()\n")
+    launcher.chmod(0o755)
+    binary = tmp_path / "rerun_binary"
+    binary.write_text("")
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.setenv("RERUN_CLI_PATH", str(binary))
+    assert rerun_command() == [str(binary)]
+    launcher.write_text("#!/bin/sh\nexec true\n")  # any other `rerun` on PATH is the user's choice
+    assert rerun_command() == [str(launcher)]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _listening(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL"])
+def test_the_real_web_viewer_frees_its_ports_when_eventcap_view_is_killed(tmp_path, how):
+    """The rerun-sdk wheel's viewer itself (a few seconds): serving, then killed with `eventcap view`."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from eventcap.apps.viewer import _wheel_binary
+
+    if _wheel_binary() is None:
+        pytest.skip("rerun-sdk's viewer binary is not installed")
+    import rerun as rr
+
+    rr.init("fake_capture")
+    rr.save(str(tmp_path / "x.rrd"))
+    rr.log("p", rr.Points3D(np.zeros((3, 3))))
+    rr.disconnect()
+    port, grpc = _free_port(), _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "eventcap.apps.cli", "view", str(tmp_path / "x.rrd"), "--web",
+                             "--port", str(port), "--grpc-port", str(grpc)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while not (_listening(port) and _listening(grpc)):
+            assert proc.poll() is None, "the web viewer exited before serving"
+            if time.monotonic() > deadline:
+                raise TimeoutError("the web viewer did not start within 60 s")
+            time.sleep(0.1)
+        os.kill(proc.pid, getattr(signal, how))
+        proc.wait(timeout=20)
+        deadline = time.monotonic() + 15
+        while (_listening(port) or _listening(grpc)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _listening(port) and not _listening(grpc), f"a viewer still serves after {how}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()

@@ -1,4 +1,4 @@
-"""Windows that advance by several batches (stages.spline.window_step): the batches are cut into runs of window_step,
+"""Windows that advance by several batches (stages.solve.window_step): the batches are cut into runs of window_step,
 each run kept by one window solved by its middle batch; the other batches solve nothing (status in_window, no
 frames: not a gap) and stitch blends the windows that exist."""
 
@@ -9,13 +9,13 @@ import json
 
 import numpy as np
 import pytest
-from test_spline import _run_stage, _stitch, stage_inputs
-from test_spline_resume import TINY
 
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.core.stage import StageFailed
 from eventcap_spline._impl import kept_by, window_of, window_plan, window_role
+from helpers.spline_scene import run_stage, stage_inputs, stitch
+from helpers.runs import TINY_SPLINE_RUN
 
 
 def test_window_role_cuts_the_batches_into_runs_each_kept_by_its_middle_batchs_window():
@@ -65,17 +65,17 @@ def test_window_role_refuses_a_step_that_leaves_windows_apart():
 def test_the_stage_refuses_a_window_step_beyond_twice_the_half_window():
     inputs = stage_inputs()
     b = inputs["batches"].batch(1)
-    with pytest.raises(StageFailed, match=r"stages.spline.window_step: expected at most max\(1, 2·half_window\) = 2 "
+    with pytest.raises(StageFailed, match=r"stages.solve.window_step: expected at most max\(1, 2·half_window\) = 2 "
                                           r"\(neighbouring windows must overlap to be blended\), got 3") as err:
-        _run_stage(inputs, b, half_window=1, window_step=3)
+        run_stage(inputs, b, half_window=1, window_step=3)
     assert err.value.status == "invalid_config"
     with pytest.raises(ValueError, match=r"stages.solve.window_step: expected an integer >= 1, got 0"):
-        _run_stage(inputs, b, window_step=0)
+        run_stage(inputs, b, window_step=0)
 
 
 def test_a_batch_another_window_keeps_solves_nothing_and_says_which():
     inputs = stage_inputs()  # 3 batches; half_window 1, step 2: batch 0 keeps 0-1, batch 2 keeps itself
-    out, ctx = _run_stage(inputs, inputs["batches"].batch(1), half_window=1, window_step=2)
+    out, ctx = run_stage(inputs, inputs["batches"].batch(1), half_window=1, window_step=2)
     p = out["poses"]
     assert p.status == "in_window" and p.t_us.shape == (0,) and p.poses.shape == (0, 33)
     assert ctx.stats["kept_by"] == 0 and "solve_s" not in ctx.stats
@@ -111,14 +111,14 @@ def test_stitch_with_step_three_covers_every_batch_and_blends_the_windows():
     recording; with exact windows it is the truth; with the window of batch 4 off by 0.03 rad the motion is off by
     at most that, all of it only where that window alone has weight, and each batch's cut spans the batch."""
     plan, t, truth, windows = _windows(10, 3, 2)
-    motion, cut, ctx = _stitch(windows, plan)
+    motion, cut, ctx = stitch(windows, plan)
     assert motion.t_us.tolist() == t.tolist() and np.isfinite(motion.poses).all()
     np.testing.assert_allclose(motion.poses, truth, atol=1e-12)
     assert ctx.stats["windows"] == 3 and "gap_windows" not in ctx.stats and ctx.stats["seam_rad_max"] == 0
     assert [(c.t_us[0], c.t_us[-1]) for c in cut] == list(zip(plan.t0_us.tolist(), plan.t1_us.tolist()))
     assert all(c.status == "stitched" for c in cut)
     _, _, _, off = _windows(10, 3, 2, offsets={4: 0.03})
-    motion, cut, ctx = _stitch(off, plan)
+    motion, cut, ctx = stitch(off, plan)
     err = motion.poses[:, :27] - truth[:, :27]
     assert err.min() >= -1e-12 and err.max() == pytest.approx(0.03)
     assert ctx.stats["seam_rad_max"] == pytest.approx(0.03)
@@ -132,7 +132,7 @@ def test_a_gap_window_beside_skipped_batches_leaves_no_gap_where_other_windows_s
     """Batch 4's window (batches 2..6) saw nothing (status gap): its run 3..5 is still covered by the windows of
     batches 1 (0..4) and 7 (5..9), so the motion has no gap; the skipped (in_window) batches are not gaps."""
     plan, t, truth, windows = _windows(10, 3, 2, gap=4)
-    motion, cut, ctx = _stitch(windows, plan)
+    motion, cut, ctx = stitch(windows, plan)
     assert np.isfinite(motion.poses).all()
     np.testing.assert_allclose(motion.poses, truth, atol=1e-12)
     assert ctx.stats["gap_windows"] == [4] and "gap_frames" not in ctx.stats
@@ -141,7 +141,7 @@ def test_a_gap_window_beside_skipped_batches_leaves_no_gap_where_other_windows_s
     # batch 4 to no one: a gap there (but at its ends, which the neighbours' windows share), never filled in; the
     # skipped batches 3 and 5 are seen by their neighbours' windows
     plan, t, truth, windows = _windows(10, 2, 1, gap=4)
-    motion, cut, ctx = _stitch(windows, plan)
+    motion, cut, ctx = stitch(windows, plan)
     ok = np.isfinite(motion.poses).all(axis=1)
     assert not ok[(t > plan.t0_us[4]) & (t < plan.t1_us[4])].any()
     assert ok[t <= plan.t0_us[4] - 10_000].all() and ok[t >= plan.t1_us[4] + 10_000].all()
@@ -155,12 +155,12 @@ def test_stitch_refuses_a_batch_no_window_covers_and_an_in_window_batch_with_fra
     lost[7] = dataclasses.replace(lost[7], t_us=np.zeros(0, dtype=np.int64), poses=np.zeros((0, 33)),
                                   status="in_window")
     with pytest.raises(StageFailed, match=r"stitch: no window covers batch 7 \[285000, 325000\] us"):
-        _stitch(lost, plan)
+        stitch(lost, plan)
     odd = list(windows)
     odd[0] = dataclasses.replace(windows[1], status="in_window")
     with pytest.raises(StageFailed, match=r"batch 0 says another batch's window keeps it \(status in_window\) but "
                                           r"holds 201 frames"):
-        _stitch(odd, plan)
+        stitch(odd, plan)
 
 
 def test_a_small_run_with_window_step_three_estimates_every_frame(tmp_path):
@@ -170,8 +170,8 @@ def test_a_small_run_with_window_step_three_estimates_every_frame(tmp_path):
     from eventcap.apps.cli import main
 
     run_dir = tmp_path / "run"
-    code = main(["run", *TINY, "source.duration_s=0.3", "stages.spline.half_window=2",
-                 "stages.spline.window_step=3", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
+    code = main(["run", *TINY_SPLINE_RUN, "source.duration_s=0.3", "stages.solve.half_window=2",
+                 "stages.solve.window_step=3", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     assert code == 0
     with np.load(run_dir / "motion.npz") as z:
         poses, t, estimated = z["poses"], z["t_us"], z["estimated"]
@@ -187,7 +187,7 @@ def test_a_small_run_with_window_step_three_estimates_every_frame(tmp_path):
 
 
 def test_the_geometry_digest_is_computed_once_and_follows_the_geometry():
-    from test_detect import posed_recording
+    from helpers.poses import posed_recording
 
     tpl = posed_recording("high_knees", n_frames=2, speed=1.0, with_template=True).template
     d = tpl.geometry_digest()

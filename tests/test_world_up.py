@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import logging
 import re
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +16,7 @@ from eventcap.core.config import build_config
 from eventcap.core.registry import load_registry
 from eventcap.core.stage import StageContext
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_detect import detect, posed_recording  # noqa: E402
+from helpers.poses import detect, posed_recording
 
 
 @pytest.fixture(autouse=True)

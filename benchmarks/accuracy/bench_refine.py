@@ -54,8 +54,8 @@ from eventcap.energy.boundary import silhouette_iou, silhouettes  # noqa: E402
 from eventcap_refine.spec import SILHOUETTE  # noqa: E402
 
 N = 40  # tracking frames per batch - 1 (25 fps, 1 ms)
-CONFIGS = {"default": {}, "paper": {"denoise_us": 0}, "stab0.5": {"lambda_stab": 0.5},
-           "huber": {"sil_loss": "huber", "sil_huber_px": 1.0}}
+CONFIGS = {"default": {}, "paper": {"terms": {"sil": {"denoise_us": 0}}}, "stab0.5": {"terms": {"stab": {"weight": 0.5}}},
+           "huber": {"terms": {"sil": {"loss": "huber", "huber_px": 1.0}}}}
 
 
 def capture(template, motion: str, duration_s: float, seed: int):

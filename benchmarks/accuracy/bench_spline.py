@@ -6,7 +6,7 @@ smoother: positions and velocities of the 1 kHz motion.
 
 Methods (each a normal run through the runner and its cache; the recording is exported for the ground truth):
 - ``spline``: ``pipeline=spline`` (plugins/eventcap_spline);
-- ``spline_noev``: the same without event correspondences (``stages.spline.icp_rounds=0``);
+- ``spline_noev``: the same without event correspondences (``stages.solve.icp_rounds=0``);
 - ``linear``: ``stages/solve=linear pipeline=no_refine`` (the paper's *_linear);
 - ``paper``: the default pipeline (the paper's Sec. 3.2-3.3 method);
 - ``frames_smooth`` (computed here, from linear's run): the per-frame detection fits (linear's poses at the
@@ -55,7 +55,7 @@ from eventcap.analysis.metrics import pose_at  # noqa: E402
 
 METHODS = {
     "spline": ["pipeline=spline"],
-    "spline_noev": ["pipeline=spline", "stages.spline.icp_rounds=0"],  # detections and prior only: no events
+    "spline_noev": ["pipeline=spline", "stages.solve.icp_rounds=0"],  # detections and prior only: no events
     "linear": ["stages/solve=linear", "pipeline=no_refine"],
     "paper": [],
 }
@@ -165,7 +165,9 @@ def timing(args) -> None:
     from eventcap.energy.factor import Layout
     from eventcap.energy.problem import SplinePoses, coupling_band
     from eventcap.energy.spline import UniformCubicBSpline
-    from eventcap_spline._impl import cor_frames, prior_base_gain, sil_frames, window_of
+    from eventcap.energy.terms import sample_times
+    from eventcap.energy.window import Tracks, WindowInputs
+    from eventcap_spline._impl import cor_frames, window_of
     from eventcap_spline.solve import SplineSolver, fit_window, solve_window
     from eventcap_spline.spec import SplineSolveConfig
 
@@ -183,9 +185,9 @@ def timing(args) -> None:
     k = min(args.timing_batch, len(sliced) - 1)
     frames = np.array([int(x.t_us[0]) for x in sliced] + [int(sliced[-1].t_us[-1])])
     cfg = SplineSolveConfig()  # the stage's defaults: every term of the default solve
-    step = cfg.cor_step
+    step = cfg.tracks.step
     print(f"window solve of batch {k} ({motion}, {rate} fps, stage defaults: correspondences every {step} "
-          f"tracking frames, event silence, E_sil every {cfg.sil_step_ms:g} ms, inertia-weighted prior), CPU "
+          f"tracking frames, event silence, E_sil every {cfg.terms.sil.step_ms:g} ms, inertia-weighted prior), CPU "
           "seconds (fits excluded)")
     print(f"{'half_window':>11} {'batches':>7} {'ctrl':>5} {'build s':>8} {'solve s':>8} {'iters':>6} {'corr':>6}")
     for hw in range(0, 5):
@@ -197,21 +199,24 @@ def timing(args) -> None:
         s = sliced[k]
         idx = cor_frames(s.t_us.size, step)
         t_us = np.asarray(s.t_us, dtype=np.int64)
-        t_sil = sil_frames(t_us, cfg.sil_step_ms) if cfg.lambda_sil > 0 else None
+        inputs = WindowInputs(spl.t0_us, spl.t1_us, knots_us=spl.t0_us + spl.h_us * np.arange(n_seg + 1),
+                              t_det_us=t_det, detections=d,
+                              tracks=Tracks(t_us[idx], np.asarray(s.xy, dtype=np.float64)[idx],
+                                            np.asarray(s.valid)[idx]), track_times_us=(t_us,),
+                              events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1))
+        times = sample_times(cfg.terms, inputs)
         c0 = time.process_time()
-        layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=idx.size, n_sil=0 if t_sil is None else t_sil.size,
+        layout = Layout(n_seg=n_seg, sizes=tuple((n, t.size) for n, t in times.items()),
                         band=coupling_band(SplinePoses(n_seg, spl), t_us[idx]))
         sol = SplineSolver(rec.template, rec.camera, layout, cfg)
         c1 = time.process_time()
         fit_window(sol, d)  # fills the per-process fit cache: not timed below
         c2 = time.process_time()
-        res = solve_window(sol, spl, t_det, d, t_us[idx], np.asarray(s.xy, dtype=np.float64)[idx],
-                           np.asarray(s.valid)[idx], events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1),
-                           t_sil_us=t_sil, base_gain=prior_base_gain(cfg, rec.template.rest_joints))
+        res = solve_window(sol, spl, inputs)
         c3 = time.process_time()
         its = sum(x.iterations for x in res.solves)
         print(f"{hw:>11} {z - a + 1:>7} {spl.n_ctrl:>5} {c1 - c0:8.2f} {c3 - c2:8.2f} {its:>6} "
-              f"{res.energies['n_correspondences']:>6}", flush=True)
+              f"{res.energies.get('n_correspondences', 0):>6}", flush=True)
 
 
 def plot_runs(spec: str, png: Path) -> None:

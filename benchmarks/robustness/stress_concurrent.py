@@ -35,12 +35,13 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 TESTS = ROOT / "tests"
-sys.path.insert(0, str(ROOT / "benchmarks" / "robustness"))
-from kill_resume import committed, env as toy_env  # noqa: E402
+sys.path.insert(0, str(ROOT))  # the kill/resume harness: tests/helpers
+from tests.helpers.kill_resume import committed  # noqa: E402
+from tests.helpers.toy import toy_env  # noqa: E402
 
 
 def env() -> dict[str, str]:
-    """The toy stages' environment (as kill_resume's), BLAS/OpenMP pinned to one thread."""
+    """The toy stages' environment (tests/helpers/toy.py), BLAS/OpenMP pinned to one thread."""
     e = toy_env()
     e.setdefault("OMP_NUM_THREADS", "1")
     return e

@@ -1,6 +1,6 @@
 """Benchmark of the simulated event camera: its own cost per render sample, renders and events per second of capture.
 
-Scene: an analytic textured pattern (smooth random texture plus sharp-edged blocks) at 240x180, rotating and
+Scene: an analytic textured pattern (tests/helpers/edi_scenes.py) (smooth random texture plus sharp-edged blocks) at 240x180, rotating and
 translating fast. The render time is measured separately and excluded from the simulator's cost.
 
     python3 benchmarks/speed/bench_simulator.py [--duration-ms 250] [--render-ms 10]
@@ -9,39 +9,17 @@ translating fast. The render time is measured separately and excluded from the s
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
-import cv2
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the scene: tests/helpers
 
 from eventcap.sim.events import SensorConfig, simulate
 from eventcap.sim.frames import FrameConfig, simulate_capture
-
-HEIGHT, WIDTH = 180, 240
-
-
-def textured_scene(speed_px_s: float, seed: int = 0):
-    """Analytic moving scene: texture translating at speed_px_s and rotating at speed_px_s / 120 rad/s."""
-    rng = np.random.default_rng(seed)
-    size = 600
-    tex = cv2.GaussianBlur(rng.random((size, size)).astype(np.float32), (0, 0), 2.0)
-    tex = (tex - tex.min()) / (tex.max() - tex.min())
-    for _ in range(40):  # sharp-edged blocks, like clothing seams and limb silhouettes
-        y, x = rng.integers(0, size - 40, 2)
-        h, w = rng.integers(8, 40, 2)
-        tex[y : y + h, x : x + w] = rng.uniform(0.0, 1.0)
-    tex = (0.05 + 0.9 * tex).astype(np.float32)
-    centre = (size / 2, size / 2)
-
-    def render(t_us: int) -> np.ndarray:
-        t = t_us * 1e-6
-        m = cv2.getRotationMatrix2D(centre, np.degrees(speed_px_s / 120.0 * t), 1.0)
-        m[0, 2] += speed_px_s * t * 0.8 - (size - WIDTH) / 2
-        m[1, 2] += speed_px_s * t * 0.6 - (size - HEIGHT) / 2
-        out = cv2.warpAffine(tex, m, (WIDTH, HEIGHT), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        return np.clip(out, 0.0, 1.0)
-
-    return render
+from tests.helpers.edi_scenes import HEIGHT, WIDTH, textured_scene
 
 
 def run(speed_px_s: float, duration_us: int, sensor: SensorConfig, frames: FrameConfig | None, render_ms: float):

@@ -78,8 +78,9 @@ def install(variant: str, log: list):
     orig, options = sv.solve_window, IpoptSettings.options
     state = {"prev": None}
 
-    def wrapped(solver, spline, t_det_us, det, *args, **kw):
+    def wrapped(solver, spline, inputs, *args, **kw):
         start = None
+        det, t_det_us = inputs.detections, inputs.t_det_us
         prev = state["prev"]
         if warm and prev is not None and prev[0].t0_us <= spline.t0_us < prev[0].t1_us:
             C, T = shifted_start(prev, spline, det.n, np.asarray(t_det_us, dtype=np.int64))
@@ -90,13 +91,14 @@ def install(variant: str, log: list):
                 ref = spline.evaluate(np.nan_to_num(C), np.asarray(t_det_us)[seen])[:, 27:30]
                 turn = 2 * np.pi * np.round(np.median(fits[seen, 27:30] - ref, axis=0) / (2 * np.pi))
                 C[:, 27:30] += turn
-            start = (C, T)
+            start = (C, {"joints_3d": T})  # E_3D's t' per detection frame
         c0 = time.process_time()
-        res = orig(solver, spline, t_det_us, det, *args, start=start, **kw)
+        res = orig(solver, spline, inputs, *args, start=start, **kw)
         log.append({"t0_us": int(spline.t0_us), "cpu_s": time.process_time() - c0, "warm": start is not None,
                     "iterations": [s.iterations for s in res.solves],
-                    "cor_change_px": list(res.cor_change_px)})
-        state["prev"] = (spline, res.control, res.t_prime, np.asarray(t_det_us, dtype=np.int64))
+                    "association_change_px": list(res.association_change_px)})
+        t_prime = res.aux.get("joints_3d", np.zeros((det.n, 3)))
+        state["prev"] = (spline, res.control, t_prime, np.asarray(t_det_us, dtype=np.int64))
         return res
 
     def options_mu(self, warm_solve):

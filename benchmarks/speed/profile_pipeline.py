@@ -121,12 +121,11 @@ def install(timers: Timers) -> None:
     sv = "eventcap_spline.solve"
     timers.patch(sv, "SplineSolver.__init__", "solve: NLP build")
     timers.patch(sv, "fit_window", "solve: per-frame fits")
-    timers.patch(sv, "context_gains", "solve: prior gains (fits around the window, GCV)")
-    timers.patch(sv, "window_silence", "solve: E_still (events' stillness)")
-    timers.patch(sv, "EventIndex", "solve: E_sil (index + closest events)")
-    timers.patch(sv, "find_silhouette_correspondences", "solve: E_sil (index + closest events)")
-    timers.patch(sv, "find_correspondences", "solve: correspondence search")
-    timers.patch("eventcap.energy.problem", "FactorProblem.set_window", "solve: factors' prepare")
+    timers.patch(sv, "window_context", "solve: smoothing evidence (fits around the window, GCV)")
+    timers.patch(sv, "window_stillness", "solve: stillness evidence (events around the start)")
+    timers.patch("eventcap.energy.sil", "EventIndex", "solve: E_sil (index + closest events)")
+    timers.patch("eventcap.energy.sil", "find_silhouette_correspondences", "solve: E_sil (index + closest events)")
+    timers.patch("eventcap.energy.window", "find_correspondences", "solve: correspondence search")
     timers.patch("eventcap.energy.problem", "FactorProblem.solve", "solve: IPOPT (window solves)")
     timers.patch("eventcap.energy.ipopt", "NumpyCallback.eval_buffer", lambda self, arg, res: "ipopt: callbacks " + (
         self.name().rsplit("_", 1)[-1] if self.name().endswith(("_grad", "_hess")) else "value"))
@@ -138,6 +137,10 @@ def install(timers: Timers) -> None:
         if "linearize" in cls.__dict__:
             cls.linearize = timers.wrap(cls.__dict__["linearize"], lambda self, S, aux, order: (
                 f"factor {self.name} (order {min(order, 2)})"))
+        for method in ("collect", "relinearize"):  # a factor's own data: once per window, at each ICP round
+            if method in cls.__dict__:
+                setattr(cls, method, timers.wrap(cls.__dict__[method], lambda self, *a, m=method: (
+                    f"factor {self.name} ({m})")))
     # IPOPT's own timing statistics for the warm-started (window) solves; the fits stay silent
     from eventcap.energy.ipopt import IpoptSettings
 

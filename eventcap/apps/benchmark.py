@@ -254,18 +254,30 @@ class Benchmark:
 
     def active_methods(self) -> tuple[list[Method], dict[str, str]]:
         """Methods whose required nodes their own pipeline has (composed with the common overrides and the method's
-        own), and why others not. The common overrides are composed once first: a bad one stops here."""
+        own), and why others not. A row whose runs would be those of an earlier row (the same composed config on
+        every kind of capture of the suite, e.g. ``pipeline=spline`` while the default is the spline) is left out
+        too, naming that row: it would only print its twin's figures again. The common overrides are composed once
+        first: a bad one stops here."""
         compose_run(self.config_dir, self.base_overrides())
-        active, left_out = [], {}
+        kinds = sorted({cap.frames for cap in self.captures}, reverse=True)  # with frames first
+        active, left_out, seen = [], {}, {}
         for m in self.methods:
-            missing = []
-            if m.requires:
-                data, _ = compose_run(self.config_dir, [*self.base_overrides(), *m.overrides])
-                nodes = set((data.get("pipeline") or {}).get("nodes") or {})
-                missing = [r for r in m.requires if r not in nodes]
+            composed = {}
+            for frames in kinds:
+                own = m.overrides_for(frames)
+                composed[frames] = None if own is None else \
+                    compose_run(self.config_dir, [*self.base_overrides(), *own])[0]
+            nodes = set()
+            for data in composed.values():
+                nodes |= set(((data or {}).get("pipeline") or {}).get("nodes") or {})
+            missing = [r for r in m.requires if r not in nodes]
+            same = seen.get(json.dumps([composed[k] for k in kinds], sort_keys=True, default=str))
             if missing:
                 left_out[m.name] = f"the pipeline has no node {', '.join(repr(r) for r in missing)}"
+            elif same is not None:
+                left_out[m.name] = f"the same runs as {same!r}: its overrides compose the same config"
             else:
+                seen[json.dumps([composed[k] for k in kinds], sort_keys=True, default=str)] = m.name
                 active.append(m)
         return active, left_out
 
@@ -323,7 +335,7 @@ class Benchmark:
                                    "(its events_only overrides)"]
         else:
             try:
-                data, yaml_text = compose_run(self.config_dir, ov)
+                data, yaml_text = self._compose_row(ov, tuple(own))
                 run_dir.mkdir(parents=True, exist_ok=True)
                 got = run_job(data, run_dir, yaml_text, failures)
             except Exception as exc:  # noqa: BLE001 - a bad method config fails its runs, not the benchmark
@@ -339,6 +351,19 @@ class Benchmark:
             rec["error"] = _short_reason("; ".join(failures), run_dir) or None
         rec["wall_s"] = time.perf_counter() - t0
         return rec
+
+
+    def _compose_row(self, overrides: list[str], own: tuple[str, ...] = ()):
+        """The run's config; the benchmark's detector choice (detectors.<detector>) is left out of a pipeline without
+        a detect node (a row's own overrides never are)."""
+        try:
+            return compose_run(self.config_dir, overrides)
+        except Exception as exc:  # noqa: BLE001 - Hydra: a group the pipeline does not have
+            if "stages/detect" not in str(exc) and "stages.detect" not in str(exc):
+                raise
+            mine = set(own)
+            return compose_run(self.config_dir, [o for o in overrides if o in mine
+                                                 or not o.startswith(("stages/detect=", "stages.detect."))])
 
 
 def _short_reason(text: str, run_dir: Path) -> str:

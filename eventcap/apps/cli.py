@@ -1,15 +1,19 @@
 """The ``eventcap`` command: run pipelines (Hydra), list stages, inspect and clean the cache.
 
-    eventcap run [hydra overrides]       run the configured pipeline; -m for sweeps; --cfg job / --help show config
-    eventcap simulate [key=value ...]    write a synthetic recording (motion=karate_kick duration_s=1 seed=0)
+    eventcap run [hydra overrides]       run the configured pipeline; -m for sweeps; --help: the groups, the pipeline's
+                                         nodes and their keys; --cfg job: the composed config
+    eventcap simulate [key=value ...]    write a synthetic recording (motion=karate_kick duration_s=1 seed=0; run
+                                         takes the source's keys bare too)
     eventcap stages [--kind K]           installed stages with one-line descriptions (imports no implementation)
     eventcap cache ls | explain KEY | gc inspect and clean the stage cache
     eventcap preview FILE                PNG of frames (or images from events), events and the ground-truth skeleton,
-                                         at the most active moment; any readable format; says what it read
+                                         at the most active moment, into the current folder (or --out); any readable
+                                         format; says what it read
     eventcap benchmark [overrides]       Table 1 / Fig. 7 on synthetic captures: methods x motions x seeds, one cache
                                          (benchmark=quick for a short one; conf/benchmark/*.yaml)
     eventcap report RUNS_DIR             one table (+ CSV, plot) of the jobs of a sweep (eventcap run -m ...)
-    eventcap view RUN_DIR | FILE.rrd     the run in the Rerun viewer (capture.rrd, built from the run if missing)
+    eventcap view RUN_DIR | FILE.rrd     the run in the Rerun viewer (capture.rrd; built from the run into the view
+                                         cache if missing: the run folder is only read)
     eventcap convert IN OUT              convert a recording (AEDAT4, HDF5, EVT2/3, DAT, npy/npz, rpg) into the
                                          project's format, streaming (--t-start/--t-end, --roi, --calibration)
 """
@@ -29,18 +33,19 @@ from eventcap.apps.jobs import run_job  # noqa: F401 (part of this module's API:
 log = logging.getLogger("eventcap")
 
 
-def config_dir() -> Path:
-    """The hydra config directory: $EVENTCAP_CONFIG_DIR, else ``conf/`` next to the package (source checkout)."""
-    env = os.environ.get("EVENTCAP_CONFIG_DIR")
-    candidates = [Path(env)] if env else []
-    candidates.append(Path(__file__).resolve().parents[2] / "conf")
-    for c in candidates:
-        if (c / "config.yaml").is_file():
-            return c.resolve()
-    raise SystemExit(
-        f"eventcap: no config directory found (looked in {', '.join(str(c) for c in candidates)}); "
-        f"set EVENTCAP_CONFIG_DIR to the project's conf/ folder"
-    )
+from eventcap.apps.compose import (  # noqa: E402, F401 (config_dir is this module's API too)
+    config_dir,
+    stage_override_message,
+    typed_override_message,
+    unknown_override_message,
+)
+
+
+def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
+    """The default command on a recording, made to fit it (:func:`eventcap.apps.compose.job_config`)."""
+    from eventcap.apps.compose import job_config
+
+    return job_config(cfg, data, overrides)
 
 
 def default_cache_dir() -> str:
@@ -70,29 +75,15 @@ def _run_job(cfg) -> bool:
     data = OmegaConf.to_container(cfg, resolve=True)
     overrides = list(HydraConfig.get().overrides.task)
     log.info("run folder: %s%s", run_dir, f" (overrides: {' '.join(overrides)})" if overrides else "")
-    cfg, data = _pipeline_for_recording(cfg, data, overrides)
+    try:
+        cfg, data = _pipeline_for_recording(cfg, data, overrides)
+    except ConfigError as exc:
+        log.error("%s", exc)
+        _RUN_FAILURES.append(f"{run_dir}: {exc}")
+        return False
     before = len(_RUN_FAILURES)
     run_job(data, run_dir, OmegaConf.to_yaml(cfg, resolve=True), _RUN_FAILURES)
     return len(_RUN_FAILURES) == before
-
-
-def _pipeline_for_recording(cfg, data: dict, overrides: list[str]):
-    """The default command on a recording without intensity frames: when no pipeline was chosen, the run takes
-    pipeline=events_only (images reconstructed from the events) and the log says why. Returns (cfg, data)."""
-    from hydra import compose
-    from omegaconf import OmegaConf
-
-    from eventcap.apps.jobs import FRAMELESS_PIPELINE, frameless_source
-
-    if any(o.partition("=")[0].lstrip("+~") == "pipeline" for o in overrides):
-        return cfg, data
-    why = frameless_source(data)
-    if why is None:
-        return cfg, data
-    log.info("%s: running pipeline=%s (images reconstructed from the events stand in for frames; give pipeline=... "
-             "to choose another)", why, FRAMELESS_PIPELINE)
-    cfg = compose(config_name="config", overrides=[*overrides, f"pipeline={FRAMELESS_PIPELINE}"])
-    return cfg, OmegaConf.to_container(cfg, resolve=True)
 
 
 def cmd_run(argv: list[str]) -> int:
@@ -100,6 +91,9 @@ def cmd_run(argv: list[str]) -> int:
 
     cdir = str(config_dir())
     _RUN_FAILURES.clear()
+    argv = source_shorthands(argv)
+    if {"--help", "-h"} & set(argv):
+        return _print_run_help([a for a in argv if a not in ("--help", "-h")], cdir)
 
     @hydra.main(version_base="1.3", config_path=cdir, config_name="config")
     def _main(cfg) -> None:
@@ -116,7 +110,8 @@ def cmd_run(argv: list[str]) -> int:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         return code
     except Exception as exc:
-        msg = unknown_override_message(exc, argv, cdir) or typed_override_message(exc, argv)
+        msg = (stage_override_message(exc, argv, cdir) or unknown_override_message(exc, argv, cdir)
+               or typed_override_message(exc, argv))
         if msg is not None:
             print(f"eventcap run: {msg}", file=sys.stderr)
             return 1
@@ -139,137 +134,55 @@ def cmd_run(argv: list[str]) -> int:
     return 1 if _RUN_FAILURES else 0
 
 
-def unknown_override_message(exc: BaseException, argv: list[str], cdir: str | Path) -> str | None:
-    """Hydra's "Could not override 'a.b.c' ... Key 'c' is not in struct" as the project's message, or None for any
-    other error: the key, where it lives (the config group's choice and its file) and the closest known keys.
+def _print_run_help(argv: list[str], cdir: str) -> int:
+    """``eventcap run [overrides] --help``: the groups, the composed pipeline's nodes and where each node's settings
+    live (eventcap/apps/runhelp.py); the composed config itself stays ``--cfg job``."""
+    from eventcap.apps.runhelp import run_help
 
-    A stage node's keys are those of its YAML file and of the stage's config dataclass (fields the file does not
-    list are still parameters: those are given with '+')."""
-    import difflib
-
-    from omegaconf.errors import OmegaConfBaseException
-
-    cause = exc.__cause__
-    # a plain node says "Key 'k' is not in struct", a stage's structured node "Key 'k' not in '<Config>Node'"
-    if not (type(exc).__name__ == "ConfigCompositionException" and str(exc).startswith("Could not override")
-            and isinstance(cause, OmegaConfBaseException)
-            and ("is not in struct" in str(cause) or re.search(r"Key '[^']*' not in '", str(cause)))):
-        return None
-    key = str(getattr(cause, "key", "") or "")
-    full_key = str(getattr(cause, "full_key", "") or key)
-    if not key:
-        return None
-    parent = full_key.rpartition(".")[0]
-    override_key = str(exc).split("'")[1] if str(exc).count("'") >= 2 else full_key
-    known, stage_fields, stage_name, where_file = _known_keys(parent, override_key, argv, cdir)
-    from eventcap.core.registry import unknown_name_message
-
-    where = (parent or "the top-level config") + (f" ({where_file})" if where_file else "")
-    if key in stage_fields:
-        value = next((a.partition("=")[2] for a in argv if a.partition("=")[0].lstrip("+") == override_key), "...")
-        return (f"{full_key}: a parameter of stage {stage_name!r} that {where_file or parent} does not list; give it "
-                f"with a '+': +{override_key}={value}")
-    available = sorted(set(known) | set(stage_fields))
-    msg = f"{full_key}: " + unknown_name_message("config key", key, available, where)
-    if not difflib.get_close_matches(key, available, n=1, cutoff=0.6) and parent:
-        msg += f". To add a new key anyway: +{override_key}=..."
-    return msg
+    overrides = [a for a in argv if "=" in a and not a.startswith("-")]
+    try:
+        print(run_help(overrides, cdir))
+    except Exception as exc:  # noqa: BLE001 - an override that does not compose: said as the run would say it
+        msg = stage_override_message(exc, overrides, cdir) or unknown_override_message(exc, overrides, cdir) or \
+            typed_override_message(exc, overrides) or \
+            f"{exc}" + (f": {exc.__cause__}" if exc.__cause__ is not None else "")
+        print(f"eventcap run: {msg}", file=sys.stderr)
+        return 1
+    return 0
 
 
-def typed_override_message(exc: BaseException, argv: list[str]) -> str | None:
-    """Hydra's "Error merging override k=v ... could not be converted" for a stage's key as the project's message
-    (what the key takes, as eventcap.core.stage.allowed_values says it), or None for any other error."""
+from eventcap.apps.jobs import TOP_LEVEL_KEYS  # noqa: E402
+
+_TOP_LEVEL = {*TOP_LEVEL_KEYS, "hydra"}
+
+
+def source_shorthands(argv: list[str]) -> list[str]:
+    """``key=value`` for a key of a source stage (``motion=jumping_jack``, ``duration_s=1``, ``seed=0``,
+    ``path=FILE``) -> ``source.key=value``, as ``eventcap run`` and ``eventcap simulate`` both take it. Top-level keys
+    and config groups keep their meaning; any other argument passes unchanged (a key the chosen source does not
+    have is then refused naming ``source.<key>``)."""
     import dataclasses
 
-    from omegaconf.errors import ValidationError
-
-    cause = exc.__cause__
-    if not (type(exc).__name__ == "ConfigCompositionException" and isinstance(cause, ValidationError)):
-        return None
-    full_key = str(getattr(cause, "full_key", "") or "")
-    node_type = getattr(getattr(cause, "object_type", None), "__name__", "")
-    if not (full_key and node_type.endswith("Node")):
-        return None
     from eventcap.core.registry import load_registry
-    from eventcap.core.stage import allowed_values
 
-    key = full_key.rpartition(".")[2]
-    for spec in load_registry().specs():
-        if spec.config.__name__ == node_type[:-len("Node")]:
-            field = next((f for f in dataclasses.fields(spec.config) if f.name == key), None)
-            allowed = allowed_values(field) if field is not None else None
-            if allowed:
-                value = next((a.partition("=")[2] for a in argv if a.partition("=")[0].lstrip("+") == full_key),
-                             "?")
-                return f"{full_key}: expected {allowed}, got {value!r} (stage {spec.name!r})"
-    return None
-
-
-def _known_keys(parent: str, override_key: str, argv: list[str], cdir) -> tuple[list[str], list[str], str, str]:
-    """Keys at ``parent`` of the config composed without the failing override, the stage's config fields when
-    ``parent`` is a stage node's config, that stage's name, and the file (config group choice) ``parent`` comes
-    from. Best effort: whatever cannot be composed is left empty."""
-    import dataclasses
-
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
-    rest = [a for a in argv if "=" in a and not a.startswith("-") and a.partition("=")[0].lstrip("+~") != override_key]
-    from hydra.core.global_hydra import GlobalHydra
-
-    GlobalHydra.instance().clear()  # a failed hydra.main may leave it initialised
-    cfg = None
-    for overrides in (rest, [a for a in rest if not a.startswith("hydra.") or a.startswith("hydra.searchpath")], []):
-        try:
-            with initialize_config_dir(config_dir=str(cdir), version_base="1.3"):
-                cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
-            break
-        except Exception:  # noqa: BLE001 - e.g. sweep values (a=1,2): fall back to the defaults
-            continue
-    if cfg is None:
-        return [], [], "", ""
-    node = OmegaConf.select(cfg, parent) if parent else cfg
-    known = [str(k) for k in node.keys() if str(k) != "hydra"] if OmegaConf.is_dict(node) else []
-    choices = dict(cfg.hydra.runtime.choices)
-    where_file = str(Path(cdir) / "config.yaml")
-    parts = parent.split(".") if parent else []
-    for n in range(len(parts), 0, -1):
-        group = "/".join(parts[:n])
-        if choices.get(group):
-            where_file = f"config group {group}={choices[group]}: {Path(cdir) / group / choices[group]}.yaml"
-            break
-    stage_fields: list[str] = []
-    stage_name = ""
-    if OmegaConf.is_dict(node) and "stage" in node:
-        try:
-            from eventcap.core.registry import load_registry
-
-            spec = load_registry().get(str(node["stage"]))
-            stage_fields, stage_name = [f.name for f in dataclasses.fields(spec.config)], spec.name
-        except Exception:  # noqa: BLE001 - an unknown stage is reported by the run itself
-            pass
-    return known, stage_fields, stage_name, where_file
-
-
-_TOP_LEVEL = {"name", "cache_dir", "batches", "log_level", "export", "outputs", "pipeline", "source", "executor",
-              "template", "stages"}
+    keys = {f.name for spec in load_registry().specs() if spec.kind == "source"
+            for f in dataclasses.fields(spec.config)} - _TOP_LEVEL
+    out = []
+    for arg in argv:
+        key = arg.split("=", 1)[0]
+        out.append(f"source.{arg}" if "=" in arg and not arg.startswith(("-", "+", "~")) and key in keys else arg)
+    return out
 
 
 def cmd_simulate(argv: list[str]) -> int:
     """``eventcap simulate motion=karate_kick duration_s=1 seed=0``: a synthetic recording, written to the run folder.
 
-    Bare keys are the synthetic source's parameters (``motion=...`` means ``source.motion=...``); anything else is a
-    normal Hydra override. The recording lands in ``runs/simulate/<timestamp>/source.recording.zarr``.
+    Keys of the source may be given bare, as ``eventcap run`` takes them (``motion=...`` means ``source.motion=...``:
+    :func:`source_shorthands`); anything else is a normal Hydra override. The recording lands in
+    ``runs/simulate/<timestamp>/source.recording.zarr``.
     """
-    mapped = []
-    for arg in argv:
-        key = arg.split("=", 1)[0]
-        if "=" in arg and not arg.startswith(("-", "+", "~")) and "." not in key and "/" not in key \
-                and key not in _TOP_LEVEL:
-            arg = f"source.{arg}"
-        mapped.append(arg)
     return cmd_run(["pipeline=simulate", "source=synthetic", "name=simulate", "export=[source.recording]",
-                    "outputs.poses=null", *mapped])
+                    "outputs.poses=null", *argv])
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -299,34 +212,136 @@ def cmd_stages(args) -> int:
 
 
 def _print_stage_config(reg, name: str) -> int:
-    """Every key of a stage's config with its default, choices and meaning: the one place they are stated."""
-    import dataclasses
+    """Every key of a stage's config with its default, choices and meaning, group by group: the one place they are
+    stated. ``name``: a stage, a node of a pipeline (the default pipeline's first), or a variant (stages/<node>=name)."""
     import textwrap
 
     from eventcap.core.registry import UnknownStageError
 
+    node, how = _resolve_stage_name(name)
     try:
-        spec = reg.get(name)
+        spec = reg.get(node[1] if node else name)
     except UnknownStageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if how:
+        print(how)
     print(f"{spec.name} (v{spec.version}, {spec.kind}, {'per batch' if spec.per_batch else 'whole recording'}): "
           f"{spec.description}")
-    print(f"  from {spec.origin}; set a key with stages.<node>.<key>=value (the node runs this stage)")
-    for f in dataclasses.fields(spec.config):
-        if f.default is not dataclasses.MISSING:
-            default = f.default
+    prefix = f"stages.{node[0]}" if node else "stages.<node>"
+    print(f"  from {spec.origin}; set a key with {prefix}.<key>=value" + ("" if node else " (the node that runs this "
+                                                                          "stage: `eventcap run --help` names it)"))
+    try:
+        default = spec.config()
+    except TypeError:
+        default = None
+    _print_settings(spec.config, default, "", textwrap)
+    return 0
+
+
+def _print_settings(config_class, default, prefix: str, textwrap) -> None:
+    """The settings of a config class (groups opened, each with its help) with their defaults."""
+    import dataclasses
+
+    from eventcap.params import allowed_values, is_group
+
+    plain = [f for f in dataclasses.fields(config_class) if not is_group(f)]
+    groups = [f for f in dataclasses.fields(config_class) if is_group(f)]
+    for f in plain:
+        if default is not None:
+            value = getattr(default, f.name)
+        elif f.default is not dataclasses.MISSING:
+            value = f.default
         elif f.default_factory is not dataclasses.MISSING:
-            default = f.default_factory()
+            value = f.default_factory()
         else:
-            default = "(required)"
+            value = "(required)"
         meta = f.metadata
+        allowed = allowed_values(f)  # a number's declared range, in words
         extra = (f"; one of {' | '.join(map(str, meta['choices']))}" if meta.get("choices") else "") + \
+            (f"; {allowed}" if allowed and not meta.get("choices") else "") + \
             ("" if meta.get("affects_result", True) else "; not part of the cache key")
-        print(f"  {f.name} = {default!r}{extra}")
+        print(f"  {prefix}{f.name} = {value!r}{extra}")
         for line in textwrap.wrap(meta.get("help", ""), 110):
             print(f"      {line}")
-    return 0
+    for f in groups:
+        print(f"  {prefix}{f.name}: {f.metadata.get('help', '')}")
+        _print_settings(f.metadata["group"], None if default is None else getattr(default, f.name),
+                        f"{prefix}{f.name}.", textwrap)
+
+
+def _resolve_stage_name(name: str) -> tuple[tuple[str, str] | None, str]:
+    """((node, stage), what was resolved) when ``name`` is a node of a pipeline (the default pipeline's first) or a
+    variant of a node (conf/stages/<node>/<name>.yaml); (None, "") for anything else (a stage's name)."""
+    import yaml
+
+    cdir = config_dir()
+    default_nodes = _default_pipeline_nodes(cdir)
+    if name in default_nodes:
+        return (name, default_nodes[name]), (f"node {name!r} of the default pipeline runs stage "
+                                             f"{default_nodes[name]!r}; its settings are stages.{name} (another "
+                                             f"stage: stages/{name}=<variant>: "
+                                             f"{' | '.join(_variants(cdir, name))})")
+    runs = [n for n, st in default_nodes.items() if st == name]
+    if runs:
+        return (runs[0], name), f"stage {name!r} runs at node {runs[0]!r} of the default pipeline"
+    found = [(f.parent.name, f, _variant_stage(f)) for f in sorted((cdir / "stages").glob(f"*/{name}.yaml"))]
+    found = sorted((x for x in found if x[2] and x[2] != name), key=lambda x: (x[0] not in default_nodes, x[0]))
+    if found:
+        node, f, stage = found[0]
+        also = "".join(f"; also of node {n!r} (stages/{n}={name}, stage {st!r})" for n, _, st in found[1:])
+        return (node, stage), (f"{name!r} is a variant of node {node!r} (stages/{node}={name}: "
+                               f"{f.relative_to(cdir.parent)}) running stage {stage!r}{also}")
+    for p in sorted((cdir / "pipeline").glob("*.yaml")):
+        d = yaml.safe_load(p.read_text()) or {}
+        if name not in ((d.get("pipeline", d) or {}).get("nodes") or {}):
+            continue
+        for entry in d.get("defaults") or []:
+            if isinstance(entry, dict):
+                (k, v), = entry.items()
+                if k.lstrip("/").split("@")[0] == f"stages/{name}":
+                    stage = _variant_stage(cdir / "stages" / name / f"{v}.yaml")
+                    if stage:
+                        return (name, stage), (f"node {name!r} of pipeline={p.stem} (not the default pipeline) runs "
+                                               f"stage {stage!r} (stages/{name}={v}); its settings are stages.{name}")
+    return None, ""
+
+
+def _default_pipeline_nodes(cdir: Path) -> dict[str, str]:
+    """The default pipeline's stage nodes and the stage each runs by default."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(cdir), version_base="1.3"):
+            cfg = compose(config_name="config")
+    except Exception:  # noqa: BLE001 - best effort
+        return {}
+    stages = cfg.get("stages") or {}
+    return {str(n): str(stages[n].stage) for n in cfg.pipeline.nodes if n in stages}
+
+
+def _variants(cdir: Path, node: str) -> list[str]:
+    return sorted(p.stem for p in (cdir / "stages" / node).glob("*.yaml"))
+
+
+def _variant_stage(path: Path) -> str | None:
+    """The stage a variant file runs (its ``stage:``, or that of the variant it starts from)."""
+    import yaml
+
+    d = yaml.safe_load(path.read_text()) or {}
+    if "stage" in d:
+        return str(d["stage"])
+    for entry in d.get("defaults") or []:
+        if isinstance(entry, str) and entry.startswith("/stages/"):
+            ref = entry.split("@")[0].lstrip("/")
+            return _variant_stage(path.parents[2] / f"{ref}.yaml")
+        if isinstance(entry, str) and entry.startswith("/stage/"):
+            return entry.split("@")[0].split("/")[-1]
+        if isinstance(entry, str) and entry not in ("_self_",):
+            return _variant_stage(path.parent / f"{entry}.yaml")
+    return None
 
 
 def cmd_cache(args) -> int:
@@ -374,21 +389,30 @@ def _read_for_preview(args):
     line saying what was read."""
     from eventcap.io.convert import is_project_recording, recording_from_raw
 
+    from eventcap.io.source import check_regular
+
     path = Path(args.recording)
-    if not path.exists():
-        raise FileNotFoundError(f"{path} does not exist")
+    check_regular(path)  # a pipe, a device, a link loop: refused at once, never opened
     if args.format in ("", None, "eventcap") and is_project_recording(path):
-        import zarr
+        from eventcap.io.convert import read_project_recording
 
-        from eventcap.artifacts.recording import Recording
-
-        return Recording.from_zarr(zarr.open_group(str(path), mode="r"), where=str(path)), "eventcap (zarr)"
+        return read_project_recording(path), "eventcap (zarr)"
     from eventcap.io import read_recording
 
     raw = read_recording(path, format=args.format or None, width=args.width or None, height=args.height or None,
-                         time_unit=args.time_unit or None, columns=args.columns or None)
+                         time_unit=args.time_unit or None, columns=args.columns or None,
+                         max_gap_s=getattr(args, "max_gap_s", None))
     rec = recording_from_raw(raw, calibration=args.calibration or None, hint="give --calibration")
     return rec, raw.format
+
+
+def preview_path(recording, out=None) -> Path:
+    """Where ``eventcap preview`` writes its PNG: ``out`` (a folder: the name inside it), else the current folder;
+    never beside the recording (a data folder, or a checkout's tests/data/, is no place for it)."""
+    name = f"{Path(recording).name.split('.')[0] or 'recording'}.preview.png"
+    if out is None or str(out) == "":
+        return Path(name)
+    return Path(out) / name if Path(out).is_dir() else Path(out)
 
 
 def cmd_preview(args) -> int:
@@ -430,24 +454,23 @@ def cmd_preview(args) -> int:
                        f"to choose)"
             img = recording_overview(rec, frame_index=args.frame, scale=args.scale, latent=latent,
                                      reconstruct=True if args.reconstruct else None, rate_hz=args.rate, t_us=t_us)
-    except (ArtifactError, FileNotFoundError, ValueError) as exc:  # RecordingError is a ValueError
+    except (ArtifactError, OSError, ValueError) as exc:  # RecordingError is a ValueError
         print(f"eventcap preview: {exc}", file=sys.stderr)
         return 2
-    stem = Path(args.recording).name.split(".")[0] or "recording"
-    out = Path(args.out or Path(args.recording).parent / f"{stem}.preview.png")
+    out = preview_path(args.recording, args.out)
     cv2.imwrite(str(out), img)
     print(f"showing {what}; wrote {out} ({img.shape[1]}x{img.shape[0]})")
     return 0
 
 
 def cmd_view(args) -> int:
-    """Open a run's Rerun recording (``capture.rrd``; built from the run folder when missing), or say how."""
-    import subprocess
-
+    """Show a run in the Rerun viewer: its ``capture.rrd``, else one built from the run folder into the view cache
+    (the run folder is only read). The viewer runs in the foreground and ends with this command, however it is
+    stopped (:func:`eventcap.apps.viewer.run_viewer`)."""
     from eventcap.apps.outputs import build_run_recording
     from eventcap.core.runrecord import RunRecordError
     from eventcap.apps.viewer import RRD_NAME, ViewError, has_display, how_to_view, require_rerun, rerun_command, \
-        web_viewer_command, web_viewer_url
+        run_viewer, view_cache_dir, web_viewer_command, web_viewer_url
 
     try:
         require_rerun()
@@ -455,36 +478,33 @@ def cmd_view(args) -> int:
         print(f"eventcap view: {exc}", file=sys.stderr)
         return 2
     target = Path(args.target)
+    again = args.rebuild or args.recompute
     try:
         if target.is_file() and target.suffix == ".rrd":
             rrd = target
         elif target.is_dir():
-            rrd = target / RRD_NAME
-            if args.rebuild or args.recompute or not rrd.is_file():
-                print(f"eventcap view: building {rrd} from the run (its config.yaml, run.json and the cache)",
-                      file=sys.stderr)
-                rrd = build_run_recording(target, recompute=args.recompute)
+            rrd, built = target / RRD_NAME, view_cache_dir(target) / RRD_NAME
+            if again or not rrd.is_file():
+                rrd = built
+            if again or not rrd.is_file():
+                print(f"eventcap view: building {rrd} from the run (its config.yaml, run.json and the cache; the run "
+                      f"folder is only read)", file=sys.stderr)
+                rrd = build_run_recording(target, recompute=args.recompute, out_dir=built.parent)
         else:
             raise ViewError(f"{target}: expected a run folder (runs/<name>/<timestamp>/) or an .rrd file")
     except (ViewError, RunRecordError) as exc:
         print(f"eventcap view: {exc}", file=sys.stderr)
         return 2
-    cmd = [*rerun_command(), str(rrd)]
     if args.web:
-        cmd = [*rerun_command(), *web_viewer_command(rrd, args.port, args.grpc_port)]
         print(f"eventcap view: serving the web viewer of {rrd}: open {web_viewer_url(args.port, args.grpc_port)} "
-              f"(Ctrl-C stops)", flush=True)
-        try:
-            return subprocess.call(cmd)
-        except KeyboardInterrupt:
-            return 0
+              f"(Ctrl-C stops it)", flush=True)
+        return run_viewer([*rerun_command(), *web_viewer_command(rrd, args.port, args.grpc_port)])
     if has_display() and not args.no_open:
-        subprocess.Popen(cmd, start_new_session=True)
-        print(f"eventcap view: opened {rrd} in the Rerun viewer")
-        return 0
+        print(f"eventcap view: showing {rrd} in the Rerun viewer (closing it or Ctrl-C ends both)", flush=True)
+        return run_viewer([*rerun_command(), str(rrd)])
     why = "" if args.no_open else "no display here; "
     print(f"eventcap view: {rrd} ({rrd.stat().st_size / 1e6:.1f} MB): {why}"
-          f"{how_to_view(rrd, args.port, args.grpc_port)}")
+          f"{how_to_view(rrd, args.port, args.grpc_port, target)}")
     return 0
 
 
@@ -514,7 +534,7 @@ def cmd_convert(args) -> int:
                                   calibration=args.calibration, width=args.width, height=args.height,
                                   time_window_us=window, roi=roi, time_unit=args.time_unit,
                                   overwrite=args.overwrite, progress=progress, columns=args.columns or None,
-                                  y_up=args.y_up)
+                                  y_up=args.y_up, max_gap_s=args.max_gap_s)
     except (RecordingError, ValueError, OSError) as exc:
         if shown["any"] and tty:
             print(file=sys.stderr)
@@ -633,7 +653,6 @@ def settings_as_options(subparsers, argv: list[str]) -> list[str]:
     ``--cache-dir X``, ``all=true`` as ``--all``), so every subcommand takes both styles. A ``word=...`` that names
     no option of the subcommand is refused with the ones it has; other arguments (paths) pass unchanged."""
     import difflib
-    import re
 
     if not argv or argv[0] not in subparsers.choices:
         return argv
@@ -684,9 +703,13 @@ def _add_preview_parser(sub) -> None:
     p.add_argument("--height", type=int, default=0, help="sensor height for files that do not store it")
     p.add_argument("--columns", default="", help="column order of unnamed array/text columns, e.g. x,y,t,p")
     p.add_argument("--time-unit", default="", help="unit of array/text time columns: s | ms | us | ns")
+    p.add_argument("--max-gap-s", type=float, default=None, metavar="S",
+                   help="longest pause between neighbouring events taken as real (default 60 s); longer jumps in "
+                        "time are refused or repaired")
     p.add_argument("--calibration", default="", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3])")
     p.add_argument("--scale", type=int, default=2, help="upscaling of the panels")
-    p.add_argument("--out", help="output PNG (default: next to the recording)")
+    p.add_argument("--out", help="output PNG, or a folder for it (default: <name>.preview.png in the current "
+                                 "folder)")
     p.add_argument("--latent", help="sharpened frames (e.g. runs/.../sharpen.latent.zarr) to show beside the frame")
     p.add_argument("--tracks", help="one batch's sliced tracks (e.g. runs/.../slice.sliced/batch0003.zarr) to draw")
     p.add_argument("--reconstruct", action="store_true", help="add the image reconstructed from the events alone "
@@ -726,7 +749,9 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     _add_preview_parser(sub)
     p = sub.add_parser("view", help="the run in the Rerun viewer (capture.rrd; built from the run folder if missing)")
     p.add_argument("target", metavar="RUN_DIR", help="a run folder (runs/<name>/<timestamp>/) or an .rrd file")
-    p.add_argument("--rebuild", action="store_true", help="write capture.rrd again even if the run folder has one")
+    p.add_argument("--rebuild", action="store_true", help="build the recording again (into the view cache: "
+                                                           "$EVENTCAP_VIEW_DIR or ~/.cache/eventcap/views) even if "
+                                                           "the run folder or the cache has one")
     p.add_argument("--recompute", action="store_true", help="run the run's config again first (cache hits; "
                                                              "recomputes entries gone from the cache)")
     p.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 (for a browser)")
@@ -751,13 +776,62 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     p.add_argument("--time-unit", help="unit of array/text time columns when the default is wrong (s, ms, us, ns)")
     p.add_argument("--columns", help="column order of unnamed array/text columns, e.g. x,y,t,p")
     p.add_argument("--y-up", action="store_true", help="the file's y axis points up (origin bottom-left)")
+    p.add_argument("--max-gap-s", type=float, default=None, metavar="S",
+                   help="longest pause between neighbouring events taken as real (default 60 s); longer jumps in "
+                        "time are refused or repaired")
     p.add_argument("--chunk-events", type=int, default=1 << 20, metavar="N",
                    help="events decoded per chunk (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     return parser, sub
 
 
+class _PipeSafeStdout:
+    """sys.stdout that a closed reader (``eventcap stages | head``) silences instead of breaking: the first write
+    after the reader went away points the file descriptor at /dev/null, and the command goes on quietly (its log
+    file still gets everything). Anything else is the wrapped stream's."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _gone(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())
+        os.close(devnull)
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._gone()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._gone()
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The ``eventcap`` command; returns its exit code. Output piped into a reader that stops early (``| head``)
+    ends quietly (:class:`_PipeSafeStdout`), whichever the subcommand."""
+    stdout = sys.stdout
+    try:
+        stdout.fileno()
+        sys.stdout = _PipeSafeStdout(stdout)
+    except (AttributeError, OSError, ValueError):  # not a file (e.g. pytest's capture): nothing to protect
+        pass
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout.flush()
+        sys.stdout = stdout
+
+
+def _main(argv: list[str] | None = None) -> int:
     _pin_threads()  # before anything imports numpy
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in ("run", "simulate", "benchmark"):

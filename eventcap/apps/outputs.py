@@ -27,7 +27,7 @@ folder, as configured by the ``outputs:`` section of ``conf/config.yaml``:
 - ``plausibility.json``: speeds beyond human limits, joints behind the camera, sudden flips, the head below the
   pelvis, each with its frames (:mod:`eventcap.analysis.plausibility`); also logged, one line per kind.
 - ``capture.rrd`` (``rerun: true``): a Rerun recording of everything the run saw and produced (:mod:`eventcap.apps.viewer`;
-  ``eventcap view RUN_DIR`` opens it, or builds it from a finished run).
+  ``eventcap view RUN_DIR`` opens it, or builds it from a finished run into the view cache, outside the run folder).
 
 A run whose poses node committed nothing (it failed or was skipped) gets none of these, with a log line saying so.
 """
@@ -36,23 +36,20 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import os
 import shutil
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.analysis.motion import JOIN_RULES, frame_step_us, frames_every, join_batches, on_grid, uniform_motion
+from eventcap.analysis.motion import frame_step_us, frames_every, join_batches, on_grid, uniform_motion
 from eventcap.analysis.plausibility import write_plausibility
 from eventcap.core.runrecord import note_outputs
 from eventcap.imaging.viz import label as _label
-from eventcap.worldframe import check_frame
+from eventcap.apps.output_settings import OutputsConfig  # noqa: F401 (this module's API)
 
 log = logging.getLogger("eventcap.apps.outputs")
 
@@ -62,60 +59,6 @@ TRUTH = (170, 170, 170)
 OUTLINE = (0, 230, 255)
 POSITIVE = np.array([50, 50, 235], np.uint8)
 NEGATIVE = np.array([235, 120, 30], np.uint8)
-
-
-@dataclass(frozen=True)
-class OutputsConfig:
-    """The ``outputs:`` section of the run config (see the module docstring)."""
-
-    poses: str | None = "solve.poses"  # node.port of the PoseSequences that make the motion; null: no outputs
-    join: str = "later"  # a frame two batches share: later | mean (as the evaluate stage)
-    bvh: bool = True
-    npz: bool = True
-    video: bool = True
-    video_every_ms: float = 2.0  # motion time between video frames
-    video_max_frames: int = 500  # at most this many frames (the step widens to cover the whole motion)
-    video_fps: float = 25.0  # playback rate
-    video_scale: int = 2  # image pixels per sensor pixel
-    video_events_ms: float = 5.0  # events of the last ... ms are drawn
-    video_png_frames: int = 4  # frames of the video also saved as PNG in overlay_frames/
-    c3d: bool = False  # motion.c3d: joint centres + surface markers at the tracking rate (eventcap/export/c3d.py)
-    up_axis: str = "y"  # motion.bvh / motion.c3d: y | z (eventcap/worldframe.py)
-    units: str | None = None  # motion.bvh / motion.c3d: m | cm | mm; null: BVH m, C3D mm
-    rerun: bool = False  # capture.rrd: a Rerun recording of the whole run (eventcap/apps/viewer.py; eventcap view)
-    rerun_events_ms: float = 1.0  # each event image shows the events of the last ... ms
-    rerun_every_ms: float = 1.0  # motion time between event images
-    rerun_outline_every_ms: float = 5.0  # motion time between silhouette outlines (each costs a rasterization)
-    rerun_max_frames: int = 2000  # at most this many event images / outlines (the step widens)
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any] | None) -> OutputsConfig:
-        """Checked config from the ``outputs`` mapping: unknown keys and wrong types name ``outputs.<key>``."""
-        values = dict(values or {})
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        for key in values:
-            if key not in fields:
-                raise ValueError(f"outputs.{key}: unknown key; known: {', '.join(fields)}")
-        cfg = cls(**values)
-        if cfg.poses is not None and (not isinstance(cfg.poses, str) or cfg.poses.count(".") != 1):
-            raise ValueError(f"outputs.poses: expected '<node>.<port>' (e.g. solve.poses) or null, got {cfg.poses!r}")
-        if cfg.join not in JOIN_RULES:
-            raise ValueError(f"outputs.join: expected one of {', '.join(JOIN_RULES)}, got {cfg.join!r}")
-        check_frame(cfg.up_axis, cfg.units if cfg.units is not None else "m", "outputs.")
-        for name in ("bvh", "npz", "video", "c3d", "rerun"):
-            if not isinstance(getattr(cfg, name), bool):
-                raise ValueError(f"outputs.{name}: expected true or false, got {getattr(cfg, name)!r}")
-        for name in ("video_every_ms", "video_fps", "video_events_ms", "rerun_events_ms", "rerun_every_ms",
-                     "rerun_outline_every_ms"):
-            v = getattr(cfg, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-                raise ValueError(f"outputs.{name}: expected a positive number, got {v!r}")
-        for name, low in (("video_max_frames", 1), ("video_scale", 1), ("video_png_frames", 0),
-                          ("rerun_max_frames", 1)):
-            v = getattr(cfg, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ValueError(f"outputs.{name}: expected an integer >= {low}, got {v!r}")
-        return cfg
 
 
 def check_outputs_config(runner) -> OutputsConfig:
@@ -179,7 +122,7 @@ def write_run_outputs(runner, result, run_dir: str | Path, cfg: OutputsConfig | 
     """Write the configured outputs of a finished run into ``run_dir``; returns what was written (paths as
     strings), what was ``skipped`` and why, and ``problems`` (errors while writing). Missing inputs are logged and
     skipped, not errors. The summary is also added to the run folder's ``run.json`` under ``outputs`` (``merge``:
-    added to what an earlier call recorded there, e.g. ``eventcap view`` adding the recording to a finished run)."""
+    added to what an earlier call recorded there)."""
     cfg = cfg or check_outputs_config(runner)
     run_dir = Path(run_dir)
     summary: dict[str, Any] = {"written": {}, "skipped": {}, "problems": []}
@@ -201,8 +144,8 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     if cfg.poses is None or not wanted:
         return summary
 
-    def skip(why: str) -> dict[str, Any]:
-        log.warning("outputs: skipped (%s): %s", ", ".join(wanted), why)
+    def skip(why: str, level: int = logging.WARNING) -> dict[str, Any]:
+        log.log(level, "outputs: skipped (%s): %s", ", ".join(wanted), why)
         summary["skipped"] = {k: why for k in wanted}
         return summary
 
@@ -214,7 +157,7 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
         why = (f"node {node_name!r} committed no poses"
                + (f" (failed batches: {failed})" if failed else " (it failed)" if rep.failed else "")
                + (" (skipped: upstream failed)" if rep.skipped and not rep.failed else ""))
-        return skip(why)
+        return skip(why, logging.INFO)  # a consequence of the failure the run's summary reports
     if rep.per_batch and (rep.failed or rep.skipped):
         log.warning("outputs: node %r committed %d batch(es); %d failed, %d skipped: the motion lacks their frames",
                     node_name, len(parts), len(rep.failed), rep.skipped)
@@ -641,18 +584,22 @@ def write_overlay_video(run_dir: str | Path, rec, template, t_us: np.ndarray, po
 # ---------------------------------------------------------------------------------------------------------------------
 # eventcap view: the recording of a finished run
 # ---------------------------------------------------------------------------------------------------------------------
-def build_run_recording(run_dir: Path, recompute: bool = False) -> Path:
-    """Write ``RUN_DIR/capture.rrd`` from a finished run (config + cache) through the same path as
-    ``outputs.rerun=true``; ``recompute`` runs the pipeline again first (cache hits, recomputing what is gone).
+def build_run_recording(run_dir: Path, recompute: bool = False, out_dir: Path | None = None) -> Path:
+    """Write ``capture.rrd`` of a finished run (config + cache) into ``out_dir`` (default: the run's folder of the
+    view cache, :func:`eventcap.apps.viewer.view_cache_dir`) through the same path as ``outputs.rerun=true``;
+    ``recompute`` runs the pipeline again first (cache hits, recomputing what is gone). The run folder is only read.
     ViewError (:mod:`eventcap.apps.viewer`) when there is nothing to show; RunRecordError when the folder is not a
     finished run or its cache entries are gone."""
+    import tempfile
+
     import yaml
 
     from eventcap.core.runner import Runner, load_finished_run
     from eventcap.core.runrecord import find_cache_dir
-    from eventcap.apps.viewer import ViewError
+    from eventcap.apps.viewer import RRD_NAME, ViewError, view_cache_dir
 
     run_dir = Path(run_dir)
+    out_dir = Path(out_dir) if out_dir is not None else view_cache_dir(run_dir)
     if recompute:
         cfg = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
         cfg["cache_dir"] = str(find_cache_dir(run_dir, cfg.get("cache_dir") or "runs/cache"))
@@ -665,8 +612,24 @@ def build_run_recording(run_dir: Path, recompute: bool = False) -> Path:
         raise ViewError(f"{run_dir}: this run has no motion to show (outputs.poses is null or names no node of its "
                         f"pipeline, e.g. pipeline=simulate); `eventcap preview RECORDING.zarr` shows a recording")
     only = dataclasses.replace(cfg, bvh=False, npz=False, video=False, c3d=False, rerun=True)
-    summary = write_run_outputs(runner, result, run_dir, only, merge=True)
-    if "rerun" not in summary["written"]:
-        why = summary["skipped"].get("rerun") or "; ".join(summary["problems"]) or "nothing to show"
-        raise ViewError(f"{run_dir}: no recording written: {why}")
-    return Path(summary["written"]["rerun"])
+    # built in a folder named as the run's (the recording's id names it), then moved into place; the run's own
+    # outputs were logged by the run (the plausibility checks are made again on the way: said only if they warn)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    quiet = [logging.getLogger(n) for n in ("eventcap.apps.outputs", "eventcap.analysis.plausibility")]
+    levels = [q.level for q in quiet]
+    with tempfile.TemporaryDirectory(dir=out_dir.parent, prefix=".building-") as tmp:
+        work = Path(tmp) / run_dir.name
+        work.mkdir()
+        try:
+            for q in quiet:
+                q.setLevel(max(q.getEffectiveLevel(), logging.WARNING))
+            summary = write_run_outputs(runner, result, work, only)
+        finally:
+            for q, level in zip(quiet, levels):
+                q.setLevel(level)
+        if "rerun" not in summary["written"]:
+            why = summary["skipped"].get("rerun") or "; ".join(summary["problems"]) or "nothing to show"
+            raise ViewError(f"{run_dir}: no recording written: {why}")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (work / RRD_NAME).replace(out_dir / RRD_NAME)
+    return out_dir / RRD_NAME

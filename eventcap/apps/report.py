@@ -23,16 +23,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from eventcap.apps.jobs import save_figure, write_csv
+from eventcap.apps.jobs import HEADLINE_METRICS, save_figure, write_csv
 from eventcap.core.runrecord import RUN_JSON, RunRecord
 
 log = logging.getLogger("eventcap.apps.report")
 
-#: (column title, dotted key into the metrics of the chosen node)
-DEFAULT_COLUMNS = (("AE (mm)", "AE_mm"), ("STD (mm)", "STD_mm"), ("AE.raw (mm)", "AE_raw_mm"),
-                   ("AE.nonRaw (mm)", "AE_nonRaw_mm"), ("AE.rootrel (mm)", "AE_rootrel_mm"),
-                   ("MPJVE (mm/s)", "MPJVE_mm_s"), ("Acc.err (m/s²)", "accel_err_m_s2"),
-                   ("peak speed err", "peak_speed_err"), ("MB/s", "data_rate.total_MBps"))
+#: (column title, dotted key into the metrics of the chosen node): those a run's log shows
+DEFAULT_COLUMNS = HEADLINE_METRICS
 
 
 class ReportError(ValueError):

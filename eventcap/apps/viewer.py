@@ -1,7 +1,7 @@
 """An interactive recording of a run for the Rerun viewer: everything the run saw and produced, on its time axis.
 
-``capture.rrd`` (written by ``outputs.rerun=true`` after a run, or by ``eventcap view RUN_DIR``) holds, on the
-timeline ``t_us`` (the run's own time axis, microseconds, shown as a duration):
+``capture.rrd`` (written by ``outputs.rerun=true`` after a run, or by ``eventcap view RUN_DIR`` into the view cache,
+:func:`view_cache_dir`) holds, on the timeline ``t_us`` (the run's own time axis, microseconds, shown as a duration):
 
 =====================================  ===========================================================================
 entity                                 what
@@ -564,6 +564,23 @@ class ViewError(Exception):
     """A run folder that cannot be shown (the message says why and what to do)."""
 
 
+def view_cache_dir(run_dir: Path) -> Path:
+    """Where ``eventcap view RUN_DIR`` keeps the recording it builds for a run folder that has none: reading a run
+    folder writes nothing into it. ``$EVENTCAP_VIEW_DIR``, else ``$XDG_CACHE_HOME/eventcap/views`` (default
+    ``~/.cache/eventcap/views``), one folder per run folder and its run.json (a run written again builds again),
+    ending in the run folder's own name (which the recording's id carries)."""
+    import hashlib
+
+    root = os.environ.get("EVENTCAP_VIEW_DIR") or \
+        Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "eventcap" / "views"
+    run_dir = Path(run_dir).resolve()
+    digest = hashlib.sha256(str(run_dir).encode())
+    record = run_dir / "run.json"
+    if record.is_file():
+        digest.update(record.read_bytes())
+    return Path(root) / digest.hexdigest()[:16] / run_dir.name
+
+
 def has_display() -> bool:
     """Whether a native viewer window can be shown here."""
     if sys.platform in ("darwin", "win32"):
@@ -571,10 +588,101 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
+def _wheel_binary() -> str | None:
+    """The viewer binary inside the rerun-sdk wheel (``rerun_cli/rerun``; $RERUN_CLI_PATH overrides it, as the wheel's
+    own launcher honours it), or None."""
+    if os.environ.get("RERUN_CLI_PATH"):
+        return os.environ["RERUN_CLI_PATH"]
+    import importlib.util
+
+    spec = importlib.util.find_spec("rerun_cli")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    exe = Path(next(iter(spec.submodule_search_locations))) / ("rerun.exe" if sys.platform == "win32" else "rerun")
+    return str(exe) if exe.is_file() else None
+
+
+def _is_wheel_launcher(exe: str) -> bool:
+    """Whether ``exe`` is the rerun-sdk wheel's Python launcher script (which starts the binary as a child)."""
+    try:
+        with open(exe, "rb") as fh:
+            head = fh.read(512)
+    except OSError:
+        return False
+    return head.startswith(b"#!") and b"rerun_cli" in head
+
+
 def rerun_command() -> list[str]:
-    """The ``rerun`` viewer command of this environment (the binary shipped in the rerun-sdk wheel)."""
+    """The ``rerun`` viewer command of this environment: the ``rerun`` on PATH (or beside this Python), except that
+    the rerun-sdk wheel's launcher script is skipped for the binary it would start, so that the viewer is one
+    process and nothing is left when it is stopped (:func:`run_viewer`)."""
     exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    if not Path(exe).exists() or _is_wheel_launcher(exe):
+        binary = _wheel_binary()
+        if binary is not None:
+            return [binary]
     return [exe] if Path(exe).exists() else [sys.executable, "-m", "rerun"]
+
+
+class _Stopped(Exception):
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _end_group(proc, grace_s: float = 3.0) -> None:
+    """End the viewer's process group (the viewer and anything it started): SIGTERM, then SIGKILL after ``grace_s``."""
+    import signal
+    import subprocess
+
+    for sig, wait_s in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            break  # nothing of the group is left
+        try:
+            proc.wait(timeout=wait_s)
+        except subprocess.TimeoutExpired:
+            continue
+        deadline = time.monotonic() + wait_s  # the viewer is gone: give what it started the same time
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(proc.pid, 0)
+            except (ProcessLookupError, PermissionError):
+                return
+            time.sleep(0.05)
+
+
+def run_viewer(cmd: list[str]) -> int:
+    """Run the viewer ``cmd`` in the foreground until it exits, and make everything it starts end with this process,
+    whichever way it is stopped: it runs in its own process group, which is ended when the viewer exits and when this
+    process gets SIGTERM, SIGINT (Ctrl-C) or SIGHUP; on Linux the kernel also kills the viewer when this process
+    dies without a chance to clean up (``kill -9``: :func:`eventcap.core.lifeline.arm_before_exec`). Returns the
+    viewer's exit code, 0 after Ctrl-C, 128 + the signal after another stop."""
+    import functools
+    import signal
+    import subprocess
+
+    from eventcap.core.lifeline import arm_before_exec
+
+    def stop(signum, frame):
+        raise _Stopped(signum)
+
+    stops = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+    old = {s: signal.signal(s, stop) for s in stops}
+    proc = None
+    try:
+        proc = subprocess.Popen(cmd, process_group=0, preexec_fn=functools.partial(arm_before_exec, os.getpid()))
+        return proc.wait()
+    except _Stopped as exc:
+        return 0 if exc.signum == signal.SIGINT else 128 + exc.signum
+    finally:
+        for s in stops:  # a second signal while the group is ended must not cut the clean-up short
+            signal.signal(s, signal.SIG_IGN)
+        if proc is not None:
+            _end_group(proc)
+        for s, handler in old.items():
+            signal.signal(s, handler)
 
 
 def web_viewer_url(port: int = 9090, grpc_port: int = 9876) -> str:
@@ -589,9 +697,12 @@ def web_viewer_command(rrd: Path, port: int = 9090, grpc_port: int = 9876) -> li
     return [str(rrd), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), "--port", str(grpc_port)]
 
 
-def how_to_view(rrd: Path, port: int = 9090, grpc_port: int = 9876) -> str:
+def how_to_view(rrd: Path, port: int = 9090, grpc_port: int = 9876, target: Path | str | None = None) -> str:
+    """How to open ``rrd``: the native viewer, or the web viewer served by ``eventcap view TARGET --web`` (which ends
+    the viewer when it is stopped; ``target``: what was given to ``eventcap view``, default ``rrd``)."""
+    ports = "" if (port, grpc_port) == (9090, 9876) else f" --port {port} --grpc-port {grpc_port}"
     return (f"open it with the Rerun viewer:\n  rerun {rrd}\n"
             f"or, on a machine without a display, serve the web viewer on this machine and open it in a browser "
             f"(from elsewhere through an SSH tunnel: ssh -L {port}:localhost:{port} -L {grpc_port}:localhost:"
-            f"{grpc_port} HOST):\n  rerun {' '.join(web_viewer_command(rrd, port, grpc_port))}\n"
+            f"{grpc_port} HOST):\n  eventcap view {target or rrd} --web{ports}\n"
             f"  then open {web_viewer_url(port, grpc_port)}")

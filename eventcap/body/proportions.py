@@ -49,7 +49,7 @@ MIN_ACROSS = 0.7
 #: A segment with fewer images than this is not measured.
 MIN_IMAGES = 3
 #: Where a detector puts its points against the template's joints: seen length / true length per segment,
-#: measured on the open benchmark's tuning captures (seeds 0-19; docs/results.md, "The person's body"). A detector
+#: measured on the open benchmark's tuning captures (seeds 0-19; docs/results/body.md). A detector
 #: not listed is taken to put them on the joints (the simulated detector does).
 DETECTOR_DEFINITIONS: dict[str, dict[str, float]] = {
     # BlazePose GHUM (full): the medians over the 10 whole-body tuning captures with frames, left and right averaged

@@ -14,7 +14,8 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from eventcap.core.registry import unknown_name_message
-from eventcap.core.stage import StageSpec, allowed_values, check_value, given_fields
+from eventcap.core.stage import StageSpec
+from eventcap.params import allowed_values, check_value, field_at, given_fields, is_group, leaves, value_at
 
 
 class ConfigError(ValueError):
@@ -28,48 +29,83 @@ def _structured(config_class: type):
 
 
 def build_config(spec: StageSpec, values: Mapping[str, Any], where: str) -> Any:
-    """The stage's config dataclass from ``values`` (a plain mapping); unknown keys and wrong types name ``where.key``."""
-    known = [f.name for f in dataclasses.fields(spec.config)]
-    for key in values:
-        if key not in known:
-            raise ConfigError(
-                f"{where}.{key}: " + unknown_name_message("config key", key, known, f"the config of stage {spec.name!r}")
-            )
+    """The stage's config dataclass from ``values`` (a plain mapping, groups as nested mappings); an unknown key, a
+    renamed one (named with its new key) and a wrong type or value name ``where.<dotted key>``."""
+    return build_settings(spec.config, values, where, spec.renamed, f"stage {spec.name!r}")
+
+
+def build_settings(config_class: type, values: Mapping[str, Any] | None, where: str,
+                   renamed: Mapping[str, str] | None = None, owner: str = "") -> Any:
+    """An instance of a dataclass of declared settings (:mod:`eventcap.params`) from ``values``: every key known
+    (a renamed one refused with its new key), every value of the field's type, within its choices and bounds; each
+    error names ``where.<dotted key>`` and the owner (e.g. "stage 'spline'")."""
+    values = dict(values or {})
+    renamed = dict(renamed or {})
+    tag = f" ({owner})" if owner else ""
+    _check_keys(config_class, values, where, "", renamed, owner)
     try:
-        merged = OmegaConf.merge(_structured(spec.config), OmegaConf.create(dict(values)))
+        merged = OmegaConf.merge(_structured(config_class), OmegaConf.create(values))
         obj = OmegaConf.to_object(merged)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", "") or ""
         msg = str(exc).splitlines()[0]
-        field = next((f for f in dataclasses.fields(spec.config) if f.name == key.split(".")[0].split("[")[0]), None)
+        path = ".".join(p.split("[")[0] for p in key.split("."))
+        field = field_at(config_class, path) if path else None
         allowed = allowed_values(field) if field is not None else None
         if allowed:  # a value of the wrong type: say what the field takes (the field, not an item of a list)
-            msg = f"expected {allowed}, got {values.get(field.name)!r}"
-            key = field.name
-        raise ConfigError(f"{where}{'.' + key if key else ''}: {msg} (stage {spec.name!r})") from None
-    missing = [f.name for f in dataclasses.fields(obj) if getattr(obj, f.name) is dataclasses.MISSING]
-    if missing:
-        raise ConfigError(f"{where}.{missing[0]}: required by stage {spec.name!r} but not set")
-    _check_fields(obj, where, spec.name)
-    return obj
-
-
-def _check_fields(obj: Any, where: str, stage: str) -> None:
-    """Choices and bounds of every field of ``obj``, and of the fields of its nested groups (``where.group.key``)."""
-    for f in dataclasses.fields(obj):
+            msg = f"expected {allowed}, got {_value_in(values, path)!r}"
+            key = path
+        raise ConfigError(f"{where}{'.' + key if key else ''}: {msg}{tag}") from None
+    for key, f in leaves(config_class):
+        value = value_at(obj, key)
+        if value is dataclasses.MISSING:
+            raise ConfigError(f"{where}.{key}: required{' by ' + owner if owner else ''} but not set")
         choices = f.metadata.get("choices")
-        value = getattr(obj, f.name)
-        if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            _check_fields(value, f"{where}.{f.name}", stage)
-            continue
         if choices is not None and value not in choices:
             close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1, cutoff=0.5)
             hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise ConfigError(f"{where}.{f.name}: expected one of {' | '.join(str(c) for c in choices)}, got "
-                              f"{value!r} (stage {stage!r}){hint}")
+            raise ConfigError(f"{where}.{key}: expected one of {' | '.join(str(c) for c in choices)}, got "
+                              f"{value!r}{tag}{hint}")
         problem = check_value(f, value)
         if problem:
-            raise ConfigError(f"{where}.{f.name}: {problem} (stage {stage!r})")
+            raise ConfigError(f"{where}.{key}: {problem}{tag}")
+    return obj
+
+
+def _check_keys(config_class: type, values: Mapping[str, Any], where: str, prefix: str,
+                renamed: Mapping[str, str], owner: str) -> None:
+    """ConfigError for the first key of ``values`` that the config class (a group at ``prefix``) has not: a renamed
+    one names its new key, others the close matches among the group's keys."""
+    fields = {f.name: f for f in dataclasses.fields(config_class)}
+    tag = f" ({owner})" if owner else ""
+    for key, value in values.items():
+        full = f"{prefix}{key}"
+        f = fields.get(str(key))
+        if f is None:
+            new = renamed.get(full)
+            if new is not None:
+                raise ConfigError(f"{where}.{full}: this setting is now {where}.{new}{tag}")
+            what = (f"the config of {owner}" if owner else where) + (f", group {prefix[:-1]}" if prefix else "")
+            raise ConfigError(f"{where}.{full}: " + unknown_name_message("config key", str(key), list(fields), what))
+        if is_group(f):
+            if not isinstance(value, Mapping) and full in renamed:  # an old setting now a group's name
+                raise ConfigError(f"{where}.{full}: this setting is now {where}.{renamed[full]}{tag}")
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"{where}.{full}: a group of settings ({', '.join(sorted(_names(f)))}); set one "
+                                  f"with {where}.{full}.<key>=..., got {value!r}{tag}")
+            _check_keys(f.metadata["group"], value, where, f"{full}.", renamed, owner)
+
+
+def _names(f: dataclasses.Field) -> list[str]:
+    return [g.name for g in dataclasses.fields(f.metadata["group"])]
+
+
+def _value_in(values: Mapping[str, Any], key: str) -> Any:
+    for part in key.split("."):
+        if not isinstance(values, Mapping) or part not in values:
+            return None
+        values = values[part]
+    return values
 
 
 #: The values ``log_level`` takes (case-insensitive).
@@ -90,6 +126,23 @@ def log_level_number(value: Any) -> int:
 #: :func:`register_stage_configs`: a stage variant's YAML (conf/stages/<node>/<variant>.yaml) starts from it with
 #: ``defaults: [/stage/<name>@_here_, _self_]`` and states only what differs.
 STAGE_GROUP = "stage"
+
+
+#: The Hydra config group holding the declared settings of the run's other parts (``/settings/<name>``: outputs,
+#: executor), filled by :func:`register_settings_configs`.
+SETTINGS_GROUP = "settings"
+
+
+def register_settings_configs(configs: Mapping[str, type]) -> list[str]:
+    """Store dataclasses of declared settings in Hydra's ConfigStore under ``/settings/<name>`` (the Hydra plugin
+    does so before every composition): ``conf/config.yaml`` starts the ``outputs`` block from it and the executor
+    variants start from ``/settings/executor``, stating only what differs."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    for name, cls in configs.items():
+        cs.store(group=SETTINGS_GROUP, name=name, node=cls, provider="eventcap")
+    return list(configs)
 
 
 def register_stage_configs() -> list[str]:
@@ -130,25 +183,28 @@ def _plain(v):
 
 
 def result_config(spec: StageSpec, config: Any) -> dict[str, Any]:
-    """Only the fields that affect the stage's result: what goes into the cache key. A nested group whose every
-    value is null (unset, e.g. ``source.actor``) is left out, so adding such a group keeps the keys of the results
-    made before it existed."""
-    full = config_to_dict(config)
+    """Only the settings that affect the stage's result (dotted keys): what goes into the cache key. A group whose
+    every setting is null (unset, e.g. ``source.actor``) is left out, so adding such a group keeps the keys of the
+    results made before it existed; a null setting declared with ``unset`` enters as that value, and the keys of the
+    given ones are added (``given``): what the user stated changes the result even where it equals the unset value."""
     out: dict[str, Any] = {}
-    meta = {f.name: f.metadata for f in dataclasses.fields(config)}
     for k in spec.result_fields():
-        if _unset_group(getattr(config, k)):
+        head = k.rpartition(".")[0]
+        if head and _unset_group(value_at(config, head)):
             continue
-        out[k] = _plain(meta[k]["unset"]) if "unset" in meta[k] and full[k] is None else full[k]
+        value = value_at(config, k)
+        meta = field_at(type(config), k).metadata
+        out[k] = _plain(meta["unset"] if value is None and "unset" in meta else value)
     given = given_fields(config)
-    if given:  # what the user stated changes the result even where it equals the unset value
+    if given:
         out["given"] = given
     return out
 
 
 def _unset_group(value: Any) -> bool:
+    """Whether ``value`` is a group of settings whose every setting (nested groups opened) is null."""
     return (dataclasses.is_dataclass(value) and not isinstance(value, type)
-            and all(getattr(value, f.name) is None for f in dataclasses.fields(value)))
+            and all(value_at(value, k) is None for k, _ in leaves(type(value))))
 
 
 def file_digest(path: str | Path, chunk: int = 1 << 22) -> str:
@@ -172,9 +228,9 @@ def file_digests(spec: StageSpec, config: Any, where: str) -> dict[str, str]:
     """Digest of every file config field that is set (empty string / None means unused): ``file=True`` fields by
     their path, ``file=<function>`` fields by the paths the function finds in the value (none: no entry)."""
     out = {}
-    kinds = {f.name: f.metadata.get("file") for f in dataclasses.fields(config)}
+    kinds = {k: f.metadata.get("file") for k, f in leaves(type(config))}
     for name in spec.file_fields():
-        value = getattr(config, name)
+        value = value_at(config, name)
         if value in (None, ""):
             continue
         paths = [value] if kinds.get(name) is True else list(kinds[name](value))

@@ -4,8 +4,9 @@ A run that failed in hundreds of batches used to end with every failed and skipp
 line) and the advice to run the same command again, which cannot help when the failure is deterministic (the same
 inputs fail the same way). :func:`failure_summary` groups the failures of each node by their status (the stage's
 ``StageFailed.status`` or the exception's type), counts them against the node's batches, names the first few
-batches of each cause, quotes the first error once (shortened), lists the nodes skipped because of them, and gives
-advice only for causes where it can help (:data:`ADVICE`). ``run.json`` keeps every failure in full.
+batches of each cause, quotes the first error once (in full: it often ends with the stage's advice), counts the
+nodes skipped because of them, and gives advice only for causes where it can help (:data:`ADVICE`). ``run.json``
+keeps every failure in full.
 """
 
 from __future__ import annotations
@@ -33,11 +34,6 @@ def _batches(indices: list[int], examples: int) -> str:
     return shown + (", ..." if len(indices) > examples else "")
 
 
-def _shorten(text: str, chars: int) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= chars else text[:chars - 3].rstrip() + "..."
-
-
 def _node_total(rep) -> int:
     """Units of a node: its batches (cached, computed, failed, skipped) or 1 for a whole node."""
     return rep.cached + rep.computed + len(rep.failed) + rep.skipped if rep.per_batch else 1
@@ -55,8 +51,9 @@ def _failed_part(name: str, rep, examples: int) -> str:
     return f"{name} failed in {len(rep.failed)} of {_node_total(rep)} batches: {', '.join(causes)}"
 
 
-def _skipped_part(result, failed_nodes: list[str], chars: int) -> str:
-    """Skipped nodes, grouped: those downstream of this run's failures by name only, others with their cause."""
+def _skipped_part(result, failed_nodes: list[str]) -> str:
+    """Skipped nodes, grouped and counted: those downstream of this run's failures by name only, others with their
+    cause (in full)."""
     downstream, other = [], {}
     for name, rep in result.nodes.items():
         if not rep.skipped:
@@ -68,35 +65,42 @@ def _skipped_part(result, failed_nodes: list[str], chars: int) -> str:
         if any(r.split(":")[0].split("[")[0] in failed_nodes for r in roots):
             downstream.append(what)
         else:
-            other.setdefault(_shorten(causes[0], chars), []).append(what)
+            other.setdefault(" ".join(str(causes[0]).split()), []).append(what)
     parts = []
     if downstream:
-        parts.append(f"skipped because of it: {', '.join(downstream)}")
-    parts += [f"skipped: {', '.join(names)} ({cause})" if cause else f"skipped: {', '.join(names)}"
+        parts.append(f"skipped because of it: {_nodes(downstream)}")
+    parts += [f"skipped: {_nodes(names)} ({cause})" if cause else f"skipped: {_nodes(names)}"
               for cause, names in other.items()]
     return "; ".join(parts)
 
 
-def failure_summary(result, examples: int = 3, error_chars: int = 200) -> str:
-    """One short line saying why a run is incomplete (``result``: a :class:`eventcap.core.runner.RunResult`).
+def _nodes(names: list[str]) -> str:
+    return names[0] if len(names) == 1 else f"{len(names)} nodes ({', '.join(names)})"
+
+
+def failure_summary(result, examples: int = 3, first_error: bool = True) -> str:
+    """One line saying why a run is incomplete (``result``: a :class:`eventcap.core.runner.RunResult`).
 
     ``solve failed in 187 of 201 batches: 180 missing_detections (batches 3, 4, 5, ...), 7
-    Maximum_Iterations_Exceeded (batches 12, 40, 41, ...); skipped because of it: evaluate; first error:
-    solve[batch 3]: ...``, then advice for the causes :data:`ADVICE` knows. Empty for a complete run."""
+    Maximum_Iterations_Exceeded (batches 12, 40, 41, ...); skipped because of it: 2 nodes (refine (187 of 201
+    batches), evaluate); first error: solve[batch 3]: ...``, then advice for the causes :data:`ADVICE` knows. Empty
+    for a complete run. Nothing in it is cut: the first error often ends with the stage's advice.
+    ``first_error=False`` names the first error's node without quoting it (the run's log showed it in full where
+    it happened)."""
     failed_nodes = [n for n, r in result.nodes.items() if r.failed]
     parts = [_failed_part(n, result.nodes[n], examples) for n in failed_nodes]
-    skipped = _skipped_part(result, failed_nodes, error_chars)
+    skipped = _skipped_part(result, failed_nodes)
     if skipped:
         parts.append(skipped)
     if failed_nodes:
         first = result.nodes[failed_nodes[0]].failed
         f0 = min(first, key=lambda f: -1 if f.get("batch") is None else f["batch"])
         where = failed_nodes[0] + (f"[batch {f0['batch']}]" if f0.get("batch") is not None else "")
-        parts.append(f"first error: {where}: {_shorten(f0.get('error', ''), error_chars)}")
+        error = " ".join(str(f0.get("error", "")).split())
+        parts.append(f"first error: {where}: {error}" if first_error else f"the first error is above ({where})")
     statuses = dict.fromkeys(f["status"] for r in result.nodes.values() for f in r.failed)
     advice = [ADVICE[s] for s in statuses if s in ADVICE]
     if advice:
         parts.append("advice: " + "; ".join(advice))
     parts.append("every failure in full: run.json")
     return "; ".join(parts)
-

@@ -46,6 +46,15 @@ def _watch_parent(parent_pid: int, poll_s: float) -> None:
             os._exit(1)  # no clean-up: the parent is gone, nobody waits for this process's results
 
 
+def arm_before_exec(parent_pid: int) -> None:
+    """For ``subprocess.Popen(preexec_fn=...)`` of a program that is not ours (the Rerun viewer): in the child, before
+    it executes the program, ask the kernel to kill it when ``parent_pid`` dies (Linux; the signal survives the exec),
+    and exit at once when that parent is already gone. No thread: the program replaces this process."""
+    _arm_parent_death_signal()
+    if os.getppid() != parent_pid:
+        os._exit(1)
+
+
 def die_with_parent(parent_pid: int, poll_s: float = 0.5) -> bool:
     """Make this process exit when ``parent_pid`` (its parent) dies. Returns whether the kernel signal is armed."""
     armed = _arm_parent_death_signal()

@@ -120,7 +120,10 @@ def _read_nodes(cfg: Mapping[str, Any], raw_nodes: Mapping[str, Any], registry: 
         specs[name] = spec
         try:
             configs[name] = build_config(spec, {k: v for k, v in values.items() if k != "stage"}, path)
-        except ConfigError as exc:
+            check = spec.load_check()
+            if check is not None:
+                check(configs[name], path)
+        except (ConfigError, ValueError) as exc:
             problems.append(f"node {name!r}: {exc}")
     return specs, configs, paths, raw_inputs
 

@@ -24,7 +24,8 @@ from typing import Any
 
 from eventcap.artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
 from eventcap.core.cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
-from eventcap.core.config import ConfigError, build_config, config_to_dict, file_digests, result_config
+from eventcap.core.config import ConfigError, build_config, build_settings, config_to_dict, file_digests, result_config
+from eventcap.params import param
 from eventcap.errors import ComputationFailed
 from eventcap.memo import clear_process_caches, memoize
 from eventcap.core.pipeline import Node, build_pipeline
@@ -240,13 +241,18 @@ def base_doc(spec: StageSpec, config: Any, where: str) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------------------------------
 # Executors
 # ---------------------------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass
 class ExecutorConfig:
-    kind: str = "serial"  # serial | processes | dask
-    workers: int = 2  # processes / dask LocalCluster workers
-    threads_per_worker: int = 1  # BLAS/OpenMP threads per worker
-    address: str | None = None  # dask: scheduler address (tcp://host:8786); None starts a LocalCluster
-    retries: int = 2  # dask: resubmissions of a task whose worker raised an infrastructure error
+    """The ``executor:`` settings of a run (conf/executor/<kind>.yaml state only what differs from these)."""
+
+    kind: str = param("serial", choices=("serial", "processes", "dask"),
+                      help="serial (in this process) | processes (a local pool over batches) | dask (a LocalCluster, "
+                           "or the scheduler at address)")
+    workers: int = param(2, ge=1, help="processes / dask LocalCluster: worker processes")
+    threads_per_worker: int = param(1, ge=1, help="BLAS/OpenMP/numba threads per worker")
+    address: str | None = param(None, help="dask: the scheduler's address, tcp://host:8786 (null: start a "
+                                           "LocalCluster on this machine)")
+    retries: int = param(2, ge=0, help="dask: resubmissions of a task whose worker raised an infrastructure error")
 
     #: seconds to wait for a TCP connection to ``address`` before the run is refused
     CONNECT_TIMEOUT_S = 3.0
@@ -255,18 +261,7 @@ class ExecutorConfig:
     def from_mapping(cls, values: Mapping[str, Any] | None) -> ExecutorConfig:
         """Checked executor settings: every key and value named as ``executor.<key>`` with what it takes, before
         anything runs (a dask scheduler that cannot be reached included)."""
-        values = dict(values or {})
-        known = [f.name for f in dataclasses.fields(cls)]
-        unknown = sorted(set(values) - set(known))
-        if unknown:
-            raise ValueError(f"executor.{unknown[0]}: unknown key; known: {', '.join(sorted(known))}")
-        cfg = cls(**values)
-        if cfg.kind not in ("serial", "processes", "dask"):
-            raise ValueError(f"executor.kind: expected one of serial | processes | dask, got {cfg.kind!r}")
-        for name, low in (("workers", 1), ("threads_per_worker", 1), ("retries", 0)):
-            v = getattr(cfg, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ValueError(f"executor.{name}: expected an integer >= {low}, got {v!r}")
+        cfg = build_settings(cls, values, "executor")
         if cfg.address is not None:
             if not isinstance(cfg.address, str) or not cfg.address.strip():
                 raise ValueError(f"executor.address: expected a scheduler address such as tcp://host:8786, or null, "
@@ -467,7 +462,7 @@ class Runner:
                     self._roots[(node.name, None)] = not_run
                     plans.setdefault(node.name, [])
                     batch_keys.setdefault(node.name, {})
-                    log.error("%s: skipped, %s", label, not_run)
+                    log.debug("%s: skipped, %s", label, not_run)  # counted once in the run's closing summary
                     continue
                 try:
                     if not node.spec.per_batch:
@@ -499,8 +494,9 @@ class Runner:
         n_comp = result.computed_keys()
         n_hit = sum(r.cached for r in reports.values())
         n_fail = sum(len(r.failed) for r in reports.values())
-        log.info("run finished in %.1f s: %d computed, %d cached, %d failed", time.perf_counter() - t_run,
-                 n_comp, n_hit, n_fail)
+        n_skip = sum(r.skipped for r in reports.values())
+        log.info("run finished in %.1f s: %d computed, %d cached, %d failed%s", time.perf_counter() - t_run,
+                 n_comp, n_hit, n_fail, f", {n_skip} skipped" if n_skip else "")
         if run_dir is not None:
             self._write_summary(Path(run_dir), result, node_keys, batch_keys)
         return result
@@ -554,8 +550,8 @@ class Runner:
         cause = f"upstream failed: {root}"
         rep.skip_causes.append({"batch": batch, "cause": cause})
         self._roots[(rep.node, batch)] = root
-        if label is not None:
-            log.error("%s: skipped, %s", label, cause)
+        if label is not None:  # the failure was logged where it happened; the skips are counted in the run's summary
+            log.debug("%s: skipped, %s", label, cause)
 
     def _fail_node(self, node: Node, rep: NodeReport, label: str, exc: BaseException) -> None:
         error = f"{type(exc).__name__}: {exc}"
@@ -698,7 +694,7 @@ class Runner:
                             for r in same if b.index not in batch_keys.get(r.node, {}))
             if root is not None:
                 self._skip(rep, b.index, root, None)
-                log.warning("%s: batch %d skipped, upstream failed: %s", node.name, b.index, root)
+                log.debug("%s: batch %d skipped, upstream failed: %s", node.name, b.index, root)
                 continue
             refs, keydoc = self._input_specs(node, node_keys, batch_keys, plans, b)
             doc = {**base, "inputs": keydoc, "batch": b.as_key()}
@@ -731,10 +727,15 @@ class Runner:
                     log.info("%s: batch %d/%d committed by another run meanwhile (waited %.2f s): loaded, not "
                              "recomputed", node.name, res.batch + 1, len(batches), res.elapsed_s)
                 else:
+                    first = next((f["batch"] for f in rep.failed if f["status"] == res.failure_status), None)
                     rep.failed.append({"batch": res.batch, "status": res.failure_status, "error": res.error,
                                        "key": res.key})
                     self._roots[(node.name, res.batch)] = f"{node.name}[batch {res.batch}]: {res.error}"
-                    log.error("%s: batch %d FAILED (%s): %s", node.name, res.batch, res.failure_status, res.error)
+                    if first is None:
+                        log.error("%s: batch %d FAILED (%s): %s", node.name, res.batch, res.failure_status, res.error)
+                    else:  # one cause's error in full once; every one is in run.json
+                        log.error("%s: batch %d FAILED (%s, as batch %d)", node.name, res.batch, res.failure_status,
+                                  first)
         finally:
             bar.close()
 

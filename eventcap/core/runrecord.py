@@ -14,8 +14,8 @@ The one definition of the file's format. A run folder (``runs/<name>/<timestamp>
      "outputs": {"written": {"bvh": "<path>", ...}, "skipped": {"video": "<why>"}, "problems": []}
     }
 
-``outputs`` is added after the run by :func:`eventcap.apps.outputs.write_run_outputs` (and again by ``eventcap view``,
-merged with what is there). Readers: :func:`eventcap.core.runner.load_finished_run` (``eventcap view``, the viewer's
+``outputs`` is added after the run by :func:`eventcap.apps.outputs.write_run_outputs` (``eventcap view`` only reads
+the folder). Readers: :func:`eventcap.core.runner.load_finished_run` (``eventcap view``, the viewer's
 benchmark), :mod:`eventcap.apps.report` (the status of a sweep's jobs). This module imports nothing of eventcap.
 """
 

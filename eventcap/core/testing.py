@@ -15,12 +15,12 @@ stability and sensitivity, the output schema (declared types, zarr round trip) a
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, ClassVar
 
 from eventcap.artifacts import Artifact, Batch, BatchPlan
 from eventcap.core.cache import make_key
 from eventcap.core.config import ConfigError, build_config, config_to_dict
+from eventcap.params import leaves, nest
 from eventcap.core.registry import load_registry
 from eventcap.core.stage import StageContext, StageSpec
 
@@ -42,7 +42,8 @@ class StageConformance:
         return load_registry().get(self.stage_name)
 
     def config(self, **changes: Any):
-        return build_config(self.spec(), {**self.config_overrides, **changes}, f"stages.{self.stage_name}")
+        """The stage's config with the class's overrides and these changes (keys may be dotted: terms.sil.weight)."""
+        return build_config(self.spec(), nest(self.config_overrides, changes), f"stages.{self.stage_name}")
 
     def batch(self, inputs: dict[str, Any]) -> Batch | None:
         if not self.spec().per_batch:
@@ -74,8 +75,18 @@ class StageConformance:
         cfg = self.config()
         again = build_config(spec, config_to_dict(cfg), "roundtrip")
         assert config_to_dict(again) == config_to_dict(cfg)
-        for f in dataclasses.fields(spec.config):
-            assert f.metadata.get("help"), f"config field {f.name} has no help text"
+        for key, f in leaves(spec.config):
+            assert f.metadata.get("help"), f"config field {key} has no help text"
+
+    def test_renamed_keys_name_their_new_key(self):
+        spec = self.spec()
+        for old, new in spec.renamed.items():
+            try:
+                self.config(**{old: 1})
+            except ConfigError as exc:
+                assert f".{new}" in str(exc), str(exc)
+            else:
+                raise AssertionError(f"the renamed setting {old!r} was accepted")
 
     def test_unknown_config_key_rejected(self):
         try:

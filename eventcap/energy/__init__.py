@@ -1,7 +1,8 @@
 """The energy terms the solves compose (core library; plugins import it, never each other).
 
-Every term is a factor (:mod:`.factor`): one class with one weight (``lambda_<name>`` in a solve's config), which
-takes its data for a window and gives its value, gradient and Hessian blocks in pose space at its own sample times.
+Every term is a factor (:mod:`.factor`): one class with its settings (``terms.<name>.weight`` and more in a solve's
+config) that collects its data from a window's inputs (:mod:`.window`), relinearises at each ICP round and gives its
+value, gradient and Hessian blocks in pose space at its own sample times.
 A solve is a list of factors built from its config (:func:`.terms.factors_from_config`) summed over a
 parametrisation of the poses (:mod:`.problem`: a cubic B-spline's control points, or one pose per frame) and
 handed to IPOPT. The terms (the table in :mod:`.terms`):

@@ -31,7 +31,8 @@ from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, NUM_POSE_PARAMS
 
 from .errors import EnergyError
-from .factor import Factor, Layout, Linearization, Window
+from .factor import Factor, Linearization
+from .settings import BonesConfig
 
 _NP = NUM_POSE_PARAMS
 #: Joint pairs at a distance the template fixes, both ends seen by the 2D detector (landmarks on the joints):
@@ -70,17 +71,18 @@ def depth_extent_targets(n_i: np.ndarray, n_j: np.ndarray, z_i: np.ndarray, leng
 
 
 class BoneDepth(Factor):
-    """λ_bones Σ_d Σ_b w_db (Δz_b(S_d) - Δz*_db)² at the detection frames (module doc). Exact Hessian (CasADi)."""
+    """λ_bones Σ_d Σ_b w_db (Δz_b(S_d) - Δz*_db)² at the detection frames (module doc), the targets from the
+    detections and the current estimate's depths at each round. Exact Hessian (CasADi)."""
 
     name = "bones"
-    settings = ("bones_sign_m", "bones_2d_px")
+    Config = BonesConfig
 
-    def __init__(self, weight, config, template, camera, layout):
+    def __init__(self, config, template, camera, n):
         from .detections import _MappedTerm
 
-        super().__init__(weight, config, template, camera, layout)
-        self.sign_m = float(config.bones_sign_m)
-        self.noise_2d = float(config.bones_2d_px) / np.sqrt(camera.fx * camera.fy)
+        super().__init__(config, template, camera, n)
+        self.sign_m = float(config.sign_m)
+        self.noise_2d = float(config.noise_2d_px) / np.sqrt(camera.fx * camera.fy)
         rest = template.rest_joints
         self.length = np.linalg.norm(rest[_J[:, 1]] - rest[_J[:, 0]], axis=1)
         S = ca.SX.sym("S", _NP)
@@ -93,18 +95,21 @@ class BoneDepth(Factor):
         self.target = np.zeros((self.n, len(BONES)))
         self.w = np.zeros((self.n, len(BONES)))
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_det
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        t = inputs.t_det_us
+        return np.zeros(0, dtype=np.int64) if t is None else t
 
-    def prepare(self, window: Window) -> None:
-        det = window.need("detections", "the bones term")
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
+        det = inputs.need("detections", "the bones term")
         if det.n != self.n:
             raise EnergyError(f"the bones term: expected {self.n} detection frames, got {det.n}")
-        self.t_us = np.asarray(window.need("t_det_us", "the bones term"), dtype=np.int64)
-        est = window.need("estimate", "the bones term")
-        cam = self.camera
-        Jc = cam.to_camera(joint_positions(est(self.t_us), self.template.rest_joints))  # (D, 24, 3)
+        self.det = det
+
+    def relinearize(self, estimate) -> None:
+        det, cam = self.det, self.camera
+        Jc = cam.to_camera(joint_positions(estimate.poses(self.t_us), self.template.rest_joints))  # (D, 24, 3)
         c2 = det.confidence_2d[:, _L]  # (D, B, 2)
         kp = np.where(c2[..., None] > 0, det.keypoints_2d[:, _L], 0.0)
         n = cam.undistort_points(kp)  # (D, B, 2, 2)
@@ -122,4 +127,4 @@ class BoneDepth(Factor):
         return Linearization(w * float(e.sum()), None if g is None else w * g, None if H is None else w * H)
 
 
-__all__ = ["BONES", "BoneDepth", "depth_extent_targets"]
+__all__ = ["BONES", "BoneDepth", "BonesConfig", "depth_extent_targets"]

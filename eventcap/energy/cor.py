@@ -15,15 +15,16 @@ and memoised per poses). Both couple only neighbouring frames: the Hessian is bl
 from __future__ import annotations
 
 import math
-
 import numpy as np
 
 from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
 from eventcap.camera import Camera
 
-from .correspondences import Correspondences
+from eventcap.body.kinematics import joint_positions
+from .correspondences import Correspondences, correspondence_change_px, temporal_indicator
 from .errors import EnergyError
-from .factor import Factor, Layout, Linearization, Window
+from .factor import Factor, Linearization
+from .settings import CorConfig, TempConfig
 from .kernels import premultiplied_weights, project_derivatives, shared_kernels
 
 _NP = NUM_POSE_PARAMS
@@ -82,30 +83,54 @@ class CorrespondencePoints:
 
 class EventCorrespondences(Factor):
     """E_cor (paper Eq. 5): λ_cor Σ_c w_c ‖(π(v_c(S_j)) - π(v_c(S_i)) - (p_j - p_i)) / f‖² (module doc), at the
-    window's correspondence frames; exact block-tridiagonal Hessian."""
+    window's correspondence frames (its tracks' frames); the correspondences are the estimate's
+    (:meth:`eventcap.energy.window.Estimate.correspondences`), searched again at each ICP round; exact
+    block-tridiagonal Hessian."""
 
     name = "cor"
+    Config = CorConfig
     couples_neighbours = True
 
-    def __init__(self, weight, config, template, camera: Camera, layout: Layout):
-        super().__init__(weight, config, template, camera, layout)
+    def __init__(self, config, template, camera: Camera, n: int):
+        super().__init__(config, template, camera, n)
         self.kernels = shared_kernels(template.rest_joints, self.n)
         self.scale = 1.0 / math.sqrt(camera.fx * camera.fy)
-        self.data = CorrespondencePoints(Correspondences.empty(), self.n, True)
+        self.corr = Correspondences.empty()
+        self.data = CorrespondencePoints(self.corr, self.n, True)
         self._cache: dict = {}
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_cor
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        tracks = inputs.tracks
+        return np.zeros(0, dtype=np.int64) if tracks is None else tracks.t_us
 
-    def prepare(self, window: Window) -> None:
-        t = np.asarray(window.need("t_cor_us", "E_cor"), dtype=np.int64)
-        if t.shape != (self.n,):
-            raise EnergyError(f"E_cor: expected {self.n} correspondence frames, got {t.shape}")
-        self.t_us = t
-        self.set_correspondences(window.need("correspondences", "E_cor"), window.cor_relative, window.cor_weight)
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
+        self.set_correspondences(Correspondences.empty())
+
+    def relinearize(self, estimate) -> None:
+        corr = estimate.correspondences()
+        weight = None
+        robust = float(self.config.robust_px)
+        if robust > 0 and estimate.round > 0 and corr.n:  # weights by the residuals at the last solution
+            self.set_correspondences(corr, relative=True)
+            e2 = np.sum(self.residuals_px(estimate.poses(self.t_us)) ** 2, axis=1)
+            weight = 1.0 / (1.0 + e2 / robust ** 2)
+        self.set_correspondences(corr, estimate.coupled, weight)
+
+    def association_change(self, estimate) -> float | None:
+        if estimate.round == 0:
+            return None
+        S = estimate.poses(self.t_us)
+        new = estimate.correspondences()
+        return correspondence_change_px(self.corr, self.residuals_px_of(self.corr, S, estimate.coupled), new,
+                                        self.residuals_px_of(new, S, estimate.coupled))
+
+    def report(self) -> dict:
+        return {"n_correspondences": int(self.corr.n)}
 
     def set_correspondences(self, corr: Correspondences, relative: bool = True, point_weight=None) -> None:
+        self.corr = corr
         self.data = CorrespondencePoints(corr, self.n, relative, point_weight)
         self._cache = {}
 
@@ -213,24 +238,48 @@ class EventCorrespondences(Factor):
 
 class TemporalStability(Factor):
     """E_temp (paper Eq. 8): λ_temp Σ_i Σ_l φ_{i,l} ‖J_l(S_i) - J_l(S_{i+1})‖² over consecutive correspondence
-    frames, φ the window's indicator of joints held still (:func:`.correspondences.temporal_indicator`)."""
+    frames, φ the indicator of joints held still (:func:`.correspondences.temporal_indicator` of the estimate's
+    correspondences; 0 for joints that moved more than ``still_m`` between the start's ends, and for all when the
+    correspondences do not couple the frames)."""
 
     name = "temp"
+    Config = TempConfig
     couples_neighbours = True
 
-    def __init__(self, weight, config, template, camera, layout):
-        super().__init__(weight, config, template, camera, layout)
+    def __init__(self, config, template, camera, n):
+        super().__init__(config, template, camera, n)
         self.kernels = shared_kernels(template.rest_joints, self.n)
         self.WXJ = premultiplied_weights(template.rest_joints, np.eye(NUM_JOINTS))  # (24, 96): J_l = WXJ_l · G
+        self.phi = np.zeros((max(self.n - 1, 0), NUM_JOINTS))
+        self.moved = None
+
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        tracks = inputs.tracks
+        return np.zeros(0, dtype=np.int64) if tracks is None else tracks.t_us
+
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
         self.phi = np.zeros((self.n - 1, NUM_JOINTS))
+        self.moved = None
+        self._inputs = inputs
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_cor
+    def relinearize(self, estimate) -> None:
+        if not estimate.coupled:  # each frame on its own: nothing couples frames
+            self.phi = np.zeros((self.n - 1, NUM_JOINTS))
+            return
+        phi = temporal_indicator(estimate.correspondences(), self.n, str(self.config.scope))
+        still_m = float(self.config.still_m)
+        if still_m > 0:
+            if self.moved is None:
+                ends = self._inputs.need("start", "E_temp")(self.t_us[[0, -1]])
+                J = joint_positions(ends, self.template.rest_joints)
+                self.moved = np.linalg.norm(J[1] - J[0], axis=1) > still_m
+            phi[:, self.moved] = 0.0
+        self.set_indicator(phi)
 
-    def prepare(self, window: Window) -> None:
-        self.t_us = np.asarray(window.need("t_cor_us", "E_temp"), dtype=np.int64)
-        phi = np.asarray(window.need("phi", "E_temp"), dtype=np.float64)
+    def set_indicator(self, phi: np.ndarray) -> None:
+        phi = np.asarray(phi, dtype=np.float64)
         if phi.shape != (self.n - 1, NUM_JOINTS):
             raise EnergyError(f"E_temp: expected phi of shape ({self.n - 1}, 24), got {phi.shape}")
         self.phi = phi
@@ -269,4 +318,4 @@ class TemporalStability(Factor):
         return lin
 
 
-__all__ = ["CorrespondencePoints", "EventCorrespondences", "TemporalStability"]
+__all__ = ["CorConfig", "CorrespondencePoints", "EventCorrespondences", "TempConfig", "TemporalStability"]

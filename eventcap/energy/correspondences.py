@@ -37,6 +37,8 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.imaging.render import Render, pick_surface_points, rasterize
 
+from .settings import PHI_SCOPES
+
 #: Below this |det| of the blended rotation Σ_j w_j R_j a point is attached rigidly to its dominant joint instead of
 #: being solved for (the blend of strongly different rotations degenerates).
 MIN_BLEND_DET = 0.3
@@ -46,10 +48,6 @@ MIN_BLEND_DET = 0.3
 EDGE_MARGIN_PX = 1.0
 #: Depth step between neighbouring pixels that marks a self-occlusion edge (metres).
 DEPTH_JUMP_M = 0.1
-
-#: φ scopes: "batch" — a part without any correspondence in the whole batch is held still at every frame pair (the
-#: paper); "pair" — per frame pair (i, i+1), a part without correspondences evaluated at S_i or S_{i+1}.
-PHI_SCOPES = ("batch", "pair")
 
 
 @dataclass(frozen=True)

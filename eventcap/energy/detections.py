@@ -24,7 +24,8 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 
 from .errors import EnergyError, SolveFailed
-from .factor import Factor, Layout, Linearization, Window
+from .factor import Factor, Linearization
+from .settings import Joints3DConfig, Landmarks2DConfig
 from .ipopt import IpoptSettings, SolveStats, run_ipopt
 from .kernels import Buffered
 
@@ -237,28 +238,29 @@ class _MappedTerm:
 
 class Keypoints2D(Factor):
     """E_2D (paper Eq. 6) at every detection frame: λ_2D Σ_d Σ_l c_dl ρ(‖π(L_l(S_d)) - P2D_dl‖ / f) over the BODY_25
-    landmarks, ρ the Cauchy loss of scale ``robust_2d_px`` (0: squares). Exact Hessian (CasADi)."""
+    landmarks, ρ the Cauchy loss of scale ``robust_px`` (0: squares). Exact Hessian (CasADi)."""
 
-    name = "2d"
-    settings = ("robust_2d_px",)
+    name = "landmarks_2d"
+    Config = Landmarks2DConfig
+    observes_detections = True
 
-    def __init__(self, weight, config, template, camera, layout):
-        super().__init__(weight, config, template, camera, layout)
+    def __init__(self, config, template, camera, n):
+        super().__init__(config, template, camera, n)
         S = ca.SX.sym("S", _NP)
         kp, c2, _, _ = det_symbols("")
-        e = keypoint_expression(template, camera, S, kp, c2, float(config.robust_2d_px))
+        e = keypoint_expression(template, camera, S, kp, c2, float(config.robust_px))
         self._fn = _MappedTerm("E_2d", e, S, [kp, c2], self.n)
         self._data: list[np.ndarray] = []
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_det
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        return inputs.need("t_det_us", "E_2D")
 
-    def prepare(self, window: Window) -> None:
-        det = window.need("detections", "E_2D")
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
+        det = inputs.need("detections", "E_2D")
         if det.n != self.n:
             raise EnergyError(f"E_2D: expected {self.n} detection frames, got {det.n}")
-        self.t_us = np.asarray(window.need("t_det_us", "E_2D"), dtype=np.int64)
         dv = [det_values(det, d) for d in range(det.n)]
         self._data = [np.concatenate([v[k] for v in dv]) for k in (0, 1)]
 
@@ -270,30 +272,37 @@ class Keypoints2D(Factor):
 
 class Joints3D(Factor):
     """E_3D (paper Eq. 7) at every detection frame: λ_3D Σ_d Σ_l c_dl ‖J_l(S_d) - (P3D_dl + t'_d)‖², P3D the
-    root-relative 3D detections, t'_d an auxiliary translation per frame (this factor's own variables)."""
+    root-relative 3D detections, t'_d an auxiliary translation per frame (this factor's own variables, started at
+    the per-frame fits' t')."""
 
-    name = "3d"
+    name = "joints_3d"
+    Config = Joints3DConfig
     aux_size = 3
+    observes_detections = True
 
-    def __init__(self, weight, config, template, camera, layout):
-        super().__init__(weight, config, template, camera, layout)
+    def __init__(self, config, template, camera, n):
+        super().__init__(config, template, camera, n)
         S, tp = ca.SX.sym("S", _NP), ca.SX.sym("tp", 3)
         _, _, j3, c3 = det_symbols("")
         e = joint_expression(template, S, tp, j3, c3)
         self._fn = _MappedTerm("E_3d", e, ca.vertcat(S, tp), [j3, c3], self.n)
         self._data: list[np.ndarray] = []
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_det
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        return inputs.need("t_det_us", "E_3D")
 
-    def prepare(self, window: Window) -> None:
-        det = window.need("detections", "E_3D")
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
+        det = inputs.need("detections", "E_3D")
         if det.n != self.n:
             raise EnergyError(f"E_3D: expected {self.n} detection frames, got {det.n}")
-        self.t_us = np.asarray(window.need("t_det_us", "E_3D"), dtype=np.int64)
         dv = [det_values(det, d) for d in range(det.n)]
         self._data = [np.concatenate([v[k] for v in dv]) for k in (2, 3)]
+
+    def start_aux(self, inputs) -> np.ndarray | None:
+        t = inputs.evidence("fit_translation")
+        return None if t is None else np.nan_to_num(np.asarray(t, dtype=np.float64))
 
     def linearize(self, S, aux, order):
         z = np.concatenate([S, aux], axis=1)
@@ -305,6 +314,15 @@ class Joints3D(Factor):
         if H is not None:
             lin.diag, lin.cross, lin.aux_diag = w * H[:, :_NP, :_NP], w * H[:, :_NP, _NP:], w * H[:, _NP:, _NP:]
         return lin
+
+
+def fit_weights(terms) -> tuple[float, float, float]:
+    """(λ_2D, λ_3D, Cauchy scale px) of the per-frame fits from a solve's ``terms`` group: its E_2D's and E_3D's
+    settings (0 for a term it has not)."""
+    w2 = getattr(terms, Keypoints2D.name, None)
+    w3 = getattr(terms, Joints3D.name, None)
+    return (0.0 if w2 is None else float(w2.weight), 0.0 if w3 is None else float(w3.weight),
+            0.0 if w2 is None else float(w2.robust_px))
 
 
 class FrameFitter:

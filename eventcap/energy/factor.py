@@ -1,13 +1,24 @@
 """The factor interface: every term of the pose energy is one :class:`Factor`, every solve a sum of factors.
 
-As GTSAM's ``NoiseModelFactor`` or Ceres's ``CostFunction``: a factor is one named term with one weight. It reads
-its data for a window (:meth:`Factor.prepare`), and at its own sample times gives its value, its gradient and its
-Hessian (exact or Gauss-Newton) in pose space (:meth:`Factor.linearize`). A factor never knows how the poses are
-parametrised (a B-spline's control points, or one pose per frame): :class:`eventcap.energy.problem.FactorProblem`
-maps the poses at every factor's samples to the decision variables and sums the factors. A new term is one class
-(a subclass of :class:`Factor` registers itself by its ``name``) and one config entry, its weight
-``lambda_<name>`` in the config of a solve: every solve uses the registered factors whose weight its config
-states and is > 0 (:func:`eventcap.energy.terms.factors_from_config`).
+As GTSAM's ``NoiseModelFactor`` or Ceres's ``CostFunction``, a factor is one named term that owns its data and its
+settings, and a solve never knows what a term means:
+
+- its settings are one group of the solve's config, its :attr:`Factor.Config` (a dataclass whose ``weight`` is the
+  term's λ; e.g. ``stages.solve.terms.prior.weight``), stated once in the factor's module;
+- :meth:`Factor.samples` says at which times it sees the poses in a window (fixed when a problem is built);
+- :meth:`Factor.collect` takes what it needs from the window's inputs (:class:`eventcap.energy.window.WindowInputs`:
+  detections, tracks, events, and evidence the solve measured once for all factors), once per window;
+- :meth:`Factor.relinearize` redoes what depends on the current estimate (:class:`eventcap.energy.window.Estimate`:
+  the tracks' correspondences, the silhouette's closest events, a contact), at each ICP round;
+- :meth:`Factor.linearize` gives its weighted value, gradient and Hessian (exact or Gauss-Newton) in pose space at
+  its samples; :meth:`Factor.report` gives its counts for the solve's log and statistics.
+
+A factor never knows how the poses are parametrised (a B-spline's control points, or one pose per frame):
+:class:`eventcap.energy.problem.FactorProblem` maps the poses at every factor's samples to the decision variables
+and sums the factors. A new term is one module (a subclass of :class:`Factor` registers itself by its ``name``)
+and one config entry: a field ``<name>: <Factor>.Config`` in the ``terms`` group of each solve that should use it
+(:func:`eventcap.energy.terms.term_group`). A solve uses the factors of its ``terms`` whose weight is > 0, in the
+order they are listed there.
 
 Hessian layout of one factor with n samples (each sample a 33-vector of pose parameters, or its derivative):
 ``diag`` (n, 33, 33) the blocks of each sample with itself, ``upper`` (n-1, 33, 33) the blocks of sample k with
@@ -20,24 +31,24 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-
 from .errors import EnergyError
+from .settings import FactorConfig
+
+if TYPE_CHECKING:
+    from .window import Estimate, WindowInputs
 
 _NP = NUM_POSE_PARAMS
 
 #: Every registered factor class by its name (filled when a subclass is defined).
 FACTORS: dict[str, type[Factor]] = {}
-
-
 
 
 @dataclass
@@ -58,65 +69,35 @@ class Layout:
     """The sizes a problem is built for (fixed per built problem; each window's data must fit them).
 
     n_seg: knot intervals of a spline (0: poses per frame); n_frames: pose frames of a per-frame problem (0: a
-    spline); n_det: detection frames; n_cor: tracking frames with correspondences; n_sil: frames of E_sil; band:
-    how many units apart the Hessian's blocks reach (:func:`eventcap.energy.problem.coupling_band`)."""
+    spline); sizes: (factor name, number of samples) of every factor, in the solve's order; band: how many units
+    apart the Hessian's blocks reach (None: the parametrisation's default; :func:`eventcap.energy.problem.coupling_band`)."""
 
     n_seg: int = 0
     n_frames: int = 0
-    n_det: int = 0
-    n_cor: int = 0
-    n_sil: int = 0
-    band: int | None = None  #: how far the Hessian's blocks reach (None: the parametrisation's default)
+    sizes: tuple[tuple[str, int], ...] = ()
+    band: int | None = None
 
-
-@dataclass
-class Window:
-    """What a window (or batch) of a solve knows; each factor reads the fields it needs in :meth:`Factor.prepare`.
-
-    Fields a solve does not fill stay None; a factor that needs a missing one raises :class:`EnergyError`."""
-
-    t0_us: int  #: the span of the poses (the spline's, or the first and last frame's)
-    t1_us: int
-    t_det_us: np.ndarray | None = None  #: (D,) detection frames
-    detections: Any = None  #: FrameDetections at t_det_us
-    t_cor_us: np.ndarray | None = None  #: (n_cor,) frames of the correspondences
-    correspondences: Any = None  #: Correspondences between those frames (index into t_cor_us)
-    cor_weight: np.ndarray | None = None  #: (P,) a weight in [0, 1] per correspondence (None: 1)
-    cor_relative: bool = True  #: E_cor couples both frames of a correspondence (False: its source side held)
-    phi: np.ndarray | None = None  #: (n_cor - 1, 24) E_temp's indicator
-    t_sil_us: np.ndarray | None = None  #: (n_sil,) frames of E_sil
-    silhouette: Any = None  #: SilhouetteCorrespondences at t_sil_us
-    ref_joints: np.ndarray | None = None  #: (n_sil, 24, 3) E_stab's reference joints
-    knots_us: np.ndarray | None = None  #: (n_seg + 1,) knot times of a spline (integrals over its intervals)
-    stillness: np.ndarray | None = None  #: (n_seg, 24) in [0, 1]: each joint's stillness by the events per interval
-    estimate: Callable[[np.ndarray], np.ndarray] | None = None  #: the current estimate's poses (T, 33) at times (T,)
-    events: np.ndarray | None = None  #: the recording's events over the window
-    prior_gain: np.ndarray | None = None  #: (33,) the motion prior's gain per pose parameter
-    pull: tuple[np.ndarray, np.ndarray] | None = None  #: context pull (target, weight), each (D, 33)
-    floor_y: float | None = None  #: the floor's height (world y, m) over the capture (None: not known)
-    extra: dict = field(default_factory=dict)  #: data of factors not listed here, by their name
-
-    def need(self, name: str, who: str):
-        v = getattr(self, name)
-        if v is None:
-            raise EnergyError(f"{who}: the window has no {name} (this solve does not provide it)")
-        return v
+    def size(self, name: str) -> int:
+        return dict(self.sizes).get(name, 0)
 
 
 class Factor(ABC):
-    """One term of the pose energy (module doc). Subclasses set ``name`` (their weight is the config's
-    ``lambda_<name>``), implement :meth:`size`, :meth:`prepare` and :meth:`linearize`, and list the config keys
-    they read besides their weight in ``settings``."""
+    """One term of the pose energy (module doc). Subclasses set ``name`` and ``Config`` and implement
+    :meth:`samples`, :meth:`collect` and :meth:`linearize` (and :meth:`relinearize` when their data depend on the
+    estimate)."""
 
     name: ClassVar[str]
+    #: the factor's settings group (a dataclass of eventcap.params.param fields, ``weight`` first)
+    Config: ClassVar[type] = FactorConfig
     #: the derivative of the poses the factor sees at its samples (0: poses, 1: velocities, 2: accelerations ...)
     derivative: ClassVar[int] = 0
     #: auxiliary variables per sample that belong to this factor alone (E_3D's t': 3)
     aux_size: ClassVar[int] = 0
     #: whether the Hessian has blocks between neighbouring samples (k, k + 1)
     couples_neighbours: ClassVar[bool] = False
-    #: config keys (besides the weight) the factor reads in its constructor
-    settings: ClassVar[tuple[str, ...]] = ()
+    #: whether the factor observes the detections of single frames (the per-frame fits fit these factors; their
+    #: curvature at the fits is what a parameter's detections weigh, :func:`eventcap.energy.window.detection_curvature`)
+    observes_detections: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -127,23 +108,47 @@ class Factor(ABC):
                 raise TypeError(f"factor name {name!r} of {cls.__qualname__} is already {other.__qualname__}'s")
             FACTORS[name] = cls
 
-    def __init__(self, weight: float, config: Any, template: Template, camera: Camera, layout: Layout):
+    def __init__(self, config: Any, template: Template, camera: Camera, n: int):
+        weight = config.weight
         if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
-            raise EnergyError(f"lambda_{self.name}: expected a finite weight >= 0, got {weight!r}")
-        self.weight = float(weight)
-        self.template, self.camera, self.layout = template, camera, layout
-        self.n = int(self.size(layout))
+            raise EnergyError(f"terms.{self.name}.weight: expected a finite weight >= 0, got {weight!r}")
+        self.config, self.weight = config, float(weight)
+        self.template, self.camera = template, camera
+        self.n = int(n)
         self.t_us = np.zeros(self.n, dtype=np.int64)
 
-    @staticmethod
+    # ------------------------------------------------------------------ a window's data
+    @classmethod
     @abstractmethod
-    def size(layout: Layout) -> int:
-        """Number of samples of this factor in a problem of this layout (fixed when the problem is built)."""
+    def samples(cls, inputs: WindowInputs, config: Any) -> np.ndarray:
+        """The times (µs: int64, or float for quadrature points) at which this factor sees the poses in a window with
+        these inputs (their number fixes the size of a built problem; none: the factor sits out)."""
 
-    @abstractmethod
-    def prepare(self, window: Window) -> None:
-        """Take this factor's data from the window and set its sample times ``self.t_us`` (n,)."""
+    def collect(self, inputs: WindowInputs) -> None:
+        """Take this factor's data from the window's inputs (once per window) and set its sample times."""
+        t = np.asarray(self.samples(inputs, self.config), dtype=np.int64)
+        if t.shape != (self.n,):
+            raise EnergyError(f"terms.{self.name}: built for {self.n} samples, the window gives {t.size}")
+        self.t_us = t
 
+    def relinearize(self, estimate: Estimate) -> None:  # noqa: B027 (optional: most factors do not move)
+        """Redo what depends on the current estimate (correspondences, contacts, ...), at each ICP round."""
+
+    def association_change(self, estimate: Estimate) -> float | None:
+        """How far (px, RMS) re-associating this factor's data at ``estimate`` would move its residuals, or None for a
+        factor without an association (the solve ends its ICP rounds when every factor that has one settled)."""
+        return None
+
+    def start_aux(self, inputs: WindowInputs) -> np.ndarray | None:
+        """The start of this factor's auxiliary variables (n, aux_size) in a window (None: zeros)."""
+        return None
+
+    def start_penalty(self) -> tuple[int, np.ndarray] | None:
+        """What this factor asks of the solve's start, a penalised spline through the per-frame fits: (derivative
+        order, weight per pose parameter (33,)) of its roughness penalty, or None (the motion prior's)."""
+        return None
+
+    # ------------------------------------------------------------------ its energy
     @abstractmethod
     def linearize(self, S: np.ndarray, aux: np.ndarray | None, order: int) -> Linearization:
         """Weighted value (order 0), gradient (1) and Hessian blocks (2) at the poses S (n, 33) of the samples
@@ -156,10 +161,14 @@ class Factor(ABC):
         """The term itself (value / weight; 0 with weight 0): what solves report."""
         return self.value(S, aux) / self.weight if self.weight else 0.0
 
+    def report(self) -> dict[str, Any]:
+        """Counts and measures of this window's data for the solve's statistics (JSON-able; keys unique across
+        factors, e.g. ``n_correspondences``)."""
+        return {}
 
-def weight_key(name: str) -> str:
-    """The config key of a factor's weight."""
-    return f"lambda_{name}"
+    def describe(self) -> str | None:
+        """One line for the solve's log about this window's data (None: nothing worth saying)."""
+        return None
 
 
-__all__ = ["FACTORS", "Factor", "Layout", "Linearization", "Window", "weight_key"]
+__all__ = ["FACTORS", "Factor", "FactorConfig", "Layout", "Linearization"]

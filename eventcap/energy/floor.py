@@ -11,8 +11,8 @@ with contact measured from the data instead of learned:
   sole point (heels and toes of the template's landmarks) of each frame's per-frame fit: most of the time a foot
   is on the floor, and the median of many independent fits averages their few centimetres of noise;
 - **contact** (:func:`contact_weights`), per knot of the window's spline and sole point, in [0, 1]: the product of
-  how slowly the point moves in the current estimate (exp(-(v / v0)²), v0 = ``contact_speed_mps``), how near the
-  floor it is there (exp(-(max(0, y - h) / dh)²), dh = ``contact_height_m``) and how still the events show the foot
+  how slowly the point moves in the current estimate (exp(-(v / v0)²), v0 = ``contact.speed_mps``), how near the
+  floor it is there (exp(-(max(0, y - h) / dh)²), dh = ``contact.height_m``) and how still the events show the foot
   (the event-silence stillness of the ankle and foot joints, :mod:`.silence`; 1 when it is not measured);
 - :class:`FloorContact` (``floor``): λ_floor Σ_k Σ_s [c_ks (y_s(S_k) - h)² + max(0, h - y_s(S_k))²] at the knots:
   a sole point in contact is on the floor, and none is below it (metres²);
@@ -20,7 +20,7 @@ with contact measured from the data instead of learned:
   sole point in contact does not slide along the floor (its horizontal speed squared, integrated over the
   contact; m²/s).
 
-The contact weights are data of one solve (measured at its start), like E_cor's correspondences.
+The contact weights are associated with the estimate at each ICP round, like E_cor's correspondences.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from eventcap.body.kinematics import landmark_positions
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, NUM_POSE_PARAMS
 
 from .errors import EnergyError
-from .factor import Factor, Layout, Linearization, Window
+from .factor import Factor, Linearization
+from .settings import FloorConfig, SlideConfig
 
 _NP = NUM_POSE_PARAMS
 #: The sole points: heels and toes (BODY_25 landmarks of the template).
@@ -83,43 +84,61 @@ def knot_stillness(stillness: np.ndarray | None, n_knots: int) -> np.ndarray | N
     return np.minimum(np.vstack([st[:1], st]), np.vstack([st, st[-1:]]))
 
 
+def contact_at(poses, knots_us: np.ndarray, template, floor_y: float, stillness: np.ndarray | None,
+               config) -> np.ndarray:
+    """(K, 6) in [0, 1]: each sole point's contact at the K knots (:func:`contact_weights`) in the estimate
+    ``poses`` (a function of times), its speed from differences a quarter knot interval either side; stillness:
+    the joints' (n_seg, 24) per knot interval (None: not measured); config: speed_mps and height_m
+    (:class:`eventcap.energy.window.ContactConfig`)."""
+    knots = np.asarray(knots_us, dtype=np.int64)
+    dt_s = float(np.median(np.diff(knots))) * 1e-6 if knots.size > 1 else 1.0
+    h = max(1, int(dt_s * 1e6) // 4)
+    p = sole_points(poses(knots), template)
+    ta, tb = np.maximum(knots - h, knots[0]), np.minimum(knots + h, knots[-1])
+    v = (sole_points(poses(tb), template) - sole_points(poses(ta), template)) / ((tb - ta) * 1e-6)[:, None, None]
+    st = knot_stillness(stillness, knots.size)
+    return contact_weights(p, np.linalg.norm(v, axis=-1), floor_y, float(config.speed_mps), float(config.height_m),
+                           st)
+
+
 class _Contact(Factor):
-    """Shared by the floor terms: samples at the window's knots, contact weights from the estimate at its start."""
+    """Shared by the floor terms: samples at the window's knots, the estimate's contact weights (:func:`contact_at`,
+    computed once per estimate for both terms) at each round."""
 
-    settings = ("contact_speed_mps", "contact_height_m")
-
-    def __init__(self, weight, config, template, camera, layout):
-        super().__init__(weight, config, template, camera, layout)
-        self.speed_mps, self.height_m = float(config.contact_speed_mps), float(config.contact_height_m)
+    def __init__(self, config, template, camera, n):
+        super().__init__(config, template, camera, n)
         self.floor_y = 0.0
         self.contact = np.zeros((self.n, len(SOLE_LANDMARKS)))
         self.dt_s = 1.0
         self.active = False
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_seg + 1 if layout.n_seg else 0
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        knots = inputs.knots_us
+        return np.zeros(0, dtype=np.int64) if knots is None else knots
 
-    def prepare(self, window: Window) -> None:
-        knots = np.asarray(window.need("knots_us", f"the {self.name} term"), dtype=np.int64)
-        if knots.size != self.n:
-            raise EnergyError(f"the {self.name} term: expected {self.n} knots, got {knots.size}")
-        self.t_us = knots
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
+        knots = self.t_us
         self.dt_s = float(np.median(np.diff(knots))) * 1e-6 if knots.size > 1 else 1.0
         self.contact = np.zeros((self.n, len(SOLE_LANDMARKS)))
-        self.active = window.floor_y is not None
+        self.active = False
+        self._inputs = inputs
+
+    def relinearize(self, estimate) -> None:
+        floor_y = self._inputs.evidence("floor_y")
+        self.active = floor_y is not None
         if not self.active:  # no floor known: nothing to hold
+            self.contact = np.zeros((self.n, len(SOLE_LANDMARKS)))
             return
-        self.floor_y = float(window.floor_y)
-        est = window.need("estimate", f"the {self.name} term")
-        h = max(1, int(self.dt_s * 1e6) // 4)
-        p = sole_points(est(knots), self.template)
-        ta, tb = np.maximum(knots - h, knots[0]), np.minimum(knots + h, knots[-1])
-        v = (sole_points(est(tb), self.template) - sole_points(est(ta), self.template)) / ((tb - ta) * 1e-6)[:, None,
-                                                                                                              None]
-        st = knot_stillness(window.stillness, knots.size)
-        self.contact = contact_weights(p, np.linalg.norm(v, axis=-1), self.floor_y, self.speed_mps, self.height_m,
-                                       st)
+        self.floor_y = float(floor_y)
+        inputs, t = self._inputs, self.t_us
+        still = inputs.evidence("stillness")
+        self.contact = estimate.memo(("contact", t.tobytes()), lambda: contact_at(
+            estimate.poses, t, self.template, self.floor_y, None if still is None else still.stillness, inputs.contact))
+
+    def report(self) -> dict:
+        return {f"{self.name}_contact": float(self.contact.mean())} if self.active else {}
 
 
 def _zero(S, order) -> Linearization:
@@ -138,11 +157,12 @@ class FloorContact(_Contact):
     """λ_floor Σ_k Σ_s [c_ks (y_s - h)² + max(0, h - y_s)²] at the knots (module doc). Exact Hessian (CasADi)."""
 
     name = "floor"
+    Config = FloorConfig
 
-    def __init__(self, weight, config, template, camera, layout):
+    def __init__(self, config, template, camera, n):
         from .detections import _MappedTerm
 
-        super().__init__(weight, config, template, camera, layout)
+        super().__init__(config, template, camera, n)
         S, c, h = ca.SX.sym("S", _NP), ca.SX.sym("c", len(SOLE_LANDMARKS)), ca.SX.sym("h")
         y = _sole_expression(template, S)[:, 1]
         below = ca.fmax(h - y, 0)
@@ -162,12 +182,13 @@ class FootSlide(_Contact):
     """λ_slide Σ_k Σ_s c_ks c_(k+1)s ‖Δ_xz p_s‖² / Δt between neighbouring knots (module doc). Exact Hessian."""
 
     name = "slide"
+    Config = SlideConfig
     couples_neighbours = True
 
-    def __init__(self, weight, config, template, camera, layout):
+    def __init__(self, config, template, camera, n):
         from .detections import _MappedTerm
 
-        super().__init__(weight, config, template, camera, layout)
+        super().__init__(config, template, camera, n)
         S0, S1 = ca.SX.sym("S0", _NP), ca.SX.sym("S1", _NP)
         c, inv_dt = ca.SX.sym("c", len(SOLE_LANDMARKS)), ca.SX.sym("inv_dt")
         d = _sole_expression(template, S1) - _sole_expression(template, S0)
@@ -195,5 +216,5 @@ class FootSlide(_Contact):
         return lin
 
 
-__all__ = ["SOLE_LANDMARKS", "FloorContact", "FootSlide", "contact_weights", "floor_height", "knot_stillness",
-           "sole_points"]
+__all__ = ["SOLE_LANDMARKS", "FloorConfig", "FloorContact", "FootSlide", "SlideConfig", "contact_at", "contact_weights",
+           "floor_height", "knot_stillness", "sole_points"]

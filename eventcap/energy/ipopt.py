@@ -60,6 +60,11 @@ class IpoptSettings:
         if self.mumps_pivot_order not in range(8):
             raise ValueError(f"IpoptSettings.mumps_pivot_order: expected 0..7, got {self.mumps_pivot_order!r}")
 
+    @classmethod
+    def from_config(cls, config) -> IpoptSettings:
+        """The pinned settings with a solve's stated options (:class:`eventcap.energy.settings.IpoptConfig`)."""
+        return cls(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
+
     def options(self, warm: bool) -> dict:
         """nlpsol options; ``warm``: for the warm-started batch solves (else: the detection fits)."""
         opts = {

@@ -8,7 +8,7 @@
   parameter held near the smoothing spline g through its per-frame fits around the window, as much as those fits
   know more than the frame's own (w), gated by how still the events show the bones it turns.
 
-:func:`choose_prior_gains` chooses both factors' data from the per-frame fits around a window (no ground truth):
+:func:`context_smoothing` measures both factors' evidence from the per-frame fits around a window (no ground truth):
 each parameter's fits are samples of a smoothing-spline model y = f + noise, whose smoothing lam_p is chosen by
 REML or GCV (:mod:`eventcap.analysis.smoothing`): large where the fits vary no more than their noise (a limb at rest, an
 angle the detections cannot tell), small where the parameter moves. In the window's energy a parameter's detections
@@ -29,11 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from eventcap.body.skeleton import DOF_JOINT, NUM_POSE_PARAMS, PARENTS
 from eventcap.analysis.smoothing import MIN_KNOTS, GcvCurve, check_criterion
-
+from eventcap.body.segments import inertia_prior_gain
+from eventcap.body.skeleton import DOF_JOINT, NUM_POSE_PARAMS, PARENTS
 from .errors import EnergyError
-from .factor import Factor, Layout, Linearization, Window
+from .factor import Factor, Linearization
+from .settings import ContextConfig, PriorConfig, SmoothingConfig
 from .silence import Silence, knot_gauss_times
 from .spline import PRIOR_ORDERS
 
@@ -41,32 +42,63 @@ _NP = NUM_POSE_PARAMS
 
 
 class MotionPrior(Factor):
-    """λ_prior Σ_p g_p ∫ (S_p^(k))² dt (module doc); k from ``prior`` (acceleration | jerk), g the window's
-    ``prior_gain`` (1 when the window has none)."""
+    """λ_prior Σ_p g_p ∫ (S_p^(k))² dt (module doc); k from ``order`` (acceleration | jerk), g the inertia gain of
+    each parameter times the gain the fits around the window call for (:class:`ContextSmoothing`; 1 without)."""
 
     name = "prior"
-    settings = ("prior",)
+    Config = PriorConfig
 
-    def __init__(self, weight, config, template, camera, layout):
-        if config.prior not in PRIOR_ORDERS:
-            raise EnergyError(f"prior: expected one of {sorted(PRIOR_ORDERS)}, got {config.prior!r}")
-        self.derivative = PRIOR_ORDERS[config.prior]
-        super().__init__(weight, config, template, camera, layout)
+    def __init__(self, config, template, camera, n):
+        if config.order not in PRIOR_ORDERS:
+            raise EnergyError(f"terms.prior.order: expected one of {sorted(PRIOR_ORDERS)}, got {config.order!r}")
+        self.derivative = PRIOR_ORDERS[config.order]
+        super().__init__(config, template, camera, n)
         self.w = np.zeros((self.n, _NP))
+        self.gain: np.ndarray | None = None
+        self.n_context = 0
+        try:
+            self.base = None if config.inertia == 0 else inertia_prior_gain(
+                template.rest_joints, float(config.inertia), float(config.inertia_cap), float(config.inertia_floor))
+        except ValueError as exc:
+            raise EnergyError(f"terms.prior.inertia: {exc}") from exc
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return 3 * layout.n_seg
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        knots = inputs.knots_us
+        return np.zeros(0, dtype=np.int64) if knots is None else knot_gauss_times(knots)[0]
 
-    def prepare(self, window: Window) -> None:
-        t_q, _, w_q = knot_gauss_times(window.need("knots_us", "the motion prior"))
+    def collect(self, inputs) -> None:
+        t_q, _, w_q = knot_gauss_times(inputs.need("knots_us", "the motion prior"))
         if t_q.size != self.n:
             raise EnergyError(f"the motion prior: expected {self.n // 3} knot intervals, got {t_q.size // 3}")
-        gain = np.ones(_NP) if window.prior_gain is None else np.asarray(window.prior_gain, dtype=np.float64)
-        if gain.shape != (_NP,) or not np.all(np.isfinite(gain) & (gain > 0)):
-            raise EnergyError(f"the motion prior: expected a positive gain per pose parameter ({_NP},), got "
-                              f"{np.shape(window.prior_gain)}")
-        self.t_us, self.w = t_q, w_q[:, None] * gain[None, :]
+        gain, self.n_context = None, 0
+        gain_max = float(self.config.gain_max)
+        if self.weight > 0 and gain_max > 1:
+            ctx = inputs.evidence("smoothing")
+            if ctx is not None and ctx.lam is not None:
+                gain = np.clip(np.asarray(ctx.curvature) * ctx.lam / self.weight, 1.0, gain_max)
+                self.n_context = ctx.n_fits
+        if self.base is not None:
+            gain = self.base * (1.0 if gain is None else gain)
+        self.gain = gain
+        g = np.ones(_NP) if gain is None else np.asarray(gain, dtype=np.float64)
+        if g.shape != (_NP,) or not np.all(np.isfinite(g) & (g > 0)):
+            raise EnergyError(f"the motion prior: expected a positive gain per pose parameter ({_NP},), got {g.shape}")
+        self.t_us, self.w = t_q, w_q[:, None] * g[None, :]
+
+    def start_penalty(self) -> tuple[int, np.ndarray]:
+        return self.derivative, max(self.weight, 1e-12) * (1.0 if self.gain is None else self.gain)
+
+    def report(self) -> dict:
+        return {} if self.gain is None else {"prior_gain": [float(v) for v in self.gain]}
+
+    def describe(self) -> str | None:
+        if not self.n_context:
+            return None
+        g, top = self.gain, float(self.config.gain_max)
+        return (f"motion prior gains from {self.n_context} frames around the window: median "
+                f"{float(np.median(g)):.3g}, {int(np.sum(g >= top * (1 - 1e-9)))} of 33 parameters at the largest "
+                f"({top:g})")
 
     def linearize(self, S, aux, order):
         WS = self.w * S
@@ -81,26 +113,52 @@ class MotionPrior(Factor):
 
 
 class ContextPull(Factor):
-    """λ_context Σ_d Σ_p w_dp (S_p(t_d) - g_dp)² at the window's detection frames (module doc); (g, w) the window's
-    ``pull``."""
+    """λ_context Σ_d Σ_p w_dp (S_p(t_d) - g_dp)² at the window's detection frames (module doc): (g, w) from the
+    window's context evidence (:class:`ContextSmoothing`), w gated by the joints' stillness (:func:`still_gate`)."""
 
     name = "context"
+    Config = ContextConfig
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_det
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        t = inputs.t_det_us
+        return np.zeros(0, dtype=np.int64) if t is None else t
 
-    def prepare(self, window: Window) -> None:
-        self.t_us = np.asarray(window.need("t_det_us", "the context pull"), dtype=np.int64)
-        if window.pull is None:  # no context for this window: nothing to hold
-            self.target, self.w = np.zeros((self.n, _NP)), np.zeros((self.n, _NP))
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
+        self.target, self.w = np.zeros((self.n, _NP)), np.zeros((self.n, _NP))
+        self._inputs, self.frames = inputs, None
+        ctx = inputs.evidence("smoothing")
+        self._ctx = None if ctx is None or ctx.target is None else ctx  # none: nothing to hold
+
+    def relinearize(self, estimate) -> None:
+        if self._ctx is None:
             return
-        target, weight = (np.asarray(v, dtype=np.float64) for v in window.pull)
+        frames = self._ctx.frames
+        sil = self._inputs.evidence("stillness")
+        if sil is not None:  # a part the events see move is not held to the frames' smoother
+            frames = frames * still_gate(sil, self.t_us, float(self.config.gate_floor))
+        target = self._ctx.target
+        held = np.isfinite(target).all(axis=1)
+        self.set_pull(np.where(held[:, None], target, 0.0), self._ctx.curvature * np.where(held[:, None], frames, 0.0))
+        self.frames = frames
+
+    def set_pull(self, target: np.ndarray, weight: np.ndarray) -> None:
+        """The pull's target (n, 33) and weight (n, 33) (set from the context evidence at each round)."""
+        target, weight = (np.asarray(v, dtype=np.float64) for v in (target, weight))
         if (target.shape != (self.n, _NP) or weight.shape != target.shape or not np.all(np.isfinite(target))
                 or not np.all(np.isfinite(weight) & (weight >= 0))):
             raise EnergyError(f"the context pull: expected a target and weights >= 0 of shape ({self.n}, {_NP}), "
                               f"got {target.shape} and {weight.shape}")
         self.target, self.w = target, weight
+
+    def report(self) -> dict:
+        return {} if self.frames is None else {"context_pull_frames": [float(v) for v in self.frames.mean(0)]}
+
+    def describe(self) -> str | None:
+        if self.frames is None:
+            return None
+        return f"context pull: median {float(np.median(self.frames)):.2f} frames' worth per parameter and frame"
 
     def linearize(self, S, aux, order):
         R = S - self.target
@@ -115,47 +173,43 @@ class ContextPull(Factor):
         return lin
 
 
-# --------------------------------------------------------------------------------------------- their data
+# --------------------------------------------------------------------------------------------- their evidence
 @dataclass(frozen=True)
-class PriorGain:
-    """The motion prior's gain per pose parameter of one window and the context pull, from the fits around it."""
+class ContextSmoothing:
+    """What the per-frame fits around a window say of each pose parameter (a window's evidence, module doc): lam (33,)
+    each parameter's smoothing (s³; None: too few fits), curvature a_p (33,) of the detection terms at the window's
+    fits, n_fits, and at the window's detection frames the smoother's value, target (D, 33), and its weight in
+    frames, 1/h - 1 (D, 33)."""
 
-    gain: np.ndarray  #: (33,) in [1, gain_max]
-    lam: np.ndarray  #: (33,) smoothing parameter of each parameter's fits (s³; NaN: too few fits)
-    curvature: np.ndarray  #: (33,) the detection terms' curvature a_p at the window's fits
-    n_fits: int  #: fits in the context
-    pull: tuple[np.ndarray, np.ndarray] | None = None  #: the context pull's (target, frames' worth 1/h - 1), each
-    #: (D, 33); its weight is curvature · frames' worth (None: off)
+    lam: np.ndarray | None
+    curvature: np.ndarray | None
+    n_fits: int
+    target: np.ndarray | None = None
+    frames: np.ndarray | None = None
 
 
-def choose_prior_gains(t_ctx_us: np.ndarray, fits: np.ndarray, curvature: Callable[[], np.ndarray],
-                       lam_prior: float, gain_max: float, criterion: str, t_det_us: np.ndarray | None = None,
-                       window_fits: np.ndarray | None = None,
-                       unwrap: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> PriorGain:
-    """The gains (and, with t_det_us, the context pull) from the per-frame fits (K, 33) at times t_ctx_us (K,)
-    around a window (module doc). curvature(): the detection terms' curvature a_p (33,) at the window's fits
-    (called only when needed); window_fits (D, 33): the fits at the window's frames t_det_us, the pull's target
-    where the smoother has no value; unwrap(S, ref): the root angles of S moved to ref's branch."""
+def context_smoothing(t_ctx_us: np.ndarray, fits: np.ndarray, curvature: Callable[[], np.ndarray], criterion: str,
+                      t_det_us: np.ndarray, window_fits: np.ndarray,
+                      unwrap: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> ContextSmoothing:
+    """The context evidence of a window from the per-frame fits (K, 33) at times t_ctx_us (K,) around it (module
+    doc). curvature(): the detection terms' curvature a_p (33,) at the window's fits (called only with enough fits);
+    window_fits (D, 33): the fits at the window's frames t_det_us, the target where the smoother has no value;
+    unwrap(S, ref): the root angles of S moved to ref's branch."""
     K = len(t_ctx_us)
-    want_pull = t_det_us is not None
-    gains_on = lam_prior > 0 and gain_max > 1
-    if K < MIN_KNOTS or not (gains_on or want_pull):
-        return PriorGain(np.ones(_NP), np.full(_NP, np.nan), np.full(_NP, np.nan), K)
+    if K < MIN_KNOTS:
+        return ContextSmoothing(None, None, K)
+    check_criterion(criterion)
     t = np.asarray(t_ctx_us, dtype=np.int64)
     curve = GcvCurve((t - t[0]) * 1e-6)
     a = curvature()
-    gain, lam = gains_from_fits(t, fits, a, lam_prior if gains_on else 1.0, gain_max if gains_on else 1.0,
-                                criterion, curve)
-    pull = None
-    if want_pull:
-        g, h = smoothed_at(t, fits, lam, np.asarray(t_det_us, dtype=np.int64), curve)
-        frames = np.zeros_like(g)
-        for d in np.flatnonzero(np.isfinite(h[:, 0])):
-            if unwrap is not None:
-                g[d] = unwrap(g[d], window_fits[d])
-            frames[d] = np.maximum(1.0 / h[d] - 1.0, 0.0)
-        pull = (np.where(np.isfinite(g), g, window_fits), frames)
-    return PriorGain(gain, lam, a, K, pull)
+    lam = curve.choose_each(np.asarray(fits, dtype=np.float64), criterion)
+    g, h = smoothed_at(t, fits, lam, np.asarray(t_det_us, dtype=np.int64), curve)
+    frames = np.zeros_like(g)
+    for d in np.flatnonzero(np.isfinite(h[:, 0])):
+        if unwrap is not None:
+            g[d] = unwrap(g[d], window_fits[d])
+        frames[d] = np.maximum(1.0 / h[d] - 1.0, 0.0)
+    return ContextSmoothing(lam, a, K, np.where(np.isfinite(g), g, window_fits), frames)
 
 
 def _gating_joints() -> list[np.ndarray]:
@@ -211,5 +265,7 @@ def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, l
     return np.clip(np.asarray(curvature) * lam / lam_prior, 1.0, float(gain_max)), lam
 
 
-__all__ = ["ContextPull", "MotionPrior", "PriorGain", "choose_prior_gains", "gains_from_fits", "smoothed_at",
-           "still_gate"]
+
+
+__all__ = ["ContextConfig", "ContextPull", "ContextSmoothing", "MotionPrior", "PriorConfig", "SmoothingConfig",
+           "context_smoothing", "gains_from_fits", "smoothed_at", "still_gate"]

@@ -14,8 +14,9 @@ plus the auxiliary variables. λ_damp ‖x - x_ref‖² (not a term of the pose 
 variable towards the solve's start, as Levenberg-Marquardt damps) keeps directions nothing observes from drifting.
 
 Built once per (template, camera, layout, factors, settings): IPOPT sees the sum through numpy callbacks (value,
-gradient, exact Hessian in the declared block-banded sparsity), and each window's data are handed to the factors
-(:meth:`FactorProblem.set_window`) before its solve.
+gradient, exact Hessian in the declared block-banded sparsity). The factors own each window's data (they collect
+it, and relinearise at each ICP round: :mod:`.factor`); the problem only sets the span of the poses and the bases
+at the factors' samples (:meth:`FactorProblem.set_window`) and the proximal term's reference.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 from eventcap.body.skeleton import NUM_POSE_PARAMS
 
 from .errors import EnergyError
-from .factor import Factor, Window
+from .factor import Factor
 from .ipopt import IpoptSettings, NumpyCallback, SolveStats, checked_bounds, run_ipopt
 from .spline import UniformCubicBSpline
 
@@ -126,7 +127,7 @@ class FactorProblem:
     tells what a window needs; a window whose factors reach further is refused)."""
 
     def __init__(self, poses: SplinePoses | FramePoses, factors: Sequence[Factor], settings: IpoptSettings,
-                 lower=None, upper=None, damp: float = 0.0, damp_aux: bool = True, name: str = "factors",
+                 lower=None, upper=None, *, damp: float, damp_aux: bool = True, name: str = "factors",
                  band: int | None = None):
         t0 = time.perf_counter()
         self.poses, self.factors, self.settings = poses, list(factors), settings
@@ -201,16 +202,13 @@ class FactorProblem:
         self.solver = ca.nlpsol(self.name, "ipopt", {"x": X, "p": P, "f": cb_f(X)}, opts)
 
     # ------------------------------------------------------------------ data of one window
-    def set_window(self, span, window: Window, x_ref: np.ndarray) -> None:
-        """Hand one window's data to every factor (:meth:`Factor.prepare`), set the span of the poses (a
-        UniformCubicBSpline, or the frame times) and the proximal term's reference x_ref (nx,)."""
+    def set_window(self, span, x_ref: np.ndarray | None = None) -> None:
+        """Set the span of the poses (a UniformCubicBSpline, or the frame times) for a window whose data every
+        factor has collected (:meth:`Factor.collect`, which fixes their sample times): the bases at their samples.
+        x_ref: the proximal term's reference (:meth:`set_reference`)."""
         self.poses.set_span(span)
-        x_ref = np.asarray(x_ref, dtype=np.float64)
-        if x_ref.shape != (self.nx,):
-            raise EnergyError(f"{self.name}: expected x_ref of shape ({self.nx},), got {x_ref.shape}")
         bases = []
         for f in self.factors:
-            f.prepare(window)
             B = self.poses.basis(f.t_us, f.derivative)
             if B.shape[0] != f.n:
                 raise EnergyError(f"{self.name}: factor {f.name} has {B.shape[0]} sample times, built for {f.n}")
@@ -224,8 +222,51 @@ class FactorProblem:
                                       f"was built for {self.band}")
             bases.append(B)
         self._bases = bases
+        self._cache = {}
+        if x_ref is not None:
+            self.set_reference(x_ref)
+
+    def set_reference(self, x_ref: np.ndarray) -> None:
+        """The proximal term's reference x_ref (nx,): each solve's start. Also call it after the factors
+        relinearized (:meth:`Factor.relinearize`): evaluations cached before are forgotten."""
+        x_ref = np.asarray(x_ref, dtype=np.float64)
+        if x_ref.shape != (self.nx,):
+            raise EnergyError(f"{self.name}: expected x_ref of shape ({self.nx},), got {x_ref.shape}")
         self.x_ref = x_ref
         self._cache = {}
+
+    def start(self, units: np.ndarray, inputs) -> np.ndarray:
+        """The decision vector of the pose units (n_units, 33) with every factor's auxiliary variables at its start
+        (:meth:`Factor.start_aux` for these window inputs; zeros when it has none)."""
+        x = np.zeros(self.nx)
+        x[:self.nU] = np.asarray(units, dtype=np.float64).ravel()
+        for f, sl in zip(self.factors, self.aux_slices):
+            if sl is not None:
+                a = f.start_aux(inputs)
+                if a is not None:
+                    x[sl] = np.asarray(a, dtype=np.float64).ravel()
+        return x
+
+    def aux(self, x) -> dict[str, np.ndarray]:
+        """Each factor's auxiliary variables (n, aux_size) at x, by name (factors without any left out)."""
+        _, aux = self.split(np.asarray(x, dtype=np.float64))
+        return {f.name: a.copy() for f, a in zip(self.factors, aux) if a is not None}
+
+    def with_aux(self, x: np.ndarray, aux: dict[str, np.ndarray]) -> np.ndarray:
+        """x with the auxiliary variables of the named factors replaced (rows with a NaN kept as they are)."""
+        x = np.array(x, dtype=np.float64)
+        for f, sl in zip(self.factors, self.aux_slices):
+            if sl is None or f.name not in aux:
+                continue
+            a = np.asarray(aux[f.name], dtype=np.float64)
+            if a.shape != (f.n, f.aux_size):
+                raise EnergyError(f"{self.name}: factor {f.name}'s auxiliary variables: expected {(f.n, f.aux_size)}, "
+                                  f"got {a.shape}")
+            cur = x[sl].reshape(f.n, f.aux_size)
+            keep = np.isfinite(a).all(axis=1)
+            cur[keep] = a[keep]
+            x[sl] = cur.ravel()
+        return x
 
     # ------------------------------------------------------------------ evaluation
     def split(self, x: np.ndarray) -> tuple[np.ndarray, list[np.ndarray | None]]:
@@ -315,7 +356,7 @@ class FactorProblem:
         return H
 
     def terms(self, x) -> dict[str, float]:
-        """Each factor's unweighted value at x (what solves report)."""
+        """Each factor's unweighted value at x (what solves report), by name."""
         U, aux = self.split(np.asarray(x, dtype=np.float64))
         return {f.name: f.unweighted(B @ U, a) for f, B, a in zip(self.factors, self._bases, aux)}
 

@@ -39,11 +39,11 @@ from eventcap.camera import Camera
 from .boundary import NORMAL_SIGMA_PX, boundary_samples
 from .errors import EnergyError
 from .event_search import EventIndex
-from .factor import Factor, Layout, Linearization, Window
+from .factor import Factor, Linearization
+from .settings import LOSSES, SilConfig, StabConfig
 from .kernels import premultiplied_weights, shared_kernels
 
 _NP = NUM_POSE_PARAMS
-LOSSES = ("l2", "huber")
 
 
 @dataclass(frozen=True)
@@ -79,39 +79,81 @@ def robust_loss(r: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.
 
 
 # --------------------------------------------------------------------------------------------- the factors
+def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
+    """E_sil's frames of a batch: its tracking frames t_us every ``step_ms`` (rounded to frames), its first and last
+    included."""
+    t_us = np.asarray(t_us, dtype=np.int64)
+    if t_us.size < 2:
+        return t_us
+    k = max(1, int(round(step_ms * 1000 / max(1, int(np.median(np.diff(t_us)))))))
+    return np.unique(np.append(t_us[::k], t_us[-1]))
+
+
 class SilhouetteToEvents(Factor):
-    """E_sil (Eq. 11): λ_sil Σ_b ρ(n_bᵀ(π(v_b(S_f)) - u_b) / f) at the window's silhouette frames (module doc), ρ the
-    loss ``sil_loss`` (l2 | huber, threshold ``sil_huber_px``); exact block-diagonal Hessian."""
+    """E_sil (Eq. 11): λ_sil Σ_b ρ(n_bᵀ(π(v_b(S_f)) - u_b) / f) at its frames (module doc), ρ the loss ``loss``
+    (l2 | huber, threshold ``huber_px``); the boundary's closest events are searched again at each ICP round;
+    exact block-diagonal Hessian."""
 
     name = "sil"
-    settings = ("sil_loss", "sil_huber_px")
+    Config = SilConfig
 
-    def __init__(self, weight, config, template, camera: Camera, layout: Layout):
+    def __init__(self, config, template, camera: Camera, n: int):
         from ._sil_kernels import camera_params
 
-        super().__init__(weight, config, template, camera, layout)
-        self.loss, self.huber_px = str(config.sil_loss), float(config.sil_huber_px)
+        super().__init__(config, template, camera, n)
+        self.loss, self.huber_px = str(config.loss), float(config.huber_px)
         if self.loss not in LOSSES:
-            raise EnergyError(f"sil_loss: expected one of {LOSSES}, got {self.loss!r}")
+            raise EnergyError(f"terms.sil.loss: expected one of {LOSSES}, got {self.loss!r}")
         if self.loss == "huber" and not self.huber_px > 0:
-            raise EnergyError(f"sil_huber_px: the Huber loss needs a threshold > 0 pixels, got {self.huber_px!r}")
+            raise EnergyError(f"terms.sil.huber_px: the Huber loss needs a threshold > 0 pixels, got "
+                              f"{self.huber_px!r}")
         self.kernels = shared_kernels(template.rest_joints, self.n)
         self.cam = camera_params(camera)
         self.scale = 1.0 / math.sqrt(camera.fx * camera.fy)
         self.delta = self.huber_px * self.scale
+        self.index: EventIndex | None = None
+        self.n_boundary, self.seconds = 0, {}
         self.set_correspondences(SilhouetteCorrespondences.empty())
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_sil
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        parts = [sil_frames(t, float(config.step_ms)) for t in inputs.track_times_us]
+        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
 
-    def prepare(self, window: Window) -> None:
-        t = np.asarray(window.need("t_sil_us", "E_sil"), dtype=np.int64)
-        if t.shape != (self.n,):
-            raise EnergyError(f"E_sil: expected {self.n} silhouette frames, got {t.shape}")
-        self.t_us = t
-        self.set_correspondences(SilhouetteCorrespondences.empty() if window.silhouette is None
-                                 else window.silhouette)
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
+        self.set_correspondences(SilhouetteCorrespondences.empty())
+        self.index, self.n_boundary, self.seconds = None, 0, {}
+        if inputs.events is None:
+            return
+        c, cam = self.config, self.camera
+        window_us = (int(inputs.t1_us - inputs.t0_us) if c.window_ms is None
+                     else int(round(float(c.window_ms) * 1000)))
+        t0 = time.perf_counter()
+        try:
+            self.index = EventIndex(inputs.events, cam.width, cam.height, self.t_us, window_us, int(c.denoise_us))
+        except ValueError as exc:
+            raise EnergyError(f"E_sil: the events: {exc}") from exc
+        self.seconds = {"index": time.perf_counter() - t0}
+
+    def relinearize(self, estimate) -> None:
+        if self.index is None or not estimate.associate:
+            return
+        c = self.config
+        corr, self.n_boundary, secs = find_silhouette_correspondences(
+            self.template, self.camera, estimate.poses(self.t_us), self.index, float(c.dist), int(c.patch_px))
+        self.seconds = {**self.seconds, **{k: self.seconds.get(k, 0.0) + v for k, v in secs.items()}}
+        self.set_correspondences(corr)
+
+    def report(self) -> dict:
+        out = {"n_silhouette": int(self.corr.n), "n_boundary": int(self.n_boundary)}
+        if self.index is not None:
+            out.update(events_searched=int(self.index.n_events), events_dropped=int(self.index.n_unsupported))
+        return out
+
+    def describe(self) -> str | None:
+        return (f"E_sil at {self.n} frames: {self.corr.n} of {self.n_boundary} silhouette boundary pixels matched to "
+                f"an event (last round)")
 
     def set_correspondences(self, corr: SilhouetteCorrespondences) -> None:
         from ._sil_kernels import sparse_premultiplied
@@ -208,24 +250,26 @@ class SilhouetteToEvents(Factor):
 
 
 class JointStability(Factor):
-    """E_stab (Eq. 10): λ_stab Σ_f Σ_l ‖J_l(S_f) - J_l(Ŝ_f)‖², the 24 joints held near reference joints (the
-    refinement: where the batch solve put them), at the window's silhouette frames."""
+    """E_stab (Eq. 10): λ_stab Σ_f Σ_l ‖J_l(S_f) - J_l(Ŝ_f)‖², the 24 joints held near the window's reference joints
+    (the refinement's: where the batch solve put them), at the reference's times."""
 
     name = "stab"
+    Config = StabConfig
 
-    def __init__(self, weight, config, template, camera, layout):
-        super().__init__(weight, config, template, camera, layout)
+    def __init__(self, config, template, camera, n):
+        super().__init__(config, template, camera, n)
         self.kernels = shared_kernels(template.rest_joints, self.n)
         self.WXJ = premultiplied_weights(template.rest_joints, np.eye(NUM_JOINTS))  # (24, 96): J_l = WXJ_l · G
         self.ref = np.zeros((self.n, NUM_JOINTS, 3))
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return layout.n_sil
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        t = inputs.reference_us
+        return np.zeros(0, dtype=np.int64) if t is None else t
 
-    def prepare(self, window: Window) -> None:
-        self.t_us = np.asarray(window.need("t_sil_us", "E_stab"), dtype=np.int64)
-        ref = np.asarray(window.need("ref_joints", "E_stab"), dtype=np.float64)
+    def collect(self, inputs) -> None:
+        super().collect(inputs)
+        ref = np.asarray(inputs.need("reference_joints", "E_stab"), dtype=np.float64)
         if ref.shape != (self.n, NUM_JOINTS, 3):
             raise EnergyError(f"E_stab: reference joints: expected shape ({self.n}, 24, 3), got {ref.shape}")
         self.ref = ref
@@ -268,5 +312,6 @@ def find_silhouette_correspondences(template: Template, camera: Camera, poses: n
     return corr, samples.n, {"boundary": t1 - t0, "search": time.perf_counter() - t1}
 
 
-__all__ = ["LOSSES", "JointStability", "SilhouetteCorrespondences", "SilhouetteToEvents",
+__all__ = ["LOSSES", "JointStability", "SilConfig", "SilhouetteCorrespondences", "SilhouetteToEvents", "StabConfig",
+           "sil_frames",
            "find_silhouette_correspondences", "robust_loss"]

@@ -49,7 +49,8 @@ from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS, PARENTS
 
 from .errors import EnergyError
-from .factor import Factor, Layout, Linearization, Window
+from .factor import Factor, Linearization
+from .settings import StillConfig, StillnessConfig
 from .kernels import Buffered
 from .spline import GAUSS3
 
@@ -149,6 +150,20 @@ def measure_silence(events: np.ndarray, edges_us: np.ndarray, joints_px: np.ndar
     return Silence(edges_us=edges, activity_hz=activity, background_hz=background, stillness=still)
 
 
+def measure_stillness(poses, knots_us: np.ndarray, template, camera, events: np.ndarray,
+                      config: StillnessConfig) -> Silence:
+    """The joints' stillness per knot interval of a window (:func:`measure_silence`), the bones projected at each
+    interval's middle from ``poses`` (a function of times: the solve's start)."""
+    edges = np.asarray(knots_us, dtype=np.int64)
+    mids = (edges[:-1] + edges[1:]) // 2
+    knot_ms = float(np.median(np.diff(edges))) / 1000.0
+    joints = joint_positions(poses(mids), template.rest_joints)
+    return measure_silence(events, edges, camera.project(joints), camera.height, camera.width,
+                           radius_px=int(config.radius_px), rate_hz=float(config.rate_hz),
+                           hold_bins=int(round(config.hold_ms / knot_ms)),
+                           sweep_bins=int(round(config.sweep_ms / knot_ms)))
+
+
 def knot_gauss_times(knots_us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The 3 Gauss-Legendre points of every knot interval: (times µs (3·K,) float, interval of each (3·K,),
     quadrature weight in seconds of each (3·K,)); exact for polynomials of degree <= 5 over each interval."""
@@ -162,41 +177,49 @@ def knot_gauss_times(knots_us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 class EventSilence(Factor):
     """E_still (module doc): λ_still Σ_k Σ_j s_j(k) ∫_k ‖J_j(S_ref(t)) S'(t)‖² dt, the image velocity (px/s) of every
-    joint the events call still (stillness s of the window, per knot interval and joint), with the Jacobian J_j of
-    joint j's pixel held at the estimate the solve starts from (Gauss-Newton, a fixed quadratic form in the
+    joint the events call still (the window's stillness evidence, per knot interval and joint), with the Jacobian J_j
+    of joint j's pixel held at the current estimate through a solve (Gauss-Newton, a fixed quadratic form in the
     velocities). Samples: the 3 Gauss points of every knot interval (exact for the cubic spline's velocities)."""
 
     name = "still"
+    Config = StillConfig
     derivative = 1
 
-    def __init__(self, weight, config, template, camera, layout):
-        super().__init__(weight, config, template, camera, layout)
+    def __init__(self, config, template, camera, n):
+        super().__init__(config, template, camera, n)
         S = ca.SX.sym("S", NUM_POSE_PARAMS)
         px = camera.project_sym(joint_positions(S, template.rest_joints).T)  # (2, 24)
         jac = ca.densify(ca.jacobian(ca.reshape(px, 2 * NUM_JOINTS, 1), S))
         self._joint_px_jac = Buffered(ca.Function("joint_px_jac", [S], [jac]).map(self.n))
         self.M = np.zeros((self.n, NUM_POSE_PARAMS, NUM_POSE_PARAMS))
+        self.stillness = None
 
-    @staticmethod
-    def size(layout: Layout) -> int:
-        return 3 * layout.n_seg
+    @classmethod
+    def samples(cls, inputs, config) -> np.ndarray:
+        knots = inputs.knots_us
+        return np.zeros(0, dtype=np.int64) if knots is None else knot_gauss_times(knots)[0]
 
-    def prepare(self, window: Window) -> None:
-        knots = np.asarray(window.need("knots_us", "E_still"), dtype=np.int64)
-        t_q, seg, w_q = knot_gauss_times(knots)
-        if window.stillness is None:  # no events for this window: nothing is known still
-            self.t_us, self.M = t_q, np.zeros((self.n, NUM_POSE_PARAMS, NUM_POSE_PARAMS))
+    def collect(self, inputs) -> None:
+        t_q, self._seg, self._w_q = knot_gauss_times(inputs.need("knots_us", "E_still"))
+        if t_q.size != self.n:
+            raise EnergyError(f"E_still: built for {self.n // 3} knot intervals, the window has {t_q.size // 3}")
+        self.t_us = t_q
+        self.M = np.zeros((self.n, NUM_POSE_PARAMS, NUM_POSE_PARAMS))
+        self._inputs, self.stillness = inputs, None
+
+    def relinearize(self, estimate) -> None:
+        sil = self._inputs.evidence("stillness")
+        if sil is None:  # no events for this window: nothing is known still
+            self.M = np.zeros((self.n, NUM_POSE_PARAMS, NUM_POSE_PARAMS))
             return
-        still = np.asarray(window.stillness, dtype=np.float64)
-        if t_q.size != self.n or still.shape != (self.n // 3, NUM_JOINTS):
-            raise EnergyError(f"E_still: expected stillness of shape ({self.n // 3}, {NUM_JOINTS}) over as many knot "
-                              f"intervals, got {still.shape} over {knots.size - 1}")
+        still = np.asarray(sil.stillness, dtype=np.float64)
+        if still.shape != (self.n // 3, NUM_JOINTS):
+            raise EnergyError(f"E_still: expected stillness of shape ({self.n // 3}, {NUM_JOINTS}), got {still.shape}")
         if not np.all(np.isfinite(still) & (still >= 0)):
             raise EnergyError("E_still: stillness must be finite and >= 0")
-        estimate = window.need("estimate", "E_still")
-        self.t_us = t_q
-        Jq = self._joint_px_jac(estimate(t_q))[0].reshape(self.n, NUM_POSE_PARAMS, NUM_JOINTS, 2)
-        wjq = still[seg] * w_q[:, None]  # (Q, 24)
+        self.stillness = still
+        Jq = self._joint_px_jac(estimate.poses(self.t_us))[0].reshape(self.n, NUM_POSE_PARAMS, NUM_JOINTS, 2)
+        wjq = still[self._seg] * self._w_q[:, None]  # (Q, 24)
         self.M = np.einsum("qajx,qj,qbjx->qab", Jq, wjq, Jq)
 
     def linearize(self, S, aux, order):
@@ -209,4 +232,5 @@ class EventSilence(Factor):
         return lin
 
 
-__all__ = ["EventSilence", "Silence", "knot_gauss_times", "measure_silence"]
+__all__ = ["EventSilence", "Silence", "StillConfig", "StillnessConfig", "knot_gauss_times", "measure_silence",
+           "measure_stillness"]

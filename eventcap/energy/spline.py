@@ -21,8 +21,8 @@ import math
 
 import numpy as np
 
-#: Derivative orders the motion prior supports.
-PRIOR_ORDERS = {"acceleration": 2, "jerk": 3}
+from .settings import PRIOR_ORDERS  # noqa: F401 (the orders the motion prior supports)
+
 #: 3-point Gauss-Legendre rule on [0, 1] (nodes, weights): exact for polynomials up to degree 5.
 GAUSS3 = (0.5 + 0.5 * np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)]), np.array([5.0, 8.0, 5.0]) / 18.0)
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Defaults of the reconstruction, chosen by ``benchmarks/accuracy/bench_events_only.py`` (docs/results.md, the stage spec).
+#: Defaults of the reconstruction, chosen by ``benchmarks/accuracy/bench_events_only.py`` (docs/results/events-only.md, docs/results/settings.md).
 DEFAULT_CUTOFF_RAD_S = 3.0
 DEFAULT_CONTRAST = 0.2
 DEFAULT_BASE_INTENSITY = 0.5

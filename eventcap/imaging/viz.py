@@ -46,9 +46,11 @@ def draw_skeleton(img: np.ndarray, joints_px: np.ndarray, landmarks_px: np.ndarr
     return out
 
 
-def image_times(rec, rate_hz: float = 25.0) -> tuple[np.ndarray, str]:
+def image_times(rec, rate_hz: float = 25.0, frame_index: int | None = None) -> tuple[np.ndarray, str]:
     """The times a preview shows: the intensity frames, else those of the ground truth's sharp images (an event-only
-    synthetic capture), else every 1/rate_hz from the first event; and what they are."""
+    synthetic capture), else every 1/rate_hz from the first event; and what they are. For the last kind, only the
+    time of image ``frame_index`` (clipped to the recording) is returned when it is given: memory does not grow
+    with the recording's time span."""
     if rec.frames is not None and rec.frames.t_us.size:
         return np.asarray(rec.frames.t_us, np.int64), "frame"
     gt = rec.ground_truth
@@ -59,8 +61,11 @@ def image_times(rec, rate_hz: float = 25.0) -> tuple[np.ndarray, str]:
         raise ValueError(f"recording {rec.name or rec.source or '(unnamed)'!r} has neither intensity frames nor "
                          f"events: nothing to show")
     period = 1e6 / rate_hz
-    return int(t[0]) + np.round(np.arange(int((int(t[-1]) - int(t[0])) // period) + 1) * period).astype(np.int64), \
-        "image"
+    count = int((int(t[-1]) - int(t[0])) // period) + 1
+    if frame_index is not None:
+        k = int(np.clip(frame_index, 0, count - 1))
+        return np.array([int(t[0]) + int(round(k * period))], np.int64), "image"
+    return int(t[0]) + np.round(np.arange(count) * period).astype(np.int64), "image"
 
 
 #: Pixels of one enlarged panel beyond which a picture is refused (a 4096 x 4096 panel; six of them are ~300 MB).
@@ -80,15 +85,29 @@ def check_picture_size(width: int, height: int, scale: int) -> None:
 
 def most_active_time(events: np.ndarray, window_us: int = 20_000) -> tuple[int, int]:
     """The centre (µs) of the ``window_us`` window holding the most events, and that count: the recording's most
-    active moment (windows start every ``window_us / 8``). ``(0, 0)`` without events."""
+    active moment (windows start every ``window_us / 8`` from the first event; the first of equal ones wins).
+    ``(0, 0)`` without events. Memory and time grow with the events, not with the time they span: a best window
+    can always be moved forward to start in the grid cell of its first event, so only those cells are counted,
+    then the earliest start with the same count is looked for just before the best ones."""
     t = events["t"]
     if t.size == 0:
         return 0, 0
-    step = max(1, int(window_us) // 8)
-    starts = np.arange(int(t[0]), max(int(t[-1]) - int(window_us), int(t[0])) + step, step, dtype=np.int64)
-    counts = np.searchsorted(t, starts + int(window_us)) - np.searchsorted(t, starts)
-    k = int(np.argmax(counts))
-    return int(starts[k]) + int(window_us) // 2, int(counts[k])
+    t0, window = int(t[0]), int(window_us)
+    step = max(1, window // 8)
+    last_k = (max(int(t[-1]) - window, t0) - t0 + step - 1) // step  # starts t0 + k*step < max(t[-1] - w, t0) + step
+
+    def counts(ks: np.ndarray) -> np.ndarray:
+        starts = t0 + ks * step
+        return np.searchsorted(t, starts + window) - np.searchsorted(t, starts)
+
+    own = np.unique(np.minimum((t.astype(np.int64) - t0) // step, last_k))
+    c = counts(own)
+    best = int(c.max())
+    reach = -(-window // step)  # an earlier start holds the same events only within this many steps
+    near = np.unique((own[c == best][:, None] - np.arange(reach + 1)[None, :]).ravel())
+    near = near[near >= 0]
+    k = int(near[np.argmax(counts(near) == best)])
+    return t0 + k * step + window // 2, best
 
 
 def describe_recording(rec) -> str:
@@ -120,7 +139,7 @@ def recording_overview(rec, frame_index: int | None = 1, scale: int = 2, window_
     from eventcap.imaging.reconstruct import to_intensity, to_log_images
 
     check_picture_size(rec.width, rec.height, scale)
-    times, what = image_times(rec, rate_hz)
+    times, what = image_times(rec, rate_hz, None if t_us is not None else (frame_index or 0))
     has_frames = what == "frame"
     if reconstruct is None:
         reconstruct = not has_frames

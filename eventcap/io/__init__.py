@@ -27,25 +27,31 @@ float32 in [0, 1] with exposure-centre times on the same clock.
 
 Bad input either loads with every repair listed in ``RawRecording.repairs`` (and logged as a warning on the
 ``eventcap.io`` logger) or raises :class:`RecordingError` (a ``ValueError``) naming the file, the position (line,
-event index, packet, dataset) and the problem:
+event index, packet, dataset) and the problem. docs/io-robustness.md says it to users, format by format:
 
-- repaired: events out of time order (sorted), exact duplicate events (dropped), 32-bit timestamp wrap-around
-  (unwrapped), a truncated tail (the complete part kept: AEDAT4 packets, npy rows, a text line, a partial
-  EVT/DAT word), a missing sensor size (inferred from the events), unnamed (N, 4) columns (recognised by the
-  time-ordered column), colour frames (to grey), unsorted or repeated frame times, a few far outlier events when
-  the sensor size is inferred (dropped; also up to 0.1 % of events outside every known sensor), a corrupt
-  compressed AEDAT4 packet (skipped, like a truncated tail); noted: an EVT3 file that ends inside an event group
-  (cut on a word boundary; EVT2 and DAT cannot show such a cut);
-- rejected: empty or unrecognised files (a file whose extension promises a signature it lacks: "not an AEDAT4
-  file"), an inferred sensor that is not plausible (more events outside every known sensor, or all coordinates
-  zero: pass width and height), missing datasets or keys, coordinates outside a declared sensor,
-  negative or non-integer coordinates, non-finite times, polarity values outside {0, 1} / {-1, +1} or mixing
-  them, corrupted containers (whatever the decoding library reports), EVT data whose words carry event types
-  the format does not define (random bytes after a valid header), corrupted AEDAT 3.1 packet headers.
+- time (:class:`eventcap.io.checks.TimeGuard`, in file order, the same streaming or whole): a few events cut off
+  by jumps in time (a wild timestamp, stray first or last events) dropped; a jump of a decoder's counter range
+  undone; time standing still after a jump cut; other jumps beyond ``max_gap_s`` (60 s) refused with the event
+  index; more events per µs than any sensor refused; a time column of whole numbers whose unit is a guess and
+  whose first events come slower than any camera's refused, naming ``source.time_unit``;
+- sizes inferred from coordinates (:mod:`eventcap.io.sizes`): outliers beyond a gap, beyond every known sensor or
+  beyond the edge of a known sensor's block are dropped when few and refused otherwise, never taken as a wider
+  sensor; an inferred size that is no sensor's shape is refused;
+- repaired as well: events out of time order (sorted), exact duplicate events (dropped), 32-bit timestamp
+  wrap-around (unwrapped), a truncated tail (the complete part kept: AEDAT4 packets, npy rows, a text line, a
+  partial EVT/DAT word, an EVT3 event group left open), unnamed (N, 4) columns (recognised by the time-ordered
+  column), colour frames (to grey), unsorted or repeated frame times, a corrupt compressed AEDAT4 packet (skipped);
+- refused as well: paths that are not regular files or folders (pipes, devices, link loops: at once, never
+  opened), empty or unrecognised files (a file whose extension promises a signature it lacks), a damaged
+  ``zarr.json``, missing datasets or keys, coordinates outside a declared sensor, negative or non-integer
+  coordinates, non-finite times, polarity values outside {0, 1} / {-1, +1} or mixing them, corrupted containers
+  (whatever the decoding library reports; HDF5 structure read first in a forked probe, refused if the library
+  loops), EVT data whose words carry event types the format does not define, corrupted AEDAT 3.1 packet headers.
 
 Prophesee decoders (faery) clamp backwards time steps and unwrap their counters themselves, so those repairs
 are not visible for evt2/evt3/dat. Decoding libraries' panics are caught; the fuzz script
-``benchmarks/robustness/fuzz_readers.py`` checks that no mutated file crashes or hangs the interpreter.
+``benchmarks/robustness/fuzz_readers.py`` checks that no damaged file of any format is read silently wrong, hangs
+or ends in a traceback.
 """
 
 from eventcap.io.detect import READ_FORMATS, detect_format

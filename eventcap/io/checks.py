@@ -62,7 +62,8 @@ def times_to_us(path, t, unit: str | None, what: str, locate: Callable[[int], st
         bad = ~np.isfinite(t_us) | (np.abs(t_us) >= _MAX_ABS_US)
         if bad.any():
             i = int(np.argmax(bad))
-            raise RecordingError(path, f"{what} {t[i].item()} {unit} is not a finite number within ±2^62 µs",
+            raise RecordingError(path, f"{what} {t[i].item()} {unit} is not a finite number within ±2^62 µs (the "
+                                       f"column is taken as {unit}; if it is in another unit, set source.time_unit)",
                                  locate(i))
         return np.rint(t_us).astype(np.int64)
     if t.dtype.kind not in "iu":
@@ -126,6 +127,12 @@ class ColumnConverter:
     t_add_us: int = 0
     wraps: int = 0
     first_wrap_row: int | None = None
+    #: whether every time value so far was a whole number, and the unit they were taken in (for the rate check)
+    time_integral: bool = True
+    unit_used: str | None = None
+    #: the unit of the time column is a guess (an array or text format without one): checked on the first events
+    unit_guessed: bool = False
+    _first: list = field(default_factory=list)
     _last_t32: int | None = None
     _polarity: str | None = None  # "01" or "pm1" once seen
     _polarity_row: int = -1
@@ -151,8 +158,22 @@ class ColumnConverter:
     # ------------------------------------------------------------------------------------------------ time
     def _time(self, chunk: RawChunk) -> np.ndarray:
         unwrap = (lambda t64: self._unwrap32(t64, chunk.row0))
-        return times_to_us(self.path, chunk.t, self.time_unit, "timestamp", lambda i: chunk.locate(chunk.row0 + i),
-                           unwrap)
+        out = times_to_us(self.path, chunk.t, self.time_unit, "timestamp", lambda i: chunk.locate(chunk.row0 + i),
+                          unwrap)
+        t = np.asarray(chunk.t)
+        floating = t.dtype.kind == "f"
+        self.unit_used = self.time_unit or ("s" if floating else "us")
+        if floating and self.time_integral:
+            self.time_integral = bool(np.all(t == np.floor(t)))
+        if self.unit_guessed and len(out):
+            # the unit is checked on the first events, before the time checks: a wrong one makes every gap a jump
+            self._first.append(out[:MIN_EVENTS_FOR_RATE * 10])
+            first = np.concatenate(self._first)
+            if len(first) >= MIN_EVENTS_FOR_RATE:
+                if self.time_integral:
+                    check_time_unit(self.path, first, self.unit_used)
+                self.unit_guessed, self._first = False, []
+        return out
 
     def _unwrap32(self, t: np.ndarray, row0: int) -> np.ndarray:
         # A 32-bit µs counter wraps every 71.6 min; a step back by more than half its range is a wrap, not
@@ -335,3 +356,337 @@ def sort_and_dedup(ev: np.ndarray) -> tuple[np.ndarray, OrderReport]:
             report.first_duplicate_row = int(order[first]) if order is not None else first
             ev = ev[~dup]
     return ev, report
+
+
+# ------------------------------------------------------------------------------------------------------ time
+#: Neighbouring events (in file order) further apart than this are a jump in time: checked, never taken silently.
+#: Event cameras stream continuously (noise alone makes events every second), so a longer silence is a corrupted
+#: or spliced file; ``max_gap_s`` (source.max_gap_s, --max-gap-s) accepts longer pauses.
+MAX_GAP_US = 60_000_000
+#: At most this many events cut off from the rest by jumps in time are dropped as outliers (and named).
+TIME_OUTLIER_BUDGET = 100
+#: A few events are also cut off from the rest by a jump longer than JUMP_FACTOR times the median gap between the
+#: JUMP_WINDOW events before it (and longer than JUMP_MIN_US): a corrupted time word moves a handful of events far
+#: from their neighbours. Such a jump with many events after it is a pause, and kept.
+JUMP_FACTOR = 10_000
+JUMP_WINDOW = 64
+JUMP_MIN_US = 1_000_000
+#: At most this many of the first events are dropped for lying far from the others (before a pace is known).
+HEAD_OUTLIERS = 8
+#: The fastest event sensors read out about 1-2 G events/s; more than this many events per µs no sensor makes.
+MAX_EVENTS_PER_US = 2_000
+#: Below this mean rate no event camera records (background noise alone gives more): with an integer time column
+#: whose unit was not given, the unit is wrong (checked over at least MIN_EVENTS_FOR_RATE events).
+MIN_EVENT_RATE_HZ = 1.0
+MIN_EVENTS_FOR_RATE = 100
+#: Time counters whose wrap-around a decoder adds when a corrupted word makes time go backwards: a jump of about
+#: this size is the decoder's, not the camera's (format -> counter ranges in µs).
+DECODER_WRAPS_US = {"evt2": (2**34,), "evt3": (2**24,), "dat": (2**32,), "aedat2": (2**32,), "aedat3": (2**31, 2**32)}
+
+
+def check_event_rate(path, n: int, span_us: int) -> None:
+    """Refuse a recording whose events come faster than any sensor makes them (``n`` events in ``span_us`` + 1 µs:
+    a broken time column)."""
+    if n > MAX_EVENTS_PER_US and n / (span_us + 1) > MAX_EVENTS_PER_US:
+        raise RecordingError(path, f"{n:,} events within {_span_words(span_us + 1)}: {n / (span_us + 1):.3g} events per "
+                                   f"µs, more than any event sensor makes (at most {MAX_EVENTS_PER_US:,}): the time "
+                                   f"column is broken (all one value? the wrong column?)")
+
+
+def check_time_unit(path, t_us: np.ndarray, unit: str) -> None:
+    """Refuse a time column of whole numbers whose unit is a guess when its first events (``t_us``, at least
+    MIN_EVENTS_FOR_RATE, as read in ``unit``) come slower than any camera records: the median gap between them,
+    robust to a few wild values, gives the rate. The message names ``source.time_unit`` and the units that would
+    give a camera's rate."""
+    gaps = np.diff(np.sort(np.asarray(t_us, np.int64)))
+    gap = float(np.median(gaps)) if len(gaps) else 0.0
+    if gap <= 0:
+        return
+    rate = 1e6 / gap
+    if rate >= MIN_EVENT_RATE_HZ:
+        return
+    scale = TIME_UNITS_TO_US[unit]
+    fits = [u for u, k in TIME_UNITS_TO_US.items() if u != unit and MIN_EVENT_RATE_HZ * 100 <= rate * scale / k
+            <= MAX_EVENTS_PER_US * 1e6]
+    hint = " or ".join(f"source.time_unit={u} ({rate * scale / TIME_UNITS_TO_US[u]:.3g} events/s)" for u in fits)
+    raise RecordingError(path, f"the time column holds whole numbers; read as {unit} (the default for "
+                               f"{'floating-point' if unit == 's' else 'integer'} columns) its first {len(t_us):,} "
+                               f"events come {_span_words(int(gap))} apart (the median), {rate:.2g} events/s, below "
+                               f"any event camera's rate (noise alone makes more than {MIN_EVENT_RATE_HZ:g}/s): the "
+                               f"unit is wrong. Set it: {hint or 'source.time_unit=s|ms|us|ns'} "
+                               f"(read_recording(time_unit=...), eventcap convert/preview --time-unit)")
+
+
+def _span_words(us: int) -> str:
+    """A duration in words: '104 µs', '2.5 s', '4.8 h', '11.6 days'."""
+    us = abs(int(us))
+    if us < 1000:
+        return f"{us} µs"
+    if us < 1_000_000:
+        return f"{us / 1e3:.3g} ms"
+    s = us / 1e6
+    if s < 120:
+        return f"{s:.3g} s"
+    if s < 7200:
+        return f"{s / 60:.3g} min"
+    if s < 2 * 86400:
+        return f"{s / 3600:.3g} h"
+    return f"{s / 86400:.3g} days"
+
+
+@dataclass
+class TimeGuard:
+    """Finds jumps in time and wild timestamps in a stream of events in file order (file time, µs) and decides, in
+    bounded memory (it holds back at most ``budget`` + 1 events), what to do with each:
+
+    - a few events (at most ``budget``) cut off from their neighbours by jumps (longer than ``max_gap_us``, or than
+      JUMP_FACTOR times the recent median gap and JUMP_MIN_US) are dropped as outliers: a single wild timestamp, a
+      corrupted time word's events, stray first or last events;
+    - a jump within 1/16 of a decoder's counter range (``wraps_us``: a corrupted time word made time go backwards
+      and the decoder took it for a wrap-around) is undone: that range is subtracted from every later event;
+    - a jump after which time stands still (more than ``budget`` events at one time stamp: a decoder holding time
+      when it goes backwards) cuts the recording there: the events after it are dropped;
+    - a jump longer than ``max_gap_us`` with more than ``budget`` events on each side is a :class:`RecordingError`
+      naming the event index, the two times and the size of the jump (a shorter one is a pause, kept).
+
+    Each decision is a sentence of :meth:`repairs`. The decisions depend on the events only, not on how the stream
+    is cut into chunks, so streaming and reading whole agree.
+    """
+
+    path: object
+    max_gap_us: int = MAX_GAP_US
+    budget: int = TIME_OUTLIER_BUDGET
+    wraps_us: tuple[int, ...] = ()
+    how: str = "pass max_gap_s= (source.max_gap_s, --max-gap-s) to accept pauses that long"
+    #: the outlier rule's jumps relative to the pace (off when the caller set max_gap_us: every shorter pause is real)
+    relative: bool = True
+    row: int = 0  # index in the file of the next event
+    ref: int | None = None  # time of the last accepted event (after undone wraps)
+    shift: int = 0  # subtracted from every event (undone decoder wraps)
+    accepted: int = 0
+    cut_at: int | None = None  # index from which every event is dropped
+    _recent: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  # times of the last accepted events
+    _head_done: bool = False  # the first budget + 1 events were accepted (and released)
+    _head: list = field(default_factory=list)
+    _group: list = field(default_factory=list)  # (row, one-event array) held after a jump
+    _group_jump: tuple[int, int] = (0, 0)  # (time before, time after) of the jump that opened the group
+    _dropped: int = 0
+    _dropped_first: list = field(default_factory=list)  # a few (row, t, count, why) for the note
+    _cut_dropped: int = 0
+    _cut_why: str = ""
+    _undone: list = field(default_factory=list)  # (row, wrap, jump)
+
+    def feed(self, ev: np.ndarray) -> np.ndarray:
+        """The next events of the file (``EVENT_DTYPE``, file order, file time µs) → those to keep, times corrected
+        by undone wraps; events after a jump are held back until later ones decide about them."""
+        n = len(ev)
+        if n == 0:
+            return ev
+        if self.cut_at is not None:
+            self._cut_dropped += n
+            self.row += n
+            return ev[:0]
+        keep: list[np.ndarray] = []
+        start = 0
+        while start < n:
+            t = ev["t"][start:] - self.shift if self.shift else ev["t"][start:]
+            if not self._group and self._head_done:
+                # the vectorised stretch up to the next suspicious step (the usual case: all of it)
+                stop = self._first_suspicious(t)
+                if stop:
+                    part = ev[start:start + stop]
+                    if self.shift:
+                        part = part.copy()
+                        part["t"] = t[:stop]
+                    keep.append(part)
+                    self._accepted_times(t[:stop])
+                    self.row += stop
+                    start += stop
+                    continue
+            one = ev[start:start + 1].copy()
+            one["t"] = t[0]
+            keep.extend(self._step(one, self.row))
+            self.row += 1
+            start += 1
+            if self.cut_at is not None:
+                self._cut_dropped += n - start
+                self.row += n - start
+                break
+        keep = [k for k in keep if len(k)]
+        return np.concatenate(keep) if len(keep) > 1 else (keep[0] if keep else ev[:0])
+
+    def finish(self) -> np.ndarray:
+        """The end of the file: a group still held is outliers (dropped); returns the events still to keep."""
+        if self._group:
+            self._drop_group("at the end of the file")
+        if not self._head:
+            return np.empty(0, dtype=EVENT_DTYPE)
+        return self._clean_head()
+
+    # ------------------------------------------------------------------------------------------------- logic
+    def _jump_limit(self, prev: np.ndarray) -> float:
+        """The step beyond which the next event is a jump for the outlier rule, given the accepted times before it
+        (``prev``, in order): JUMP_FACTOR times the median gap of the last JUMP_WINDOW of them, at least
+        JUMP_MIN_US, at most max_gap_us (and max_gap_us while fewer than 3 came before)."""
+        if len(prev) < 3 or not self.relative:
+            return float(self.max_gap_us)
+        gap = float(np.median(np.abs(np.diff(prev[-JUMP_WINDOW - 1:]))))
+        return float(min(max(JUMP_FACTOR * gap, JUMP_MIN_US), self.max_gap_us))
+
+    def _near_wrap(self, d):
+        d = np.asarray(d)
+        out = np.zeros(d.shape, bool)
+        for w in self.wraps_us:
+            out |= np.abs(d - w) < w // 16
+        return out
+
+    def _first_suspicious(self, t: np.ndarray) -> int:
+        """How many of ``t`` (after ``ref``, nothing held) pass as one accepted stretch. Only steps longer than
+        JUMP_MIN_US (or of a counter's range) can be jumps: the pace before each of those few is looked at."""
+        d = np.diff(t, prepend=self.ref)
+        floor = JUMP_MIN_US if self.relative else self.max_gap_us
+        cand = np.flatnonzero((np.abs(d) > floor) | self._near_wrap(d))
+        for i in cand:
+            prev = np.concatenate([self._recent, t[max(0, i - JUMP_WINDOW - 1):i]])
+            if abs(d[i]) > self._jump_limit(prev) or self._near_wrap(d[i]):
+                return int(i)
+        return len(t)
+
+    def _accepted_times(self, t: np.ndarray) -> None:
+        self.ref = int(t[-1])
+        self.accepted += len(t)
+        self._recent = np.concatenate([self._recent, t])[-JUMP_WINDOW - 1:]
+
+    def _is_jump(self, a: int, b: int) -> bool:
+        """Whether the step from time ``a`` (the last accepted or held event) to ``b`` is a jump now."""
+        return bool(abs(b - a) > self._jump_limit(self._recent) or self._near_wrap(b - a))
+
+    def _accept(self, one: np.ndarray) -> list[np.ndarray]:
+        self._accepted_times(one["t"])
+        if self._head_done:
+            return [one]
+        self._head.append(one)  # held: a jump soon after the first events makes them the outliers
+        if self.accepted > self.budget:
+            self._head_done = True
+            return [self._clean_head()]
+        return []
+
+    def _clean_head(self) -> np.ndarray:
+        """The first events, released: a few (at most HEAD_OUTLIERS) whose time lies far from the others' (beyond
+        JUMP_FACTOR times their median gap and JUMP_MIN_US from their median time) are dropped; the jump rule cannot see
+        them while it has no pace to compare with."""
+        head, self._head = np.concatenate(self._head), []
+        if len(head) < 16 or not self.relative:
+            return head
+        t = head["t"]
+        mid = np.median(t)
+        gap = float(np.median(np.abs(np.diff(t))))
+        far = np.abs(t - mid) > max(JUMP_MIN_US, JUMP_FACTOR * gap)
+        k = int(far.sum())
+        if 0 < k <= HEAD_OUTLIERS:
+            first = int(np.argmax(far))
+            self._note_drop(head[far], self.row - len(head) + 1 + first,
+                            f"among the first {len(head)} events, {_span_words(abs(int(t[first]) - int(mid)))} "
+                            f"from the others")
+            head = head[~far]
+            self._recent = np.sort(head["t"])[-JUMP_WINDOW - 1:]
+            self.ref = int(head["t"][-1])
+        return head
+
+    def _step(self, one: np.ndarray, row: int, force: bool = False) -> list[np.ndarray]:
+        t = int(one["t"][0])
+        if self.ref is None or force:
+            return self._accept(one)
+        if not self._group:
+            if not self._is_jump(self.ref, t):
+                return self._accept(one)
+            self._group, self._group_jump = [(row, one)], (self.ref, t)
+            return []
+        last = int(self._group[-1][1]["t"][0])
+        jumped = _span_words(self._group_jump[1] - self._group_jump[0])
+        if not self._is_jump(self.ref, t):  # back where it was: the held events were a spike
+            self._drop_group(f"between a jump of {jumped} and one back")
+            return self._accept(one)
+        if self._is_jump(last, t):  # off again, elsewhere: the held events were a spike
+            self._drop_group(f"between jumps of {jumped} and {_span_words(t - last)}")
+            self._group, self._group_jump = [(row, one)], (self.ref, t)
+            return []
+        self._group.append((row, one))
+        return self._level_shift() if len(self._group) > self.budget else []
+
+    def _replay(self, group: list, dt: int = 0, force_first: bool = False) -> list[np.ndarray]:
+        out = []
+        for k, (r, one) in enumerate(group):
+            if dt:
+                one = one.copy()
+                one["t"] -= dt
+            out.extend(self._step(one, r, force=force_first and k == 0))
+        return out
+
+    def _level_shift(self) -> list[np.ndarray]:
+        """More than ``budget`` events after one jump: a decoder's wrap (undone), a pause (kept), a stray head
+        (dropped), time standing still (cut), or a jump longer than max_gap_us (refused)."""
+        (before, after), group = self._group_jump, self._group
+        jump, row = after - before, group[0][0]
+        self._group = []
+        for w in self.wraps_us:
+            if abs(jump - w) < w // 16:
+                self.shift += w
+                self._undone.append((row, w, jump))
+                return self._replay(group, w)
+        times = np.array([int(one["t"][0]) for _, one in group])
+        still = bool(np.all(times == times[0]))
+        if abs(jump) <= self.max_gap_us and not still:  # a pause (or a step back) and events after it: the camera's
+            return self._replay(group, force_first=True)
+        if not self._head_done and not still:  # the few events before the jump are the strays
+            head, self._head = np.concatenate(self._head), []
+            self._note_drop(head, row - len(head), f"the first {len(head)} event(s) of the file, before a jump of "
+                                                   f"{_span_words(jump)} at event index {row}")
+            self.accepted, self.ref, self._recent = 0, None, self._recent[:0]
+            return self._replay(group)
+        if still:
+            self.cut_at = row
+            self._cut_dropped += len(group)
+            self._cut_why = (f"time jumps by {_span_words(jump)} there (from {before} to {after} µs, file time) and "
+                             f"then stands still (a decoder holds time when a corrupted word makes it go backwards)")
+            return []
+        raise RecordingError(self.path, f"time jumps by {_span_words(jump)} between neighbouring events (from {before} "
+                                        f"to {after} µs, file time), with more than {self.budget} events on each "
+                                        f"side: a corrupted or spliced file, or a recording paused that long; "
+                                        f"{self.how}", f"event index {row}")
+
+    def _drop_group(self, why: str) -> None:
+        rows = [r for r, _ in self._group]
+        ev = np.concatenate([one for _, one in self._group])
+        self._group = []
+        self._note_drop(ev, rows[0], why)
+
+    def _note_drop(self, ev: np.ndarray, row: int, why: str) -> None:
+        self._dropped += len(ev)
+        if self._dropped > max(self.budget, self.row // 100):
+            first = self._dropped_first[0] if self._dropped_first else (row, int(ev["t"][0]) + self.shift, 0, why)
+            raise RecordingError(self.path, f"time jumps at many places: {self._dropped} of the first {self.row + 1} "
+                                            f"events are cut off from the others by jumps (the first at event index "
+                                            f"{first[0]}, {first[3]}): not a few wild timestamps but a broken time "
+                                            f"column, a wrong time unit (source.time_unit) or a recording with pauses "
+                                            f"({self.how})", f"event index {row}")
+        if len(self._dropped_first) < 3:
+            self._dropped_first.append((row, int(ev["t"][0]) + self.shift, len(ev), why))
+
+    def repairs(self) -> list[str]:
+        """One sentence per kind of decision made so far."""
+        out = []
+        for row, w, jump in self._undone:
+            out.append(f"time jumps by {_span_words(jump)} at event index {row}, about the 2^{w.bit_length() - 1} µs "
+                       f"range of the format's time counter, which its decoder adds when a corrupted time word makes "
+                       f"time go backwards: subtracted 2^{w.bit_length() - 1} µs from there on")
+        if self._dropped:
+            first = "; ".join(f"event index {r}" + ("" if k == 1 else f" and {k - 1} after it") +
+                              f" at {t} µs (file time), {why}" for r, t, k, why in self._dropped_first)
+            more = "" if len(self._dropped_first) < 3 else "; ..."
+            out.append(f"dropped {self._dropped} event(s) with wild times, cut off from the others by jumps in "
+                       f"time: {first}{more}")
+        if self.cut_at is not None:
+            out.append(f"cut the recording at event index {self.cut_at}: {self._cut_why}; dropped the "
+                       f"{self._cut_dropped} event(s) from there to the end")
+        return out

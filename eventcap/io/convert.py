@@ -28,19 +28,11 @@ from eventcap.artifacts.base import ArrayAppender, ArtifactError
 from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.events import EVENT_DTYPE
-from eventcap.io.readers import (
-    PLAUSIBLE_HEIGHT,
-    PLAUSIBLE_WIDTH,
-    Roi,
-    _finish_frames,
-    implausible_sensor,
-    iter_event_chunks,
-    largest_values,
-    open_source,
-    outlier_limit,
-)
+from eventcap.io.detect import project_recording_problem
+from eventcap.io.readers import Roi, _finish_frames, iter_event_chunks, open_source
+from eventcap.io.sizes import CoordinateStats
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
-from eventcap.io.source import DEFAULT_CHUNK_EVENTS
+from eventcap.io.source import DEFAULT_CHUNK_EVENTS, check_regular
 from eventcap.processes import pid_alive
 
 #: End of an open time window ("to the end"), µs; far beyond any recording, with room for offsets.
@@ -49,10 +41,29 @@ OPEN_END_US = np.iinfo(np.int64).max // 2
 
 # ------------------------------------------------------------------------------------------- shared with the stage
 def is_project_recording(path) -> bool:
-    """A directory holding a zarr group written from a Recording artifact (the project's format)."""
+    """A directory holding a zarr group written from a Recording artifact (the project's format). A ``zarr.json``
+    that is not a regular file is refused (:class:`RecordingError`), never opened."""
     path = Path(path)
-    meta = path / "zarr.json"
-    return path.is_dir() and meta.is_file() and '"Recording"' in meta.read_text()
+    if not (path.is_dir() and os.path.lexists(path / "zarr.json")):
+        return False
+    return project_recording_problem(path) is None
+
+
+def read_project_recording(path) -> Recording:
+    """A recording in the project's format (a zarr group written from a Recording), read whole; any failure of the
+    zarr reader on damaged metadata or chunks is a :class:`RecordingError` naming the folder."""
+    import zarr
+
+    path = Path(path)
+    try:
+        return Recording.from_zarr(zarr.open_group(str(path), mode="r"), where=str(path))
+    except (ArtifactError, RecordingError):
+        raise
+    except (KeyboardInterrupt, SystemExit, MemoryError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - zarr's and numcodecs' own errors on damaged files
+        raise RecordingError(path, f"a damaged recording in the project's format: {type(exc).__name__}: "
+                                   f"{str(exc).strip()[:300]}") from exc
 
 
 def window_from_seconds(t_start_s: float | None, t_end_s: float | None) -> tuple[int, int] | None:
@@ -206,24 +217,16 @@ def _crop_frames(frames: Frames | None, r: Roi) -> Frames | None:
                   frames.exposure_us)
 
 
-def _refuse_outliers(path, tops: dict, n: int) -> None:
-    """A few events far beyond the others would make the inferred sensor huge; read_recording drops them (noted),
-    but they are already written here: refuse, saying how to crop them."""
-    far = {}
-    for axis, top in tops.items():
-        budget, limit = outlier_limit(top, n)
-        k = int(np.sum(top > limit))
-        if 0 < k <= budget:
-            far[axis] = (k, int(top[-1]), int(top[top <= limit][-1]))
-    if far:
-        what = "; ".join(f"{k} event(s) with {axis} up to {hi} while the others stay below {axis} = {lo + 1}"
-                         for axis, (k, hi, lo) in far.items())
-        w = far["x"][2] + 1 if "x" in far else int(tops["x"][-1]) + 1
-        h = far["y"][2] + 1 if "y" in far else int(tops["y"][-1]) + 1
-        raise RecordingError(path, f"the file does not declare its sensor size and {what}: corrupted events, which "
-                                   f"would make the inferred sensor {int(tops['x'][-1]) + 1} × "
-                                   f"{int(tops['y'][-1]) + 1}; crop them with --roi 0 0 {w} {h} (read_recording "
-                                   f"drops them itself)")
+def _judge_size(path, stats: CoordinateStats) -> tuple[int, int]:
+    """The inferred size of a streamed file (as read_recording judges it); outliers that read_recording would drop
+    are already written here: refused, saying how to crop them."""
+    d = stats.judge(path, "pass --width and --height, or crop with --roi")
+    if d.dropped:
+        what = d.note.partition("outlier event(s): ")[2]
+        raise RecordingError(path, f"the file does not declare its sensor size, and {d.dropped} event(s) are outliers "
+                                   f"({what}): corrupted events, which would make the inferred sensor larger; crop "
+                                   f"them with --roi 0 0 {d.width} {d.height} (read_recording drops them itself)")
+    return d.width, d.height
 
 
 def _check_roi_inside(r: Roi, width: int, height: int) -> None:
@@ -237,11 +240,8 @@ class _Pass:
 
     read: int = 0  # events decoded
     in_window: int = 0  # of those, inside the time window
-    outside: int = 0  # of those, outside every known sensor (an inferred size is refused beyond a few)
-    max_x: int = -1
-    max_y: int = -1
-    #: the largest coordinates per axis (outlier check of an inferred sensor size)
-    tops: dict = field(default_factory=lambda: {"x": np.empty(0, np.int64), "y": np.empty(0, np.int64)})
+    #: the coordinates seen, for an inferred sensor size (judged as read_recording judges it)
+    coords: CoordinateStats = field(default_factory=CoordinateStats)
     last_t_before: int | None = None  # the last event before the window
     first_t_after: int | None = None  # the first event after it
     stopped_early: bool = False  # decoding stopped at the window's end
@@ -250,7 +250,7 @@ class _Pass:
 
 
 def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, width, height, window, roi, time_unit,
-                 progress, columns=None, y_up=False) -> dict:
+                 progress, columns=None, y_up=False, max_gap_s=None) -> dict:
     """Write the Recording group ``root`` from ``in_path``; returns the statistics of the conversion."""
     t_begin = time.perf_counter()
     declared = open_source(in_path, format, time_unit, columns).width is not None
@@ -261,7 +261,8 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
     # A file without a sensor size streams against the largest 16-bit sensor; the size is inferred from the
     # largest coordinates at the end, as read_recording does.
     chunks = iter_event_chunks(in_path, chunk_events, format, width=65536 if infer else width,
-                               height=65536 if infer else height, time_unit=time_unit, columns=columns, y_up=y_up)
+                               height=65536 if infer else height, time_unit=time_unit, columns=columns, y_up=y_up,
+                               max_gap_s=max_gap_s)
     path = chunks.path
     full_w, full_h = (None, None) if infer else (chunks.width, chunks.height)
     if roi is not None and not infer:
@@ -282,14 +283,10 @@ def _stream_into(root, in_path: Path, *, format, chunk_events, calibration, widt
         shown = f"[{start}, {end}) µs" if end < OPEN_END_US else f"from {start} µs on"
         raise RecordingError(path, f"no events in the time window {shown}: {span}")
     if infer:
-        full_w, full_h = seen.max_x + 1, seen.max_y + 1
         if roi is None:
-            _refuse_outliers(path, seen.tops, seen.read)
-            err = implausible_sensor(path, seen.read, seen.outside, seen.max_x, seen.max_y,
-                                     "pass --width and --height, or crop with --roi")
-            if err is not None:
-                raise err
-        if roi is not None:
+            full_w, full_h = _judge_size(path, seen.coords)
+        else:
+            full_w, full_h = int(np.flatnonzero(seen.coords.hx)[-1]) + 1, int(np.flatnonzero(seen.coords.hy)[-1]) + 1
             _check_roi_inside(roi, full_w, full_h)
     if check.rows == 0:  # only a crop can leave nothing (an empty file or window was refused above)
         raise RecordingError(path, f"no events inside the region of interest {roi}")
@@ -318,10 +315,7 @@ def _copy_events(chunks, appenders, check: _StreamCheck, window, roi, infer: boo
     for chunk in chunks:
         seen.read += len(chunk)
         if infer:
-            seen.max_x, seen.max_y = max(seen.max_x, int(chunk["x"].max())), max(seen.max_y, int(chunk["y"].max()))
-            seen.outside += int(((chunk["x"] >= PLAUSIBLE_WIDTH) | (chunk["y"] >= PLAUSIBLE_HEIGHT)).sum())
-            for axis in seen.tops:
-                seen.tops[axis] = largest_values(np.concatenate([seen.tops[axis], largest_values(chunk[axis])]))
+            seen.coords.add(chunk["x"], chunk["y"])
         if window is not None:
             t = chunk["t"]
             a, b = np.searchsorted(t, [start, end], side="left")
@@ -418,7 +412,10 @@ def _remove_stale_partials(out: Path) -> None:
 
 
 def _check_out(in_path: Path, out: Path, overwrite: bool) -> None:
-    src, dst = in_path.resolve(), out.resolve()
+    try:
+        src, dst = in_path.resolve(), out.resolve()
+    except (RuntimeError, OSError) as exc:  # a loop of symbolic links (RuntimeError before Python 3.13)
+        raise ValueError(f"output {out}: cannot resolve the path ({exc}): a loop of symbolic links?") from None
     if dst == src or src.is_relative_to(dst) or (src.is_dir() and dst.is_relative_to(src)):
         raise ValueError(f"output {out} overlaps the input {in_path}: choose another output path")
     if out.exists() or out.is_symlink():
@@ -448,7 +445,7 @@ def _commit(tmp: Path, out: Path) -> None:
 def convert_recording(in_path, out_path, *, format: str | None = None, chunk_events: int = DEFAULT_CHUNK_EVENTS,
                       calibration=None, width: int | None = None, height: int | None = None,
                       time_window_us: tuple[int, int] | None = None, roi=None, time_unit: str | None = None,
-                      overwrite: bool = False, columns=None, y_up: bool = False,
+                      overwrite: bool = False, columns=None, y_up: bool = False, max_gap_s: float | None = None,
                       progress: Callable[[int, int, float], None] | None = None) -> dict:
     """Convert a recording (any format :func:`eventcap.io.read_recording` reads) into the project's format at
     ``out_path`` (a zarr v3 folder, read with ``Recording.from_zarr``), in memory bounded by a few chunks.
@@ -492,8 +489,7 @@ def convert_recording(in_path, out_path, *, format: str | None = None, chunk_eve
         if not start < end:
             raise ValueError(f"time_window_us: expected start < end, got ({start}, {end})")
     roi = _as_roi(roi)
-    if not (in_path.exists() or in_path.is_symlink()):
-        raise RecordingError(in_path, "no such file or folder")
+    check_regular(in_path)
     if is_project_recording(in_path):
         raise ValueError(f"{in_path} is already a recording in the project's format (read it with "
                          f"source=recording, or copy the folder)")
@@ -506,7 +502,7 @@ def convert_recording(in_path, out_path, *, format: str | None = None, chunk_eve
         root = zarr.open_group(str(tmp), mode="w-")
         stats = _stream_into(root, in_path, format=format, chunk_events=int(chunk_events), calibration=calibration,
                              width=width, height=height, window=window, roi=roi, time_unit=time_unit,
-                             progress=progress, columns=columns, y_up=y_up)
+                             progress=progress, columns=columns, y_up=y_up, max_gap_s=max_gap_s)
         _commit(tmp, out)
     except BaseException:
         _remove(tmp)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 from eventcap.io.aedat4 import MAGIC as AEDAT4_MAGIC
@@ -10,6 +12,7 @@ from eventcap.io.hdf5 import MAGIC as HDF5_MAGIC
 from eventcap.io.prophesee import header_kind, read_header
 from eventcap.io.recording import RecordingError
 from eventcap.io.rpg import EVENTS
+from eventcap.io.source import check_regular, regular_sibling
 
 #: Formats :func:`eventcap.io.read_recording` accepts as ``format=``.
 READ_FORMATS = ("aedat4", "aedat2", "aedat3", "hdf5", "rpg", "evt2", "evt3", "dat", "npy", "npz")
@@ -27,10 +30,16 @@ def detect_format(path) -> str:
     """The format name of ``path`` (one of ``READ_FORMATS``, or ``"evt"`` for a RAW file whose header names no
     version); raises :class:`RecordingError` for missing, empty or unrecognised files."""
     path = Path(path)
+    check_regular(path)
     if path.is_dir():
-        if (path / EVENTS).is_file():
+        if regular_sibling(path / EVENTS):
             return "rpg"
-        raise RecordingError(path, f"a folder without {EVENTS}: expected the rpg layout (events.txt, images.txt, …)")
+        for meta in ("zarr.json", ".zgroup"):
+            if os.path.lexists(path / meta):
+                raise RecordingError(path / meta, project_recording_problem(path) or "a zarr folder that is not a "
+                                     "recording in the project's format")
+        raise RecordingError(path, f"a folder without {EVENTS}: expected the rpg layout (events.txt, images.txt, …) "
+                                   f"or a recording in the project's format (zarr.json)")
     try:
         size = path.stat().st_size
         with open(path, "rb") as f:
@@ -71,3 +80,25 @@ def detect_format(path) -> str:
     expected = ", ".join(sorted(_EXTENSIONS))
     raise RecordingError(path, f"unrecognised format: first bytes {head[:16]!r}, extension {path.suffix!r} "
                                f"(expected {expected}, an rpg folder, or format=…)")
+
+
+def project_recording_problem(path) -> str | None:
+    """Why the folder ``path`` with a ``zarr.json`` is not a readable recording in the project's format (a sentence),
+    or None when its root metadata says it is one. Reads at most 1 MB of the metadata file, which must be regular."""
+    meta = Path(path) / "zarr.json"
+    check_regular(meta, folder=False)
+    with open(meta, "rb") as f:
+        raw = f.read(1 << 20)
+    try:
+        doc = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        return f"not valid JSON ({exc}): the zarr group's metadata is damaged"
+    if not isinstance(doc, dict) or doc.get("node_type") != "group":
+        return "not a zarr group's metadata (no \"node_type\": \"group\")"
+    attrs = doc.get("attributes")
+    if not isinstance(attrs, dict) or attrs.get("artifact") != "Recording":
+        found = attrs.get("artifact") if isinstance(attrs, dict) else None
+        return (f"a zarr group of a {found}, not a Recording" if found else
+                "a zarr group without the project's attributes (artifact: Recording): not a recording in the "
+                "project's format")
+    return None

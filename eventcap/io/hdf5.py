@@ -40,6 +40,7 @@ from eventcap.io.source import (
     columns_of_2d,
     match_columns,
     native_call,
+    probe_in_child,
 )
 
 MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -82,6 +83,13 @@ class Hdf5Source(Source):
         import h5py
 
         self._h5py = h5py
+        probe_in_child(path, _WHAT, lambda: self._structure(probe=True))
+        self._structure()
+
+    def _structure(self, probe: bool = False) -> None:
+        """Read the file's layout, size, time offset and frames' place (in a probe: also the first events and the
+        calibration, which read more of the metadata)."""
+        path, h5py = self.path, self._h5py
         with native_call(path, _WHAT, "file structure"), self._open() as f:
             self._layout = self._find_events(f)
             self._size_from_attrs(f)
@@ -94,6 +102,11 @@ class Hdf5Source(Source):
                 shape = f[self._frames_key[0]].shape
                 self.height, self.width = int(shape[1]), int(shape[2])
                 self.notes.append(f"sensor size not in the file: taken from the frames ({self.width} × {self.height})")
+        if probe:
+            next(iter(self.chunks(1 << 16)), None)
+            self.frames()
+            self.calibration(self.width or 1, self.height or 1)
+            self.ground_truth()
 
     def _open(self):
         return self._h5py.File(self.path, "r", locking=False)

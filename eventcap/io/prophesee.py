@@ -144,20 +144,30 @@ class EvtSource(Source):
 
 
     def _dangling_group(self, extra: int) -> str | None:
-        """EVT3 only: a note when the last whole word opens an event group that never comes (ADDR_Y announces the
-        row of the ADDR_X / vector words that follow it, VECT_BASE_X the column of the VECT words): the file was
-        cut, on a word boundary. EVT2 words (and DAT events) each stand alone: a cut between them cannot be told."""
-        if self.version != "evt3" or file_size(self.path) - self._header_length - extra < 2:
+        """EVT3 only: a note when the file ends inside an event group: after its last event word (ADDR_X, VECT_12,
+        VECT_8) comes a word that opens a group (ADDR_Y announces the row of the events that follow it, VECT_BASE_X
+        the first column of the vectors that follow it) and no event after it (time words may follow: the encoder
+        writes ADDR_Y, TIME_LOW, ADDR_X). A cut right after an event word cannot be told from the end of a
+        recording: EVT3 has no length and no end marker (nor have EVT2 words and DAT events, which each stand
+        alone)."""
+        size = file_size(self.path) - self._header_length - extra
+        if self.version != "evt3" or size < 2:
             return None
+        tail_words = min(size // 2, 64)
         with open(self.path, "rb") as f:
-            f.seek(file_size(self.path) - extra - 2)
-            word = int(np.frombuffer(f.read(2), "<u2")[0])
-        kind = {0x0: "EVT_ADDR_Y (the row of events that follow it)",
-                0x3: "VECT_BASE_X (the first column of event vectors that follow it)"}.get(word >> 12)
-        if kind is None:
+            f.seek(self._header_length + size - 2 * tail_words)
+            words = np.frombuffer(f.read(2 * tail_words), "<u2")
+        kinds = (words >> 12).astype(np.int64)
+        events = np.flatnonzero(np.isin(kinds, (0x2, 0x4, 0x5)))
+        after = kinds[events[-1] + 1:] if len(events) else kinds
+        openers = np.flatnonzero(np.isin(after, (0x0, 0x3)))
+        if not len(openers):
             return None
-        return (f"the file ends inside an EVT3 event group: its last word is an {kind}, with nothing after it "
-                f"(truncated file?): the events it announced are missing")
+        kind = {0x0: "EVT_ADDR_Y (the row of the events that follow it)",
+                0x3: "VECT_BASE_X (the first column of the event vectors that follow it)"}[int(after[openers[-1]])]
+        return (f"the file ends inside an EVT3 event group: an {kind} is followed by no event (only "
+                f"{len(after) - openers[-1] - 1} time word(s)) (truncated file?): the events it announced are "
+                f"missing")
 
 
 class DatSource(Source):

@@ -10,10 +10,28 @@ import numpy as np
 
 from eventcap.camera import Camera
 from eventcap.events import EVENT_DTYPE
-from eventcap.io.checks import ColumnConverter, OrderReport, parse_time_unit, sort_and_dedup
+from eventcap.io.checks import (
+    DECODER_WRAPS_US,
+    MAX_GAP_US,
+    ColumnConverter,
+    OrderReport,
+    TimeGuard,
+    check_event_rate,
+    parse_time_unit,
+    sort_and_dedup,
+)
 from eventcap.io.detect import READ_FORMATS, detect_format
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
-from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, Source, parse_columns
+from eventcap.io.sizes import (  # noqa: F401 - part of this module's API
+    KNOWN_SENSORS,
+    MAX_OUTSIDE_SHARE,
+    MIN_INFERRED_SIDE,
+    OUTLIER_BUDGET_MAX,
+    PLAUSIBLE_HEIGHT,
+    PLAUSIBLE_WIDTH,
+    CoordinateStats,
+)
+from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, Source, check_regular, parse_columns
 
 #: Formats whose event arrays or text columns can be unnamed, so that ``columns=`` applies.
 COLUMN_FORMATS = ("npy", "npz", "hdf5", "rpg")
@@ -32,8 +50,7 @@ class Roi:
 def open_source(path, format: str | None = None, time_unit: str | None = None, columns=None) -> Source:
     """The format reader for ``path`` (format detected from the content when ``format`` is ``None``)."""
     path = Path(path)
-    if not path.exists():
-        raise RecordingError(path, "no such file or folder")
+    check_regular(path)
     fmt = detect_format(path) if format is None else str(format).lower()
     if fmt not in READ_FORMATS and fmt != "evt":
         raise ValueError(f"unknown format {format!r}: expected one of {', '.join(READ_FORMATS)}")
@@ -97,13 +114,39 @@ def _sensor_size(source: Source, width: int | None, height: int | None) -> tuple
 
 
 def _converter(source: Source, width, height) -> ColumnConverter:
-    return ColumnConverter(source.events_path, width, height, source.time_unit, source.t_add_us)
+    conv = ColumnConverter(source.events_path, width, height, source.time_unit, source.t_add_us)
+    conv.unit_guessed = source.time_unit is None and source.format in COLUMN_FORMATS
+    return conv
+
+
+def _max_gap_us(max_gap_s) -> int | None:
+    """max_gap_s in µs; None when not given (the default, with the outlier rule relative to the events' pace)."""
+    if max_gap_s is None:
+        return None
+    try:
+        v = float(max_gap_s)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not (np.isfinite(v) and 0 < v <= 1e9):
+        raise ValueError(f"max_gap_s: expected seconds > 0 (at most 1e9), got {max_gap_s!r}")
+    return int(round(v * 1e6))
+
+
+def _time_guard(source: Source, max_gap_us: int | None) -> TimeGuard:
+    return TimeGuard(source.events_path, MAX_GAP_US if max_gap_us is None else max_gap_us,
+                     wraps_us=DECODER_WRAPS_US.get(source.format, ()), relative=max_gap_us is None)
+
+
+def _check_rate(source: Source, n: int, span_us: int) -> None:
+    """The whole recording's event rate against what sensors make (:func:`eventcap.io.checks.check_event_rate`)."""
+    check_event_rate(source.events_path, n, span_us)
 
 
 def recording_has_frames(path, format: str | None = None) -> bool:
     """Whether a recording (any format of :mod:`eventcap.io`, or the project's zarr) holds intensity frames; cheap for
     the project's zarr and AEDAT4 (a declared frame stream), a decode of the frames otherwise."""
     p = Path(path)
+    check_regular(p)
     if (p / "zarr.json").is_file() or (p / ".zgroup").is_file():
         return (p / "frames").is_dir()
     source = open_source(p, format or None)
@@ -112,10 +155,23 @@ def recording_has_frames(path, format: str | None = None) -> bool:
     return source.frames() is not None
 
 
+def recording_has_ground_truth(path, format: str | None = None) -> bool:
+    """Whether a recording carries a body's ground truth (what the simulated detector and the evaluation need).
+    Only the project's zarr format can: a synthetic capture keeps it in its ``ground_truth`` group. The other formats
+    never give one (what some store, such as the rpg dataset's camera poses, is not a body's motion). Cheap: reads
+    no data."""
+    p = Path(path)
+    if format not in (None, "", "eventcap"):
+        return False
+    if (p / "zarr.json").is_file() or (p / ".zgroup").is_file():
+        return (p / "ground_truth").is_dir()
+    return False
+
+
 def read_recording(path, format: str | None = None, time_window_us: tuple[int, int] | None = None,
                    roi: Roi | tuple[int, int, int, int] | None = None, *, width: int | None = None,
                    height: int | None = None, time_unit: str | None = None, columns=None,
-                   y_up: bool = False) -> RawRecording:
+                   y_up: bool = False, max_gap_s: float | None = None) -> RawRecording:
     """Decode a recording (any format of :mod:`eventcap.io`) into a checked :class:`RawRecording`.
 
     - ``format``: one of ``READ_FORMATS``; ``None`` detects it from the content (then the extension).
@@ -132,6 +188,9 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
       decide (noted).
     - ``y_up``: the file's y axis points up (origin bottom-left): events are flipped to the project's top-left
       origin (``y → height - 1 - y``). Frames are taken as stored (images are stored top row first).
+    - ``max_gap_s``: the longest pause between neighbouring events taken as real (default 60 s); longer jumps in
+      time are outliers (dropped), a decoder's artefact (undone or cut) or refused
+      (:class:`eventcap.io.checks.TimeGuard`).
 
     Raises :class:`RecordingError` (a ``ValueError``) naming the file, the position and the problem; every
     repair made is in ``repairs`` and logged as a warning on the ``eventcap.io`` logger.
@@ -140,13 +199,16 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
     path = source.path
     width, height = _sensor_size(source, width, height)
     conv = _converter(source, width, height)
-    parts = [conv.convert(raw) for raw in source.chunks(DEFAULT_CHUNK_EVENTS, with_frames=True)]
+    guard = _time_guard(source, _max_gap_us(max_gap_s))
+    parts = [guard.feed(conv.convert(raw)) for raw in source.chunks(DEFAULT_CHUNK_EVENTS, with_frames=True)]
+    parts = [p for p in (*parts, guard.finish()) if len(p)]
     events = np.concatenate(parts) if len(parts) > 1 else (parts[0] if parts else np.empty(0, EVENT_DTYPE))
     if len(events) == 0:
         raise RecordingError(path, "the recording contains no events" + "".join(f"; {n}" for n in source.notes))
     events, order = sort_and_dedup(events)
+    _check_rate(source, len(events), int(events["t"][-1]) - int(events["t"][0]))
     frame_data = source.frames()
-    repairs = [*source.notes, *conv.repairs(), *order.repairs()]
+    repairs = [*source.notes, *conv.repairs(), *guard.repairs(), *order.repairs()]
     if width is None:
         events, width, height, note = infer_sensor_size(events, path)
         repairs.append(note)
@@ -171,100 +233,17 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
                         tuple(repairs))
 
 
-OUTLIER_BUDGET_MAX = 100
-
-
-def largest_values(v: np.ndarray, k: int = OUTLIER_BUDGET_MAX + 1) -> np.ndarray:
-    """The ``k`` largest values of ``v`` (all of them when there are fewer), sorted."""
-    v = np.asarray(v, np.int64)
-    return np.sort(np.partition(v, len(v) - k)[len(v) - k:]) if len(v) > k else np.sort(v)
-
-
-def outlier_limit(top: np.ndarray, n: int) -> tuple[int, int]:
-    """(budget, limit) of :func:`infer_sensor_size` for one axis: at most ``budget`` events above ``limit`` are
-    outliers. ``top`` holds the largest coordinates (at least ``OUTLIER_BUDGET_MAX + 1`` when ``n`` allows), sorted;
-    ``n`` is the number of events."""
-    budget = min(OUTLIER_BUDGET_MAX, max(1, n // 10_000))
-    bulk = int(top[-budget - 1]) if len(top) > budget else int(top[-1])  # the largest that is not a candidate
-    return budget, max(bulk + 16, int(bulk * 1.25))
-
-
-#: Resolutions (width, height) of event sensors on the market, from their makers' datasheets.
-KNOWN_SENSORS: dict[str, tuple[int, int]] = {
-    "DVS128": (128, 128), "DAVIS240C": (240, 180), "DAVIS346": (346, 260), "DVXplorer": (640, 480),
-    "Prophesee Gen3 VGA": (640, 480), "Prophesee EVK4 / Sony IMX636": (1280, 720), "CelePixel CeleX-V": (1280, 800),
-    "Samsung DVS Gen4": (1280, 960),
-}
-#: No known sensor is wider or taller: an inferred size beyond it is not a plausible sensor.
-PLAUSIBLE_WIDTH = max(w for w, _ in KNOWN_SENSORS.values())
-PLAUSIBLE_HEIGHT = max(h for _, h in KNOWN_SENSORS.values())
-#: Events outside every known sensor beyond this share of a recording (and beyond the outlier budget) are refused.
-MAX_OUTSIDE_SHARE = 0.001
-#: An inferred sensor narrower or lower than this is not a camera's (e.g. all-zero coordinates).
-MIN_INFERRED_SIDE = 8
-
-
-def implausible_sensor(path, n: int, outside: int, max_x: int, max_y: int, how: str) -> RecordingError | None:
-    """The error for a recording without a declared size whose events do not fit a plausible sensor, or None.
-
-    n: events; outside: those with x >= PLAUSIBLE_WIDTH or y >= PLAUSIBLE_HEIGHT; max_x, max_y: the largest
-    coordinates (of the events kept); how: how to set the size (the API's or the CLI's words)."""
-    if outside > max(OUTLIER_BUDGET_MAX, MAX_OUTSIDE_SHARE * n) or (outside and "--" in how):
-        return RecordingError(path, f"{outside:,} of {n:,} events ({100 * outside / n:.2g} %) lie outside every known "
-                                    f"event sensor (the largest: {PLAUSIBLE_WIDTH} × {PLAUSIBLE_HEIGHT} px; x up to "
-                                    f"{max_x}, y up to {max_y}): the file does not declare its size and "
-                                    f"{max_x + 1} × {max_y + 1} is not a plausible sensor (corrupt events, or the "
-                                    f"wrong column order?). If the sensor is that large, {how}")
-    if max_x + 1 < MIN_INFERRED_SIDE or max_y + 1 < MIN_INFERRED_SIDE:
-        return RecordingError(path, f"the {n:,} events span only x <= {max_x} and y <= {max_y}, a {max_x + 1} × "
-                                    f"{max_y + 1} sensor: not a camera's (all coordinates zero? a broken decode or "
-                                    f"the wrong columns); the file does not declare its size: {how}")
-    return None
-
-
-def infer_sensor_size(events: np.ndarray, path=None) -> tuple[np.ndarray, int, int, str]:
-    """The sensor size of events whose file does not declare one: the largest coordinates + 1, ignoring a few
-    outliers (events, then the note saying what was inferred and what was dropped).
-
-    An outlier is one of at most 0.01 % of the events (and at most 100) whose coordinate lies beyond a gap: more
-    than 25 % (and 16 px) past the largest coordinate of the other events (a corrupted or mis-decoded event
-    would otherwise make a 60000-pixel-wide sensor), or one of at most 0.1 % that lie outside every known sensor
-    (:data:`KNOWN_SENSORS`). More events outside every known sensor, or a sensor narrower than 8 px (all-zero
-    coordinates), is a :class:`RecordingError` with the count: pass width and height to read such a file."""
-    n = len(events)
-    keep = np.ones(n, bool)
-    sizes = {}
-    for axis in ("x", "y"):
-        v = events[axis].astype(np.int64)
-        budget, limit = outlier_limit(largest_values(v), n)
-        far = v > limit
-        if far.any() and int(far.sum()) <= budget:
-            keep &= ~far
-            sizes[axis] = (int(v[~far].max()) + 1, int(far.sum()), int(v[far].max()))
-        else:
-            sizes[axis] = (int(v.max()) + 1, 0, 0)
-    outside = keep & ((events["x"] >= PLAUSIBLE_WIDTH) | (events["y"] >= PLAUSIBLE_HEIGHT))
-    k_out = int(outside.sum())
-    how = "pass width= and height= (source.width, source.height)"
-    err = implausible_sensor(path, n, k_out, int(events["x"][keep].max()), int(events["y"][keep].max()), how)
-    if err is not None and k_out:
-        raise err
-    if k_out:
-        keep &= ~outside
-    width, height = int(events["x"][keep].max()) + 1, int(events["y"][keep].max()) + 1
-    err = implausible_sensor(path, n, 0, width - 1, height - 1, how)
-    if err is not None:
-        raise err
-    note = (f"sensor size not in the file: inferred {width} × {height} from the largest event coordinates (pass "
-            f"width= and height= to set it)")
-    dropped = [f"{k} event(s) with {axis} up to {far_max} (beyond {axis} = {size - 1} of the others)"
-               for axis, (size, k, far_max) in sizes.items() if k]
-    if k_out:
-        dropped.append(f"{k_out} event(s) outside every known sensor ({PLAUSIBLE_WIDTH} × {PLAUSIBLE_HEIGHT} px)")
-    if dropped:
-        note += f"; ignored and dropped {int((~keep).sum())} outlier event(s): " + "; ".join(dropped)
-        events = events[keep]
-    return events, width, height, note
+def infer_sensor_size(events: np.ndarray, path=None, how: str = "pass width= and height= (source.width, "
+                      "source.height)") -> tuple[np.ndarray, int, int, str]:
+    """The sensor size of events whose file does not declare one (:mod:`eventcap.io.sizes` says how it is judged):
+    the events without the outliers, the width and height, and the note saying what was inferred and dropped.
+    Raises :class:`RecordingError` when the events do not show a plausible sensor."""
+    stats = CoordinateStats()
+    stats.add(events["x"], events["y"])
+    d = stats.judge(path, how)
+    if d.dropped:
+        events = events[(events["x"] < d.keep_x) & (events["y"] < d.keep_y)]
+    return events, d.width, d.height, d.note
 
 
 # ------------------------------------------------------------------------------------------------------- frames
@@ -392,11 +371,13 @@ class EventChunks:
 
     def __init__(self, path, format: str | None = None, chunk_events: int = DEFAULT_CHUNK_EVENTS,
                  width: int | None = None, height: int | None = None, time_unit: str | None = None,
-                 columns=None, y_up: bool = False):
+                 columns=None, y_up: bool = False, max_gap_s: float | None = None):
         if int(chunk_events) < 1:
             raise ValueError(f"chunk_events must be ≥ 1, got {chunk_events}")
         self.chunk_events = int(chunk_events)
         self.y_up = bool(y_up)
+        self._max_gap_us = _max_gap_us(max_gap_s)
+        self._guard: TimeGuard | None = None
         self._source = open_source(path, format, time_unit, columns)
         self.path, self.format = self._source.path, self._source.format
         w, h = _sensor_size(self._source, width, height)
@@ -417,35 +398,48 @@ class EventChunks:
     @property
     def repairs(self) -> tuple[str, ...]:
         conv = [] if self._conv is None else self._conv.repairs()
-        return (*self._source.notes, *conv, *self._order.repairs())
+        guard = [] if self._guard is None else self._guard.repairs()
+        return (*self._source.notes, *conv, *guard, *self._order.repairs())
 
     def __iter__(self) -> Iterator[np.ndarray]:
+        n, last = 0, None
         for chunk in self._absolute_chunks():
+            n += len(chunk)
+            last = int(chunk["t"][-1])
             chunk["t"] -= self.t_offset_us
             if self.y_up:
                 chunk["y"] = self.height - 1 - chunk["y"]
             yield chunk
+        if n:
+            _check_rate(self._source, n, last - self.t_offset_us)
         for repair in self.repairs:
             logger.warning("%s: %s", self.path, repair)
 
+    def _decoded(self) -> Iterator[tuple[np.ndarray, int, object]]:
+        """(events kept by the time guard, the file index of the first decoded event of the stretch, its locator)."""
+        self._guard = guard = _time_guard(self._source, self._max_gap_us)
+        locate, row = None, 0
+        for raw in self._source.chunks(self.chunk_events):
+            locate, row = raw.locate, raw.row0
+            yield guard.feed(self._conv.convert(raw)), row, locate
+        yield guard.finish(), row, locate or (lambda r: f"event index {r}")
+
     def _absolute_chunks(self) -> Iterator[np.ndarray]:
-        self._conv = conv = _converter(self._source, self.width, self.height)
+        self._conv = _converter(self._source, self.width, self.height)
         self._order = OrderReport()
         carry = np.empty(0, EVENT_DTYPE)
         streamed_t: int | None = None
         locate = None
-        for raw in self._source.chunks(self.chunk_events):
-            locate = raw.locate
-            ev = conv.convert(raw)
+        for ev, row0, locate in self._decoded():
             if len(carry):
                 ev = np.concatenate([carry, ev])
             if streamed_t is not None and len(ev) and ev["t"].min() < streamed_t:
                 i = int(np.argmax(ev["t"] < streamed_t)) - len(carry)
                 raise RecordingError(self.path, f"time goes back to {int(ev['t'].min())} µs, before events already "
                                                 f"streamed (up to {streamed_t} µs): cannot sort in bounded memory; "
-                                                f"read_recording sorts it in memory", locate(raw.row0 + max(i, 0)))
+                                                f"read_recording sorts it in memory", locate(row0 + max(i, 0)))
             ev, report = sort_and_dedup(ev)
-            self._order.add(report, raw.row0 - len(carry))
+            self._order.add(report, row0 - len(carry))
             # Hold back the last time stamp's events: its run may continue in the next chunk.
             cut = int(np.searchsorted(ev["t"], ev["t"][-1], "left")) if len(ev) else 0
             out, carry = ev[:cut], ev[cut:]
@@ -458,11 +452,12 @@ class EventChunks:
 
 def iter_event_chunks(path, chunk_events: int = DEFAULT_CHUNK_EVENTS, format: str | None = None, *,
                       width: int | None = None, height: int | None = None,
-                      time_unit: str | None = None, columns=None, y_up: bool = False) -> EventChunks:
+                      time_unit: str | None = None, columns=None, y_up: bool = False,
+                      max_gap_s: float | None = None) -> EventChunks:
     """Stream a recording's events in chunks of about ``chunk_events`` (see :class:`EventChunks`).
 
     The returned object is iterable (each pass re-reads the file) and tells ``width``, ``height``,
     ``t_offset_us`` and, as iteration proceeds, ``repairs``. Every format streams except npz (its members are
     loaded whole); memory is bounded by a few chunks.
     """
-    return EventChunks(path, format, chunk_events, width, height, time_unit, columns, y_up)
+    return EventChunks(path, format, chunk_events, width, height, time_unit, columns, y_up, max_gap_s)

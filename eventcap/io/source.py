@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import errno
+import os
+import stat
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -134,6 +137,46 @@ def native_call(path, what: str, where: str | None = None):
         raise RecordingError(path, f"{what} failed: {type(exc).__name__}: {message}", where) from exc
 
 
+#: Seconds a decoding library may spend on a file's structure in a probe before the file is refused.
+PROBE_TIMEOUT_S = 10.0
+
+
+def probe_in_child(path, what: str, fn: Callable[[], object], timeout_s: float = PROBE_TIMEOUT_S) -> None:
+    """Run ``fn`` in a forked child first, and refuse the file if it does not finish within ``timeout_s``.
+
+    A C library can loop forever on damaged metadata (HDF5 reading a corrupted attribute does), and a call into
+    it cannot be interrupted in-process. The child's own errors are ignored: the caller then runs ``fn``'s work
+    itself and reports them. Where ``fork`` is missing, nothing is probed."""
+    import signal
+    import time
+
+    if not hasattr(os, "fork"):
+        return
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+            os.dup2(devnull, 2)
+            fn()
+        except BaseException:  # noqa: BLE001 - reported by the caller's own run
+            pass
+        os._exit(0)
+    deadline = time.monotonic() + timeout_s
+    delay = 0.001
+    while True:
+        done, _ = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            raise RecordingError(path, f"{what} did not finish reading the file's structure within {timeout_s:g} s "
+                                       f"(damaged metadata that the library loops on): refused")
+        time.sleep(delay)
+        delay = min(delay * 2, 0.05)
+
+
 def available_memory_bytes() -> int | None:
     """MemAvailable from /proc/meminfo, or ``None`` where it cannot be read."""
     try:
@@ -157,6 +200,45 @@ def check_fits_in_memory(path, nbytes: int, what: str) -> None:
         raise RecordingError(path, f"{what} would need {nbytes / 1e9:.1f} GB, more than half the available "
                                    f"memory ({avail / 1e9:.1f} GB): a corrupted size, or a file to stream with "
                                    f"iter_event_chunks")
+
+
+_KINDS = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def check_regular(path, folder: bool = True) -> None:
+    """Refuse at once, in one line, a path that is not a regular file (or, when ``folder``, a folder): a named pipe
+    (opening one waits for a writer, possibly forever), a device (/dev/zero never ends), a socket, a symbolic link
+    loop or a dangling link. Only ``stat`` is called: nothing is opened."""
+    path = Path(path)
+    try:
+        st = os.stat(path)  # follows links; never blocks, whatever the file is
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise RecordingError(path, "a loop of symbolic links (the link leads back to itself): not a file") \
+                from None
+        if exc.errno == errno.ENOENT:
+            if os.path.islink(path):
+                raise RecordingError(path, f"a symbolic link to {os.readlink(path)}, which does not exist") from None
+            raise RecordingError(path, "no such file or folder") from None
+        raise RecordingError(path, f"cannot read it: {exc.strerror or exc}") from None
+    if stat.S_ISREG(st.st_mode) or (folder and stat.S_ISDIR(st.st_mode)):
+        return
+    if stat.S_ISDIR(st.st_mode):
+        raise RecordingError(path, "a folder, expected a file")
+    kind = next((name for test, name in _KINDS if test(st.st_mode)), "not a regular file")
+    link = f" (a link to {os.path.realpath(path)})" if os.path.islink(path) else ""
+    raise RecordingError(path, f"{kind}{link}, not a recording file: refused without opening it (reading it could "
+                               f"wait forever or never end)")
+
+
+def regular_sibling(path) -> bool:
+    """Whether an optional file beside a recording (images.txt, calib.txt, ...) is there: ``False`` when absent,
+    ``True`` when a regular file; anything else (a pipe, a device, a link loop) is refused by :func:`check_regular`."""
+    if not os.path.lexists(path):
+        return False
+    check_regular(path, folder=False)
+    return True
 
 
 def file_size(path: Path) -> int:

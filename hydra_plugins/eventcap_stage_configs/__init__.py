@@ -1,4 +1,5 @@
-"""Hydra plugin: every installed stage's config dataclass is a structured config ``/stage/<name>`` wherever Hydra
+"""Hydra plugin: every installed stage's config dataclass is a structured config ``/stage/<name>`` (and the run's
+outputs and executor settings ``/settings/outputs``, ``/settings/executor``) wherever Hydra
 composes EventCap's configs (``eventcap run``, sweeps, launchers, ``hydra.compose`` in scripts and tests), so a
 stage variant's YAML can start from its spec's defaults and state only what differs
 (:func:`eventcap.core.config.register_stage_configs`)."""
@@ -10,6 +11,9 @@ from hydra.plugins.search_path_plugin import SearchPathPlugin
 class EventcapStageConfigs(SearchPathPlugin):
     def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
         # Called before every composition: the stage configs are in the ConfigStore by the time a config names them.
-        from eventcap.core.config import register_stage_configs
+        from eventcap.apps.output_settings import OutputsConfig
+        from eventcap.core.config import register_settings_configs, register_stage_configs
+        from eventcap.core.runner import ExecutorConfig
 
         register_stage_configs()
+        register_settings_configs({"outputs": OutputsConfig, "executor": ExecutorConfig})

@@ -14,8 +14,7 @@ from eventcap.core.stage import Port, StageSpec, param
 class ConfidenceConfig:
     detection_frac: float = param(0.05, gt=0, help="a detected landmark supports its joint as exp(-(r/r0)²), r the "
                                                    "estimate's reprojection residual, r0 this fraction of the "
-                                                   "person's height in the image (0.05: 4 px on an 85 px actor, "
-                                                   "twice BlazePose's median 2D error there)")
+                                                   "person's height in the image")
     still_frac: float = param(0.05, ge=0, help="a joint whose estimated image position moves less than this fraction "
                                                "of the body's image height between two intensity frames was still: "
                                                "the frames' support holds between them without events")

@@ -212,9 +212,9 @@ def frame_truth(recording, occlusion: bool = True, occlusion_margin_m: float = 0
     gt = recording.ground_truth
     if gt is None:
         raise ValueError(f"stage {stage!r} simulates a detector from ground truth, but recording {name!r} has no "
-                         f"ground truth (a real recording?): use detections from a real detector instead, "
-                         f"e.g. stages/detect=file stages.detect.path=<OpenPose JSON folder, .npz or .csv> "
-                         f"(detect=file)")
+                         f"ground truth (a real recording?): use a real detector instead: stages/detect=blazepose "
+                         f"(BlazePose on the images) or detections made elsewhere, stages/detect=file "
+                         f"stages.detect.path=<OpenPose JSON folder, .npz or .csv>")
     frames = recording.frames
     if frames is None or frames.t_us.size == 0:
         raise ValueError(f"stage {stage!r}: recording {name!r} has no intensity frames to detect joints in")

@@ -89,7 +89,7 @@ class DetectionsFileConfig(ViewChecksConfig):
 
 @dataclass
 class BlazePoseConfig(ViewChecksConfig):
-    model: str = param("full", help="landmark network: full (15 ms per image here) | lite (faster, less exact)",
+    model: str = param("full", help="landmark network: full (the larger, more exact one) | lite (faster, less exact)",
                        choices=("full", "lite"))
     at: str = param("latent", help="images it looks at: frames (the raw, blurred intensity frames: the paper's "
                                    "*_linear) | latent (EDI latent images at the frame times: the method) | "
@@ -105,8 +105,8 @@ class BlazePoseConfig(ViewChecksConfig):
     detector_threshold: float = param(0.5, ge=0, le=1, help="minimum score of a person-detector box")
     presence_threshold: float = param(0.5, ge=0, le=1, help="minimum pose flag of the landmark model: below it, the person "
                                                 "is lost")
-    gamma: float = param(1.0, gt=0, help="the networks get linear intensity ** (1 / gamma) (1: linear, as measured "
-                                   "best on our captures)")
+    gamma: float = param(1.0, gt=0, help="the networks get linear intensity ** (1 / gamma); 1: linear, above 1 "
+                                   "brightens the dark tones, below 1 darkens them")
     landmark_presence: float = param(0.5, help="a landmark is in view when the network's presence output (that "
                                                "it lies in the image) is at least this, and it lies in the image")
 

@@ -14,7 +14,7 @@ from eventcap.core.stage import Port, StageSpec, param
 class ReconstructConfig:
     cutoff_rad_s: float = param(3.0, ge=0, help="decay rate of the per-pixel high-pass filter (Scheerlinck et al. 2018), "
                                            "rad/s: the images remember about 1/cutoff s of events; 0 = direct "
-                                           "integration (chosen by benchmarks/accuracy/bench_events_only.py)")
+                                           "integration")
     baseline: str = param("median", help="median: subtract each pixel's median over the recording (removes the "
                                          "fading traces where the actor was; uses the whole recording) | none")
     contrast: float = param(0.2, gt=0, help="log-intensity step of one event (the sensor's contrast threshold C)")

@@ -52,7 +52,8 @@ def _read_external(path: Path, config, ctx) -> Recording:
         raise ValueError(f"source.{exc}") from None
     raw = read_recording(path, format=config.format or None, time_window_us=win, roi=roi,
                          width=config.width or None, height=config.height or None,
-                         time_unit=config.time_unit or None, columns=list(config.columns) or None, y_up=config.y_up)
+                         time_unit=config.time_unit or None, columns=list(config.columns) or None, y_up=config.y_up,
+                         max_gap_s=config.max_gap_s or None)
     for r in raw.repairs:
         ctx.log.warning("%s: repaired: %s", path, r)
     if not config.calibration and raw.calibration is None:

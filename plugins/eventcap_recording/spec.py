@@ -28,6 +28,11 @@ class RecordingConfig:
                                                           "[x, y, t, p] (empty = names in the file or the "
                                                           "time-ordered column)")
     y_up: bool = param(False, help="the file's y axis points up (origin bottom-left): events are flipped")
+    max_gap_s: float = param(0.0, ge=0, help="the longest pause between neighbouring events taken as real, seconds; "
+                                             "0 = the default: 60 s, and a few events cut off by a jump long for "
+                                             "the events' pace are dropped as outliers. A longer jump in time is "
+                                             "refused, or repaired when it is a few wild timestamps or a decoder's "
+                                             "artefact (the log says which)")
     frames: bool = param(True, help="false: leave the file's intensity frames out (use it as an event-only "
                                     "recording)")
     batch_rate_hz: float = param(25.0, gt=0, help="without intensity frames: batches of 1/rate from the first event (the "
@@ -45,7 +50,7 @@ class RecordingConfig:
 
 
 RECORDING = StageSpec(
-    name="recording", kind="source", version=4,
+    name="recording", kind="source", version=5,
     description="a recording from a file (real cameras' formats or the project's own), cut into batches",
     config=RecordingConfig, inputs={"template": Port(Template, optional=True)},
     outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},

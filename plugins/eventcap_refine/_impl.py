@@ -12,19 +12,21 @@ _PROBLEMS: dict = {}
 _PROBLEMS_MAX = 16
 
 
-def problem_for(template, camera, frames: int, config):
-    """The RefineProblem for this template, camera, batch length and config, built once per process. Returns
-    (problem, built_now)."""
+def problem_for(template, camera, t_us: np.ndarray, config):
+    """The RefineProblem for this template, camera, batch (its tracking times t_us size the terms) and config,
+    built once per process for each size. Returns (problem, built_now)."""
     from eventcap.energy.errors import EnergyError
+    from eventcap.energy.terms import sample_times
 
-    from .refine import RefineProblem
+    from .refine import RefineProblem, refine_window
 
-    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), int(frames), repr(config))
+    sizes = tuple((k, t.size) for k, t in sample_times(config.terms, refine_window(t_us, None, None, template)).items())
+    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), int(t_us.size), sizes, repr(config))
     prob = _PROBLEMS.get(key)
     if prob is not None:
         return prob, False
     try:
-        prob = RefineProblem(template, camera, frames, config)
+        prob = RefineProblem(template, camera, t_us.size, config, t_us)
     except EnergyError as exc:  # e.g. min above max: the whole problem is infeasible
         raise StageFailed(f"stages.refine: {exc}", status=exc.status) from exc
     if len(_PROBLEMS) >= _PROBLEMS_MAX:
@@ -57,11 +59,7 @@ def run_refine(inputs, config, ctx):
     if b is not None and (t_us[0] < b.t0_us or t_us[-1] > b.t1_us):
         raise StageFailed(f"{where}: poses at [{t_us[0]}, {t_us[-1]}] us lie outside the batch [{b.t0_us}, "
                           f"{b.t1_us}] us: are they the solve output of this batch?", status="invalid_input")
-    for name in ("sil_patch_px", "denoise_us"):
-        if getattr(config, name) < 0:
-            raise StageFailed(f"stages.refine.{name}: expected an integer >= 0, got {getattr(config, name)!r}",
-                              status="invalid_config")
-    problem, built = problem_for(rec.template, rec.camera, t_us.size, config)
+    problem, built = problem_for(rec.template, rec.camera, t_us, config)
     if built:
         ctx.log.info("built the refinement NLP for %d tracking frames in %.2f s (once per process)", t_us.size,
                      problem.build_seconds)
@@ -80,13 +78,12 @@ def run_refine(inputs, config, ctx):
     frac = [m / n if n else 0.0 for m, n in zip(n_m, n_b)]
     secs = sum(res.seconds.values())
     if n_b[-1] and not n_m[-1]:
-        ctx.log.warning("%s: none of %d silhouette boundary pixels has an event in its %d px patch and %d us "
-                        "window: the poses stay at the solve's (E_stab only)", where, n_b[-1], config.sil_patch_px,
-                        window)
+        ctx.log.warning("%s: none of %d silhouette boundary pixels has an event in its patch and %d us window: the "
+                        "poses stay near the solve's", where, n_b[-1], window)
     ctx.log.info("%s: refined %d frames, %d ICP iterations; %d events (%d dropped as noise); %d of %d boundary "
-                 "pixels matched (%.0f%%); E_sil %.3g -> %.3g; %d IPOPT iterations, %.2f s (%s)", where, t_us.size,
-                 len(res.icp), res.events, res.events_dropped, n_m[-1], n_b[-1], 100 * frac[-1],
-                 res.energies["sil_start"], res.energies["sil"], res.iterations, secs, res.status)
+                 "pixels matched (%.0f%%); energy %.3g -> %.3g; %d IPOPT iterations, %.2f s (%s)", where,
+                 t_us.size, len(res.icp), res.events, res.events_dropped, n_m[-1], n_b[-1], 100 * frac[-1],
+                 res.energies["total_start"], res.energies["total"], res.iterations, secs, res.status)
     ctx.stats.update({"refine_s": secs, "phases_s": res.seconds, "iterations": res.iterations,
                       "events": res.events, "events_dropped": res.events_dropped, "boundary_pixels": n_b,
                       "matched": n_m, "matched_fraction": frac,

@@ -57,22 +57,39 @@ from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.energy.errors import EnergyError
-from eventcap.energy.event_search import EventIndex
-from eventcap.energy.factor import Layout, Window
-from eventcap.energy.terms import factors_from_config
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
 from eventcap.energy.problem import FactorProblem, FramePoses
-from eventcap.energy.sil import SilhouetteCorrespondences, find_silhouette_correspondences
+from eventcap.energy.terms import factors_from_config, sample_times
+from eventcap.energy.window import Estimate, WindowInputs
 
 _NP = NUM_POSE_PARAMS
 
 
 # --------------------------------------------------------------------------------------------- the problem
+def _frames(t_us: np.ndarray, poses: np.ndarray):
+    """The poses (F, 33) at their frames t_us as a function of times (which must be frames)."""
+    rows = {int(t): i for i, t in enumerate(np.asarray(t_us, dtype=np.int64))}
+    P = np.array(poses, dtype=np.float64)
+    return lambda t, deriv=0: P[[rows[int(v)] for v in np.asarray(t).ravel()]]
+
+
+def refine_window(t_us, events, poses, template: Template, span_us: tuple[int, int] | None = None) -> WindowInputs:
+    """A batch's inputs for the refinement's factors: one pose per tracking frame t_us (F,), the events, the
+    reference joints of the poses to refine (F, 33); span_us: the window of Eq. 12-13 (default t_0..t_N)."""
+    t_us = np.asarray(t_us, dtype=np.int64)
+    t0, t1 = (int(t_us[0]), int(t_us[-1])) if span_us is None else span_us
+    ref = None if poses is None else joint_positions(np.asarray(poses, dtype=np.float64), template.rest_joints)
+    return WindowInputs(t0, t1, frames_us=t_us, track_times_us=(t_us,), events=events, reference_us=t_us,
+                        reference_joints=ref)
+
+
 class RefineProblem:
     """The refinement NLP of one batch (F frames), built once per (template, camera, F, config). ``config``: the
     stage's config (plugins/eventcap_refine/spec.py, SilhouetteRefineConfig), the one source of every setting."""
 
-    def __init__(self, template: Template, camera: Camera, frames: int, config):
+    def __init__(self, template: Template, camera: Camera, frames: int, config, t_us: np.ndarray | None = None):
+        """t_us: the batches' tracking times the problem is sized for (each term's samples among them); default a
+        1 kHz grid of ``frames`` frames."""
         if not isinstance(template, Template):
             raise EnergyError(f"RefineProblem: expected a Template, got {type(template).__name__}")
         if not isinstance(camera, Camera):
@@ -83,19 +100,23 @@ class RefineProblem:
         t0 = time.perf_counter()
         self.template, self.camera, self.F, self.config = template, camera, int(frames), config
         lo, hi = bounds_with(config.limits, "stages.refine.limits")
-        settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
-        factors = factors_from_config(config, template, camera, Layout(n_frames=self.F, n_sil=self.F))
+        settings = IpoptSettings.from_config(config.ipopt)
+        t_us = np.arange(self.F, dtype=np.int64) * 1000 if t_us is None else np.asarray(t_us, dtype=np.int64)
+        if t_us.shape != (self.F,):
+            raise EnergyError(f"RefineProblem: expected {self.F} tracking times, got {t_us.shape}")
+        shape = refine_window(t_us, None, None, template)
+        sizes = {k: t.size for k, t in sample_times(config.terms, shape).items()}
+        factors = factors_from_config(config.terms, template, camera, sizes)
         self.problem = FactorProblem(FramePoses(self.F), factors, settings, lo, hi, damp=0.0, name="refine")
         self.lower, self.upper = self.problem.lower, self.problem.upper
         self.build_seconds = time.perf_counter() - t0
 
-    def set_data(self, t_us, corr: SilhouetteCorrespondences, ref_joints: np.ndarray, S: np.ndarray) -> None:
-        window = Window(int(t_us[0]), int(t_us[-1]), t_sil_us=np.asarray(t_us, dtype=np.int64), silhouette=corr,
-                        ref_joints=ref_joints)
-        self.problem.set_window(t_us, window, np.asarray(S, dtype=np.float64).ravel())
+    @property
+    def factors(self):
+        return self.problem.factors
 
     def solve(self, start: np.ndarray, what: str = "refinement") -> tuple[np.ndarray, SolveStats]:
-        """Minimise E_refine (data: :meth:`set_data`) from ``start`` (F, 33), within the bounds."""
+        """Minimise E_refine (the factors' current data) from ``start`` (F, 33), within the bounds."""
         start = np.asarray(start, dtype=np.float64)
         if start.shape != (self.F, _NP):
             raise EnergyError(f"solve: expected a start of shape ({self.F}, 33), got {start.shape}")
@@ -103,23 +124,22 @@ class RefineProblem:
         return x.reshape(self.F, _NP), stats
 
     def terms(self, S: np.ndarray) -> dict:
-        """Unweighted E_sil and E_stab at the poses S (F, 33), and the weighted total."""
+        """Each term's unweighted value at the poses S (F, 33) (the factors' current data), and the weighted total."""
         x = np.asarray(S, dtype=np.float64).ravel()
         t = self.problem.terms(x)
-        return {"sil": t.get("sil", 0.0), "stab": t.get("stab", 0.0),
-                "total": float(sum(f.weight * t[f.name] for f in self.problem.factors))}
+        return {**t, "total": float(sum(f.weight * t[f.name] for f in self.problem.factors))}
 
 
 # --------------------------------------------------------------------------------------------- a batch
 @dataclass(frozen=True)
 class IcpStats:
-    """One ICP iteration: correspondence search and solve."""
+    """One ICP iteration: association and solve."""
 
     boundary: int  #: boundary pixels (with a normal) over all frames
     matched: int  #: of which have an event in their patch and window
     status: str
     iterations: int
-    seconds: dict  #: wall time: boundary (render + samples), search, solve
+    seconds: dict  #: wall time: relinearize (render, samples, search), solve
 
 
 @dataclass(frozen=True)
@@ -127,7 +147,7 @@ class RefineResult:
     poses: np.ndarray  #: (F, 33) refined S_0..S_N
     status: str  #: status of the last solve
     iterations: int  #: IPOPT iterations, all solves
-    energies: dict  #: E_sil, E_stab (unweighted, last correspondences) and the weighted total, at the start and end
+    energies: dict  #: each term (unweighted, last association) and the weighted total, at the start and end
     icp: tuple[IcpStats, ...] = ()
     seconds: dict = field(default_factory=dict)  #: wall time per phase, summed over the ICP iterations
     events: int = 0  #: events in the span of the batch's windows
@@ -137,42 +157,51 @@ class RefineResult:
 def refine_batch(problem: RefineProblem, t_us: np.ndarray, poses: np.ndarray, events: np.ndarray,
                  window_us: int | None = None) -> RefineResult:
     """Refine the poses (F, 33) of one batch at tracking frame times t_us (F,) against the recording's events, with
-    the problem's config (icp_iterations, sil_patch_px, sil_dist, denoise_us: events without another event in their
-    3×3 pixel neighbourhood within ±denoise_us are not searched; 0: all are, the paper).
+    the problem's config (icp_iterations; the terms' settings: E_sil's search patch, λ_dist and noise filter).
 
     window_us: T of Eq. 12-13 (default t_N - t_0, the batch duration). Raises EnergyError on unusable input,
     SolveFailed on an unsuccessful IPOPT solve.
     """
     c = problem.config
     t_us, poses = _checked(problem, t_us, poses)
-    if isinstance(c.icp_iterations, bool) or int(c.icp_iterations) != c.icp_iterations or c.icp_iterations < 1:
-        raise EnergyError(f"icp_iterations: expected an integer >= 1, got {c.icp_iterations!r}")
-    T = int(t_us[-1] - t_us[0]) if window_us is None else int(window_us)
     t_start = time.perf_counter()
-    try:
-        index = EventIndex(events, problem.camera.width, problem.camera.height, t_us, T, int(c.denoise_us))
-    except ValueError as exc:
-        raise EnergyError(f"refine input: {exc}") from exc
-    seconds = {"index": time.perf_counter() - t_start, "boundary": 0.0, "search": 0.0, "solve": 0.0}
-    ref = joint_positions(poses, problem.template.rest_joints)  # J_l(Ŝ_f) of E_stab
+    span = None if window_us is None else (int(t_us[0]), int(t_us[0]) + int(window_us))
+    inputs = refine_window(t_us, events, poses, problem.template, span)
+    for f in problem.factors:
+        f.collect(inputs)
+    problem.problem.set_window(t_us)
+    seconds = {"index": time.perf_counter() - t_start, "relinearize": 0.0, "solve": 0.0}
     S = np.clip(poses, problem.lower, problem.upper)
     icp: list[IcpStats] = []
     before = None
     for it in range(int(c.icp_iterations)):
-        corr, n_boundary, secs = find_silhouette_correspondences(problem.template, problem.camera, S, index,
-                                                                 float(c.sil_dist), int(c.sil_patch_px))
-        problem.set_data(t_us, corr, ref, S)
+        t1 = time.perf_counter()
+        est = Estimate(_frames(t_us, S), it, inputs, problem.template, problem.camera)
+        for f in problem.factors:
+            f.relinearize(est)
+        problem.problem.set_reference(S.ravel())
+        counts = _counts(problem)
+        secs = {"relinearize": time.perf_counter() - t1}
         if before is None:
             before = problem.terms(S)
         S, st = problem.solve(S, f"refinement, ICP iteration {it + 1}")
         secs["solve"] = st.seconds
         for k, v in secs.items():
             seconds[k] += v
-        icp.append(IcpStats(boundary=n_boundary, matched=corr.n, status=st.status, iterations=st.iterations,
-                            seconds=secs))
+        icp.append(IcpStats(boundary=counts.get("n_boundary", 0), matched=counts.get("n_silhouette", 0),
+                            status=st.status, iterations=st.iterations, seconds=secs))
     energies = {**{f"{k}_start": v for k, v in before.items()}, **problem.terms(S)}
+    counts = _counts(problem)
     return RefineResult(poses=S, status=icp[-1].status, iterations=sum(s.iterations for s in icp), energies=energies,
-                        icp=tuple(icp), seconds=seconds, events=index.n_events, events_dropped=index.n_unsupported)
+                        icp=tuple(icp), seconds=seconds, events=int(counts.get("events_searched", 0)),
+                        events_dropped=int(counts.get("events_dropped", 0)))
+
+
+def _counts(problem: RefineProblem) -> dict:
+    out: dict = {}
+    for f in problem.factors:
+        out.update(f.report())
+    return out
 
 
 def _checked(problem: RefineProblem, t_us, poses) -> tuple[np.ndarray, np.ndarray]:

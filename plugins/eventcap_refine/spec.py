@@ -7,39 +7,43 @@ from dataclasses import dataclass
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import Detections, PoseSequence
 from eventcap.artifacts.recording import Recording
-from eventcap.core.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, group, param
+from eventcap.energy.settings import IpoptConfig, SilConfig, StabConfig
+
+
+@dataclass
+class RefineTerms:
+    """The terms of the refinement (paper Eq. 9), in the order they are summed (each: its weight, 0 = off, and its
+    settings)."""
+
+    sil: SilConfig = group(SilConfig, weight=1.0, step_ms=1.0, window_ms=None, loss="l2",
+                           help="E_sil (Eq. 11): every frame's silhouette boundary against its closest events within "
+                                "the batch (the paper's window T: window_ms null)")
+    stab: StabConfig = group(StabConfig, help="E_stab (Eq. 10): the joints held near the batch solve's")
 
 
 @dataclass
 class SilhouetteRefineConfig:
     icp_iterations: int = param(4, ge=1, help="ICP iterations: render the estimate, find the closest event of every "
                                         "silhouette boundary pixel, solve (paper Sec. 3.3)")
-    lambda_sil: float = param(1.0, ge=0, help="weight of E_sil, the point-to-line distances of boundary points to their "
-                                        "events (image residuals in focal-normalised units, as the solve)")
-    lambda_stab: float = param(5.0, ge=0, help="weight of E_stab, joints held near the batch solve's (metres)")
-    sil_dist: float = param(4.0, ge=0, help="λ_dist of the closest event search (Eq. 12): weight of the squared time "
-                                            "offset in batch durations against the squared distance in pixels")
-    sil_patch_px: int = param(8, ge=1, help="side of the square searched around each boundary pixel, pixels (centred "
-                                            "on the pixel: offsets -sil_patch_px/2..sil_patch_px/2)")
-    denoise_us: int = param(5000, ge=0, help="drop events without another event in their 3x3 pixel neighbourhood "
-                                             "within this many microseconds before searching (background-activity "
-                                             "filter, not in the paper; 0 = search all events)")
-    sil_loss: str = param("l2", help="loss on the point-to-line residuals: l2 (the paper) | huber",
-                          choices=("l2", "huber"))
-    sil_huber_px: float = param(1.0, gt=0, help="Huber threshold in pixels (sil_loss=huber): beyond it residuals "
-                                                "count linearly")
     limits: dict[str, list[float]] = param(
         default_factory=dict, help="joint-limit overrides {parameter name: [min, max]} in radians (metres for "
                                    "root_t*), as in the solve stage; default skeleton.pose_bounds()")
-    max_iter: int = param(100, ge=1, affects_result=False,
-                          help="IPOPT iteration limit per solve; reaching it fails the batch. Not part of the cache "
-                               "key (failures are never cached)")
-    tol: float = param(1e-4, gt=0, help="IPOPT convergence tolerance (scaled NLP error)")
-    mumps_pivot_order: int = param(0, ge=0, le=7, help="MUMPS ordering (0 AMD ... 7 auto), pinned for reproducibility")
+    terms: RefineTerms = group(RefineTerms, help="the terms of the refinement: each one's weight (0: off) and settings")
+    ipopt: IpoptConfig = group(IpoptConfig, max_iter=100, tol=1e-4, help="IPOPT's options for every solve")
+
+
+#: Settings that moved when the config was nested: {old key: new key}.
+REFINE_RENAMED = {
+    "lambda_sil": "terms.sil.weight", "lambda_stab": "terms.stab.weight", "sil_dist": "terms.sil.dist",
+    "sil_patch_px": "terms.sil.patch_px", "denoise_us": "terms.sil.denoise_us", "sil_loss": "terms.sil.loss",
+    "sil_huber_px": "terms.sil.huber_px", "max_iter": "ipopt.max_iter", "tol": "ipopt.tol",
+    "mumps_pivot_order": "ipopt.mumps_pivot_order"}
 
 
 SILHOUETTE = StageSpec(
-    name="silhouette", kind="refine", version=2,  # 2: its terms are factors (sums in another order)
+    name="silhouette", kind="refine", version=3,  # 2: its terms are factors (sums in another order); 3: nested
+    # settings
     description="event-based pose refinement per tracking frame: silhouette boundary to closest event ICP, "
                 "point-to-line E_sil + E_stab, joint limits (Sec. 3.3, CasADi + IPOPT)",
     config=SilhouetteRefineConfig,
@@ -49,4 +53,5 @@ SILHOUETTE = StageSpec(
                                                               "world they are in (Detections.world_R)")},
     outputs={"poses": Port(PoseSequence)}, per_batch=True,
     run="eventcap_refine._impl:run_refine",
+    renamed=REFINE_RENAMED,
 )

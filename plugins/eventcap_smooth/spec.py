@@ -15,9 +15,8 @@ class SmoothConfig:
     lam: float = param(0.0, ge=0, help="smoothing parameter in s³ for every group (0 = chosen from the fits alone by "
                                  "the criterion)")
     criterion: str = param("gcv", help="how lam is chosen from the fits alone: gcv (generalised cross-validation) | "
-                                       "reml (restricted likelihood). GCV measured better on the 2 s suite (REML "
-                                       "flattened jumping_jack at 10 fps); with few fits (0.4 s at 25 fps) GCV may "
-                                       "interpolate, REML does not", choices=("reml", "gcv"))
+                                       "reml (restricted likelihood)",
+                           choices=("reml", "gcv"))
 
 
 SMOOTH = StageSpec(

@@ -69,14 +69,15 @@ def run_batch(inputs, config, ctx):
         res = solve_batch(problem, t_us, sliced.xy, sliced.valid, det)
     except (EnergyError, SolveFailed) as exc:
         raise StageFailed(f"{where}: {exc}", status=exc.status, details=getattr(exc, "details", {})) from exc
-    ctx.log.info("%s: %s, %d correspondences, %d IPOPT iterations, %.2f s solving (%s)", where, config.mode,
-                 res.energies["n_correspondences"], res.iterations, sum(res.seconds.values()), res.status)
+    n_cor = res.energies.get("n_correspondences")  # present when a term uses the tracks' correspondences
+    ctx.log.info("%s: %s, %s correspondences, %d IPOPT iterations, %.2f s solving (%s)", where, config.mode,
+                 "no" if n_cor is None else n_cor, res.iterations, sum(res.seconds.values()), res.status)
     ctx.stats.update({"solve_s": sum(res.seconds.values()), "phases_s": res.seconds, "iterations": res.iterations,
                       "solves": [[st.status, st.iterations, st.seconds] for st in res.solves],
-                      "n_correspondences": int(res.energies["n_correspondences"])})
-    if int(res.energies["n_correspondences"]) == 0 and config.lambda_cor > 0:
-        ctx.log.warning("%s: 0 track-to-mesh correspondences: E_cor is empty, the poses between the frames come "
-                        "from the detections and the temporal prior alone", where)
-    energies = {k: (int(v) if k == "n_correspondences" else float(v)) for k, v in res.energies.items()}
+                      **{k: int(v) for k, v in res.energies.items() if k.startswith("n_")}})
+    if n_cor == 0 and config.mode not in ("linear", "all"):
+        ctx.log.warning("%s: 0 track-to-mesh correspondences: the poses between the frames come from the "
+                        "detections and the other terms alone", where)
+    energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
     return {"poses": PoseSequence(t_us=t_us.copy(), poses=res.poses, status=res.status, iterations=res.iterations,
                                   energies=energies)}

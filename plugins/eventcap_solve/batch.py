@@ -103,23 +103,23 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from eventcap.body.kinematics import joint_positions
-from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
+from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-from eventcap.energy.correspondences import Correspondences, check_tracks, find_correspondences, temporal_indicator
+from eventcap.energy.correspondences import check_tracks
 from eventcap.energy.detections import (
     FrameDetections,
     FrameFitter,
+    fit_weights,
     interpolate_poses,
     select_detections,
     unwrap_root,
 )
 from eventcap.energy.errors import EnergyError
-from eventcap.energy.factor import Layout, Window
-from eventcap.energy.terms import factors_from_config
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
 from eventcap.energy.problem import FactorProblem, FramePoses
+from eventcap.energy.terms import factors_from_config, sample_times
+from eventcap.energy.window import Estimate, Tracks, WindowInputs
 
 MODES = ("batch", "per_frame", "linear", "all", "odometry")
 #: How a batch treats its first and last frame (shared with the neighbouring batches): see solve_batch.
@@ -132,7 +132,7 @@ class BatchResult:
     """Poses of a batch and how they were obtained."""
 
     poses: np.ndarray  #: (N+1, 33) S_0..S_N
-    t_prime: np.ndarray  #: (2, 3) metres, t' of E_3D at frames 0 and N (fits for linear/all)
+    aux: dict  #: each factor's auxiliary variables at the result, by name (E_3D's t' at frames 0 and N)
     status: str  #: status of the last solve
     iterations: int  #: IPOPT iterations summed over all solves of the batch
     energies: dict  #: unweighted value of each term at the result (and the weighted total)
@@ -141,13 +141,36 @@ class BatchResult:
 
 
 # --------------------------------------------------------------------------------------------- the problem
+def batch_window(t_us, ends: FrameDetections, xy=None, valid=None, edge_margin_px: float = 1.0) -> WindowInputs:
+    """A batch's inputs for its factors: one pose per tracking frame t_us (F,), the detections at frames 0 and N,
+    the tracks (F, H, 2) / (F, H) at every frame (none: no tracks)."""
+    t_us = np.asarray(t_us, dtype=np.int64)
+    if xy is None:
+        xy, valid = np.zeros((t_us.size, 0, 2)), np.zeros((t_us.size, 0), dtype=bool)
+    return WindowInputs(int(t_us[0]), int(t_us[-1]), frames_us=t_us, t_det_us=t_us[[0, -1]], detections=ends,
+                        tracks=Tracks(t_us, np.asarray(xy, dtype=np.float64), np.asarray(valid, dtype=bool),
+                                      float(edge_margin_px)))
+
+
+def _frames(t_us: np.ndarray, poses: np.ndarray):
+    """The poses (F, 33) at their frames t_us as a function of times (which must be frames)."""
+    rows = {int(t): i for i, t in enumerate(np.asarray(t_us, dtype=np.int64))}
+    P = np.array(poses, dtype=np.float64)
+
+    def at(t, deriv=0):
+        if deriv:
+            raise EnergyError("per-frame poses have no derivative")
+        return P[[rows[int(v)] for v in np.asarray(t).ravel()]]
+    return at
+
+
 class BatchProblem:
     """The batch NLP of Eq. 3-8 and the one-frame detection fit of the initialisation, built once.
 
     template, camera: the actor and the event camera. frames: number of tracking frames of a batch, N+1 (41 for a
     40 ms batch sliced at 1 ms). config: the stage's config (plugins/eventcap_solve/spec.py, BatchSolveConfig), the
-    one source of every setting: the terms' weights ``lambda_*`` (E_temp off in mode per_frame), the joint limits,
-    the IPOPT options.
+    one source of every setting: the terms (E_2D, E_3D at frames 0 and N, E_cor and E_temp between every two
+    frames), the joint limits, the IPOPT options.
     """
 
     def __init__(self, template: Template, camera: Camera, frames: int, config):
@@ -163,75 +186,54 @@ class BatchProblem:
         t0 = time.perf_counter()
         self.template, self.camera, self.F, self.config = template, camera, int(frames), config
         lo, hi = bounds_with(config.limits, "stages.solve.limits")
-        self.settings = IpoptSettings(max_iter=config.max_iter, tol=config.tol,
-                                      mumps_pivot_order=config.mumps_pivot_order)
-        layout = Layout(n_frames=self.F, n_det=2, n_cor=self.F)
-        # per_frame (w/o_batch): nothing couples frames, so no E_temp
-        off = {"temp": 0.0} if config.mode == "per_frame" else None
-        self.factors = factors_from_config(config, template, camera, layout, overrides=off)
+        self.settings = IpoptSettings.from_config(config.ipopt)
+        shape = batch_window(np.arange(self.F), None)  # the sizes: a batch's frames, its two detection frames
+        sizes = {k: t.size for k, t in sample_times(config.terms, shape).items()}
+        self.factors = factors_from_config(config.terms, template, camera, sizes)
         self.problem = FactorProblem(FramePoses(self.F), self.factors, self.settings, lo, hi,
-                                     damp=config.lambda_damp, damp_aux=False, name="batch")
+                                     damp=config.damp, damp_aux=False, name="batch")
         self.lower, self.upper = self.problem.lower, self.problem.upper
-        self.fitter = FrameFitter(template, camera, self.settings, lo, hi, config.robust_2d_px)
+        self.fit_weights = fit_weights(config.terms)
+        self.fitter = FrameFitter(template, camera, self.settings, lo, hi, self.fit_weights[2])
         self.build_seconds = time.perf_counter() - t0
 
     def fit_frame(self, det: FrameDetections, d: int,
                   start: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, SolveStats]:
-        """Fit one pose to detection frame d (E_2D + E_3D, the stage's weights and λ_damp): (S (33,), t' (3,),
+        """Fit one pose to detection frame d (the detection terms' weights and the damping): (S (33,), t' (3,),
         stats). start: (S, t') warm start; default :func:`eventcap.energy.detections.initial_guess`."""
-        c = self.config
-        return self.fitter.fit(det, d, c.lambda_2d, c.lambda_3d, c.lambda_damp, start)
+        w2, w3, _ = self.fit_weights
+        return self.fitter.fit(det, d, w2, w3, self.config.damp, start)
 
-    def window(self, t_us, ends: FrameDetections, corr: Correspondences, phi: np.ndarray,
-               relative: bool = True) -> Window:
-        return Window(int(t_us[0]), int(t_us[-1]), t_det_us=np.asarray(t_us, dtype=np.int64)[[0, -1]],
-                      detections=ends, t_cor_us=np.asarray(t_us, dtype=np.int64), correspondences=corr,
-                      cor_relative=relative, phi=np.asarray(phi, dtype=np.float64))
+    def collect(self, inputs: WindowInputs) -> None:
+        """Every factor's data of this batch, and the span of the poses."""
+        for f in self.factors:
+            f.collect(inputs)
+        self.problem.set_window(inputs.frames_us)
 
-    def x_of(self, poses: np.ndarray, t_prime: np.ndarray) -> np.ndarray:
-        x = np.zeros(self.problem.nx)
-        x[:self.problem.nU] = np.asarray(poses, dtype=np.float64).ravel()
-        for f, sl in zip(self.problem.factors, self.problem.aux_slices):
-            if sl is not None and f.name == "3d":
-                x[sl] = np.asarray(t_prime, dtype=np.float64).ravel()
-        return x
-
-    def t_prime_of(self, x: np.ndarray, default: np.ndarray) -> np.ndarray:
-        for f, sl in zip(self.problem.factors, self.problem.aux_slices):
-            if sl is not None and f.name == "3d":
-                return x[sl].reshape(2, 3).copy()
-        return np.asarray(default, dtype=np.float64)
-
-    def solve(self, t_us, poses0: np.ndarray, t_prime0: np.ndarray, ends: FrameDetections, corr: Correspondences,
-              phi: np.ndarray, relative: bool = True,
-              fix_ends: bool = False) -> tuple[np.ndarray, np.ndarray, SolveStats]:
-        """One solve of Eq. 3 with fixed correspondences, warm-started at poses0 (N+1, 33) and t_prime0 (2, 3).
-
-        ends: detections at frames 0 and N (2 rows). phi: (N, 24). relative=False holds each correspondence's
-        source side where it was found (per-frame fits, the w/o_batch mode). fix_ends: S_0 and S_N stay at
-        poses0's. Returns (poses, t', stats).
-        """
-        F = self.F
-        poses0 = np.asarray(poses0, dtype=np.float64)
-        if poses0.shape != (F, _NP):
-            raise EnergyError(f"solve: expected poses0 of shape ({F}, 33), got {poses0.shape}")
-        if ends.n != 2:
-            raise EnergyError(f"solve: expected detections at frames 0 and N (2 rows), got {ends.n}")
-        start = np.clip(poses0, self.lower, self.upper)
-        x0 = self.x_of(start, t_prime0)
-        self.problem.set_window(t_us, self.window(t_us, ends, corr, phi, relative), x0)
+    def solve(self, x0: np.ndarray, estimate: Estimate, fix_ends: bool = False) -> tuple[np.ndarray, SolveStats]:
+        """One solve of Eq. 3, the factors relinearised at ``estimate``, warm-started at x0 (poses clipped into their
+        bounds): (x, stats). fix_ends: S_0 and S_N stay at x0's."""
+        F, nU = self.F, self.problem.nU
+        x0 = np.array(x0, dtype=np.float64)
+        x0[:nU] = np.clip(x0[:nU].reshape(F, _NP), self.lower, self.upper).ravel()
+        for f in self.factors:
+            f.relinearize(estimate)
+        self.problem.set_reference(x0)
         x, stats = self.problem.solve(x0, "batch solve", fixed_units=(0, F - 1) if fix_ends else ())
-        stats = replace(stats, n_correspondences=corr.n)
-        return x[:_NP * F].reshape(F, _NP), self.t_prime_of(x, t_prime0), stats
+        n_cor = sum(int(f.report().get("n_correspondences", 0)) for f in self.factors)
+        return x, replace(stats, n_correspondences=n_cor)
 
-    def energies(self, t_us, poses: np.ndarray, t_prime: np.ndarray, ends: FrameDetections, corr: Correspondences,
-                 phi: np.ndarray, relative: bool = True) -> dict:
-        """Unweighted value of each term of Eq. 4 at the given poses, and the weighted total (without E_damp)."""
-        x = self.x_of(poses, t_prime)
-        self.problem.set_window(t_us, self.window(t_us, ends, corr, phi, relative), x)
+    def poses_of(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(x[:self.problem.nU]).reshape(self.F, _NP).copy()
+
+    def energies(self, x: np.ndarray) -> dict:
+        """Unweighted value of each term of Eq. 4 at x (the factors' current data), the weighted total (without
+        E_damp), and the factors' counts (n_*)."""
         terms = self.problem.terms(x)
-        out = {name: terms.get(name, 0.0) for name in ("cor", "2d", "3d", "temp")}
-        out["total"] = float(sum(f.weight * terms[f.name] for f in self.problem.factors))
+        out = dict(terms)
+        out["total"] = float(sum(f.weight * terms[f.name] for f in self.factors))
+        for f in self.factors:
+            out.update({k: v for k, v in f.report().items() if k.startswith("n_")})
         return out
 
 
@@ -263,10 +265,9 @@ def batch_inputs(problem: BatchProblem, t_us, xy, valid, det: FrameDetections):
     if t_us.shape != (F,):
         raise EnergyError(f"t_us: the problem was built for {F} tracking frames per batch, got {t_us.shape}")
     xy, valid = check_tracks(xy, valid, F)
-    if isinstance(c.max_tracks, bool) or int(c.max_tracks) != c.max_tracks or c.max_tracks < 0:
-        raise EnergyError(f"max_tracks: expected an integer >= 0 (0 = all), got {c.max_tracks!r}")
-    if c.max_tracks and xy.shape[1] > c.max_tracks:
-        keep = np.sort(np.argsort(-valid.sum(axis=0), kind="stable")[: int(c.max_tracks)])
+    most = c.tracks.max_tracks
+    if most and xy.shape[1] > most:
+        keep = np.sort(np.argsort(-valid.sum(axis=0), kind="stable")[: int(most)])
         xy, valid = xy[:, keep], valid[:, keep]
     if det.n == F and F > 2:
         ends = det.rows([0, F - 1])
@@ -286,13 +287,12 @@ def solve_batch(problem: BatchProblem, t_us: np.ndarray, xy: np.ndarray, valid: 
 
     t_us: (N+1,) tracking frame times, µs. xy (N+1, H, 2) pixels and valid (N+1, H): sliced event tracks.
     det: detections at frames 0 and N (2 rows), or at every tracking frame (N+1 rows; required by ``all``).
-    The config's icp_rounds (alternations of correspondence search and solve, >= 1), max_tracks (use at most this
-    many tracks, those valid at the most frames; 0 = all), still_m (E_temp applies only to joints that moved less
-    than this between the end fits; 0 = to every joint without correspondences, the paper's literal φ), boundary
-    ("fixed": S_0 and S_N stay at their fits to the detections, which neighbouring batches share, so the joined
-    sequence is continuous; "free": the solve moves them too), edge_margin_px (tracks this close to a
-    silhouette/self-occlusion edge give no correspondence) and phi_scope apply. Raises EnergyError on unusable data
-    (before any solve), SolveFailed on an unsuccessful IPOPT solve.
+    The config's icp_rounds (alternations of relinearising, i.e. correspondence search, and solve, >= 1),
+    tracks.max_tracks (use at most this many tracks, those valid at the most frames; 0 = all), tracks.edge_margin_px
+    (tracks this close to a silhouette/self-occlusion edge give no correspondence), boundary ("fixed": S_0 and S_N
+    stay at their fits to the detections, which neighbouring batches share, so the joined sequence is continuous;
+    "free": the solve moves them too) and the terms' settings apply. Raises EnergyError on unusable data (before
+    any solve), SolveFailed on an unsuccessful IPOPT solve.
     """
     t_us, xy, valid, ends = batch_inputs(problem, t_us, xy, valid, det)
     mode, F = problem.config.mode, problem.F
@@ -301,14 +301,27 @@ def solve_batch(problem: BatchProblem, t_us: np.ndarray, xy: np.ndarray, valid: 
     if mode == "all":
         poses, tps, solves = _fit_every_frame(problem, det)
         seconds["fit"] = time.perf_counter() - t0
-        return _result(problem, t_us, poses, tps[[0, F - 1]], ends, Correspondences.empty(),
-                       np.zeros((F - 1, NUM_JOINTS)), solves, seconds)
+        inputs = batch_window(t_us, ends)
+        problem.collect(inputs)
+        x = _with_start(problem, poses, tps[[0, F - 1]], inputs)
+        return _result(problem, poses, x, solves, seconds)
     poses, t_prime, ends, solves = _initial_poses(problem, t_us, ends)
     seconds["init"] = time.perf_counter() - t0
-    corr, phi = Correspondences.empty(), np.zeros((F - 1, NUM_JOINTS))
+    inputs = batch_window(t_us, ends, xy, valid, problem.config.tracks.edge_margin_px)
+    problem.collect(inputs)
+    x = _with_start(problem, poses, t_prime, inputs)
     if mode == "linear":
-        return _result(problem, t_us, poses, t_prime, ends, corr, phi, solves, seconds)
-    return _icp_batch(problem, t_us, xy, valid, ends, poses, t_prime, solves, seconds)
+        return _result(problem, poses, x, solves, seconds)
+    return _icp_batch(problem, t_us, inputs, poses, x, solves, seconds)
+
+
+def _with_start(problem: BatchProblem, poses: np.ndarray, t_prime: np.ndarray, inputs: WindowInputs) -> np.ndarray:
+    """The decision vector of the poses, the factors' auxiliary variables at their start (E_3D's t': the fits')."""
+    inputs.offer("fit_translation", lambda: np.asarray(t_prime, dtype=np.float64))
+    inputs.start = _frames(inputs.frames_us, poses)
+    x = problem.problem.start(np.zeros((problem.F, _NP)), inputs)
+    x[:problem.problem.nU] = np.asarray(poses, dtype=np.float64).ravel()
+    return x
 
 
 def _fit_every_frame(problem: BatchProblem, det: FrameDetections):
@@ -340,41 +353,31 @@ def _initial_poses(problem: BatchProblem, t_us, ends: FrameDetections):
     return interpolate_poses(S0, SN, t_us), np.stack([T0, TN]), ends, [st0, stN]
 
 
-def _icp_batch(problem: BatchProblem, t_us, xy, valid, ends, poses, t_prime, solves, seconds) -> BatchResult:
-    """Modes batch, per_frame and odometry: ``icp_rounds`` alternations of correspondence search and solve."""
-    c, F = problem.config, problem.F
-    coupled = c.mode != "per_frame"  # batch and odometry: E_cor relative, E_temp on
-    # E_temp holds still the parts without correspondences, "non-moving" in the paper's words; a joint whose end
-    # fits moved more than still_m over the batch is not still, and holding it contradicts the detections.
-    # (odometry has no second fit: the paper's literal φ.)
-    moved = None
-    if c.still_m > 0 and c.mode != "odometry":
-        Jends = joint_positions(poses[[0, F - 1]], problem.template.rest_joints)
-        moved = np.linalg.norm(Jends[1] - Jends[0], axis=1) > c.still_m
+def _icp_batch(problem: BatchProblem, t_us, inputs: WindowInputs, poses, x, solves, seconds) -> BatchResult:
+    """Modes batch, per_frame and odometry: ``icp_rounds`` alternations of relinearising every factor (the tracks'
+    correspondences at the current poses, E_temp's indicator) and solving. per_frame: every frame on its own (each
+    correspondence's source side held, nothing couples frames)."""
+    c = problem.config
+    coupled = c.mode != "per_frame"
     seconds["correspondences"] = seconds["solve"] = 0.0
     S0 = poses[0].copy()
-    corr, phi = Correspondences.empty(), np.zeros((F - 1, NUM_JOINTS))
-    for _ in range(int(c.icp_rounds)):
+    for r in range(int(c.icp_rounds)):
         t1 = time.perf_counter()
-        corr = find_correspondences(problem.template, problem.camera, poses, xy, valid, c.edge_margin_px)
-        phi = temporal_indicator(corr, F, c.phi_scope) if coupled else np.zeros((F - 1, NUM_JOINTS))
-        if moved is not None:
-            phi[:, moved] = 0.0
-        t2 = time.perf_counter()
-        poses, t_prime, st = problem.solve(t_us, poses, t_prime, ends, corr, phi, relative=coupled,
-                                           fix_ends=c.boundary == "fixed" and c.mode != "odometry")
-        seconds["correspondences"] += t2 - t1
-        seconds["solve"] += time.perf_counter() - t2
+        est = Estimate(_frames(t_us, problem.poses_of(x)), r, inputs, problem.template, problem.camera,
+                       coupled=coupled)
+        x, st = problem.solve(x, est, fix_ends=c.boundary == "fixed" and c.mode != "odometry")
+        seconds["solve"] += st.seconds
+        seconds["correspondences"] += time.perf_counter() - t1 - st.seconds
         solves.append(st)
+    poses = problem.poses_of(x)
     if c.mode == "odometry":
         poses = S0[None, :] + (poses - poses[0])  # anchored exactly at S_0's fit
-    return _result(problem, t_us, poses, t_prime, ends, corr, phi, solves, seconds, relative=coupled)
+    return _result(problem, poses, x, solves, seconds)
 
 
-def _result(problem, t_us, poses, t_prime, ends, corr, phi, solves, seconds, relative=True) -> BatchResult:
-    energies = problem.energies(t_us, poses, t_prime, ends, corr, phi, relative)
-    energies["n_correspondences"] = corr.n
-    return BatchResult(poses=poses, t_prime=np.asarray(t_prime), status=solves[-1].status,
+def _result(problem, poses, x, solves, seconds) -> BatchResult:
+    energies = problem.energies(x)
+    return BatchResult(poses=poses, aux=problem.problem.aux(x), status=solves[-1].status,
                        iterations=int(sum(s.iterations for s in solves)), energies=energies, solves=tuple(solves),
                        seconds=seconds)
 

@@ -8,7 +8,29 @@ from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import Detections, PoseSequence
 from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import SlicedTracks
-from eventcap.core.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, group, param
+from eventcap.energy.settings import CorConfig, IpoptConfig, Joints3DConfig, Landmarks2DConfig, TempConfig
+
+
+@dataclass
+class BatchTracks:
+    """Which event tracks a batch's E_cor uses, and where."""
+
+    max_tracks: int = param(0, ge=0, help="use at most this many tracks per batch, those valid at the most frames "
+                                          "(0: all)")
+    edge_margin_px: float = param(1.0, ge=0, help="tracks nearer than this to a silhouette or self-occlusion edge "
+                                                  "of the current estimate give no correspondence, px (0: keep all)")
+
+
+@dataclass
+class BatchTerms:
+    """The terms of the batch energy (paper Eq. 4), in the order they are summed (each: its weight, 0 = off, and its
+    settings)."""
+
+    landmarks_2d: Landmarks2DConfig = group(Landmarks2DConfig, help="E_2D (Eq. 6) at frames 0 and N")
+    joints_3d: Joints3DConfig = group(Joints3DConfig, help="E_3D (Eq. 7) at frames 0 and N")
+    cor: CorConfig = group(CorConfig, help="E_cor (Eq. 5): the event tracks' correspondences between every two frames")
+    temp: TempConfig = group(TempConfig, help="E_temp (Eq. 8): parts without correspondences held still")
 
 
 @dataclass
@@ -18,35 +40,31 @@ class BatchSolveConfig:
                                     "odometry (events only from S_0's fit, for the fuse stage; not in the paper)",
                      choices=("batch", "per_frame", "linear", "all", "odometry"))
     icp_rounds: int = param(2, ge=1, help="alternations of correspondence search and solve (ICP)")
-    lambda_cor: float = param(50.0, ge=0, help="weight of E_cor, the event correspondences (paper's λ_adj)")
-    lambda_2d: float = param(200.0, ge=0, help="weight of E_2D (image residuals in focal-normalised units)")
-    robust_2d_px: float = param(2.0, ge=0, help="Cauchy loss scale of E_2D per landmark, px (0 = least squares, the "
-                                          "paper): limits the pull of detector outliers and left/right flips")
-    lambda_3d: float = param(1.0, ge=0, help="weight of E_3D (metres)")
-    lambda_temp: float = param(80.0, ge=0, help="weight of E_temp, holding joints of parts without correspondences")
-    lambda_damp: float = param(1e-3, ge=0, help="weight of the proximal term towards each solve's start (not in the paper)")
-    phi_scope: str = param("batch", help="E_temp indicator: batch (paper: per batch) | pair (per frame pair)",
-                          choices=("batch", "pair"))
-    max_tracks: int = param(0, ge=0, help="use at most this many tracks per batch, the longest (0 = all)")
-    edge_margin_px: float = param(1.0, ge=0, help="tracks nearer than this to a silhouette/self-occlusion edge of the "
-                                            "current estimate give no correspondence (0 = keep all)")
-    boundary: str = param("fixed", help="fixed: S_0 and S_N stay at their detection fits, shared with the "
-                                        "neighbouring batches (continuous joined motion) | free: solved too")
-    still_m: float = param(0.03, ge=0, help="E_temp holds only joints that moved less than this between the end fits, "
-                                      "metres (0 = every joint without correspondences, the paper's literal phi)")
+    damp: float = param(1e-3, ge=0, help="proximal pull of every frame's pose towards each solve's start (rad and m "
+                                         "alike; not in the paper: it keeps angles nothing observes from drifting)")
+    boundary: str = param("fixed", choices=("fixed", "free"),
+                          help="fixed: S_0 and S_N stay at their detection fits, shared with the neighbouring batches "
+                               "(continuous joined motion) | free: solved too")
     limits: dict[str, list[float]] = param(
         default_factory=dict, help="joint-limit overrides {parameter name: [min, max]} in radians (metres for "
                                    "root_t*), e.g. a subject's reduced range: {l_knee_flex: [0.0, 2.0]}")
-    max_iter: int = param(100, ge=1, affects_result=False,
-                          help="IPOPT iteration limit per solve; reaching it fails the batch. Not part of the cache "
-                               "key: a solve that converges within any cap gives the same poses, and failures are "
-                               "never cached, so raising the cap recomputes only the batches that failed")
-    tol: float = param(1e-6, gt=0, help="IPOPT convergence tolerance")
-    mumps_pivot_order: int = param(0, ge=0, le=7, help="MUMPS ordering (0 AMD ... 7 auto), pinned for reproducibility")
+    tracks: BatchTracks = group(BatchTracks, help="which event tracks E_cor uses")
+    terms: BatchTerms = group(BatchTerms, help="the terms of the energy: each one's weight (0: off) and settings")
+    ipopt: IpoptConfig = group(IpoptConfig, max_iter=100, help="IPOPT's options for every solve of a batch")
+
+
+#: Settings that moved when the config was nested: {old key: new key}.
+BATCH_RENAMED = {
+    "lambda_cor": "terms.cor.weight", "lambda_2d": "terms.landmarks_2d.weight",
+    "robust_2d_px": "terms.landmarks_2d.robust_px", "lambda_3d": "terms.joints_3d.weight",
+    "lambda_temp": "terms.temp.weight", "lambda_damp": "damp", "phi_scope": "terms.temp.scope",
+    "max_tracks": "tracks.max_tracks", "edge_margin_px": "tracks.edge_margin_px", "still_m": "terms.temp.still_m",
+    "max_iter": "ipopt.max_iter", "tol": "ipopt.tol", "mumps_pivot_order": "ipopt.mumps_pivot_order"}
 
 
 BATCH = StageSpec(
-    name="batch", kind="solve", version=2,  # 2: its terms are factors (sums in another order)
+    name="batch", kind="solve", version=3,  # 2: its terms are factors (sums in another order); 3: nested settings,
+    # energies named by the terms' groups
     description="hybrid batch optimisation of all 1 kHz poses of a batch: event correspondences, 2D/3D detections, "
                 "temporal term, joint limits (Sec. 3.2, CasADi + IPOPT)",
     config=BatchSolveConfig,
@@ -54,6 +72,7 @@ BATCH = StageSpec(
             "batches": Port(BatchPlan)},
     outputs={"poses": Port(PoseSequence)}, per_batch=True,
     run="eventcap_solve._impl:run_batch",
+    renamed=BATCH_RENAMED,
 )
 
 

@@ -8,7 +8,6 @@ import math
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.body.segments import inertia_prior_gain
 from eventcap.analysis.motion import tracking_times_us
 from eventcap.core.stage import StageFailed
 
@@ -104,29 +103,21 @@ def window_tracks(parts, step: int, where: str) -> tuple[np.ndarray, np.ndarray,
     return t_cor, xy_all, valid_all
 
 
-def prior_base_gain(config, rest_joints: np.ndarray) -> np.ndarray | None:
-    """The motion prior's fixed gain per pose parameter (33,) from the stage's config: each rotation's inertia
-    (``prior_inertia``, ``prior_inertia_cap``, ``prior_inertia_floor``;
-    :func:`eventcap.body.segments.inertia_prior_gain`); None when off. ValueError on a bad value."""
-    if config.prior_inertia == 0:
-        return None
-    return inertia_prior_gain(rest_joints, float(config.prior_inertia), float(config.prior_inertia_cap),
-                              float(config.prior_inertia_floor))
-
-
 def prior_context(config, plan, t_det, detections, where: str, log):
-    """(times, detections) of the intensity frames within prior_context_s of the window's detection frames t_det,
-    from which the prior's per-parameter gains and the context pull are chosen; None (and a log line) when the frames come less often than
-    prior_gain_min_fps. StageFailed when their detections are missing."""
+    """(times, detections) of the intensity frames within ``smoothing.seconds`` of the window's detection frames
+    t_det, whose fits give the window's smoothing evidence (the prior's gains, the context pull); None (and a log
+    line) when the frames come less often than ``smoothing.min_fps``. StageFailed when their detections are
+    missing."""
     from eventcap.energy.detections import select_detections
 
     frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
     fps = 1e6 / float(np.median(np.diff(frames))) if frames.size > 1 else 0.0
-    if fps < float(config.prior_gain_min_fps):
-        log.info("%s: no per-parameter prior gains or context pull: intensity frames at %.1f fps, below "
-                 "stages.spline.prior_gain_min_fps (%g)", where, fps, float(config.prior_gain_min_fps))
+    if fps < float(config.smoothing.min_fps):
+        log.info("%s: no smoothing evidence from the fits around the window (no prior gains, no context pull): "
+                 "intensity frames at %.1f fps, below stages.solve.smoothing.min_fps (%g)", where, fps,
+                 float(config.smoothing.min_fps))
         return None
-    reach = int(round(float(config.prior_context_s) * 1e6))
+    reach = int(round(float(config.smoothing.seconds) * 1e6))
     t_ctx = frames[(frames >= t_det[0] - reach) & (frames <= t_det[-1] + reach)]
     try:
         return t_ctx, select_detections(detections, t_ctx)
@@ -169,7 +160,7 @@ def capture_template(rec, config, layout, plan, detections, where: str, ctx):
             _FLOORS[key] = rec.template
         else:
             _FLOORS[key] = with_widths(rec.template, widths)
-            ctx.log.info("%s: where the detector puts the joints, over the capture (stages.spline.landmarks=%s): %s",
+            ctx.log.info("%s: where the detector puts the joints, over the capture (stages.solve.landmarks=%s): %s",
                          where, config.landmarks,
                          "; ".join(f"{k} {v:.3f} of the template's ({widths.frames[k]} frames)"
                                    for k, v in widths.scale.items()))
@@ -177,16 +168,14 @@ def capture_template(rec, config, layout, plan, detections, where: str, ctx):
     return _FLOORS[key]
 
 
-def capture_floor_of(solver, config, plan, detections, where: str, log) -> float | None:
-    """The floor's height over the capture for the floor terms (None when they are off), from the per-frame fits
-    at every intensity frame of the plan (eventcap_spline.solve.capture_floor; the same in every window, kept per
-    process)."""
+def capture_floor_of(solver, plan, detections, where: str, log) -> float | None:
+    """The floor's height over the capture (the floor evidence of every window; asked for by the factors that need
+    it), from the per-frame fits at every intensity frame of the plan (eventcap_spline.solve.capture_floor; the
+    same in every window, kept per process)."""
     from eventcap.energy.detections import select_detections
 
     from .solve import capture_floor
 
-    if not (config.lambda_floor > 0 or config.lambda_slide > 0):
-        return None
     frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
     try:
         det = select_detections(detections, frames)
@@ -212,14 +201,6 @@ def _bound_captures() -> None:
         _FLOORS.clear()
 
 
-def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
-    """E_sil's frames: a batch's tracking frames t_us every ``step_ms`` (rounded to frames), its first and last
-    included."""
-    t_us = np.asarray(t_us, dtype=np.int64)
-    k = max(1, int(round(step_ms * 1000 / max(1, int(np.median(np.diff(t_us)))))))
-    return np.unique(np.append(t_us[::k], t_us[-1]))
-
-
 def solver_for(template, camera, layout, config):
     """The built solver for this window layout and config (built once per process, keyed by value)."""
     from eventcap.energy.errors import EnergyError
@@ -233,7 +214,7 @@ def solver_for(template, camera, layout, config):
         try:
             solver = SplineSolver(template, camera, layout, config)
         except EnergyError as exc:
-            raise StageFailed(f"stages.spline: {exc}", status=exc.status) from exc
+            raise StageFailed(f"stages.solve: {exc}", status=exc.status) from exc
         if len(_SOLVERS) >= _SOLVERS_MAX:
             _SOLVERS.clear()
         _SOLVERS[key] = solver
@@ -249,53 +230,25 @@ def clear_solvers() -> None:
     clear_fits()
 
 
-_CHECKS = {"robust_cor_px": ("pixels >= 0", lambda v: v >= 0),
-           "icp_settle_px": ("pixels >= 0", lambda v: v >= 0),
-           "prior_inertia": ("an exponent >= 0", lambda v: v >= 0),
-           "prior_inertia_floor": ("a gain in [0, 1]", lambda v: 0 <= v <= 1),
-           "prior_gain_min_fps": ("frames per second >= 0", lambda v: v >= 0),
-           "prior_gain_max": ("a gain >= 1", lambda v: v >= 1),
-           "prior_context_s": ("seconds >= 0", lambda v: v >= 0),
-           "lambda_sil": ("a number >= 0", lambda v: v >= 0),
-           "lambda_context": ("a number >= 0", lambda v: v >= 0),
-           "context_gate_floor": ("a number in [0, 1]", lambda v: 0 <= v <= 1),
-           "sil_step_ms": ("milliseconds > 0", lambda v: v > 0),
-           "sil_window_ms": ("milliseconds >= 0", lambda v: v >= 0),
-           "sil_patch_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
-           "sil_huber_px": ("pixels > 0", lambda v: v > 0),
-           "sil_dist": ("a number >= 0", lambda v: v >= 0),
-           "still_hold_ms": ("milliseconds >= 0", lambda v: v >= 0),
-           "still_sweep_ms": ("milliseconds >= 0", lambda v: v >= 0),
-           "still_rate_hz": ("a number > 0", lambda v: v > 0),
-           "still_radius_px": ("an integer >= 0", lambda v: v >= 0 and int(v) == v),
-           "knot_ms": ("milliseconds >= 0.001", lambda v: round(v * 1000) >= 1)}
-
-
 def check_config(config) -> None:
-    """StageFailed naming the first key of the stage's config whose value cannot be used."""
-    for name in ("half_window", "cor_step", "icp_rounds", "window_step"):
-        v = getattr(config, name)
-        low = 1 if name in ("cor_step", "window_step") else 0
-        if isinstance(v, bool) or int(v) != v or v < low:
-            raise StageFailed(f"stages.spline.{name}: expected an integer >= {low}, got {v!r}", status="invalid_config")
+    """StageFailed naming the key of a value that its declaration allows but the solve cannot use (the bounds of
+    each setting are its declaration's, checked before anything runs)."""
     most = max(1, 2 * int(config.half_window))
     if int(config.window_step) > most:
-        raise StageFailed(f"stages.spline.window_step: expected at most max(1, 2·half_window) = {most} (neighbouring "
+        raise StageFailed(f"stages.solve.window_step: expected at most max(1, 2·half_window) = {most} (neighbouring "
                           f"windows must overlap to be blended), got {config.window_step}", status="invalid_config")
-    for name, (what, good) in _CHECKS.items():
-        v = getattr(config, name)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not good(v):
-            raise StageFailed(f"stages.spline.{name}: expected {what}, got {v!r}", status="invalid_config")
-    if not float(config.prior_inertia_cap) >= 1:
-        raise StageFailed(f"stages.spline.prior_inertia_cap: expected a gain >= 1 (or .inf), got "
-                          f"{config.prior_inertia_cap!r}", status="invalid_config")
+    if round(float(config.knot_ms) * 1000) < 1:
+        raise StageFailed(f"stages.solve.knot_ms: expected at least 0.001 ms (1 µs), got {config.knot_ms!r}",
+                          status="invalid_config")
 
 
 def window_inputs(inputs, b, config, where: str, role: tuple[int, int, int, int]):
     """The data of this batch's window (role: :func:`window_role`, the window a..z keeping batches ka..kz): (own
     tracks, window (a, z), the batches whose tracks E_cor uses, their index among the tracks, detection times, their
-    detections, tracks for E_cor (t_cor, xy, valid), silhouette frames or None)."""
+    detections, the tracks at the correspondence frames (:class:`eventcap.energy.window.Tracks`), the tracking times
+    of each batch the window keeps)."""
     from eventcap.energy.detections import select_detections
+    from eventcap.energy.window import Tracks
 
     sliced, detections, plan = inputs["sliced"], inputs["detections"], inputs["batches"]
     a, z, ka, kz = role
@@ -309,7 +262,7 @@ def window_inputs(inputs, b, config, where: str, role: tuple[int, int, int, int]
         raise StageFailed(f"{where}: {t_us.size} tracking frame(s); need at least 2", status="invalid_input")
     # own: the tracks of the batches the window keeps (this batch alone at window_step 1); window: all of its batches
     kept = [k for k in range(ka, kz + 1) if k in index]
-    scope = kept if config.tracks == "own" else [k for k in range(a, z + 1) if k in index]
+    scope = kept if config.tracks.scope == "own" else [k for k in range(a, z + 1) if k in index]
     t_det = np.unique(np.concatenate([plan.t0_us[a:z + 1], plan.t1_us[a:z + 1]]))
     try:
         det = select_detections(detections, t_det)
@@ -318,13 +271,11 @@ def window_inputs(inputs, b, config, where: str, role: tuple[int, int, int, int]
     problems = det.problems()
     if problems:
         raise StageFailed(f"{where}: detections unusable: " + "; ".join(problems), status="invalid_input")
-    cor = window_tracks([own if k == b.index else sliced[index[k]] for k in scope], int(config.cor_step), where)
-    t_sil = None
-    if config.lambda_sil > 0:  # E_sil at the frames of the batches the window keeps
-        t_sil = np.unique(np.concatenate([
-            sil_frames(np.asarray((own if k == b.index else sliced[index[k]]).t_us, dtype=np.int64),
-                       config.sil_step_ms) for k in kept]))
-    return own, (a, z), scope, index, t_det, det, cor, t_sil
+    part = (lambda k: own if k == b.index else sliced[index[k]])
+    t_cor, xy, valid = window_tracks([part(k) for k in scope], int(config.tracks.step), where)
+    tracks = Tracks(t_cor, xy, valid, float(config.tracks.edge_margin_px))
+    kept_times = tuple(np.asarray(part(k).t_us, dtype=np.int64) for k in kept)
+    return own, (a, z), scope, index, t_det, det, tracks, kept_times
 
 
 def window_times(sliced, index, plan, b, a: int, z: int, t_us: np.ndarray) -> np.ndarray:
@@ -343,10 +294,11 @@ def run_spline(inputs, config, ctx):
     from eventcap.energy.factor import Layout
     from eventcap.energy.problem import SplinePoses, coupling_band
     from eventcap.energy.spline import UniformCubicBSpline
+    from eventcap.energy.terms import FACTORS, sample_times
+    from eventcap.energy.window import WindowInputs
+    from eventcap.worldframe import upright
 
     from .solve import NothingObserved, observed_frames, solve_window
-
-    from eventcap.worldframe import upright
 
     inputs = {**inputs, "recording": upright(inputs["recording"], inputs["detections"])}  # the detections' world
     rec, plan, b = inputs["recording"], inputs["batches"], ctx.batch
@@ -363,34 +315,31 @@ def run_spline(inputs, config, ctx):
         ctx.stats["kept_by"] = kept_by(len(plan), b.index, int(config.half_window), step)
         return {"poses": PoseSequence(t_us=np.zeros(0, dtype=np.int64), poses=np.zeros((0, 33)), status="in_window",
                                       iterations=0, energies={})}
-    own, (a, z), scope, index, t_det, det, (t_cor, xy, valid), t_sil = window_inputs(inputs, b, config, where, role)
+    own, (a, z), scope, index, t_det, det, tracks, kept_times = window_inputs(inputs, b, config, where, role)
     h_us = int(round(config.knot_ms * 1000))
     n_seg = int(math.ceil((t_det[-1] - t_det[0]) / h_us))
     spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
-    layout = Layout(n_seg=n_seg, n_det=t_det.size, n_cor=t_cor.size, n_sil=0 if t_sil is None else t_sil.size,
-                    band=coupling_band(SplinePoses(n_seg, spline), t_cor))
+    data = WindowInputs(spline.t0_us, spline.t1_us,
+                        knots_us=spline.t0_us + spline.h_us * np.arange(n_seg + 1, dtype=np.int64),
+                        t_det_us=t_det, detections=det, tracks=tracks, track_times_us=kept_times,
+                        events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), contact=config.contact)
+    times = sample_times(config.terms, data)
+    band = max([coupling_band(SplinePoses(n_seg, spline), tracks.t_us)]  # how far coupled samples reach
+               + [coupling_band(SplinePoses(n_seg, spline), t) for k, t in times.items()
+                  if FACTORS[k].couples_neighbours and t.size > 1])
+    layout = Layout(n_seg=n_seg, sizes=tuple((k, int(t.size)) for k, t in times.items()), band=band)
     template = capture_template(rec, config, layout, plan, inputs["detections"], where, ctx)
     solver, built = solver_for(template, rec.camera, layout, config)
     if built:
-        ctx.log.info("built the spline NLP (%d control points, %d detection frames, %d correspondence frames; "
-                     "factors %s) in %.2f s (once per process)", spline.n_ctrl, t_det.size, t_cor.size,
-                     ", ".join(f.name for f in solver.factors), solver.build_seconds)
+        ctx.log.info("built the spline NLP (%d control points; terms %s) in %.2f s (once per process)",
+                     spline.n_ctrl, ", ".join(f"{f.name} ({f.n})" for f in solver.factors), solver.build_seconds)
         ctx.stats["build_s"] = solver.build_seconds
     what = f"{where} (window of batches {a}..{z})"
-    context = (prior_context(config, plan, t_det, inputs["detections"], where, ctx.log)
-               if config.prior_gain_max > 1 or config.lambda_context > 0 else None)
-    try:
-        base_gain = prior_base_gain(config, rec.template.rest_joints)
-    except ValueError as exc:
-        raise StageFailed(f"stages.spline.prior_inertia: {exc}", status="invalid_input") from exc
-    if base_gain is not None:
-        ctx.stats["prior_inertia_gain"] = [float(v) for v in base_gain]
+    context = prior_context(config, plan, t_det, inputs["detections"], where, ctx.log)
     t_win = window_times(inputs["sliced"], index, plan, b, a, z, np.asarray(own.t_us, dtype=np.int64))
-    floor_y = capture_floor_of(solver, config, plan, inputs["detections"], where, ctx.log)
+    data.offer("floor_y", lambda: capture_floor_of(solver, plan, inputs["detections"], where, ctx.log))
     try:
-        res = solve_window(solver, spline, t_det, det, t_cor, xy, valid, what=what, context=context,
-                           events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), t_sil_us=t_sil,
-                           base_gain=base_gain, floor_y=floor_y)
+        res = solve_window(solver, spline, data, what=what, context=context)
     except NothingObserved as exc:  # a gap: nothing was seen, so nothing is estimated (stitch leaves it out)
         ctx.log.warning("%s: a gap: %s", where, str(exc).removeprefix(f"{what}: "))
         ctx.stats["gap"] = True
@@ -408,52 +357,42 @@ def run_spline(inputs, config, ctx):
     # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.
     first = int(np.flatnonzero(np.isfinite(poses[:, 0]))[0])
     poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[first, 27:30] / (2.0 * np.pi))
-    log_window(ctx, config, res, where, (a, z), t_det, scope, b, context, spline, t_sil)
+    log_window(ctx, config, res, where, (a, z), t_det, scope, b, spline)
     energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
     iters = int(sum(s.iterations for s in res.solves))
     return {"poses": PoseSequence(t_us=t_win, poses=poses, status=res.solves[-1].status, iterations=iters,
                                   energies=energies)}
 
 
-def log_window(ctx, config, res, where, window, t_det, scope, b, context, spline, t_sil) -> None:
-    """The window's log lines and run statistics."""
+def log_window(ctx, config, res, where, window, t_det, scope, b, spline) -> None:
+    """The window's log lines and run statistics: the solve's, and what each factor says of its data."""
     a, z = window
     iters = int(sum(s.iterations for s in res.solves))
     secs = sum(res.seconds.values())
-    ctx.log.info("%s: window of batches %d..%d (%d frames of detections, %d fitted here, %d control points), %d "
-                 "correspondences from the tracks of %s, %d IPOPT iterations, %.2f s (%s)", where, a, z, t_det.size,
-                 res.fits_computed, spline.n_ctrl, res.energies["n_correspondences"],
-                 f"batch {b.index}" if scope == [b.index] else f"{len(scope)} batches", iters, secs,
+    ctx.log.info("%s: window of batches %d..%d (%d frames of detections, %d fitted here, %d control points, tracks "
+                 "of %s), %d IPOPT iterations, %.2f s (%s)", where, a, z, t_det.size, res.fits_computed,
+                 spline.n_ctrl, f"batch {b.index}" if scope == [b.index] else f"{len(scope)} batches", iters, secs,
                  res.solves[-1].status)
-    if res.cor_change_px and len(res.solves) < int(config.icp_rounds):
-        ctx.log.info("%s: correspondences settled after ICP round %d (they moved E_cor by %.3g px, below "
-                     "stages.spline.icp_settle_px = %g): %d of %d rounds", where, len(res.solves),
-                     res.cor_change_px[-1], float(config.icp_settle_px), len(res.solves), int(config.icp_rounds))
-    if t_sil is not None:
-        ctx.log.info("%s: E_sil at %d frames: %d of %d silhouette boundary pixels matched to an event (last round)",
-                     where, t_sil.size, res.energies["n_silhouette"], res.energies["n_boundary"])
-    if config.tracks == "window" and len(scope) < z - a + 1:
+    for line in res.lines:
+        ctx.log.info("%s: %s", where, line)
+    if res.association_change_px and len(res.solves) < int(config.icp_rounds):
+        ctx.log.info("%s: the association settled after ICP round %d (it moved the residuals by %.3g px, below "
+                     "stages.solve.icp_settle_px = %g): %d of %d rounds", where, len(res.solves),
+                     res.association_change_px[-1], float(config.icp_settle_px), len(res.solves),
+                     int(config.icp_rounds))
+    if config.tracks.scope == "window" and len(scope) < z - a + 1:
         ctx.log.warning("%s: only %d of the window's %d batches have tracks (batches= selects part of the plan)",
                         where, len(scope), z - a + 1)
-    gain_max = float(config.prior_gain_max)
-    if context is not None and gain_max > 1 and res.prior_gain is not None:
-        g = res.prior_gain
-        ctx.log.info("%s: motion prior gains from %d frames around the window: median %.3g, %d of 33 parameters at "
-                     "the largest (%g)", where, context[0].size, float(np.median(g)),
-                     int(np.sum(g >= gain_max * (1 - 1e-9))), gain_max)
-        ctx.stats["prior_gain"] = [float(v) for v in g]
-    if res.pull_frames is not None:
-        ctx.log.info("%s: context pull: median %.2f frames' worth per parameter and frame", where,
-                     float(np.median(res.pull_frames)))
-        ctx.stats["context_pull_frames"] = [float(v) for v in res.pull_frames.mean(0)]
-    if res.silence is not None:
-        st = res.silence.stillness
+    if res.stillness is not None:
+        st = res.stillness.stillness
         ctx.log.info("%s: event silence: background %.2f events/px/s; %.0f%% of (knot interval, joint) pairs still "
-                     "(stillness > 0.5)", where, res.silence.background_hz, 100.0 * float(np.mean(st > 0.5)))
+                     "(stillness > 0.5)", where, res.stillness.background_hz, 100.0 * float(np.mean(st > 0.5)))
         ctx.stats["stillness_mean"] = [float(v) for v in st.mean(0)]
-        ctx.stats["background_hz"] = res.silence.background_hz
+        ctx.stats["background_hz"] = res.stillness.background_hz
+    for rep in res.reports.values():
+        ctx.stats.update({k: v for k, v in rep.items() if not k.startswith("n_")})
     ctx.stats.update({"solve_s": secs, "phases_s": res.seconds, "iterations": iters, "window": [a, z],
                       "fits_computed": res.fits_computed,
                       "solves": [[s.status, s.iterations, s.seconds] for s in res.solves],
-                      "cor_change_px": [float(v) for v in res.cor_change_px],
-                      "n_correspondences": int(res.energies["n_correspondences"])})
+                      "association_change_px": [float(v) for v in res.association_change_px],
+                      **{k: v for k, v in res.energies.items() if k.startswith("n_")}})

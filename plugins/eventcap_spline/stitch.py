@@ -11,7 +11,7 @@ capture, a speed spike of up to 1 m/s at every batch boundary, the largest part 
 
 with w_k a C² bump over window k's span (the quintic smoothstep 6u⁵ - 15u⁴ + 10u³ over the first and last
 ``taper`` of the window, 1 between; a window's end at the start or end of the recording is not tapered, so every
-frame has weight; likewise a window's end at the edge of a gap). With ``stages.spline.window_step`` > 1 only every
+frame has weight; likewise a window's end at the edge of a gap). With ``stages.solve.window_step`` > 1 only every
 few batches solve a window (each keeping a run of batches); the others return no frames (status ``in_window``: not
 a gap) and the windows that exist are blended the same way. Each S_k is a C² cubic B-spline and every weight
 and its first two derivatives vanish at the window's ends, so the blend is C² everywhere: no seam, and overlapping
@@ -153,7 +153,7 @@ def run_stitch(inputs, config, ctx):
 
 def check_cover(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int], batches) -> None:
     """StageFailed unless every batch lies within one of the windows ``kept`` (the batches that solved a window;
-    the others, status in_window, are kept by a neighbour's: stages.spline.window_step) and each of those has frames."""
+    the others, status in_window, are kept by a neighbour's: stages.solve.window_step) and each of those has frames."""
     for k in kept:
         if windows[k][0].size < 2:
             raise StageFailed(f"stitch: batch {batches[k].index}'s window has {windows[k][0].size} frame(s): is the "

@@ -18,7 +18,7 @@ from eventcap.imaging.render import background
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic
 from eventcap.sim.events import SensorConfig
 from eventcap.sim.frames import FrameConfig
-from eventcap.core.stage import StageFailed, given_fields, given_or_unset
+from eventcap.core.stage import StageFailed, check_value, given_fields, given_or_unset
 
 
 def run_procedural(inputs, config, ctx):
@@ -65,7 +65,7 @@ FROM_PRESET = ("width", "height", "lens_mm", "frames", "contrast_threshold", "th
                "noise_rate_hz", "leak_rate_hz", "bandwidth", "cutoff_hz_at_1klux")
 
 
-def resolve_camera(config) -> tuple[CameraPreset, dict, list[str]]:
+def resolve_camera(config, where: str = "source") -> tuple[CameraPreset, dict, list[str]]:
     """The camera preset, the effective value of every preset key (explicit keys win over the preset; null means
     "the preset's"), and the keys given explicitly. Every numeric key is checked here, in one place."""
     preset = load_preset(config.camera)
@@ -78,44 +78,33 @@ def resolve_camera(config) -> tuple[CameraPreset, dict, list[str]]:
     eff["camera_distance_m"] = preset.distance_m if config.camera_distance_m is None else config.camera_distance_m
     if config.camera_distance_m is not None:
         given.append("camera_distance_m")
-    _check_values(config, eff)
+    _check_values(config, eff, where)
     return preset, eff, given
 
 
-def _check_values(config, eff: dict) -> None:
-    """Refuse NaN, inf, zero and negative values where they mean nothing, naming the key (source.<key>)."""
-    def refuse(key, expected, value):
-        raise ValueError(f"source.{key}: expected {expected}, got {value!r}")
-
-    values = {**{k: getattr(config, k) for k in ("illuminance_lux", "camera_height_m", "camera_tilt_deg", "fps",
-                                                  "exposure_us", "hot_pixel_fraction", "min_step_us", "supersample",
-                                                  "gt_rate_hz", "n_track_points", "background_seed")}, **eff}
-    for key in ("contrast_threshold", "cutoff_hz_at_1klux", "lens_mm", "camera_distance_m", "illuminance_lux",
-                "camera_height_m", "fps", "gt_rate_hz"):
-        v = values[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-            refuse(key, "a finite number > 0", v)
-    for key in ("threshold_sigma", "noise_rate_hz", "leak_rate_hz", "hot_pixel_fraction"):
-        v = values[key]
-        if not (math.isfinite(v) and v >= 0):
-            refuse(key, "a finite number >= 0", v)
-    if values["hot_pixel_fraction"] > 1:
-        refuse("hot_pixel_fraction", "a fraction in [0, 1]", values["hot_pixel_fraction"])
-    if not (math.isfinite(values["camera_tilt_deg"]) and -90 < values["camera_tilt_deg"] < 90):
-        refuse("camera_tilt_deg", "degrees in (-90, 90) (positive looks down)", values["camera_tilt_deg"])
-    for key, low in (("width", 1), ("height", 1), ("exposure_us", 1), ("min_step_us", 1), ("supersample", 1),
-                     ("refractory_us", 0), ("n_track_points", 0)):
-        if values[key] < low:
-            refuse(key, f"an integer >= {low}", values[key])
-    for key in ("width", "height"):
-        if values[key] > 65535:
-            refuse(key, "at most 65535 pixels", values[key])
-    if values["supersample"] % 2 == 0:
-        refuse("supersample", "an odd integer (samples centred on the pixel)", values["supersample"])
+def _check_values(config, eff: dict, where: str = "source") -> None:
+    """Every value, those taken from the camera preset (keys left null) included, against the keys' declarations
+    (plugins/eventcap_synthetic/spec.py: each bound is stated once, there; a config built in code is checked here
+    too), and the ROI against the sensor size; a ValueError names the key (``where.<key>``)."""
+    fields = {f.name: f for f in dataclasses.fields(type(config))}
+    values = {**{f.name: getattr(config, f.name) for f in fields.values()}, **eff}  # a config built in code too
+    for key, value in values.items():
+        problem = check_value(fields[key], value) if key in fields else None
+        if problem:
+            given = getattr(config, key, None) is not None
+            raise ValueError(f"{where}.{key}: {problem}" + ("" if given else f" (the camera preset "
+                                                                             f"{config.camera!r}'s value)"))
     roi = list(config.roi)
     if roi and (len(roi) != 4 or roi[0] < 0 or roi[1] < 0 or roi[2] < 1 or roi[3] < 1
                 or roi[0] + roi[2] > eff["width"] or roi[1] + roi[3] > eff["height"]):
-        refuse("roi", f"[x, y, width, height] inside the {eff['width']}x{eff['height']} sensor", roi)
+        raise ValueError(f"{where}.roi: expected [x, y, width, height] inside the {eff['width']}x{eff['height']} "
+                         f"sensor, got {roi!r}")
+
+
+def check_config(config, where: str = "source") -> None:
+    """The spec's ``check`` hook: run when the pipeline is built, before anything runs (the preset's values and the
+    ROI; every single key is bounded by its declaration)."""
+    resolve_camera(config, where)
 
 
 def camera_for(config, resolved=None) -> Camera:

@@ -9,7 +9,7 @@ from eventcap.artifacts.recording import Recording
 from eventcap.body.clips import motion_files
 from eventcap.body.template import Template
 from eventcap.camera_presets import preset_names
-from eventcap.core.stage import Port, StageSpec, given_or_unset, param
+from eventcap.core.stage import Port, StageSpec, given_or_unset, group, param
 
 
 @dataclass
@@ -84,16 +84,17 @@ class SyntheticConfig:
     motion_map: str = param("", help="a clip's joint-name mapping file, YAML or JSON 'BVH joint name: our joint "
                                      "name', for names the usual conventions (CMU, Mixamo, ...) do not cover",
                             file=True)
-    actor: ActorConfig = param(default_factory=ActorConfig,
+    actor: ActorConfig = group(ActorConfig,
                                help="the filmed person's own body (ANNY: height_m, build, muscle, sex, seed); all "
                                     "null: the template is filmed. With an actor the recording carries no template "
                                     "and its ground truth is the actor's joints")
-    duration_s: float = param(1.0, gt=0, help="capture length in seconds (split equally between listed motions)")
+    duration_s: float = param(1.0, gt=0, le=3600, help="capture length in seconds (split equally between listed "
+                                                       "motions), at most an hour")
     seed: int = param(0, ge=0, help="varies the performance (timing, amplitudes, side) and the sensor noise")
     speed: float = param(1.0, gt=0, help="tempo multiplier of the motions")
     amplitude: float = param(1.0, ge=0, help="excursion multiplier of the motions")
     fps: float = param(25.0, gt=0, help="intensity frame rate (DAVIS APS: 7-25 fps)")
-    exposure_us: int = param(10_000, ge=0, help="intensity frame exposure in microseconds")
+    exposure_us: int = param(10_000, ge=1, help="intensity frame exposure in microseconds")
     # --- the camera: a preset (eventcap/assets/cameras/<name>.yaml, figures cited there); null = the preset's value
     camera: str = param("davis240c", help="camera preset: resolution, lens, frames, thresholds, noise, realism",
                         choices=preset_names())
@@ -114,9 +115,9 @@ class SyntheticConfig:
     supersample: int = param(3, ge=1, odd=True, help="odd s: s×s samples per pixel (anti-aliasing)")
     calibration: str = param("", help="rpg calib.txt (fx fy cx cy k1 k2 p1 p2 k3); empty = the preset's lens",
                              file=True)
-    width: int | None = param(None, ge=1, help="sensor width in pixels; null = preset (give it with a calibration "
-                                               "file or lens_mm)")
-    height: int | None = param(None, ge=1, help="sensor height in pixels; null = preset")
+    width: int | None = param(None, ge=1, le=65535, help="sensor width in pixels; null = preset (give it with a "
+                                                         "calibration file or lens_mm)")
+    height: int | None = param(None, ge=1, le=65535, help="sensor height in pixels; null = preset")
     lens_mm: float | None = param(None, gt=0, help="focal length in mm: fx = fy = lens_mm / pixel pitch, principal "
                                                    "point at the centre, no distortion; null = the preset's lens or "
                                                    "calibration")
@@ -131,7 +132,7 @@ class SyntheticConfig:
     # --- the scene
     camera_distance_m: float | None = param(None, gt=0, help="distance of the camera from the actor (on +z); null = "
                                                              "the preset's (the actor fills the image height alike)")
-    camera_height_m: float = param(1.0, help="height of the camera above the floor")
+    camera_height_m: float = param(1.0, gt=0, help="height of the camera above the floor, metres")
     camera_tilt_deg: float = param(0.0, ge=-89, le=89, help="pitch of the camera, degrees down from horizontal (0: "
                                                             "looks level at the point camera_height_m above the "
                                                             "actor's feet)")
@@ -168,5 +169,5 @@ SYNTHETIC = StageSpec(name="synthetic", kind="source", version=1,
               config=SyntheticConfig,
               inputs={"template": Port(Template, "the body filmed when source.actor is unset")},
               outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},
-              run="eventcap_synthetic._impl:run_synthetic",
+              run="eventcap_synthetic._impl:run_synthetic", check="eventcap_synthetic._impl:check_config",
               uses=lambda config: () if actor_given(config.actor) else ("template",))
