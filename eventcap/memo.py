@@ -35,11 +35,18 @@ class ProcessCache:
     it. At most ``maxsize`` entries (least recently used dropped first; None = unbounded). Thread-safe; ``build`` runs
     outside the lock (two threads may build the same value; the first stored wins)."""
 
-    def __init__(self, name: str, maxsize: int | None = None):
+    def __init__(self, name: str, maxsize: int | None = None, max_bytes: int | None = None,
+                 weigh: Callable[[Any], int] | None = None):
         if maxsize is not None and maxsize < 1:
             raise ValueError(f"ProcessCache {name!r}: maxsize must be >= 1 or None, got {maxsize}")
+        if (max_bytes is None) != (weigh is None):
+            raise ValueError(f"ProcessCache {name!r}: max_bytes and weigh go together")
         self.name = name
         self.maxsize = maxsize
+        #: with ``weigh`` (a value's size in bytes): least recently used entries are dropped while the entries
+        #: weigh more than ``max_bytes`` together (the newest is always kept)
+        self.max_bytes, self._weigh = max_bytes, weigh
+        self._bytes = 0
         self._data: OrderedDict[Hashable, Any] = OrderedDict()
         self._lock = threading.Lock()
         with _ALL_LOCK:
@@ -57,10 +64,26 @@ class ProcessCache:
         with self._lock:
             if key in self._data:  # another thread built it meanwhile: keep the first
                 return self._data[key], False
-            self._data[key] = value
-            if self.maxsize is not None and len(self._data) > self.maxsize:
-                self._data.popitem(last=False)
+            self._store(key, value)
         return value, True
+
+    def put(self, key: Hashable, value: Any) -> None:
+        """Store ``value`` under ``key`` (replacing what is there)."""
+        _check_key(key, self.name)
+        with self._lock:
+            if key in self._data:
+                self._bytes -= self._size(self._data.pop(key))
+            self._store(key, value)
+
+    def _size(self, value: Any) -> int:
+        return int(self._weigh(value)) if self._weigh is not None else 0
+
+    def _store(self, key: Hashable, value: Any) -> None:
+        self._data[key] = value
+        self._bytes += self._size(value)
+        while len(self._data) > 1 and ((self.maxsize is not None and len(self._data) > self.maxsize)
+                                       or (self.max_bytes is not None and self._bytes > self.max_bytes)):
+            self._bytes -= self._size(self._data.popitem(last=False)[1])
 
     def __contains__(self, key: Hashable) -> bool:
         with self._lock:
@@ -75,6 +98,7 @@ class ProcessCache:
         with self._lock:
             n = len(self._data)
             self._data.clear()
+            self._bytes = 0
         return n
 
     def __repr__(self) -> str:

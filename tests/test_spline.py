@@ -342,8 +342,8 @@ def test_correspondence_change_counts_kept_found_and_lost_correspondences_in_pix
 
 
 def test_settled_correspondences_end_the_icp_rounds():
-    """icp_settle_px above the first search's change: one solve, the same spline as icp_rounds=1; 0: every round,
-    each later search's change (px) reported; on exact tracks the correspondences settle (the change falls)."""
+    """icp_settle_px above the first search's change: one solve, the same spline as icp_rounds=1; a tiny one: every
+    round, each later search's change (px) reported (0: every round, unmeasured); on exact tracks the correspondences settle (the change falls)."""
     rec, det, t_det, t_us, S, xy, valid = scene()
 
     def solve(**change):
@@ -351,7 +351,8 @@ def test_settled_correspondences_end_the_icp_rounds():
         spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
         return window(sol, spl, det, xy, valid)
 
-    every = solve(icp_rounds=3)
+    assert solve(icp_rounds=3).association_change_px == ()  # 0: every round, nothing measured (no search spent)
+    every = solve(icp_rounds=3, icp_settle_px=1e-9)
     assert len(every.solves) == 3 and len(every.association_change_px) == 2
     first, second = every.association_change_px
     assert 0 < second < first < 2.0, every.cor_change_px
@@ -684,6 +685,9 @@ def test_bad_config_and_missing_detections_are_named():
     few = dict(inputs, batches=BatchPlan(t0_us=np.array([5_000, 47_000]), t1_us=np.array([47_000, 85_000]),
                                          frame0=np.array([0, 1])))
     with pytest.raises(StageFailed, match="no detection row at t = \\[47000\\]"):
+        run_stage(few, few["batches"].batch(0))
+    # a unit that is no batch (nor chunk of batches) of the plan is named with the plan's batches
+    with pytest.raises(StageFailed, match=r"none of the recording's 2 batches lies in it \(5000\.\.45000 us\)"):
         run_stage(few, b)
 
 

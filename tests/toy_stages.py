@@ -96,6 +96,35 @@ def run_neighbours(inputs, config: NeighboursConfig, ctx):
                             label=f"{own.label}+{len(near)}")}
 
 
+@dataclass
+class GroupConfig:
+    size: int = param(2, help="batches per group")
+
+
+def run_group(inputs, config: GroupConfig, ctx):
+    """Groups of ``size`` consecutive batches (the last may be shorter), as a plan."""
+    plan = inputs["batches"]
+    first = np.arange(0, len(plan), config.size)
+    last = np.minimum(first + config.size, len(plan)) - 1
+    return {"groups": BatchPlan(t0_us=plan.t0_us[first].copy(), t1_us=plan.t1_us[last].copy(),
+                                frame0=plan.frame0[first].copy())}
+
+
+@dataclass
+class PerGroupConfig:
+    pass
+
+
+def run_per_group(inputs, config: PerGroupConfig, ctx):
+    """Per group: the values of its batches' chunks (those given), one after another."""
+    chunks, g = inputs["chunks"], ctx.batch
+    mine = [i for i, b in enumerate(chunks.batches) if b.t0_us >= g.t0_us and b.t1_us <= g.t1_us]
+    parts = [chunks[i] for i in mine]
+    return {"chunk": Series(t_us=np.concatenate([c.t_us for c in parts]),
+                            values=np.concatenate([c.values for c in parts]),
+                            label="+".join(str(chunks.batches[i].index) for i in mine))}
+
+
 def run_sum(inputs, config: SumConfig, ctx):
     chunks = inputs["chunks"]
     total = float(sum(np.sum(chunks[i].values ** config.power) for i in range(len(chunks))))
@@ -116,6 +145,14 @@ SPECS = [
               description="per batch, plus the mean of its neighbouring batches' chunks",
               config=NeighboursConfig, inputs={"chunks": Port(Series, all_batches=True)},
               outputs={"chunk": Port(Series)}, run="toy_stages:run_neighbours", per_batch=True),
+    StageSpec(name="toy_group", kind="toy_plan", version=1, description="consecutive batches in groups",
+              config=GroupConfig, inputs={"batches": Port(BatchPlan)}, outputs={"groups": Port(BatchPlan)},
+              run="toy_stages:run_group"),
+    StageSpec(name="toy_per_group", kind="toy_filter", version=1,
+              description="per group of batches: its batches' chunks one after another",
+              config=PerGroupConfig, inputs={"chunks": Port(Series, all_batches=True), "batches": Port(BatchPlan),
+                                             "groups": Port(BatchPlan)},
+              outputs={"chunk": Port(Series)}, run="toy_stages:run_per_group", per_batch=True, plan="groups"),
     StageSpec(name="toy_sum", kind="toy_reduce", version=1, description="sum over all batches",
               config=SumConfig, inputs={"chunks": Port(Series, all_batches=True)},
               outputs={"metrics": Port(Metrics)}, run="toy_stages:run_sum"),

@@ -248,11 +248,12 @@ def measure(args, base: Path, i: int) -> dict:
         res = json.loads(out.read_text())
         if res["code"] != 0:
             raise SystemExit(f"run {i} failed (exit {res['code']}); run again without --runs to see its log")
-        n_batches = len(json.loads((Path(tmp) / "run" / "run.json").read_text())["nodes"]["solve"].get(
-            "computed_keys", [])) or 1
+        nodes = json.loads((Path(tmp) / "run" / "run.json").read_text())["nodes"]
+        n_batches = max(len(n.get("computed_keys", [])) for n in nodes.values()) or 1  # the per-batch nodes'
+        n_windows = len(nodes["solve"].get("computed_keys", []))
         m = json.loads((Path(tmp) / "run" / "metrics.json").read_text()).get("evaluate.metrics", {})
         res["accuracy"] = {k: m.get(k) for k in ("AE_mm", "AE_rootrel_mm", "MPJVE_mm_s", "peak_speed_err")}
-        res.update(whole_cpu=(after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), wall=wall,
+        res.update(n_windows=n_windows, whole_cpu=(after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), wall=wall,
                    peak_mb=after.ru_maxrss / 1024, n_batches=n_batches)
         return res
 

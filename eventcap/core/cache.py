@@ -151,6 +151,10 @@ class Cache:
             raise CacheCorruptError(f"cache entry {entry.path}: files not in the manifest: {extra[:3]}")
         self._verified.add(entry.path)
 
+    def forget_verified(self) -> None:
+        """Check every entry against its manifest again when it is next read."""
+        self._verified.clear()
+
     def load(self, entry: Entry, port: str, cls: type[Artifact]) -> Artifact:
         """Read one output port of a committed entry as ``cls`` (verified first)."""
         import zarr

@@ -194,7 +194,8 @@ def _wire_input(name: str, spec: StageSpec, port: str, src: Any, raw_nodes: Mapp
 def _batch_plans(order: list[str], specs: Mapping[str, StageSpec], refs: Mapping[str, Mapping[str, InputRef]],
                  problems: list[str]) -> dict[str, tuple[str, str] | None]:
     """For each per-batch node, the (node, port) of the BatchPlan that cuts its batches (None for whole nodes);
-    a per-batch node with no plan or with two different plans is a problem."""
+    a per-batch node with no plan or with two different plans is a problem. An input that reads all batches of a
+    per-batch upstream cuts only when no other input does (a chunk's solve reads every batch's tracks)."""
     plans: dict[str, tuple[str, str] | None] = {}
     for name in order:
         spec = specs[name]
@@ -202,11 +203,16 @@ def _batch_plans(order: list[str], specs: Mapping[str, StageSpec], refs: Mapping
             plans[name] = None
             continue
         candidates = set()
-        for port, ref in refs[name].items():
+        ports = refs[name]
+        if spec.plan and spec.plan in ports:  # the stage names the plan that cuts it; its other plans are data
+            ports = {p: r for p, r in ports.items() if p == spec.plan or not issubclass(spec.inputs[p].type, BatchPlan)}
+        read_all = set()  # the plans of inputs read whole (all batches): they cut only when nothing else does
+        for port, ref in ports.items():
             if specs[ref.node].outputs[ref.port].type is BatchPlan or issubclass(spec.inputs[port].type, BatchPlan):
                 candidates.add((ref.node, ref.port))
             elif specs[ref.node].per_batch:
-                candidates.add(plans[ref.node])
+                (read_all if spec.inputs[port].all_batches else candidates).add(plans[ref.node])
+        candidates = candidates or read_all
         if not candidates:
             problems.append(
                 f"node {name!r}: stage {spec.name!r} runs per batch, so it needs a BatchPlan input "

@@ -27,7 +27,7 @@ from eventcap.core.cache import Cache, CacheCorruptError, Entry, EntryLock, expl
 from eventcap.core.config import ConfigError, build_config, build_settings, config_to_dict, file_digests, result_config
 from eventcap.params import param
 from eventcap.errors import ComputationFailed
-from eventcap.memo import clear_process_caches, memoize
+from eventcap.memo import ProcessCache, clear_process_caches, memoize
 from eventcap.core.pipeline import Node, build_pipeline
 from eventcap.core.registry import Registry, load_registry
 from eventcap.core.runrecord import NodeReport, RunRecord, RunRecordError
@@ -103,13 +103,29 @@ def _cache_at(root: str) -> Cache:
     return Cache(root)
 
 
-@memoize("runner.inputs", maxsize=8)
+def artifact_nbytes(a: Artifact) -> int:
+    """The bytes of an artifact's arrays (its children's included)."""
+    n = sum(int(v.nbytes) for f in type(a).array_fields() if (v := getattr(a, f)) is not None)
+    return n + sum(artifact_nbytes(v) for f in type(a).child_fields() if (v := getattr(a, f)) is not None)
+
+
+#: Artifacts this process loaded or committed, by (cache root, stage, key, port): a node's outputs are read by the
+#: nodes after it without reading them back (bounded by count and by their arrays' bytes).
+_ARTIFACTS = ProcessCache("runner.inputs", maxsize=256, max_bytes=256 << 20, weigh=artifact_nbytes)
+
+
 def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact]) -> Artifact:
-    cache = _cache_at(root)
-    entry = cache.lookup(stage, key)
-    if entry is None:
-        raise CacheCorruptError(f"input {stage}/{key} ({port}) is not in the cache at {root}")
-    return cache.load(entry, port, cls)
+    def read() -> Artifact:
+        cache = _cache_at(root)
+        entry = cache.lookup(stage, key)
+        if entry is None:
+            raise CacheCorruptError(f"input {stage}/{key} ({port}) is not in the cache at {root}")
+        return cache.load(entry, port, cls)
+
+    value, _ = _ARTIFACTS.get((root, stage, key, port), read)
+    if not isinstance(value, cls):  # kept as another type than this reader declares: read it as that
+        return read()
+    return value
 
 
 @memoize("runner.registry", maxsize=1)
@@ -184,6 +200,8 @@ def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
         if ctx.stats:
             info["stats"] = json.loads(json.dumps(ctx.stats, default=float))
         cache.commit(task.stage, task.key, task.doc, outputs, info)
+        for port, artifact in outputs.items():  # what the next nodes read, without reading it back
+            _ARTIFACTS.put((task.cache_root, task.stage, task.key, port), artifact)
         return TaskResult(task.node, task.key, bidx, "computed", time.perf_counter() - t0)
     except Exception as exc:  # recorded, reported, never cached as success
         # a stage's StageFailed and the library's own ComputationFailed errors (eventcap.errors, the energy's
@@ -430,14 +448,22 @@ class Runner:
         self.registry = registry or load_registry()
         self.nodes = build_pipeline(cfg, self.registry)
         self.by_name = {n.name: n for n in self.nodes}
-        self.cache = Cache(cfg.get("cache_dir") or "runs/cache")
+        # the tasks' own instance (in this process): an entry is checked against its manifest once
+        self.cache = _cache_at(str(Cache(cfg.get("cache_dir") or "runs/cache").root))
         self.executor = ExecutorConfig.from_mapping(cfg.get("executor"))
         self.selection = _parse_selection(cfg.get("batches"))
+        #: ``batches=`` selects rows of the first batch plan the pipeline cuts by (the recording's batches); a plan
+        #: made from it (chunks of batches) runs the rows that overlap the selected batches
+        self.primary_plan = next(((n.plan_node, n.plan_port) for n in self.nodes if n.spec.per_batch and n.plan_node
+                                  and not self.by_name[n.plan_node].spec.per_batch), None)
 
     def _base_doc(self, node: Node) -> dict[str, Any]:
         return base_doc(node.spec, node.config, node.config_path)
 
     def run(self, run_dir: str | Path | None = None) -> RunResult:
+        # every run checks what it reads against the manifests again (files may have changed between runs)
+        self.cache.forget_verified()
+        _ARTIFACTS.clear()
         self.cache.clean_orphans()
         reports: dict[str, NodeReport] = {}
         node_keys: dict[str, str] = {}  # node-level key (whole nodes: the entry key)
@@ -447,8 +473,7 @@ class Runner:
         self._roots: dict[tuple[str, int | None], str] = {}
         t_run = time.perf_counter()
         # batches= is checked against each batch plan as soon as the plan exists, before the nodes after it run
-        plan_ports = {n.plan_node: n.plan_port for n in self.nodes if n.spec.per_batch and n.plan_node
-                      and not self.by_name[n.plan_node].spec.per_batch}
+        plan_ports = dict([self.primary_plan]) if self.primary_plan else {}
         not_run: str | None = None  # why the nodes after a refused batch selection do not run
         with _executor(self.executor) as pool:
             for i, node in enumerate(self.nodes, 1):
@@ -654,7 +679,15 @@ class Runner:
         batches = plan.batches()
         if select and self.selection is not None:
             start, stop = self.selection
-            batches = batches[start:stop]
+            if (node.plan_node, node.plan_port) == self.primary_plan or self.primary_plan is None:
+                return batches[start:stop]
+            first = self.by_name[self.primary_plan[0]]
+            chosen = _load(str(self.cache.root), first.spec.name, node_keys[first.name], self.primary_plan[1],
+                           BatchPlan).batches()[start:stop]
+            if not chosen:
+                return []
+            t0, t1 = chosen[0].t0_us, chosen[-1].t1_us
+            batches = [b for b in batches if b.t0_us < t1 and b.t1_us > t0]
         return batches
 
     def _run_batches(self, node, node_keys, batch_keys, plans, rep, label, pool) -> None:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from eventcap.artifacts import Artifact, Batch
+from eventcap.artifacts import Artifact, Batch, BatchPlan
 from eventcap.errors import ComputationFailed
 from eventcap.params import (  # noqa: F401 (the public plugin API: eventcap.core.stage.param)
     allowed_values,
@@ -85,6 +85,10 @@ class StageSpec:
     #: runs): checks that involve several keys or values taken from elsewhere (a preset); raises ``ValueError``
     #: naming the key. Single values are bounded by their ``param`` declarations, never here.
     check: str = ""
+    #: a per-batch stage with two BatchPlan inputs: the input port whose plan cuts its units (the other is read as
+    #: data, e.g. a chunk plan cuts the units and the recording's batches say which batches each chunk holds); when
+    #: that port is not connected, the plan is found as for any per-batch stage
+    plan: str = ""
 
     def __post_init__(self) -> None:
         where = f"stage spec {self.name!r}" + (f" ({self.origin})" if self.origin else "")
@@ -108,6 +112,9 @@ class StageSpec:
                 raise StageSpecError(f"{where}: output {pname!r} cannot be optional or all_batches")
         if not self.outputs:
             raise StageSpecError(f"{where}: a stage must declare at least one output")
+        if self.plan and not (self.per_batch and self.plan in self.inputs
+                              and issubclass(self.inputs[self.plan].type, BatchPlan)):
+            raise StageSpecError(f"{where}: plan {self.plan!r} must name a BatchPlan input of a per-batch stage")
         object.__setattr__(self, "inputs", MappingProxyType(dict(self.inputs)))
         object.__setattr__(self, "outputs", MappingProxyType(dict(self.outputs)))
         object.__setattr__(self, "renamed", MappingProxyType(dict(self.renamed)))

@@ -7,6 +7,8 @@ plugin without change in behaviour).
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import time
 from dataclasses import dataclass
@@ -31,6 +33,10 @@ _NP = NUM_POSE_PARAMS
 PARAM_NAMES = DOF_NAMES + ROOT_ROTATION_NAMES + ROOT_TRANSLATION_NAMES
 
 
+#: the adaptive barrier's largest mu in the warm-started solves (see IpoptSettings.options)
+ADAPTIVE_MU_MAX = 1e-3
+
+
 @dataclass(frozen=True)
 class IpoptSettings:
     """IPOPT options that are pinned for speed and reproducibility (fixed when the problem is built). The three a
@@ -49,6 +55,7 @@ class IpoptSettings:
     acceptable_iter: int = 10
     mu_init: float = 1e-7  # initial barrier parameter of the (warm-started) batch solves
     bound_push: float = 1e-4  # how far batch solves move the warm start away from the bounds (relative)
+    barrier: str = "monotone"  # the warm-started solves' barrier: monotone from mu_init, or IPOPT's adaptive one
 
     def __post_init__(self) -> None:
         if isinstance(self.max_iter, bool) or int(self.max_iter) != self.max_iter or self.max_iter < 0:
@@ -57,13 +64,20 @@ class IpoptSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"IpoptSettings.{name}: expected a number > 0, got {v!r}")
+        if self.barrier not in ("monotone", "adaptive"):
+            raise ValueError(f"IpoptSettings.barrier: expected monotone | adaptive, got {self.barrier!r}")
         if self.mumps_pivot_order not in range(8):
             raise ValueError(f"IpoptSettings.mumps_pivot_order: expected 0..7, got {self.mumps_pivot_order!r}")
 
     @classmethod
     def from_config(cls, config) -> IpoptSettings:
         """The pinned settings with a solve's stated options (:class:`eventcap.energy.settings.IpoptConfig`)."""
-        return cls(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order)
+        return cls(max_iter=config.max_iter, tol=config.tol, mumps_pivot_order=config.mumps_pivot_order,
+                   barrier=str(getattr(config, "barrier", "monotone")))
+
+    def restart(self) -> IpoptSettings:
+        """The settings of a solve that starts from an earlier solution: a monotone barrier from ``mu_init``."""
+        return dataclasses.replace(self, barrier="monotone")
 
     def options(self, warm: bool) -> dict:
         """nlpsol options; ``warm``: for the warm-started batch solves (else: the detection fits)."""
@@ -77,7 +91,12 @@ class IpoptSettings:
             "ipopt.acceptable_tol": float(self.acceptable_tol), "ipopt.acceptable_iter": int(self.acceptable_iter),
             "calc_lam_p": False, "no_nlp_grad": True, "error_on_fail": False,
         }
-        if warm:
+        if warm and self.barrier == "adaptive":  # IPOPT's defaults: mu from 0.1, bounds pushed by 1e-2
+            # The barrier never grows above ADAPTIVE_MU_MAX: from a warm start, IPOPT's own cap (1e5) let the oracle
+            # raise mu and jump a window with a missed detection into a far basin (the body 15 m deep, a higher
+            # energy, "Solve_Succeeded"); capped, the same window stays at the monotone solve's minimum.
+            opts.update({"ipopt.mu_strategy": "adaptive", "ipopt.mu_max": ADAPTIVE_MU_MAX})
+        elif warm:
             opts.update({"ipopt.mu_strategy": "monotone", "ipopt.mu_init": float(self.mu_init),
                          "ipopt.bound_push": float(self.bound_push), "ipopt.bound_frac": float(self.bound_push)})
         return opts

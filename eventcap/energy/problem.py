@@ -26,6 +26,7 @@ from collections.abc import Sequence
 
 import casadi as ca
 import numpy as np
+from scipy import sparse
 
 from eventcap.body.skeleton import NUM_POSE_PARAMS
 
@@ -117,6 +118,92 @@ def coupling_band(poses: SplinePoses | FramePoses, t_us: np.ndarray) -> int:
     return max(3, int(np.max(last[1:] - first[:-1])))
 
 
+class SparseBasis:
+    """A factor's basis (n samples x n_units; S = B @ U) kept as each sample's few nonzero units (4 neighbouring
+    control points of a cubic spline, one frame per sample of a per-frame problem), so that the poses at the samples,
+    the gradient's chain rule and the Hessian's assembly cost as much as the samples, not samples x units."""
+
+    def __init__(self, B: np.ndarray):
+        B = np.asarray(B, dtype=np.float64)
+        self.dense = B
+        self.n, self.n_units = B.shape
+        nz = B != 0
+        k = max(1, int(nz.sum(axis=1).max(initial=0)))
+        self.cols = np.zeros((self.n, k), dtype=np.int64)
+        self.vals = np.zeros((self.n, k))
+        for s in range(self.n):  # a few per row; the problem sets its bases once per window
+            c = np.flatnonzero(nz[s])
+            self.cols[s, :c.size], self.vals[s, :c.size] = c, B[s, c]
+            if c.size < k:
+                self.cols[s, c.size:] = c[-1] if c.size else 0
+        self.k = k
+        self._scatter = {}
+
+    def apply(self, U: np.ndarray) -> np.ndarray:
+        """B @ U for U (n_units, p)."""
+        return np.einsum("sk,skp->sp", self.vals, U[self.cols])
+
+    def transpose_apply(self, G: np.ndarray) -> np.ndarray:
+        """Bᵀ @ G for G (n, p)."""
+        return self.dense.T @ G if self.n_units * self.n < 4096 else self._scatter_rows(
+            [(self.cols[:, a], self.vals[:, a]) for a in range(self.k)], G)
+
+    def _scatter_rows(self, parts, G: np.ndarray) -> np.ndarray:
+        out = np.zeros((self.n_units, G.shape[1]))
+        for cols, w in parts:
+            M = sparse.csr_matrix((w, (cols, np.arange(self.n))), shape=(self.n_units, self.n))
+            out += M @ G
+        return out
+
+    def pair_matrices(self, band: int) -> list[tuple[int, sparse.csr_matrix]]:
+        """(d, M) with M (n_units, n) sparse such that block (i, i + d) of Σ_s B_s,· ⊗ B_s,· D_s is (M @ D)[i] (the
+        samples' own blocks, D (n, 33·33)), for every unit distance 0 <= d <= band."""
+        key = ("pairs", band)
+        if key not in self._scatter:
+            out = {}
+            for a in range(self.k):
+                for b in range(self.k):
+                    i, j = self.cols[:, a], self.cols[:, b]
+                    w = self.vals[:, a] * self.vals[:, b]
+                    d = j - i
+                    keep = (d >= 0) & (d <= band) & (w != 0)
+                    if a != b:  # a pair of distinct entries: each unordered pair once (its ordered twin has d < 0)
+                        keep &= (d > 0) | (a < b)
+                    for dd in np.unique(d[keep]):
+                        m = keep & (d == dd)
+                        M = sparse.csr_matrix((w[m], (i[m], np.flatnonzero(m))), shape=(self.n_units, self.n))
+                        out[int(dd)] = out[int(dd)] + M if int(dd) in out else M
+            self._scatter[key] = sorted(out.items())
+        return self._scatter[key]
+
+    def neighbour_matrices(self, band: int) -> list[tuple[int, sparse.csr_matrix, sparse.csr_matrix]]:
+        """(d, M, Mt) with M, Mt (n_units, n - 1) sparse such that block (i, i + d) of the coupling of neighbouring
+        samples (k, k + 1) with blocks Up_k (n - 1, 33·33) is (M @ Up + Mt @ Upᵀ)[i]: sample k's unit i with sample
+        k + 1's unit i + d, and sample k + 1's unit i with sample k's unit i + d (the transposed block)."""
+        key = ("neighbours", band)
+        if key not in self._scatter:
+            n1 = self.n - 1
+            out: dict[int, list] = {}
+            for a in range(self.k):
+                for b in range(self.k):
+                    i, j = self.cols[:-1, a], self.cols[1:, b]  # sample k's unit i, sample k + 1's unit j
+                    w = self.vals[:-1, a] * self.vals[1:, b]
+                    for flip in (False, True):
+                        lo, hi = (j, i) if flip else (i, j)
+                        d = hi - lo
+                        keep = (d >= 0) & (d <= band) & (w != 0)
+                        for dd in np.unique(d[keep]):
+                            m = keep & (d == dd)
+                            M = sparse.csr_matrix((w[m], (lo[m], np.flatnonzero(m))), shape=(self.n_units, n1))
+                            slot = out.setdefault(int(dd), [None, None])
+                            k = 1 if flip else 0
+                            slot[k] = M if slot[k] is None else slot[k] + M
+            empty = sparse.csr_matrix((self.n_units, n1))
+            self._scatter[key] = sorted((dd, m if m is not None else empty, mt if mt is not None else empty)
+                                        for dd, (m, mt) in out.items())
+        return self._scatter[key]
+
+
 class FactorProblem:
     """The NLP of a sum of factors over a pose parametrisation (module doc), built once.
 
@@ -200,6 +287,12 @@ class FactorProblem:
         self.hessian = ca.Function("hessian", [X], [cb_h(X)])
         opts = dict(self.settings.options(True), grad_f=grad_f, hess_lag=hess_lag)
         self.solver = ca.nlpsol(self.name, "ipopt", {"x": X, "p": P, "f": cb_f(X)}, opts)
+        #: the solver of a solve that restarts from a solution (a later ICP round): a monotone barrier from a tiny
+        #: mu (the same one unless the settings choose another barrier for the first solve)
+        self.restart_solver = self.solver
+        if self.settings.barrier != "monotone":
+            again = dict(self.settings.restart().options(True), grad_f=grad_f, hess_lag=hess_lag)
+            self.restart_solver = ca.nlpsol(f"{self.name}_again", "ipopt", {"x": X, "p": P, "f": cb_f(X)}, again)
 
     # ------------------------------------------------------------------ data of one window
     def set_window(self, span, x_ref: np.ndarray | None = None) -> None:
@@ -220,7 +313,7 @@ class FactorProblem:
                 if reach > self.band:
                     raise EnergyError(f"{self.name}: factor {f.name} couples samples {reach} units apart; the problem "
                                       f"was built for {self.band}")
-            bases.append(B)
+            bases.append(SparseBasis(B))
         self._bases = bases
         self._cache = {}
         if x_ref is not None:
@@ -285,7 +378,7 @@ class FactorProblem:
         if c.get("key") == key and c.get("order", -1) >= order:
             return c
         U, aux = self.split(x)
-        lins = [f.linearize(B @ U, a, min(order, 1)) for f, B, a in zip(self.factors, self._bases, aux)]
+        lins = [f.linearize(B.apply(U), a, min(order, 1)) for f, B, a in zip(self.factors, self._bases, aux)]
         dx = x - self.x_ref
         if not self.damp_aux:
             dx[self.nU:] = 0.0
@@ -296,7 +389,7 @@ class FactorProblem:
             grad = (2.0 * self.damp) * dx
             gU = grad[:self.nU].reshape(self.n_units, _NP)
             for lin, B, sl in zip(lins, self._bases, self.aux_slices):
-                gU += B.T @ lin.grad
+                gU += B.transpose_apply(lin.grad)
                 if sl is not None:
                     grad[sl] += lin.aux_grad.ravel()
             out["grad"] = grad
@@ -313,21 +406,22 @@ class FactorProblem:
         Hua = np.zeros((self.nU, self.nA))
         Haa = np.zeros((self.nA, self.nA))
         for f, B, a, sl in zip(self.factors, self._bases, aux, self.aux_slices):
-            lin = f.linearize(B @ U, a, 2)
+            lin = f.linearize(B.apply(U), a, 2)
             if lin.diag is not None:
                 D = lin.diag.reshape(f.n, -1)
-                for d in range(min(b, n - 1) + 1):
-                    Hb[:n - d, d] += ((B[:, :n - d] * B[:, d:]).T @ D).reshape(n - d, _NP, _NP)
+                for d, M in B.pair_matrices(b):
+                    if d < n:
+                        Hb[:n - d, d] += (M @ D)[:n - d].reshape(n - d, _NP, _NP)
             if lin.upper is not None and f.n > 1:
                 Up = lin.upper.reshape(f.n - 1, -1)
                 Ut = lin.upper.transpose(0, 2, 1).reshape(f.n - 1, -1)
-                for d in range(min(b, n - 1) + 1):
-                    Hb[:n - d, d] += ((B[:-1, :n - d] * B[1:, d:]).T @ Up + (B[1:, :n - d] * B[:-1, d:]).T
-                                      @ Ut).reshape(n - d, _NP, _NP)
+                for d, M, Mt in B.neighbour_matrices(b):
+                    if d < n:
+                        Hb[:n - d, d] += (M @ Up + Mt @ Ut)[:n - d].reshape(n - d, _NP, _NP)
             if sl is not None:
                 k = f.aux_size
                 o = sl.start - self.nU
-                Hua[:, o:o + f.n * k] += np.einsum("si,spa->ipsa", B, lin.cross).reshape(self.nU, f.n * k)
+                Hua[:, o:o + f.n * k] += np.einsum("si,spa->ipsa", B.dense, lin.cross).reshape(self.nU, f.n * k)
                 for s in range(f.n):
                     Haa[o + s * k:o + (s + 1) * k, o + s * k:o + (s + 1) * k] += lin.aux_diag[s]
         if self.damp:
@@ -358,7 +452,7 @@ class FactorProblem:
     def terms(self, x) -> dict[str, float]:
         """Each factor's unweighted value at x (what solves report), by name."""
         U, aux = self.split(np.asarray(x, dtype=np.float64))
-        return {f.name: f.unweighted(B @ U, a) for f, B, a in zip(self.factors, self._bases, aux)}
+        return {f.name: f.unweighted(B.apply(U), a) for f, B, a in zip(self.factors, self._bases, aux)}
 
     def factor(self, name: str) -> Factor | None:
         return next((f for f in self.factors if f.name == name), None)
@@ -369,14 +463,16 @@ class FactorProblem:
         ubx = np.concatenate([np.tile(self.upper, self.n_units), np.full(self.nA, np.inf)])
         return lbx, ubx
 
-    def solve(self, x0: np.ndarray, what: str, fixed_units: Sequence[int] = ()) -> tuple[np.ndarray, SolveStats]:
-        """One IPOPT solve from x0 (clipped into the bounds); fixed_units stay where x0 has them."""
+    def solve(self, x0: np.ndarray, what: str, fixed_units: Sequence[int] = (),
+              restart: bool = False) -> tuple[np.ndarray, SolveStats]:
+        """One IPOPT solve from x0 (clipped into the bounds); fixed_units stay where x0 has them. restart: x0 is an
+        earlier solve's solution (a later ICP round): the barrier for a solve that starts there."""
         lbx, ubx = self.bounds()
         x0 = np.clip(np.asarray(x0, dtype=np.float64), lbx, ubx)
         for u in fixed_units:
             sl = slice(u * _NP, (u + 1) * _NP)
             lbx[sl] = ubx[sl] = x0[sl]
-        return run_ipopt(self.solver, x0, np.zeros(0), lbx, ubx, what)
+        return run_ipopt(self.restart_solver if restart else self.solver, x0, np.zeros(0), lbx, ubx, what)
 
 
 __all__ = ["FactorProblem", "FramePoses", "SplinePoses", "coupling_band"]

@@ -218,6 +218,11 @@ class IpoptConfig:
     tol: float = param(1e-6, gt=0, help="convergence tolerance (IPOPT's scaled NLP error)")
     mumps_pivot_order: int = param(0, ge=0, le=7, help="MUMPS ordering (0 AMD ... 7 auto), pinned for "
                                                        "reproducibility across machines")
+    barrier: str = param("monotone", choices=("monotone", "adaptive"),
+                         help="the barrier of a solve from a fresh start: monotone from a tiny mu (few "
+                              "iterations on short windows) | adaptive (IPOPT's own, from mu 0.1; fewer iterations "
+                              "on long windows). A solve that starts from an earlier solution (a later ICP round) is "
+                              "monotone either way")
 
 
 __all__ = ["BonesConfig", "IpoptConfig", "ContactConfig", "ContextConfig", "CorConfig", "FactorConfig", "FloorConfig", "Joints3DConfig", "LOSSES", "Landmarks2DConfig", "PHI_SCOPES", "PRIOR_ORDERS", "PriorConfig", "SilConfig", "SlideConfig", "SmoothingConfig", "StabConfig", "StillConfig", "StillnessConfig", "TempConfig"]

@@ -61,6 +61,35 @@ def window_role(n_batches: int, k: int, half: int, step: int) -> tuple[int, int,
     return None
 
 
+def unit_role(plan, unit, half: int, step: int) -> tuple[int, tuple[int, int, int, int] | None]:
+    """The batches a unit of the solve (a batch, or a chunk of batches: the node's plan) keeps, and its window:
+    (its first batch, (a, z, ka, kz) or None). A unit of one batch takes its part in the :func:`window_plan` (None:
+    another batch's window keeps it). A chunk keeps its batches ka..kz, and its window is them with ``half``
+    batches on each side, shifted inwards at the ends of the recording (all batches when there are fewer); then
+    windows advance by whole chunks, and ``step`` must be 1."""
+    t0, t1 = np.asarray(plan.t0_us), np.asarray(plan.t1_us)
+    kept = np.flatnonzero((t0 >= unit.t0_us) & (t1 <= unit.t1_us))
+    if kept.size == 0:
+        raise StageFailed(f"{unit_name(unit)}: none of the recording's {len(plan)} batches lies in it "
+                          f"({unit.t0_us}..{unit.t1_us} us)", status="invalid_input")
+    ka, kz, n = int(kept[0]), int(kept[-1]), len(plan)
+    if ka == kz:
+        return ka, window_role(n, ka, half, step)
+    if step != 1:
+        raise StageFailed(f"stages.solve.window_step: {step} applies to a solve per batch; a solve per chunk keeps "
+                          f"its chunk's batches (window_step must be 1)", status="invalid_config")
+    length = kz - ka + 1 + 2 * half
+    if length >= n:
+        return ka, (0, n - 1, ka, kz)
+    a = min(max(ka - half, 0), n - length)
+    return ka, (a, a + length - 1, ka, kz)
+
+
+def unit_name(unit) -> str:
+    """How messages name a unit of the solve: its index in the node's plan."""
+    return f"unit {unit.index}"
+
+
 def kept_by(n_batches: int, k: int, half: int, step: int) -> int:
     """The batch whose window keeps batch k (:func:`window_plan`)."""
     return next(c for c, _, _, ka, kz in window_plan(n_batches, half, step) if ka <= k <= kz)
@@ -147,7 +176,7 @@ def capture_template(rec, config, layout, plan, detections, where: str, ctx):
                                                           det.confidence_3d)))
     if key not in _FLOORS:
         _bound_captures()
-        plain, _ = solver_for(rec.template, rec.camera, layout, config)
+        plain = fit_solver_for(rec.template, rec.camera, config)
         fits, keep = [], []
         for d in range(det.n):
             try:
@@ -221,6 +250,24 @@ def solver_for(template, camera, layout, config):
     return solver, built
 
 
+def fit_solver_for(template, camera, config):
+    """The per-frame fits' solver for this template, camera and config (built once per process, keyed by value)."""
+    from eventcap.energy.errors import EnergyError
+
+    from .solve import FitSolver
+
+    key = ("fits", template.geometry_digest(), repr(sorted(camera.to_dict().items())), repr(config))
+    if key not in _SOLVERS:
+        try:
+            solver = FitSolver(template, camera, config)
+        except EnergyError as exc:
+            raise StageFailed(f"stages.solve: {exc}", status=exc.status) from exc
+        if len(_SOLVERS) >= _SOLVERS_MAX:
+            _SOLVERS.clear()
+        _SOLVERS[key] = solver
+    return _SOLVERS[key]
+
+
 def clear_solvers() -> None:
     """Forget this process's built solvers and per-frame fits."""
     from .solve import clear_fits
@@ -242,11 +289,11 @@ def check_config(config) -> None:
                           status="invalid_config")
 
 
-def window_inputs(inputs, b, config, where: str, role: tuple[int, int, int, int]):
-    """The data of this batch's window (role: :func:`window_role`, the window a..z keeping batches ka..kz): (own
-    tracks, window (a, z), the batches whose tracks E_cor uses, their index among the tracks, detection times, their
-    detections, the tracks at the correspondence frames (:class:`eventcap.energy.window.Tracks`), the tracking times
-    of each batch the window keeps)."""
+def window_inputs(inputs, config, where: str, role: tuple[int, int, int, int]):
+    """The data of a unit's window (role: :func:`unit_role`, the window a..z keeping batches ka..kz): (the first
+    kept batch that has tracks, its tracks, window (a, z), the batches whose tracks E_cor uses, their index among
+    the tracks, detection times, their detections, the tracks at the correspondence frames
+    (:class:`eventcap.energy.window.Tracks`), the tracking times of each batch the window keeps)."""
     from eventcap.energy.detections import select_detections
     from eventcap.energy.window import Tracks
 
@@ -254,9 +301,12 @@ def window_inputs(inputs, b, config, where: str, role: tuple[int, int, int, int]
     a, z, ka, kz = role
     # every batch's tracks, as the runner hands them (runner.BatchSequence: .batches names them, loaded on access)
     index = {bb.index: i for i, bb in enumerate(sliced.batches)}
-    if b.index not in index:
-        raise StageFailed(f"{where}: no tracks of this batch among the {len(sliced)} given", status="invalid_input")
-    own = sliced[index[b.index]]
+    present = [k for k in range(ka, kz + 1) if k in index]  # batches= may select part of a chunk
+    if not present:
+        raise StageFailed(f"{where}: no tracks of {'batch' if ka == kz else 'batches'} {ka}"
+                          f"{'' if ka == kz else f'..{kz}'} among the {len(sliced)} given", status="invalid_input")
+    b = present[0]
+    own = sliced[index[b]]
     t_us = np.asarray(own.t_us, dtype=np.int64)
     if t_us.size < 2:
         raise StageFailed(f"{where}: {t_us.size} tracking frame(s); need at least 2", status="invalid_input")
@@ -271,19 +321,19 @@ def window_inputs(inputs, b, config, where: str, role: tuple[int, int, int, int]
     problems = det.problems()
     if problems:
         raise StageFailed(f"{where}: detections unusable: " + "; ".join(problems), status="invalid_input")
-    part = (lambda k: own if k == b.index else sliced[index[k]])
+    part = (lambda k: own if k == b else sliced[index[k]])
     t_cor, xy, valid = window_tracks([part(k) for k in scope], int(config.tracks.step), where)
     tracks = Tracks(t_cor, xy, valid, float(config.tracks.edge_margin_px))
     kept_times = tuple(np.asarray(part(k).t_us, dtype=np.int64) for k in kept)
-    return own, (a, z), scope, index, t_det, det, tracks, kept_times
+    return b, own, (a, z), scope, index, t_det, det, tracks, kept_times
 
 
-def window_times(sliced, index, plan, b, a: int, z: int, t_us: np.ndarray) -> np.ndarray:
+def window_times(sliced, index, plan, b: int, a: int, z: int, t_us: np.ndarray) -> np.ndarray:
     """The window's batches' tracking times (one grid for the whole recording, eventcap.analysis.motion.tracking_times_us), so
-    overlapping windows give the same times. They follow from the plan at this batch's step when that step
-    reproduces this batch's own times (a whole number of µs: 1 kHz); else they are read from the batches' tracks."""
+    overlapping windows give the same times. They follow from the plan at the step of batch b (the unit's first)
+    when that step reproduces its own times (a whole number of µs: 1 kHz); else they are read from the batches' tracks."""
     rate = 1e6 / int(np.median(np.diff(t_us)))
-    whole_us = np.array_equal(tracking_times_us(int(plan.t0_us[b.index]), int(plan.t1_us[b.index]), rate), t_us)
+    whole_us = np.array_equal(tracking_times_us(int(plan.t0_us[b]), int(plan.t1_us[b]), rate), t_us)
     return np.unique(np.concatenate([
         np.asarray(sliced[index[k]].t_us, dtype=np.int64) if k in index and not whole_us
         else tracking_times_us(int(plan.t0_us[k]), int(plan.t1_us[k]), rate) for k in range(a, z + 1)]))
@@ -301,21 +351,23 @@ def run_spline(inputs, config, ctx):
     from .solve import NothingObserved, observed_frames, solve_window
 
     inputs = {**inputs, "recording": upright(inputs["recording"], inputs["detections"])}  # the detections' world
-    rec, plan, b = inputs["recording"], inputs["batches"], ctx.batch
-    where = f"batch {b.index}" if b is not None else "batch ?"
+    rec, plan, unit = inputs["recording"], inputs["batches"], ctx.batch
+    where = f"batch {unit.index}" if unit is not None else "batch ?"
     if rec.template is None:
         raise StageFailed(f"stage 'spline' needs the actor template, but recording {rec.name or rec.source!r} has "
                           "none", status="missing_template")
-    if b is None:
+    if unit is None:
         raise StageFailed("stage 'spline' runs per batch (no batch given)", status="invalid_input")
     check_config(config)
     step = int(config.window_step)
-    role = window_role(len(plan), b.index, int(config.half_window), step)
+    b, role = unit_role(plan, unit, int(config.half_window), step)
+    if role is not None and role[2] < role[3]:  # a chunk of batches
+        where = f"chunk {unit.index} (batches {role[2]}..{role[3]})"
     if role is None:  # another batch's window keeps this batch (windows advance by window_step batches)
-        ctx.stats["kept_by"] = kept_by(len(plan), b.index, int(config.half_window), step)
+        ctx.stats["kept_by"] = kept_by(len(plan), b, int(config.half_window), step)
         return {"poses": PoseSequence(t_us=np.zeros(0, dtype=np.int64), poses=np.zeros((0, 33)), status="in_window",
                                       iterations=0, energies={})}
-    own, (a, z), scope, index, t_det, det, tracks, kept_times = window_inputs(inputs, b, config, where, role)
+    b, own, (a, z), scope, index, t_det, det, tracks, kept_times = window_inputs(inputs, config, where, role)
     h_us = int(round(config.knot_ms * 1000))
     n_seg = int(math.ceil((t_det[-1] - t_det[0]) / h_us))
     spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
@@ -357,21 +409,21 @@ def run_spline(inputs, config, ctx):
     # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.
     first = int(np.flatnonzero(np.isfinite(poses[:, 0]))[0])
     poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[first, 27:30] / (2.0 * np.pi))
-    log_window(ctx, config, res, where, (a, z), t_det, scope, b, spline)
+    log_window(ctx, config, res, where, (a, z), t_det, scope, spline)
     energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
     iters = int(sum(s.iterations for s in res.solves))
     return {"poses": PoseSequence(t_us=t_win, poses=poses, status=res.solves[-1].status, iterations=iters,
                                   energies=energies)}
 
 
-def log_window(ctx, config, res, where, window, t_det, scope, b, spline) -> None:
+def log_window(ctx, config, res, where, window, t_det, scope, spline) -> None:
     """The window's log lines and run statistics: the solve's, and what each factor says of its data."""
     a, z = window
     iters = int(sum(s.iterations for s in res.solves))
     secs = sum(res.seconds.values())
     ctx.log.info("%s: window of batches %d..%d (%d frames of detections, %d fitted here, %d control points, tracks "
                  "of %s), %d IPOPT iterations, %.2f s (%s)", where, a, z, t_det.size, res.fits_computed,
-                 spline.n_ctrl, f"batch {b.index}" if scope == [b.index] else f"{len(scope)} batches", iters, secs,
+                 spline.n_ctrl, f"batch {scope[0]}" if len(scope) == 1 else f"{len(scope)} batches", iters, secs,
                  res.solves[-1].status)
     for line in res.lines:
         ctx.log.info("%s: %s", where, line)

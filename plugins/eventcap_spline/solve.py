@@ -80,6 +80,19 @@ class WindowResult:
     association_change_px: tuple[float, ...] = ()
 
 
+class FitSolver:
+    """The per-frame fits' built pieces for a template and camera (the paper's initialisation, and what the capture's
+    measures start from): the fitter with the solve's bounds, IPOPT settings and E_2D / E_3D weights. Much cheaper to
+    build than a :class:`SplineSolver` (no window problem)."""
+
+    def __init__(self, template: Template, camera: Camera, config, where: str = "stages.solve"):
+        self.template, self.camera, self.config = template, camera, config
+        self.lower, self.upper = bounds_with(config.limits, f"{where}.limits")
+        self.settings = IpoptSettings.from_config(config.ipopt)
+        self.fit_weights = fit_weights(config.terms)
+        self.fitter = FrameFitter(template, camera, self.settings, self.lower, self.upper, self.fit_weights[2])
+
+
 class SplineSolver:
     """The spline solve's built pieces for windows of one layout (template, camera, config): the factor problem
     (:class:`FactorProblem` over a spline's control points) and the per-frame fitter. ``config`` is the stage's
@@ -100,7 +113,7 @@ class SplineSolver:
 
 
 # --------------------------------------------------------------------------------------------- per-frame fits
-def frame_fit(solver: SplineSolver, det: FrameDetections, d: int):
+def frame_fit(solver: SplineSolver | FitSolver, det: FrameDetections, d: int):
     """The per-frame fit of detection frame d, ((S, t', stats), whether it was computed now). A frame's fit is a
     deterministic function of its detections and the fitter's settings, so neighbouring windows of this process
     share it (keyed by value)."""
@@ -244,7 +257,9 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, inputs: Wind
         x = _warm(solver, x, start)
     prob.set_window(spline)
     seconds["fit"] = time.perf_counter() - t0
-    x, solves, changes = _icp(solver, spline, inputs, x, what, seconds)
+    # a start from a solution (any finite row) restarts as a later ICP round does; an all-NaN start is the cold start
+    warm = start is not None and bool(np.isfinite(start[0]).any())
+    x, solves, changes = _icp(solver, spline, inputs, x, what, seconds, warm)
     return _result(solver, spline, inputs, x, fits, solves, seconds, counter[0], changes)
 
 
@@ -267,7 +282,7 @@ def _warm(solver: SplineSolver, x: np.ndarray, start) -> np.ndarray:
     return x
 
 
-def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds):
+def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds, warm: bool = False):
     """``icp_rounds`` alternations of relinearising every factor at the current spline and solving (one solve
     without association when icp_rounds is 0). From the second round on, when every factor that associates would
     move its residuals by less than ``icp_settle_px`` (:meth:`Factor.association_change`), the rounds end: the last
@@ -280,7 +295,7 @@ def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds):
         t1 = time.perf_counter()
         est = Estimate(_curve(spline, x[:prob.nU].reshape(prob.n_units, _NP)), r, inputs, solver.template,
                        solver.camera, associate=rounds > 0)
-        if r > 0:
+        if r > 0 and float(c.icp_settle_px) > 0:  # (0: every round; nothing to measure)
             moved = [v for v in (f.association_change(est) for f in solver.factors) if v is not None]
             if moved:
                 changes.append(max(moved))
@@ -292,7 +307,7 @@ def _icp(solver: SplineSolver, spline, inputs: WindowInputs, x, what, seconds):
         prob.set_reference(x)
         t2 = time.perf_counter()
         label = f"ICP round {r + 1}" if rounds > 0 else "no correspondences"
-        x, st = prob.solve(x, f"{what}: spline solve ({label})")
+        x, st = prob.solve(x, f"{what}: spline solve ({label})", restart=r > 0 or warm)
         n_cor = sum(int(f.report().get("n_correspondences", 0)) for f in solver.factors)
         solves.append(SolveStats(st.status, st.iterations, st.seconds, n_cor))
         seconds["relinearize"] += t2 - t1
@@ -314,5 +329,5 @@ def _result(solver, spline, inputs, x, fits, solves, seconds, n_fits, changes) -
                         stillness=inputs.measured().get("stillness"), association_change_px=changes)
 
 
-__all__ = ["NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "clear_fits", "fit_window",
+__all__ = ["FitSolver", "NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "clear_fits", "fit_window",
            "frame_fit", "frame_fits", "observed_frames", "solve_window", "window_context", "window_stillness"]

@@ -82,7 +82,7 @@ class SplineSolveConfig:
     icp_settle_px: float = param(0.0, ge=0, help="end the ICP rounds when a round's association has settled: every "
                                                  "term that associates moved its residuals at the last solution by "
                                                  "less than this RMS, px (that round's solve is skipped); 0: every "
-                                                 "round")
+                                                 "round, the change not measured")
     damp: float = param(1e-4, ge=0, help="proximal pull of the control points towards each solve's start (rad and m "
                                          "alike; not a term of the energy: it keeps directions nothing observes "
                                          "from drifting)")
@@ -100,7 +100,9 @@ class SplineSolveConfig:
     contact: ContactConfig = group(ContactConfig, help="evidence: when a sole point counts as in contact with the "
                                                        "floor (the floor and slide terms)")
     terms: SplineTerms = group(SplineTerms, help="the terms of the energy: each one's weight (0: off) and settings")
-    ipopt: IpoptConfig = group(IpoptConfig, help="IPOPT's options for every solve of a window")
+    ipopt: IpoptConfig = group(IpoptConfig, barrier="adaptive", help="IPOPT's options for every solve of a window "
+                                                                      "(adaptive barrier: a chunk's long window "
+                                                                      "needs 37 iterations instead of 64)")
 
 
 #: Settings that moved when the config was nested: {old key: new key}; an old key is refused naming its new one.
@@ -125,9 +127,9 @@ SPLINE_RENAMED = {
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=11,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
+    name="spline", kind="solve", version=13,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
     # widths; 10: window_step (a batch another window keeps returns no frames); 11: nested settings, energies named
-    # by the terms' groups
+    # by the terms' groups; 12: a unit may be a chunk of batches; 13: the adaptive barrier capped
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
                 "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
@@ -138,10 +140,31 @@ SPLINE = StageSpec(
             "sliced": Port(SlicedTracks, "every batch's tracks (a window reads those of its batches)",
                            all_batches=True),
             "detections": Port(Detections),
-            "batches": Port(BatchPlan)},
-    outputs={"poses": Port(PoseSequence)}, per_batch=True,
+            "batches": Port(BatchPlan, "the recording's batches"),
+            "chunks": Port(BatchPlan, "the units solved one task each, a window with margins around each (the "
+                                      "chunks stage's; not connected: one window per batch)", optional=True)},
+    outputs={"poses": Port(PoseSequence)}, per_batch=True, plan="chunks",
     run="eventcap_spline._impl:run_spline",
     renamed=SPLINE_RENAMED,
+)
+
+
+@dataclass
+class ChunksConfig:
+    seconds: float = param(1.0, gt=0, le=3600, help="length of a chunk, s: consecutive batches are grouped until "
+                                                    "they span this (a last chunk under half of it joins the one "
+                                                    "before)")
+
+
+CHUNKS = StageSpec(
+    name="chunks", kind="plan", version=1,
+    description="the recording's batches grouped into chunks of about `seconds` (not in the paper): a node cut by "
+                "the chunks solves each chunk as one task, cached per chunk",
+    config=ChunksConfig,
+    inputs={"batches": Port(BatchPlan, "the recording's batches")},
+    outputs={"chunks": Port(BatchPlan, doc="one row per chunk: its first batch's start and frame, its last batch's "
+                                           "end")},
+    run="eventcap_spline.chunks:run_chunks",
 )
 
 

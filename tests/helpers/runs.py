@@ -53,4 +53,4 @@ def small_capture_config() -> dict:
 #: A tiny run of the spline pipeline (0.13 s of a synthetic capture, windows of 3 batches) for resume and window tests.
 TINY_SPLINE_RUN = ["pipeline=spline", "experiment=quick", "source.duration_s=0.13", "template=procedural",
                    "template.target_faces=2000", "source.n_track_points=20", "stages.solve.half_window=1",
-                   "outputs.video=false"]
+                   "outputs.video=false", "stages.chunk.seconds=0.04"]  # a chunk per batch: a window each
