@@ -19,8 +19,13 @@ def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool
           file: bool | Callable[[Any], list[str]] = False,
           default_factory: Any = dataclasses.MISSING, choices: tuple[Any, ...] | None = None,
           ge: float | None = None, gt: float | None = None, le: float | None = None, lt: float | None = None,
-          finite: bool = True, odd: bool = False):
+          finite: bool = True, odd: bool = False, unset: Any = dataclasses.MISSING):
     """A config field. ``affects_result=False`` keeps it out of the cache key (e.g. logging, sleeps, workers).
+
+    ``unset=<value>`` (with a null default) makes a field the user may leave unsaid: null means "not given", the
+    stage then uses ``value`` (:func:`given_or_unset`) and may treat what was given differently from what was not
+    (a template's stated height is kept, an unstated one estimated). While null, the key material holds ``value``,
+    as before the field could be null; the names of the given ones are added to the key (``given``).
 
     ``file=True`` marks a path whose *content digest* enters the cache key (input recordings, templates).
     ``file=<function>`` is for a field whose value only sometimes names files (a motion name or a clip's path):
@@ -41,9 +46,27 @@ def param(default: Any = dataclasses.MISSING, *, help: str, affects_result: bool
         meta["finite"] = False
     if odd:
         meta["odd"] = True
+    if unset is not dataclasses.MISSING:
+        meta["unset"] = unset
     if default_factory is not dataclasses.MISSING:
         return field(default_factory=default_factory, metadata=meta)
     return field(default=default, metadata=meta)
+
+
+def given_or_unset(config: Any, key: str) -> Any:
+    """The value of setting ``key`` (dotted) of a config: as given, or its ``unset`` value (see :func:`param`) when
+    null."""
+    value = value_at(config, key)
+    if value is not None:
+        return value
+    f = field_at(type(config), key)
+    return None if f is None else f.metadata.get("unset")
+
+
+def given_fields(config: Any) -> list[str]:
+    """The dotted keys of the settings declared with ``unset`` (:func:`param`) that the config gives (not null),
+    in declaration order."""
+    return [k for k, f in leaves(type(config)) if "unset" in f.metadata and value_at(config, k) is not None]
 
 
 def _allowed(meta: Mapping[str, Any], integer: bool) -> str:
@@ -182,4 +205,5 @@ def field_at(config_class: type, key: str) -> dataclasses.Field | None:
     return field_at(f.metadata["group"], rest) if is_group(f) else None
 
 
-__all__ = ["allowed_values", "check_value", "field_at", "group", "is_group", "leaves", "nest", "param", "value_at"]
+__all__ = ["allowed_values", "check_value", "field_at", "given_fields", "given_or_unset", "group", "is_group", "leaves",
+           "nest", "param", "value_at"]

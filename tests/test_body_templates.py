@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import sys
 import types
@@ -389,7 +390,9 @@ class TestSmplStage(StageConformance):
 
     def test_the_stage_gives_the_loaders_template_and_needs_its_file(self):
         t = self.run_once()["template"]
-        assert t.name == "smpl:SMPL_STANDIN" and t.equals(load_smpl(self.config_overrides["path"]))
+        # a scanned body states its whole shape: the body stage keeps it
+        assert t.name == "smpl:SMPL_STANDIN" and t.stated == ("shape",)
+        assert t.equals(dataclasses.replace(load_smpl(self.config_overrides["path"]), stated=("shape",)))
         with pytest.raises(StageFailed, match=r"template=smpl needs template.path=<SMPL model file>"):
             self.spec().load_run()({}, self.config(path=""), StageContext(node="template", stage="smpl"))
 
@@ -411,6 +414,8 @@ class TestMeshStage(StageConformance):
     def test_the_stage_gives_the_loaders_template_and_needs_both_files(self):
         t = self.run_once()["template"]
         assert t.name == "mesh:scan"
-        assert t.equals(load_mesh_template(self.config_overrides["mesh_path"], self.config_overrides["rig_path"]))
+        assert t.stated == ("shape",)  # a scanned body states its whole shape: the body stage keeps it
+        assert t.equals(dataclasses.replace(load_mesh_template(self.config_overrides["mesh_path"],
+                                                               self.config_overrides["rig_path"]), stated=("shape",)))
         with pytest.raises(StageFailed, match=r"template=mesh needs template.mesh_path and template.rig_path"):
             self.spec().load_run()({}, self.config(rig_path=""), StageContext(node="template", stage="mesh"))

@@ -162,8 +162,10 @@ def test_every_capture_is_made_by_its_draws_and_event_only_rows_use_their_varian
         assert expected in evk4.overrides
     assert not evk4.frames and evk4.group == "whole_events"
     rows = {m.name: m for m in bench.methods}
-    assert list(rows) == ["default", "frames_smooth", "linear", "paper"]
+    assert list(rows) == ["default", "exact_body", "told_template", "frames_smooth", "linear", "paper"]
     assert rows["default"].overrides_for(True) == () and rows["default"].overrides_for(False)[0] == "pipeline=events_only"
+    assert [rows[n].body for n in rows] == ["told", "exact", "told", "told", "told", "told"]
+    assert rows["exact_body"].overrides_for(False) == rows["default"].overrides_for(False)
     assert rows["frames_smooth"].overrides_for(False)[0] == "pipeline=events_only_frames_smooth"
     assert rows["linear"].overrides_for(False)[:2] == ("pipeline=events_only_no_refine", "stages/solve=linear")
     # a row without an event-only variant is refused on an event-only capture, with the reason (nothing runs)
@@ -197,7 +199,8 @@ def test_tiny_open_suite_end_to_end(tmp_path, known_poses):
     runner (a 'solve' that returns a known motion, the procedural actor): reported per group, every capture listed
     with what was drawn, and the files written."""
     cfg = compose_benchmark(CONF, "open", [f"out={tmp_path / 'out'}", f"cache_dir={tmp_path / 'cache'}",
-                                           "seeds=[0,9]", "duration_s=0.2", "plot=false", "detector=simulated"])
+                                           "seeds=[0,9]", "duration_s=0.2", "plot=false", "detector=simulated",
+                                           "draws.body=null"])  # the procedural actor films itself
     cfg["methods"] = [{"name": "known", "overrides": ["stages.solve.motion=jumping_jack"],
                        "events_only": ["stages.solve.motion=jumping_jack"]}]
     run_ov = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "pipeline=known_poses", "stages/solve=known_poses",
@@ -299,3 +302,37 @@ def test_open_preset_with_the_real_default_row(tmp_path):
         assert (r["AE_mm"] is not None and 0 < r["AE_mm"] < 500) or r["error"]
     assert "pipeline=events_only" in res["runs"][1]["overrides"]
     assert "== Group whole_events: whole body, event-only, 1 capture(s)" in got.stdout
+
+
+def test_the_body_is_drawn_per_seed_and_each_row_is_told_what_a_user_types(open_cfg):
+    """Issue 43: every capture films a person drawn from its seed (stature 1.50-1.95 m, phenotypes over [-1, 1]);
+    its user types the stature give or take 3 cm, or nothing in a quarter of the captures; the drawn values of
+    before do not move (test_the_same_seed_gives_the_same_capture_on_any_machine), and a row is told either that or
+    the exact body."""
+    draws = parse_draws(open_cfg["draws"])
+    caps = [draw_capture(s, draws, 1.0) for s in [*TUNING_SEEDS, *CHECK_SEEDS, *range(1000, 1400)]]
+    h = np.array([c.actor_height_m for c in caps])
+    assert h.min() >= 1.5 and h.max() <= 1.95 and h.max() - h.min() > 0.4
+    for name in ("actor_build", "actor_muscle", "actor_sex"):
+        v = np.array([getattr(c, name) for c in caps])
+        assert v.min() >= -1 and v.max() <= 1 and v.min() < -0.9 and v.max() > 0.9
+    told = [c for c in caps if c.told_height_m is not None]
+    assert len(told) / len(caps) == pytest.approx(0.75, abs=0.06)
+    err = np.array([c.told_height_m - c.actor_height_m for c in told])
+    assert np.abs(err).max() <= 0.0305 and np.abs(err).mean() == pytest.approx(0.015, abs=0.003)
+    bench = Benchmark(compose_benchmark(CONF, "open_check", ["seeds=[100,102]"]), CONF, [])
+    c100, c102 = bench.captures
+    assert c100.drawn["told_height_m"] is not None and c102.drawn["told_height_m"] is None
+    assert c100.body["told"] == (f"template.height_m={c100.drawn['told_height_m']}",)
+    assert c102.body["told"] == ()  # told nothing: the template's default body
+    assert [o.split("=")[0] for o in c100.body["exact"]] == ["template.height_m", "template.build", "template.muscle",
+                                                            "template.sex", "template.seed"]
+    assert f"source.actor.height_m={c100.drawn['actor_height_m']}" in c100.overrides
+    # without draws.body every capture films the template, as before
+    plain = Benchmark(compose_benchmark(CONF, "open_check", ["seeds=[100]", "draws.body=null"]), CONF, [])
+    assert not any(o.startswith("source.actor") for o in plain.captures[0].overrides) and plain.captures[0].body == {}
+    with pytest.raises(ValueError, match=r"draws.body.sex: expected a range within \[-1, 1\], got \[-1.0, 2.0\]"):
+        parse_draws({**open_cfg["draws"], "body": {**open_cfg["draws"]["body"], "sex": [-1.0, 2.0]}})
+    with pytest.raises(ValueError, match=r"draws.body: expected a mapping with the keys .* missing \['told_nothing'\]"):
+        parse_draws({**open_cfg["draws"], "body": {k: v for k, v in open_cfg["draws"]["body"].items()
+                                                   if k != "told_nothing"}})

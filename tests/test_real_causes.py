@@ -29,7 +29,7 @@ TOY = [f"hydra.searchpath=[file://{TESTS / 'conf'}]", "experiment=toy", "outputs
 #: (the paper's pipeline: DOWNSTREAM names its nodes)
 SMALL = ["pipeline=paper", "experiment=quick", "source.duration_s=0.09", "template=procedural",
          "template.target_faces=2000", "source.n_track_points=20", "outputs.video=false"]
-DOWNSTREAM = ("detect", "sharpen", "track", "slice", "solve", "refine", "confidence", "evaluate")
+DOWNSTREAM = ("detect", "sharpen", "body", "track", "slice", "solve", "refine", "confidence", "evaluate")
 
 
 @pytest.fixture(scope="module")

@@ -223,8 +223,8 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
     assert code == 1
     assert ("detect (blazepose v4): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
             "images; is there a person in view (eventcap preview FILE)?") in log
-    assert ("run incomplete: detect failed (no_person); skipped because of it: 7 nodes (track, slice, solve, stitch, "
-            "cut, confidence, evaluate); the first error is above (detect)") in log
+    assert ("run incomplete: detect failed (no_person); skipped because of it: 8 nodes (body, track, slice, solve, "
+            "stitch, cut, confidence, evaluate); the first error is above (detect)") in log
     assert "world frame: y up, the camera at the origin looking along -z, assumed level until the detect stage measures" in log
 
 

@@ -46,8 +46,8 @@ log = logging.getLogger("eventcap.apps.benchmark")
 DATA_FIELDS = ("total_MBps", "events_MBps", "frames_MBps", "highspeed_MBps")
 #: The evaluate stage's motion-detail measures a run record keeps (root-relative joints; see eventcap.analysis.metrics).
 DETAIL_FIELDS = ("AE_rootrel_mm", "depth_mm", "image_plane_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err",
-                 "velocity_window_ms")
-_METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires"}
+                 "velocity_window_ms", "body_error_mm", "stated_body_error_mm")
+_METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires", "body"}
 
 
 @dataclass(frozen=True)
@@ -59,6 +59,8 @@ class Method:
     description: str = ""
     #: the row's overrides on a capture without intensity frames (None: the row has none, its runs are refused)
     events_only: tuple[str, ...] | None = None
+    #: what the row's runs are told about a drawn person (the benchmark's ``body_overrides``): told | exact
+    body: str = "told"
 
     def overrides_for(self, frames: bool) -> tuple[str, ...] | None:
         """The row's overrides on a capture with (or without) intensity frames; None: not defined there."""
@@ -68,6 +70,27 @@ class Method:
     def slug(self) -> str:
         """The method's name as a folder name (``w/o_batch`` -> ``wo_batch``)."""
         return re.sub(r"[^A-Za-z0-9_.-]+", "", self.name.replace("/", "")) or "method"
+
+
+#: What a row may be told about a drawn person: ``told`` (what a user would type), ``exact`` (the actor's body).
+BODY_KINDS = ("told", "exact")
+
+
+def fill_overrides(templates: Sequence[str], values: Mapping[str, Any], where: str) -> list[str]:
+    """The overrides with their ``{name}`` fields filled from ``values``; one that names a value that is None
+    (e.g. a height the user does not type) is left out."""
+    import string
+
+    out = []
+    for o in templates:
+        fields = [f for _, f, _, _ in string.Formatter().parse(str(o)) if f]
+        missing = [f for f in fields if f not in values]
+        if missing:
+            raise ValueError(f"{where}: no value {{{missing[0]}}}; known: {', '.join(sorted(values))}")
+        if any(values[f] is None for f in fields):
+            continue
+        out.append(str(o).format(**values))
+    return out
 
 
 def parse_methods(items: Sequence[Mapping[str, Any]]) -> list[Method]:
@@ -84,10 +107,13 @@ def parse_methods(items: Sequence[Mapping[str, Any]]) -> list[Method]:
         if data not in DATA_FIELDS:
             raise ValueError(f"methods[{i}] ({m['name']}).data: expected one of {', '.join(DATA_FIELDS)}, got {data!r}")
         events_only = m.get("events_only")
+        body = str(m.get("body") or "told")
+        if body not in BODY_KINDS:
+            raise ValueError(f"methods[{i}] ({m['name']}).body: expected one of {', '.join(BODY_KINDS)}, got {body!r}")
         meth = Method(name=str(m["name"]), overrides=tuple(str(o) for o in m.get("overrides") or ()), data=data,
                       requires=tuple(str(r) for r in m.get("requires") or ()),
                       description=str(m.get("description") or ""),
-                      events_only=None if events_only is None else tuple(str(o) for o in events_only))
+                      events_only=None if events_only is None else tuple(str(o) for o in events_only), body=body)
         if any(meth.slug == o.slug for o in out):
             raise ValueError(f"methods[{i}]: name {meth.name!r} repeats an earlier method")
         out.append(meth)
@@ -153,6 +179,8 @@ class SuiteCapture:
     group: str | None = None  # a generated suite's group
     drawn: dict[str, Any] | None = None  # a generated suite: what was drawn (eventcap.apps.open_suite.Capture)
     description: str = ""
+    #: what a row is told about the drawn person, by the row's ``body`` (told | exact); empty: no person drawn
+    body: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 @dataclass
@@ -203,8 +231,13 @@ class Benchmark:
         for seed in self.seeds:
             cap = draw_capture(seed, self.draws, float(c["duration_s"]))
             ov = [*self.sequence_overrides(cap.motion, seed, cap.values()), *map(str, per_camera.get(cap.camera) or ())]
+            body = {}
+            if cap.actor_height_m is not None:
+                told = c.get("body_overrides") or {}
+                body = {kind: tuple(fill_overrides(told.get(kind) or (), cap.values(), f"body_overrides.{kind}"))
+                        for kind in BODY_KINDS}
             self.captures.append(SuiteCapture(cap.motion, seed, cap.label, tuple(ov), cap.frames, cap.group,
-                                              cap.values(), cap.describe()))
+                                              cap.values(), cap.describe(), body))
         self.motions = list(dict.fromkeys(cap.motion for cap in self.captures))
 
     def sequence_overrides(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> list[str]:
@@ -214,11 +247,7 @@ class Benchmark:
         if detector is not None and detector not in detectors:
             raise ValueError(f"detector: expected one of {sorted(detectors)} (benchmark key detectors), got {detector!r}")
         chosen = detectors.get(detector) or () if detector is not None else ()
-        try:
-            return [str(o).format(**values) for o in [*(self.cfg.get("sequence_overrides") or ()), *chosen]]
-        except KeyError as exc:
-            raise ValueError(f"sequence_overrides: no value {{{exc.args[0]}}}; known: {', '.join(sorted(values))}") \
-                from None
+        return fill_overrides([*(self.cfg.get("sequence_overrides") or ()), *chosen], values, "sequence_overrides")
 
     def base_overrides(self) -> list[str]:
         return [f"cache_dir={self.cfg['cache_dir']}", *map(str, self.cfg.get("overrides") or ()), *self.run_overrides]
@@ -295,7 +324,7 @@ class Benchmark:
 
         run_dir = self.out / "runs" / cap.label / method.slug
         own = method.overrides_for(cap.frames)
-        ov = [*cap.overrides, *self.base_overrides(), *(own or ())]
+        ov = [*cap.overrides, *self.base_overrides(), *(own or ()), *cap.body.get(method.body, ())]
         rec: dict[str, Any] = {"motion": cap.motion, "seed": cap.seed, "method": method.name, "run_dir": str(run_dir),
                                "overrides": ov, "ok": False, "error": None, "capture": cap.label, "group": cap.group,
                                "frames_camera": cap.frames}

@@ -39,6 +39,9 @@ CHECK_NOTE = ("the check seeds (100-119): for reporting only. Nothing may be cho
 _GROUP_KEYS = {"label", "cameras", "motions", "distance_factor", "height_m", "aim_m", "tilt_jitter_deg"}
 _DRAW_KEYS = {"salt", "cycle", "groups", "builtin_start_s", "illuminance_lux", "contrast_threshold", "backgrounds",
               "background_seeds", "source_seeds"}
+#: ``draws`` keys that may be left out (null or absent): ``body`` (without it, every capture films the template).
+_OPTIONAL_DRAW_KEYS = {"body"}
+_BODY_KEYS = {"height_m", "build", "muscle", "sex", "outfit_seeds", "told_error_m", "told_nothing"}
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,19 @@ class GroupDraws:
 
 
 @dataclass(frozen=True)
+class BodyDraws:
+    """How the filmed person is drawn (``draws.body``) and what its user is told to type."""
+
+    height_m: tuple[float, float]  # uniform stature
+    build: tuple[float, float]  # uniform, ANNY's weight phenotype
+    muscle: tuple[float, float]  # uniform
+    sex: tuple[float, float]  # uniform (-1 female .. +1 male)
+    outfit_seeds: int  # uniform integer in [0, n): the outfit's tones and prints
+    told_error_m: tuple[float, float]  # the stature the user types: the true one plus a uniform error in this range
+    told_nothing: float  # the share of captures whose user types nothing (the template's default body)
+
+
+@dataclass(frozen=True)
 class Draws:
     """The distributions of the generated captures (``draws`` of the benchmark config), checked."""
 
@@ -69,6 +85,7 @@ class Draws:
     backgrounds: tuple[str, ...]  # uniform
     background_seeds: int  # uniform integer in [0, n)
     source_seeds: int  # uniform integer in [0, n): the sensor's noise and thresholds, a built-in performance
+    body: BodyDraws | None = None  # the filmed person; None: every capture films the template
 
 
 @dataclass(frozen=True)
@@ -89,6 +106,13 @@ class Capture:
     background: str
     background_seed: int
     source_seed: int
+    # the filmed person (source.actor) and what the run is told about it; None: the template is filmed
+    actor_height_m: float | None = None
+    actor_build: float | None = None
+    actor_muscle: float | None = None
+    actor_sex: float | None = None
+    actor_seed: int | None = None
+    told_height_m: float | None = None  # the stature the user types; None: nothing (also when no actor is drawn)
 
     @property
     def label(self) -> str:
@@ -99,10 +123,14 @@ class Capture:
         return asdict(self)
 
     def describe(self) -> str:
+        person = "" if self.actor_height_m is None else (
+            f"; a {self.actor_height_m:.2f} m person (build {self.actor_build:+.2f}, muscle {self.actor_muscle:+.2f}, "
+            f"sex {self.actor_sex:+.2f}), told "
+            + ("nothing" if self.told_height_m is None else f"{self.told_height_m:.2f} m"))
         return (f"{self.motion} from {self.motion_start_s:.2f} s; {self.camera} "
                 f"({'frames' if self.frames else 'event-only'}) {self.distance_m:.2f} m away, "
                 f"{self.height_m:.2f} m high, {self.tilt_deg:+.1f} deg; {self.illuminance_lux:g} lux; "
-                f"C {self.contrast_threshold:.3f}; {self.background} background")
+                f"C {self.contrast_threshold:.3f}; {self.background} background{person}")
 
 
 def uniform(seed: int, salt: int, name: str) -> float:
@@ -156,6 +184,16 @@ def draw_capture(seed: int, draws: Draws, duration_s: float) -> Capture:
     tilt = math.degrees(math.atan2(height - group.aim_m, distance)) + _between(group.tilt_jitter_deg, u("tilt"))
     lo, hi = draws.illuminance_lux
     lux = math.exp(math.log(lo) + u("illuminance") * (math.log(hi) - math.log(lo)))
+    person = {}
+    if draws.body is not None:
+        b = draws.body
+        stature = round(_between(b.height_m, u("actor_height")), 3)
+        told = None if u("told_nothing") < b.told_nothing else round(stature + _between(b.told_error_m,
+                                                                                        u("told_error")), 3)
+        person = dict(actor_height_m=stature, actor_build=round(_between(b.build, u("actor_build")), 3),
+                      actor_muscle=round(_between(b.muscle, u("actor_muscle")), 3),
+                      actor_sex=round(_between(b.sex, u("actor_sex")), 3),
+                      actor_seed=int(u("actor_seed") * b.outfit_seeds), told_height_m=told)
     return Capture(
         seed=int(seed), group=group.name, motion=motion, motion_start_s=round(start, 3), camera=camera,
         frames=bool(preset.frames), distance_m=round(distance, 3), height_m=round(height, 3),
@@ -163,7 +201,7 @@ def draw_capture(seed: int, draws: Draws, duration_s: float) -> Capture:
         contrast_threshold=round(_between(draws.contrast_threshold, u("contrast_threshold")), 3),
         background=_pick(draws.backgrounds, u("background")),
         background_seed=int(u("background_seed") * draws.background_seeds),
-        source_seed=int(u("source_seed") * draws.source_seeds))
+        source_seed=int(u("source_seed") * draws.source_seeds), **person)
 
 
 def suite_seeds(purpose: str, seeds: Sequence[int] | None) -> list[int]:
@@ -259,8 +297,9 @@ def parse_draws(data: Any) -> Draws:
     if not isinstance(data, Mapping):
         raise ValueError(f"draws: expected a mapping with the keys {', '.join(sorted(_DRAW_KEYS))}, got {data!r}")
     keys = set(data)
-    if keys != _DRAW_KEYS:
-        raise ValueError(f"draws: missing {sorted(_DRAW_KEYS - keys)}, unknown {sorted(keys - _DRAW_KEYS)}")
+    if not _DRAW_KEYS <= keys <= _DRAW_KEYS | _OPTIONAL_DRAW_KEYS:
+        raise ValueError(f"draws: missing {sorted(_DRAW_KEYS - keys)}, unknown "
+                         f"{sorted(keys - _DRAW_KEYS - _OPTIONAL_DRAW_KEYS)}")
     groups_in = data["groups"]
     if not isinstance(groups_in, Mapping) or not groups_in:
         raise ValueError(f"draws.groups: expected a mapping of group name -> its draws, got {groups_in!r}")
@@ -273,4 +312,26 @@ def parse_draws(data: Any) -> Draws:
                  contrast_threshold=_range("contrast_threshold", data["contrast_threshold"], positive=True),
                  backgrounds=_names("backgrounds", data["backgrounds"], list(BACKGROUNDS)),
                  background_seeds=_count("background_seeds", data["background_seeds"]),
-                 source_seeds=_count("source_seeds", data["source_seeds"]))
+                 source_seeds=_count("source_seeds", data["source_seeds"]), body=_parse_body(data.get("body")))
+
+
+def _parse_body(b: Any) -> BodyDraws | None:
+    """``draws.body``, checked (None when it is null or absent)."""
+    if b is None:
+        return None
+    if not isinstance(b, Mapping) or set(b) != _BODY_KEYS:
+        got = set(b) if isinstance(b, Mapping) else set()
+        raise ValueError(f"draws.body: expected a mapping with the keys {', '.join(sorted(_BODY_KEYS))}; missing "
+                         f"{sorted(_BODY_KEYS - got)}, unknown {sorted(got - _BODY_KEYS)}")
+    height = _range("body.height_m", b["height_m"], positive=True)
+    if not (1.2 <= height[0] and height[1] <= 2.3):
+        raise ValueError(f"draws.body.height_m: expected statures within the ANNY body's [1.2, 2.3] m, got {list(height)}")
+    units = {k: _range(f"body.{k}", b[k], low=-1.0) for k in ("build", "muscle", "sex")}
+    for k, (lo, hi) in units.items():
+        if hi > 1.0:
+            raise ValueError(f"draws.body.{k}: expected a range within [-1, 1], got {[lo, hi]}")
+    share = b["told_nothing"]
+    if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share <= 1.0:
+        raise ValueError(f"draws.body.told_nothing: expected a share in [0, 1], got {share!r}")
+    return BodyDraws(height_m=height, **units, outfit_seeds=_count("body.outfit_seeds", b["outfit_seeds"]),
+                     told_error_m=_range("body.told_error_m", b["told_error_m"]), told_nothing=float(share))

@@ -93,6 +93,18 @@ def check_outputs_config(runner) -> OutputsConfig:
 # ---------------------------------------------------------------------------------------------------------------------
 # After a run
 # ---------------------------------------------------------------------------------------------------------------------
+def _upstream(runner, node_name: str) -> list[str]:
+    """The nodes ``node_name`` depends on, nearest in pipeline order first (a recording's template as the body stage
+    gave it comes before the source's)."""
+    seen, todo = set(), [node_name]
+    while todo:
+        for ref in runner.by_name[todo.pop()].inputs.values():
+            if ref.node not in seen:
+                seen.add(ref.node)
+                todo.append(ref.node)
+    return [n.name for n in reversed(runner.nodes) if n.name in seen]
+
+
 def _first_output(runner, result, cls, prefer: list[str] = ()) -> Any:
     """The committed output of type ``cls`` of a whole node: the nodes in ``prefer`` first, then pipeline order."""
     nodes = [runner.by_name[n] for n in prefer if n in runner.by_name] + list(runner.nodes)
@@ -157,7 +169,7 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
         summary["problems"].append(f"joining {cfg.poses}: {exc}")
         log.error("outputs: cannot join the poses of %s: %s", cfg.poses, exc)
         return summary
-    prefer = [r.node for r in runner.by_name[node_name].inputs.values()]
+    prefer = _upstream(runner, node_name)  # the nearest producers first: the body stage's recording and template
     from eventcap.artifacts.pose import Detections, JointConfidence
     from eventcap.worldframe import upright
 
@@ -165,7 +177,7 @@ def _write(runner, result, run_dir: Path, cfg: OutputsConfig, summary: dict[str,
     if rec is not None:  # the world the motion was solved in (turned to the person's vertical by detect, or not)
         rec = upright(rec, _first_output(runner, result, Detections))
     template = rec.template if rec is not None and rec.template is not None else _first_output(runner, result,
-                                                                                               Template)
+                                                                                               Template, prefer)
     if template is None:
         return skip("no actor template in this run (the motion needs its rest skeleton)")
     from eventcap.body.kinematics import joint_positions

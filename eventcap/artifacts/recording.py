@@ -99,6 +99,9 @@ class GroundTruth(Artifact):
     frame_t_us: np.ndarray = array("int64", ("n",), units="us", optional=True,
                                    doc="times of frame_poses, frame_joints and sharp_images; None = the recording's "
                                        "intensity frame times (set when they differ, e.g. an event-only capture)")
+    actor: str = attr(default="", doc="the filmed body when it is not the recording's template: JSON of its model "
+                                      "and parameters (a synthetic capture's source.actor); '' = the recording's "
+                                      "template is the filmed body")
 
 
 #: Recording.world's values (see its doc).

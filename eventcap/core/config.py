@@ -15,7 +15,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from eventcap.core.registry import unknown_name_message
 from eventcap.core.stage import StageSpec
-from eventcap.params import allowed_values, check_value, field_at, is_group, leaves, value_at
+from eventcap.params import allowed_values, check_value, field_at, given_fields, is_group, leaves, value_at
 
 
 class ConfigError(ValueError):
@@ -183,8 +183,28 @@ def _plain(v):
 
 
 def result_config(spec: StageSpec, config: Any) -> dict[str, Any]:
-    """Only the fields that affect the stage's result: what goes into the cache key."""
-    return {k: _plain(value_at(config, k)) for k in spec.result_fields()}
+    """Only the settings that affect the stage's result (dotted keys): what goes into the cache key. A group whose
+    every setting is null (unset, e.g. ``source.actor``) is left out, so adding such a group keeps the keys of the
+    results made before it existed; a null setting declared with ``unset`` enters as that value, and the keys of the
+    given ones are added (``given``): what the user stated changes the result even where it equals the unset value."""
+    out: dict[str, Any] = {}
+    for k in spec.result_fields():
+        head = k.rpartition(".")[0]
+        if head and _unset_group(value_at(config, head)):
+            continue
+        value = value_at(config, k)
+        meta = field_at(type(config), k).metadata
+        out[k] = _plain(meta["unset"] if value is None and "unset" in meta else value)
+    given = given_fields(config)
+    if given:
+        out["given"] = given
+    return out
+
+
+def _unset_group(value: Any) -> bool:
+    """Whether ``value`` is a group of settings whose every setting (nested groups opened) is null."""
+    return (dataclasses.is_dataclass(value) and not isinstance(value, type)
+            and all(value_at(value, k) is None for k, _ in leaves(type(value))))
 
 
 def file_digest(path: str | Path, chunk: int = 1 << 22) -> str:

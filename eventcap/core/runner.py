@@ -601,7 +601,10 @@ class Runner:
     def _input_specs(self, node: Node, node_keys, batch_keys, plans, batch: Batch | None) -> tuple[dict, dict]:
         """Input references for a task and the matching key material."""
         refs, keydoc = {}, {}
+        used = node.spec.used_inputs(node.config)
         for port, ref in node.inputs.items():
+            if port not in used:  # not read with this config: not loaded, not in the key
+                continue
             up = self.by_name[ref.node]
             if up.spec.per_batch and node.spec.per_batch and not node.spec.inputs[port].all_batches:
                 k = batch_keys[ref.node][batch.index]
@@ -711,7 +714,8 @@ class Runner:
             log.error("%s: skipped, no batches to run: %s", label, why)
             return
         # Node-level key: the per-batch upstreams enter by their node-level keys; used by whole-recording consumers.
-        node_doc = {**base, "inputs": {p: node_keys[r.node] for p, r in node.inputs.items()}}
+        used = node.spec.used_inputs(node.config)
+        node_doc = {**base, "inputs": {p: node_keys[r.node] for p, r in node.inputs.items() if p in used}}
         node_keys[node.name] = make_key(node_doc)
         keys: dict[int, str] = {}
         batch_keys[node.name] = keys

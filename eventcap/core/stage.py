@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -31,6 +31,8 @@ from eventcap.params import (  # noqa: F401 (the public plugin API: eventcap.cor
     allowed_values,
     check_value,
     field_at,
+    given_fields,
+    given_or_unset,
     group,
     is_group,
     leaves,
@@ -73,6 +75,10 @@ class StageSpec:
     run: str
     per_batch: bool = False
     origin: str = ""  # where the registry found it (filled by the registry)
+    #: The input ports a config reads, ``uses(config) -> names`` (None: every input). An input a config does not
+    #: read is neither loaded nor part of the node's cache key: e.g. the synthetic source filming an actor of its
+    #: own does not recompute its capture when the template changes.
+    uses: Callable[[Any], Collection[str]] | None = None
     #: settings that moved: {old key: new dotted key}; an old key is refused naming its new one
     renamed: Mapping[str, str] = field(default_factory=dict)
     #: optional ``"module:function"`` called with the built config when the pipeline is built (before anything
@@ -145,6 +151,16 @@ class StageSpec:
     def result_fields(self) -> list[str]:
         """The dotted keys of the settings that affect the result (groups opened): the cache key's."""
         return [k for k, f in leaves(self.config) if f.metadata.get("affects_result", True)]
+
+    def used_inputs(self, config: Any) -> list[str]:
+        """The input ports ``config`` reads (see ``uses``), in declaration order."""
+        if self.uses is None:
+            return list(self.inputs)
+        used = set(self.uses(config))
+        unknown = sorted(used - set(self.inputs))
+        if unknown:
+            raise StageSpecError(f"stage spec {self.name!r}: uses() names unknown input(s) {unknown}")
+        return [p for p in self.inputs if p in used]
 
     def file_fields(self) -> list[str]:
         return [k for k, f in leaves(self.config) if f.metadata.get("file", False)]

@@ -162,6 +162,17 @@ def exposure_streaks(camera, gt_t_us: np.ndarray, gt_points: np.ndarray, t_us: n
     return out
 
 
+def filmed_body(recording):
+    """The body the camera filmed: the actor of a synthetic capture that films one of its own (the ground truth's
+    ``actor``), else the recording's template (None when it has none)."""
+    gt = recording.ground_truth
+    if gt is not None and gt.actor:
+        from eventcap.body.anny import anny_from_json
+
+        return anny_from_json(gt.actor)
+    return recording.template
+
+
 def hidden_by_body(camera, template, poses: np.ndarray, points: np.ndarray, margin_m: float) -> np.ndarray:
     """(n, K) bool: points (n, K, 3) lie behind the template's surface posed by poses (n, 33) by more than margin_m.
 
@@ -225,11 +236,12 @@ def frame_truth(recording, occlusion: bool = True, occlusion_margin_m: float = 0
         joints = interpolate_at(gt.t_us, gt.joints, t_us, f"recording {name!r}: ground-truth joints")
     keypoints = cam.project(landmarks)
     visible = in_image(keypoints, cam.height, cam.width)
-    checked = bool(occlusion and recording.template is not None)
+    body = filmed_body(recording) if occlusion else None
+    checked = body is not None
     if checked:
         poses = (np.asarray(gt.frame_poses) if at_frames
                  else interpolate_at(gt.t_us, gt.poses, t_us, f"recording {name!r}: ground-truth poses"))
-        visible &= ~hidden_by_body(cam, recording.template, poses, landmarks, occlusion_margin_m)
+        visible &= ~hidden_by_body(cam, body, poses, landmarks, occlusion_margin_m)
     return FrameTruth(
         t_us=np.asarray(t_us, dtype=np.int64), keypoints_px=keypoints, visible=visible,
         streak_px=exposure_streaks(cam, gt.t_us, gt.landmarks, t_us, exposure),

@@ -128,6 +128,26 @@ def require_truth(rec: Recording) -> tuple[GroundTruth, Any]:
     return rec.ground_truth, rec.template
 
 
+def body_errors(gt: GroundTruth, body, stated=None) -> dict[str, Any]:
+    """The body's limb lengths and girdle widths (eventcap.body.proportions.SEGMENTS) against the filmed person's,
+    which the ground truth's joints and poses give (its rest skeleton): ``body_error_mm`` the median absolute error
+    over the segments, ``body_error_by_segment_mm`` each signed (body - truth); ``stated_*`` the same for the
+    template as the user gave it, when given."""
+    from eventcap.body.proportions import rest_skeleton_from_motion, segment_lengths
+
+    step = max(1, gt.t_us.size // 20)
+    truth = segment_lengths(rest_skeleton_from_motion(gt.poses[::step], gt.joints[::step]))
+    out: dict[str, Any] = {}
+    for key, t in (("body", body), ("stated_body", stated)):
+        if t is None:
+            continue
+        got = segment_lengths(t.rest_joints)
+        diff = {n: 1000.0 * (got[n] - truth[n]) for n in truth}
+        out[f"{key}_error_mm"] = float(np.median(np.abs(list(diff.values()))))
+        out[f"{key}_error_by_segment_mm"] = {n: round(v, 1) for n, v in diff.items()}
+    return out
+
+
 def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: int = 10,
                     align: str = "procrustes", velocity_window_ms: float = 10.0,
                     end_effectors: tuple[str, ...] = END_EFFECTORS, intervals_us: np.ndarray | None = None,
@@ -263,6 +283,7 @@ def run(inputs: dict[str, Any], config, ctx: StageContext) -> dict[str, Any]:
             statuses[p.status] = statuses.get(p.status, 0) + 1
     values.update({"join": config.join, "n_batches": len(parts), "n_shared_frames": shared,
                    "solver_status": statuses})
+    values.update(body_errors(rec.ground_truth, rec.template, inputs.get("stated")))
     ctx.stats.update({"n_batches": len(parts), "n_frames": values["n_frames"]})
     ctx.report(2, 2)
     return {"metrics": Metrics(values=values), "errors": errors}

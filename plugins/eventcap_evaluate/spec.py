@@ -9,6 +9,7 @@ from eventcap.analysis.metrics import END_EFFECTORS
 from eventcap.artifacts import Metrics
 from eventcap.artifacts.pose import JointErrors, PoseSequence
 from eventcap.artifacts.recording import Recording
+from eventcap.body.template import Template
 from eventcap.core.stage import Port, StageSpec, param
 
 
@@ -29,14 +30,18 @@ class EvaluateConfig:
 
 
 EVALUATE = StageSpec(
-    name="evaluate", kind="evaluate", version=4,  # 3: gaps not evaluated, coverage; 4: depth and image-plane split
+    name="evaluate", kind="evaluate", version=5,  # 3: gaps not evaluated, coverage; 4: depth and image-plane split;
+    # 5: the body's segment lengths against the truth
     description="mean per-joint 3D error (AE, Procrustes-aligned) and its STD on every 10th frame, AE.raw / "
                 "AE.nonRaw, per-joint errors, data rate (MB/s) against 1000 fps frames; velocity error (MPJVE), acceleration "
                 "error and end-effector peak speed per batch, root-relative; the root-relative error split along the "
-                "camera's line of sight (depth) and the image plane",
+                "camera's line of sight (depth) and the image plane; the body's limb lengths and girdle widths against "
+                "the truth (and the stated template's, when wired)",
     config=EvaluateConfig,
     inputs={"recording": Port(Recording, "the recording, with ground truth and the actor template"),
-            "poses": Port(PoseSequence, "the estimated poses of every batch", all_batches=True)},
+            "poses": Port(PoseSequence, "the estimated poses of every batch", all_batches=True),
+            "stated": Port(Template, "the template as the user gave it (before the body stage): its segment lengths "
+                                     "are measured beside the body's", optional=True)},
     outputs={"metrics": Port(Metrics), "errors": Port(JointErrors)},
     run="eventcap_evaluate._impl:run",
 )

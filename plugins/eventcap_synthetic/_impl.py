@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-
+import json
 import math
 from pathlib import Path
 
@@ -18,23 +18,29 @@ from eventcap.imaging.render import background
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic
 from eventcap.sim.events import SensorConfig
 from eventcap.sim.frames import FrameConfig
-from eventcap.core.stage import StageFailed, check_value
+from eventcap.core.stage import StageFailed, check_value, given_fields, given_or_unset
 
 
 def run_procedural(inputs, config, ctx):
     from eventcap.body.procedural import procedural_template
 
-    ctx.log.info("template: the generic procedural actor (%.2f m); for a real person give their height "
-                 "(template.height_m=...) or use template=anny with height_m, build and sex", config.height_m)
-    return {"template": procedural_template(seed=config.seed, height_m=config.height_m,
-                                            target_faces=config.target_faces)}
+    height = given_or_unset(config, "height_m")
+    ctx.log.info("template: the generic procedural actor (%.2f m%s); for a real person give their height "
+                 "(template.height_m=...) or use template=anny with height_m, build and sex", height,
+                 "" if config.height_m is not None else ", not stated")
+    t = procedural_template(seed=config.seed, height_m=height, target_faces=config.target_faces)
+    return {"template": dataclasses.replace(t, stated=tuple(given_fields(config)))}
 
 
 def run_anny(inputs, config, ctx):
     from eventcap.body.anny import anny_template
 
-    return {"template": anny_template(height_m=config.height_m, build=config.build, muscle=config.muscle,
-                                      sex=config.sex, seed=config.seed)}
+    body = {k: given_or_unset(config, k) for k in ("height_m", "build", "muscle", "sex")}
+    t = anny_template(**body, seed=config.seed)
+    stated = given_fields(config)
+    ctx.log.info("template: %s; stated: %s", t.name, ", ".join(stated) if stated else
+                 "nothing (ANNY's default body; the body stage estimates the person's)")
+    return {"template": dataclasses.replace(t, stated=tuple(stated))}
 
 
 def run_smpl(inputs, config, ctx):
@@ -42,7 +48,8 @@ def run_smpl(inputs, config, ctx):
 
     if not config.path:
         raise StageFailed("template=smpl needs template.path=<SMPL model file>", status="missing_file")
-    return {"template": load_smpl(config.path, betas=np.asarray(config.betas) if config.betas else None)}
+    t = load_smpl(config.path, betas=np.asarray(config.betas) if config.betas else None)
+    return {"template": dataclasses.replace(t, stated=("shape",))}
 
 
 def run_mesh(inputs, config, ctx):
@@ -50,7 +57,7 @@ def run_mesh(inputs, config, ctx):
 
     if not config.mesh_path or not config.rig_path:
         raise StageFailed("template=mesh needs template.mesh_path and template.rig_path", status="missing_file")
-    return {"template": load_mesh_template(config.mesh_path, config.rig_path)}
+    return {"template": dataclasses.replace(load_mesh_template(config.mesh_path, config.rig_path), stated=("shape",))}
 
 
 #: Keys of the synthetic source that default to the camera preset's value when null.
@@ -167,8 +174,32 @@ def sensor_settings(config, eff: dict) -> tuple[SensorConfig, FrameConfig]:
     return sensor, frames
 
 
+def actor_template(config, ctx=None):
+    """The filmed body of a synthetic capture with ``source.actor`` given (an ANNY body; unset keys take ANNY's
+    defaults, :class:`~eventcap_synthetic.spec.AnnyConfig`), with its phenotypes as JSON; None when no actor key is
+    given (the template is filmed)."""
+    from eventcap.body.anny import anny_template
+
+    from .spec import actor_given, anny_defaults
+
+    if not actor_given(config.actor):
+        return None, ""
+    given = {k: getattr(config.actor, k) for k in ("height_m", "build", "muscle", "sex", "seed")}
+    body = {k: (anny_defaults()[k] if v is None else v) for k, v in given.items()}
+    try:
+        actor = anny_template(**body)
+    except ValueError as exc:
+        raise ValueError(f"source.actor: {exc}") from None
+    if ctx is not None:
+        ctx.log.info("actor: the camera films a body of its own, not the template: %s (ANNY; given: %s); the "
+                     "recording carries no template, its ground truth is the actor's joints", actor.name,
+                     ", ".join(k for k, v in given.items() if v is not None))
+    return actor, json.dumps({"model": "anny", **body}, sort_keys=True)
+
+
 def run_synthetic(inputs, config, ctx):
-    template = inputs["template"]
+    actor, actor_json = actor_template(config, ctx)
+    template = inputs["template"] if actor is None else actor
     names = [m.strip() for m in config.motion.split(",") if m.strip()]
     if not names:
         raise ValueError("source.motion: give at least one motion name")
@@ -195,7 +226,7 @@ def run_synthetic(inputs, config, ctx):
         track_tri=cap.track_tri, track_bary=cap.track_bary, track_px=cap.track_px, track_visible=cap.track_visible,
         height=h, width=w,
         # Without frames the sharp images and frame poses no longer sit at the recording's frame times: say when.
-        frame_t_us=None if with_frames else cap.frame_t_us.copy(),
+        frame_t_us=None if with_frames else cap.frame_t_us.copy(), actor=actor_json,
     )
     frame_stack = FrameStack(images=cap.frame_images.astype(np.float32) / np.float32(255.0), t_us=cap.frame_t_us,
                         exposure_us=cap.frame_exposure_us, height=h, width=w) if with_frames else None
@@ -204,12 +235,12 @@ def run_synthetic(inputs, config, ctx):
                      "keep their clock)", len(cap.frame_t_us))
     rec = Recording(
         events=EventStream(events=cap.events, width=w, height=h), camera=cam,
-        frames=frame_stack, template=template, ground_truth=gt,
+        frames=frame_stack, template=template if actor is None else None, ground_truth=gt,
         name=f"synthetic-{'+'.join(Path(n).stem if n.endswith('.bvh') else n.replace('/', '_') for n in names)}"
              f"-seed{config.seed}",
         source=f"synthetic: motion={config.motion} duration_s={config.duration_s} seed={config.seed} "
                f"speed={config.speed} amplitude={config.amplitude}" + ("" if with_frames else " frames=false")
                + (f" motion_start_s={config.motion_start_s}" if config.motion_start_s else "")
-               + f" camera={config.camera}",
+               + f" camera={config.camera}" + (f" actor={actor_json}" if actor is not None else ""),
     )
     return {"recording": rec, "batches": BatchPlan.between_frames(cap.frame_t_us)}

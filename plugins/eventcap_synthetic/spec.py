@@ -9,13 +9,14 @@ from eventcap.artifacts.recording import Recording
 from eventcap.body.clips import motion_files
 from eventcap.body.template import Template
 from eventcap.camera_presets import preset_names
-from eventcap.core.stage import Port, StageSpec, param
+from eventcap.core.stage import Port, StageSpec, given_or_unset, group, param
 
 
 @dataclass
 class ProceduralConfig:
     seed: int = param(0, ge=0, help="varies body proportions details and the clothing texture")
-    height_m: float = param(1.75, gt=0, help="stature of the actor in metres")
+    height_m: float | None = param(None, gt=0, unset=1.75, help="stature of the actor in metres; null: not stated "
+                                                               "(1.75, and the body stage estimates it)")
     target_faces: int = param(12000, ge=100, help="approximate triangle count of the mesh")
 
 
@@ -33,11 +34,42 @@ class MeshConfig:
 
 @dataclass
 class AnnyConfig:
-    height_m: float = param(1.75, gt=0, help="stature of the actor in metres (1.2-2.3)")
-    build: float = param(0.0, ge=-1, le=1, help="thin (-1) to heavy (+1): ANNY's weight phenotype")
-    muscle: float = param(0.0, ge=-1, le=1, help="-1 to +1: ANNY's muscle phenotype")
-    sex: float = param(0.0, ge=-1, le=1, help="-1 female, 0 ANNY's mean body, +1 male")
+    # null = not stated: ANNY's default body is built (the `unset` value) and the body stage estimates what was not
+    # stated from the detections; a stated value is kept (eventcap.core.stage.param, `unset`).
+    height_m: float | None = param(None, gt=0, unset=1.75, help="stature of the person in metres (1.2-2.3); null: "
+                                                               "not stated (1.75, estimated by the body stage)")
+    build: float | None = param(None, ge=-1, le=1, unset=0.0, help="thin (-1) to heavy (+1): ANNY's weight "
+                                                                   "phenotype; null: not stated (0; not estimated: "
+                                                                   "it moves no joint)")
+    muscle: float | None = param(None, ge=-1, le=1, unset=0.0, help="-1 to +1: ANNY's muscle phenotype; null: not "
+                                                                    "stated (0, estimated)")
+    sex: float | None = param(None, ge=-1, le=1, unset=0.0, help="-1 female, 0 ANNY's mean body, +1 male; null: not "
+                                                                 "stated (0, estimated)")
     seed: int = param(0, ge=0, help="outfit tones and prints")
+
+
+@dataclass
+class ActorConfig:
+    """The filmed person's own body (``source.actor``): an ANNY body. Every key null: the template's body is
+    filmed (as before the group existed); any key given: an ANNY actor whose other keys take ANNY's defaults."""
+
+    height_m: float | None = param(None, gt=0, help="stature of the filmed person in metres (1.2-2.3); null: 1.75 "
+                                                    "(when another actor key is given)")
+    build: float | None = param(None, ge=-1, le=1, help="thin (-1) to heavy (+1): ANNY's weight phenotype; null: 0")
+    muscle: float | None = param(None, ge=-1, le=1, help="-1 to +1: ANNY's muscle phenotype; null: 0")
+    sex: float | None = param(None, ge=-1, le=1, help="-1 female, 0 ANNY's mean body, +1 male; null: 0")
+    seed: int | None = param(None, ge=0, help="outfit tones and prints; null: 0")
+
+
+def anny_defaults() -> dict:
+    """ANNY's default body: the values an unset template (or actor) key takes."""
+    cfg = AnnyConfig()
+    return {k: given_or_unset(cfg, k) for k in ("height_m", "build", "muscle", "sex", "seed")}
+
+
+def actor_given(actor: ActorConfig) -> bool:
+    """Whether the source films an actor of its own (any key of ``source.actor`` given)."""
+    return any(getattr(actor, f) is not None for f in ("height_m", "build", "muscle", "sex", "seed"))
 
 
 @dataclass
@@ -52,6 +84,10 @@ class SyntheticConfig:
     motion_map: str = param("", help="a clip's joint-name mapping file, YAML or JSON 'BVH joint name: our joint "
                                      "name', for names the usual conventions (CMU, Mixamo, ...) do not cover",
                             file=True)
+    actor: ActorConfig = group(ActorConfig,
+                               help="the filmed person's own body (ANNY: height_m, build, muscle, sex, seed); all "
+                                    "null: the template is filmed. With an actor the recording carries no template "
+                                    "and its ground truth is the actor's joints")
     duration_s: float = param(1.0, gt=0, le=3600, help="capture length in seconds (split equally between listed "
                                                        "motions), at most an hour")
     seed: int = param(0, ge=0, help="varies the performance (timing, amplitudes, side) and the sensor noise")
@@ -128,7 +164,10 @@ ANNY = StageSpec(name="anny", kind="template", version=1,
 # Bump the version when eventcap/body/retarget.py changes what a clip becomes: the cache key sees the config and the
 # clip file's content, not the retargeting code.
 SYNTHETIC = StageSpec(name="synthetic", kind="source", version=1,
-              description="simulated event camera filming the template's fast motions (exact ground truth)",
-              config=SyntheticConfig, inputs={"template": Port(Template)},
+              description="simulated event camera filming the template's (or an actor's own) fast motions (exact "
+                          "ground truth)",
+              config=SyntheticConfig,
+              inputs={"template": Port(Template, "the body filmed when source.actor is unset")},
               outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},
-              run="eventcap_synthetic._impl:run_synthetic", check="eventcap_synthetic._impl:check_config")
+              run="eventcap_synthetic._impl:run_synthetic", check="eventcap_synthetic._impl:check_config",
+              uses=lambda config: () if actor_given(config.actor) else ("template",))

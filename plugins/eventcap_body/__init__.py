@@ -1,0 +1,1 @@
+"""The person's body from the detections (the node ``body``; not in the paper, which scanned each actor)."""

@@ -1,0 +1,35 @@
+"""Spec of the body stage (the node ``body``). Declarations only: the fit loads when the stage runs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from eventcap.artifacts.pose import Detections
+from eventcap.artifacts.recording import Recording
+from eventcap.body.template import Template
+from eventcap.core.stage import Port, StageSpec, param
+
+
+@dataclass
+class ProportionsConfig:
+    estimate: bool = param(True, help="estimate what the template does not state (the stature, ANNY's sex and muscle) "
+                                      "from the detections; false: the template as given")
+    scale_from_floor: bool = param(True, help="estimate an unstated stature from the floor and the camera's height "
+                                              "(a world from the camera's extrinsics, its floor y = 0); false: the "
+                                              "template's default stature")
+    prior_sigma: float = param(0.1, gt=0, help="spread of the phenotypes' prior around ANNY's mean body (0), in "
+                                               "ANNY's units (-1 .. 1)")
+
+
+PROPORTIONS = StageSpec(
+    name="proportions", kind="body", version=1,
+    description="the person's body: limb lengths and girdle widths seen over the capture, ANNY's phenotypes and "
+                "stature fitted to them where the template does not state them (not in the paper)",
+    config=ProportionsConfig,
+    inputs={"recording": Port(Recording, "the recording the solves read (its camera; its template is replaced)"),
+            "detections": Port(Detections, "2D landmarks and 3D joints at the intensity frames"),
+            "template": Port(Template, "the template as the user gave it (what it states is kept)")},
+    outputs={"recording": Port(Recording, doc="the same recording carrying the person's body as its template"),
+             "template": Port(Template, doc="the person's body")},
+    run="eventcap_body._impl:run_proportions",
+)
