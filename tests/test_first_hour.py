@@ -44,7 +44,7 @@ def test_the_real_davis346_file_gets_blazepose_by_itself(tmp_path):
     [failure] = detect["failed"]
     assert failure["status"] == "no_person" and "no person in 3 of 3 images" in failure["error"]
     assert "ground truth" not in failure["error"]
-    assert log[-2:] == ["run incomplete: detect failed (no_person); skipped because of it: 7 nodes (track, slice, "
+    assert log[-2:] == ["run incomplete: detect failed (no_person); skipped because of it: 8 nodes (body, track, slice, "
                         "solve, stitch, cut, confidence, evaluate); the first error is above (detect); every failure "
                         "in full: run.json",
                         f"run folder {tmp_path / 'real'}/: config.yaml, eventcap.log, metrics.json, run.json"]
