@@ -193,14 +193,34 @@ def test_bad_benchmark_configs_are_refused():
         parse_methods([{"name": "x", "data": "MBps"}])
     with pytest.raises(ValueError, match=r"methods\[1\]: name 'wo_batch' repeats"):
         parse_methods([{"name": "w/o_batch"}, {"name": "wo_batch"}])  # the same folder name
-    with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, open, "
-                                         r"open_check, quick\)"):
+    with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, ladder, "
+                                         r"ladder25, ladder25_check, ladder_check, open, open_check, quick"):
         compose_benchmark(CONF, "nope", [])
     from eventcap.apps.benchmark import main
 
     with pytest.raises(ValueError, match=r"(?s)Could not override 'motion'.*not benchmark keys are overrides of every "
                                          r"run; the benchmark keys: cache_dir, detector, detectors, duration_s"):
         main(["benchmark=quick", "motion=[a]"], CONF)  # a typo of motions: refused before anything runs
+
+
+def test_the_ladder_rows_bring_their_own_detector_and_the_frame_rate():
+    """The oracle ladder's rows name their detector (a rung): a row's run drops the benchmark's detector overrides
+    for its own, filled with the capture's values; the suite's sequence_values fill the frame rate; a row naming a
+    detector the benchmark does not define is refused before anything runs."""
+    bench = Benchmark(compose_benchmark(CONF, "ladder", ["motions=[karate_kick]", "seeds=[1]"]), CONF, [])
+    cap = bench.captures[0]
+    assert "source.fps=10" in cap.overrides and "source.exposure_us=30000" in cap.overrides
+    assert cap.detector == ("stages/detect=simulated", "stages.detect.seed=1")
+    rows = {m.name: bench.row_overrides(cap, m) for m in bench.methods}
+    a = rows["a default"]
+    assert "stages.detect.sigma_px=0" in a and "stages.detect.seed=1" not in a and a.count("stages/detect=simulated") == 1
+    assert "stages.detect.seed=1" in rows["d default"]
+    assert "stages/detect=blazepose" in rows["e linear"] and "stages/detect=simulated" not in rows["e linear"]
+    assert rows["e linear"][-1] == "stages.detect.at=frames" and "stages.body.estimate=false" in rows["e linear"]
+    check = Benchmark(compose_benchmark(CONF, "ladder25_check", []), CONF, [])
+    assert check.seeds == [2, 3] and "source.fps=25" in check.captures[0].overrides
+    with pytest.raises(ValueError, match=r"methods \(x\)\.detector: expected one of \['blazepose', 'oracle', "):
+        Benchmark(compose_benchmark(CONF, "ladder", ["methods=[{name: x, detector: perfect}]"]), CONF, [])
 
 
 def test_split_overrides():

@@ -49,7 +49,7 @@ DETAIL_FIELDS = ("AE_rootrel_mm", "depth_mm", "image_plane_mm", "MPJVE_mm_s", "a
                  "peak_speed_err_fast", "n_fast_pairs", "velocity_window_ms", "body_error_mm", "stated_body_error_mm")
 #: The fast moments: (batch, end effector) pairs whose true peak reaches this (m/s; the evaluate stage's default).
 FAST_SPEED_MPS = 3.0
-_METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires", "body"}
+_METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires", "body", "detector"}
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,8 @@ class Method:
     events_only: tuple[str, ...] | None = None
     #: what the row's runs are told about a drawn person (the benchmark's ``body_overrides``): told | exact
     body: str = "told"
+    #: the row's own detector (a name of the benchmark's ``detectors``) instead of the benchmark's ``detector``
+    detector: str | None = None
 
     def overrides_for(self, frames: bool) -> tuple[str, ...] | None:
         """The row's overrides on a capture with (or without) intensity frames; None: not defined there."""
@@ -115,7 +117,8 @@ def parse_methods(items: Sequence[Mapping[str, Any]]) -> list[Method]:
         meth = Method(name=str(m["name"]), overrides=tuple(str(o) for o in m.get("overrides") or ()), data=data,
                       requires=tuple(str(r) for r in m.get("requires") or ()),
                       description=str(m.get("description") or ""),
-                      events_only=None if events_only is None else tuple(str(o) for o in events_only), body=body)
+                      events_only=None if events_only is None else tuple(str(o) for o in events_only), body=body,
+                      detector=None if m.get("detector") is None else str(m["detector"]))
         if any(meth.slug == o.slug for o in out):
             raise ValueError(f"methods[{i}]: name {meth.name!r} repeats an earlier method")
         out.append(meth)
@@ -183,6 +186,10 @@ class SuiteCapture:
     description: str = ""
     #: what a row is told about the drawn person, by the row's ``body`` (told | exact); empty: no person drawn
     body: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    #: the values its overrides are filled with ({motion}, {seed}, ...): a row's own detector is filled with them
+    values: dict[str, Any] = field(default_factory=dict)
+    #: the overrides of the benchmark's detector among ``overrides`` (a row with a detector of its own drops them)
+    detector: tuple[str, ...] = ()
 
 
 @dataclass
@@ -194,6 +201,11 @@ class Benchmark:
     def __post_init__(self) -> None:
         c = self.cfg
         self.methods = parse_methods(c.get("methods"))
+        detectors = c.get("detectors") or {}
+        for m in self.methods:
+            if m.detector is not None and m.detector not in detectors:
+                raise ValueError(f"methods ({m.name}).detector: expected one of {sorted(detectors)} (benchmark key "
+                                 f"detectors), got {m.detector!r}")
         only = c.get("only")
         if only is not None:
             only = [only] if isinstance(only, str) else [str(o) for o in only]
@@ -211,7 +223,9 @@ class Benchmark:
         self.seeds = [int(s) for s in c["seeds"]]
         if not self.motions or not self.seeds:
             raise ValueError("motions and seeds: the benchmark needs at least one of each")
-        self.captures = [SuiteCapture(mo, s, f"{mo}-s{s}", tuple(self.sequence_overrides(mo, s)))
+        self.captures = [SuiteCapture(mo, s, f"{mo}-s{s}", tuple(self.sequence_overrides(mo, s)),
+                                      values=self.sequence_values(mo, s),
+                                      detector=tuple(self.detector_overrides(None, self.sequence_values(mo, s))))
                          for mo in self.motions for s in self.seeds]
 
     def _generated_suite(self) -> None:
@@ -238,18 +252,34 @@ class Benchmark:
                 told = c.get("body_overrides") or {}
                 body = {kind: tuple(fill_overrides(told.get(kind) or (), cap.values(), f"body_overrides.{kind}"))
                         for kind in BODY_KINDS}
+            values = self.sequence_values(cap.motion, seed, cap.values())
             self.captures.append(SuiteCapture(cap.motion, seed, cap.label, tuple(ov), cap.frames, cap.group,
-                                              cap.values(), cap.describe(), body))
+                                              cap.values(), cap.describe(), body, values,
+                                              tuple(self.detector_overrides(None, values))))
         self.motions = list(dict.fromkeys(cap.motion for cap in self.captures))
 
-    def sequence_overrides(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> list[str]:
-        values = {**(drawn or {}), "motion": motion, "seed": seed, "duration_s": self.cfg["duration_s"]}
+    def sequence_values(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """What a capture's overrides are filled with: the suite's ``sequence_values`` (e.g. the frame rate), what
+        was drawn, its motion, seed and duration."""
+        return {**(self.cfg.get("sequence_values") or {}), **(drawn or {}), "motion": motion, "seed": seed,
+                "duration_s": self.cfg["duration_s"]}
+
+    def detector_overrides(self, name: str | None, values: Mapping[str, Any]) -> list[str]:
+        """The overrides of detector ``name`` of the benchmark's ``detectors`` (None: the benchmark's ``detector``),
+        filled with a capture's values."""
         detectors = self.cfg.get("detectors") or {}
-        detector = self.cfg.get("detector")
+        detector = self.cfg.get("detector") if name is None else name
         if detector is not None and detector not in detectors:
-            raise ValueError(f"detector: expected one of {sorted(detectors)} (benchmark key detectors), got {detector!r}")
+            where = "detector" if name is None else f"the row's detector {name!r}"
+            raise ValueError(f"{where}: expected one of {sorted(detectors)} (benchmark key detectors), got "
+                             f"{detector!r}")
         chosen = detectors.get(detector) or () if detector is not None else ()
-        return fill_overrides([*(self.cfg.get("sequence_overrides") or ()), *chosen], values, "sequence_overrides")
+        return fill_overrides(chosen, values, f"detectors.{detector}")
+
+    def sequence_overrides(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> list[str]:
+        values = self.sequence_values(motion, seed, drawn)
+        return [*fill_overrides(self.cfg.get("sequence_overrides") or (), values, "sequence_overrides"),
+                *self.detector_overrides(None, values)]
 
     def base_overrides(self) -> list[str]:
         return [f"cache_dir={self.cfg['cache_dir']}", *map(str, self.cfg.get("overrides") or ()), *self.run_overrides]
@@ -326,7 +356,7 @@ class Benchmark:
 
         run_dir = self.out / "runs" / cap.label / method.slug
         own = method.overrides_for(cap.frames)
-        ov = [*cap.overrides, *self.base_overrides(), *(own or ()), *cap.body.get(method.body, ())]
+        ov = self.row_overrides(cap, method)
         rec: dict[str, Any] = {"motion": cap.motion, "seed": cap.seed, "method": method.name, "run_dir": str(run_dir),
                                "overrides": ov, "ok": False, "error": None, "capture": cap.label, "group": cap.group,
                                "frames_camera": cap.frames}
@@ -354,6 +384,15 @@ class Benchmark:
         rec["wall_s"] = time.perf_counter() - t0
         return rec
 
+
+    def row_overrides(self, cap: SuiteCapture, method: Method) -> list[str]:
+        """The overrides of one row's run on one capture: the capture's (with the row's own detector instead of the
+        benchmark's, when it names one), every run's, the row's own, what the row is told about the person."""
+        made = list(cap.overrides)
+        if method.detector is not None:
+            made = [o for o in made if o not in cap.detector] + self.detector_overrides(method.detector, cap.values)
+        return [*made, *self.base_overrides(), *(method.overrides_for(cap.frames) or ()),
+                *cap.body.get(method.body, ())]
 
     def _compose_row(self, overrides: list[str], own: tuple[str, ...] = ()):
         """The run's config; the benchmark's detector choice (detectors.<detector>) is left out of a pipeline without
