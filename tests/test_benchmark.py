@@ -217,6 +217,10 @@ def test_the_ladder_rows_bring_their_own_detector_and_the_frame_rate():
     assert "stages.detect.seed=1" in rows["d default"]
     assert "stages/detect=blazepose" in rows["e linear"] and "stages/detect=simulated" not in rows["e linear"]
     assert rows["e linear"][-1] == "stages.detect.at=frames" and "stages.body.estimate=false" in rows["e linear"]
+    # rows differing only by their detector are not twins
+    active, left_out = Benchmark(compose_benchmark(CONF, "ladder", ['only=["a default","d default","e default"]']),
+                                 CONF, []).active_methods()
+    assert [m.name for m in active] == ["a default", "d default", "e default"] and left_out == {}
     check = Benchmark(compose_benchmark(CONF, "ladder25_check", []), CONF, [])
     assert check.seeds == [2, 3] and "source.fps=25" in check.captures[0].overrides
     with pytest.raises(ValueError, match=r"methods \(x\)\.detector: expected one of \['blazepose', 'oracle', "):

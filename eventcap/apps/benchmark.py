@@ -297,8 +297,10 @@ class Benchmark:
             composed = {}
             for frames in kinds:
                 own = m.overrides_for(frames)
+                cap = next(c for c in self.captures if c.frames == frames)
+                mine = [] if m.detector is None else self.detector_overrides(m.detector, cap.values)
                 composed[frames] = None if own is None else \
-                    compose_run(self.config_dir, [*self.base_overrides(), *own])[0]
+                    compose_run(self.config_dir, [*self.base_overrides(), *mine, *own])[0]
             nodes = set()
             for data in composed.values():
                 nodes |= set(((data or {}).get("pipeline") or {}).get("nodes") or {})
