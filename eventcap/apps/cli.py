@@ -346,6 +346,7 @@ def _variant_stage(path: Path) -> str | None:
 
 def cmd_cache(args) -> int:
     from eventcap.core.cache import Cache, CacheError
+    from eventcap.core.ownership import FAILURE_FILE
 
     try:
         cache = Cache(args.cache_dir, create=False)  # a missing directory is said so, not created
@@ -365,6 +366,7 @@ def cmd_cache(args) -> int:
         elif args.action == "explain":
             _explain(cache, args.key)
         elif args.action == "gc":
+            cache.ensure_marked()  # deletes only inside a cache the tool made (eventcap/core/ownership.py)
             removed = cache.clean_orphans(max_age_s=0 if args.all else 24 * 3600)
             n = 0
             import shutil
@@ -376,7 +378,8 @@ def cmd_cache(args) -> int:
                     shutil.rmtree(e.path, ignore_errors=True)
                     n += 1
             for f in (cache.root / "failures").glob(".*.tmp"):
-                f.unlink(missing_ok=True)
+                if FAILURE_FILE.match(f.name) and not f.is_symlink():
+                    f.unlink(missing_ok=True)
             print(f"removed {len(removed)} orphaned temporary entries and {n} cache entries from {cache.root}")
     except CacheError as exc:
         print(f"eventcap cache: {exc}", file=sys.stderr)

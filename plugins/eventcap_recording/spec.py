@@ -54,5 +54,14 @@ RECORDING = StageSpec(
     description="a recording from a file (real cameras' formats or the project's own), cut into batches",
     config=RecordingConfig, inputs={"template": Port(Template, optional=True)},
     outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},
-    run="eventcap_recording._impl:run_recording",
+    run="eventcap_recording._impl:run_recording", check="eventcap_recording.spec:check_config",
 )
+
+
+def check_config(config, where: str = "source") -> None:
+    """The spec's ``check`` hook, before anything runs: a calibration file that is not an rpg calib.txt is refused
+    (read only when it is a small regular file). Whether ``path`` exists is the file settings' check."""
+    if config.calibration:
+        from eventcap.camera import check_rpg_calibration
+
+        check_rpg_calibration(config.calibration, f"{where}.calibration")
