@@ -30,6 +30,7 @@ from eventcap.io.sizes import (  # noqa: F401 - part of this module's API
     PLAUSIBLE_HEIGHT,
     PLAUSIBLE_WIDTH,
     CoordinateStats,
+    size_note,
 )
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, Source, check_regular, parse_columns
 
@@ -241,9 +242,13 @@ def infer_sensor_size(events: np.ndarray, path=None, how: str = "pass width= and
     stats = CoordinateStats()
     stats.add(events["x"], events["y"])
     d = stats.judge(path, how)
+    note = d.note
     if d.dropped:
-        events = events[(events["x"] < d.keep_x) & (events["y"] < d.keep_y)]
-    return events, d.width, d.height, d.note
+        kept = events[(events["x"] < d.keep_x) & (events["y"] < d.keep_y)]
+        # the exact count (the streaming statistics bound it from below when both axes are cut)
+        note = size_note(d.width, d.height, len(events) - len(kept), d.reasons)
+        events = kept
+    return events, d.width, d.height, note
 
 
 # ------------------------------------------------------------------------------------------------------- frames

@@ -13,7 +13,12 @@ Damage, one per case, to one file of one corpus entry: bytes (bit flips, truncat
 garbage in the header) and events re-written in the same format after a change (``wild_time``: one event 1e12 µs
 late; ``time_jump``: every event from one on 2^26..2^40 µs late; ``x_outliers``: 0.1-100 % of the events beyond
 the sensor's right edge, in the formats that do not declare a size; ``unit``: a csv's times written as integer µs
-under the same header). A forked child reads the case with ``read_recording`` (and, when that succeeds, streams
+under the same header); events left in place but out of time order, re-written in file order (issue 57:
+``late_event``: one event 5 s late; ``moved_block``: a block of events moved earlier in the file;
+``swapped_blocks``: two blocks swapped; ``duplicated_block``: a block written twice) in the formats that keep file
+order (EVT2 and EVT3 written word by word by tests/helpers/evt_reference.py, npy, csv, HDF5); and, in the
+EVT files, word-level damage (``time_bitflip``: one bit of one time word; ``word_swap``: two blocks of words
+swapped; ``word_dup``: a block of words written twice). A forked child reads the case with ``read_recording`` (and, when that succeeds, streams
 it with ``iter_event_chunks``; the zarr entry is read as ``eventcap preview`` reads it) and reports one class:
 
 - ``exact``: the same events, size and frames as the original, and no repair the original did not have;
@@ -22,7 +27,10 @@ it with ``iter_event_chunks``; the zarr entry is read as ``eventcap preview`` re
   value that is still a valid one (a flipped bit of an x, a polarity, a time within the events' pace; a file cut
   where its format cannot show a cut: docs/io-robustness.md says which);
 - ``refused``: a ``RecordingError`` (or the zarr reader's ``ArtifactError``) whose message names the damaged file;
-- ``SILENTLY_WRONG`` (must be 0): a promise broken: events unsorted, not starting at 0, outside the sensor,
+- ``SILENTLY_WRONG`` (must be 0): events the file does not hold, or events it holds gone without a note (checked
+  where what the file holds is known: the EVT files, decoded again word by word by a plain spec-literal decoder,
+  tests/helpers/evt_reference.py, and every file written in file order); or a promise broken: events unsorted, not
+  starting at 0, outside the sensor,
   polarity not ±1, duplicated; frames not finite in [0, 1], mis-shaped, times not increasing, negative exposure;
   a truncated file giving events that are not a prefix of the original's; streaming giving other events than
   reading whole; a time span longer than the original's by more than the time checks let pass (1 s); a sensor size
@@ -43,6 +51,7 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import random
+import re
 import shutil
 import sys
 import tempfile
@@ -64,7 +73,14 @@ OUTCOMES = ("exact", "repaired", "undetectable", "refused", "SILENTLY_WRONG", "T
 MUST_BE_ZERO = ("SILENTLY_WRONG", "TRACEBACK", "HANG")
 BYTE_KINDS = ("bitflip", "truncate", "insert", "delete", "header")
 EVENT_KINDS = ("wild_time", "time_jump", "x_outliers", "unit")
-KINDS = BYTE_KINDS + EVENT_KINDS
+#: events out of time order, written in file order (issue 57), and word-level damage of the EVT files
+ORDER_KINDS = ("late_event", "moved_block", "swapped_blocks", "duplicated_block")
+WORD_KINDS = ("time_bitflip", "word_swap", "word_dup")
+KINDS = BYTE_KINDS + EVENT_KINDS + ORDER_KINDS + WORD_KINDS
+_WEIGHTS = (0.22, 0.13, 0.08, 0.08, 0.13, 0.06, 0.06, 0.06, 0.03, 0.03, 0.03, 0.03, 0.02, 0.02, 0.01, 0.01)
+#: the formats whose files keep the order events are written in (ORDER_KINDS apply to them)
+FILE_ORDER = ("evt2", "evt3", "npy", "npy_4n", "csv", "hdf5")
+EVT = ("evt2", "evt3")
 #: formats that declare no sensor size (x_outliers applies to them) and the csv (unit applies to it)
 SIZELESS = ("npy", "npy_4n", "csv")
 #: the time checks let a jump below this pass (eventcap.io.checks.JUMP_MIN_US): a longer span is a broken promise
@@ -227,6 +243,122 @@ def damage_events(rec: RawRecording, kind: str, rng: random.Random) -> RawRecord
     return dataclasses.replace(rec, events=ev)
 
 
+def damage_order(ev: np.ndarray, kind: str, rng: random.Random) -> np.ndarray:
+    """The events in file order after ``kind`` (ORDER_KINDS): times unchanged except the one late event's."""
+    n = len(ev)
+    ev = ev.copy()
+    if kind == "late_event":
+        ev["t"][rng.randrange(1, n - 1)] += 5_000_000
+        return ev
+    size = rng.randint(1, max(1, n // 3))
+    a = rng.randrange(0, n - size)
+    if kind == "moved_block":  # a block from later in the file put earlier
+        b = rng.randrange(a, n - size + 1)
+        block = ev[b:b + size]
+        rest = np.concatenate([ev[:b], ev[b + size:]])
+        return np.concatenate([rest[:a], block, rest[a:]])
+    if kind == "duplicated_block":
+        return np.concatenate([ev[:a + size], ev[a:a + size], ev[a + size:]])
+    size = min(size, n // 2)  # swapped_blocks: two non-overlapping blocks
+    a = rng.randrange(0, n - 2 * size + 1)
+    b = rng.randrange(a + size, n - size + 1)
+    return np.concatenate([ev[:a], ev[b:b + size], ev[a + size:b], ev[a:a + size], ev[b + size:]])
+
+
+def write_in_order(name: str, folder: Path, rec: RawRecording, ev: np.ndarray) -> Path:
+    """Write events (file order, on ``rec``'s clock) as corpus entry ``name`` keeping their order."""
+    import dataclasses
+
+    if name in EVT:
+        from helpers.evt_reference import write_in_file_order
+
+        return write_in_file_order(folder / f"small_{name}.raw", ev, name, rec.width, rec.height, rec.t_offset_us)
+    if name == "hdf5":
+        import h5py
+
+        with h5py.File(folder / "small.h5", "w") as f:
+            g = f.create_group("events")
+            g["t"], g["x"], g["y"], g["p"] = ev["t"] + rec.t_offset_us, ev["x"], ev["y"], (ev["p"] > 0).astype("u1")
+        return folder / "small.h5"
+    return write_entry(name, folder, dataclasses.replace(rec, events=ev))
+
+
+def damage_words(data: bytes, header_bytes: int, version: str, kind: str, rng: random.Random) -> bytes:
+    """One word-level damage (WORD_KINDS) of an EVT file's bytes."""
+    size = 2 if version == "evt3" else 4
+    dtype = "<u2" if size == 2 else "<u4"
+    body = np.frombuffer(data[header_bytes:len(data) - (len(data) - header_bytes) % size], dtype).copy()
+    n = len(body)
+    if kind == "time_bitflip":
+        shift = 12 if size == 2 else 28
+        times = np.flatnonzero(np.isin(body >> shift, (0x6, 0x8) if size == 2 else (0x8,)))
+        k = int(times[rng.randrange(len(times))])
+        body[k] ^= 1 << rng.randrange(12 if size == 2 else 28)
+        return data[:header_bytes] + body.tobytes()
+    m = rng.randint(1, max(1, n // 4))
+    a = rng.randrange(0, n - m)
+    if kind == "word_dup":
+        body = np.concatenate([body[:a + m], body[a:a + m], body[a + m:]])
+    else:
+        m = min(m, n // 2)
+        a = rng.randrange(0, n - 2 * m + 1)
+        b = rng.randrange(a + m, n - m + 1)
+        body = np.concatenate([body[:a], body[b:b + m], body[a + m:b], body[a:a + m], body[b + m:]])
+    return data[:header_bytes] + body.tobytes()
+
+
+# ------------------------------------------------------------------------------------------------------- checks
+_NOTED_DROPS = (re.compile(r"dropped (\d+) event\(s\) with wild times"), re.compile(r"dropped the (\d+) event\(s\)"),
+                re.compile(r"dropped (\d+) duplicated event\(s\)"), re.compile(r"dropped (\d+) outlier event\(s\)"))
+_NOTED_SHIFT = re.compile(r"subtracted 2\^(\d+) µs from there on")
+
+
+def unaccounted(got: np.ndarray, held: np.ndarray, repairs) -> list[str]:
+    """What a read changed beyond what its notes say, given the events the file holds (``held``, file time, any
+    order) and those read (``got``, file time): events at times the file does not hold (a shift the notes name
+    excepted), or events gone without a note (wild times, a cut, duplicates and outliers dropped are named with
+    their counts). Empty when everything is accounted for."""
+    def rows(a: np.ndarray) -> list[tuple]:
+        return [tuple(r) for r in np.asarray(a[["t", "x", "y", "p"]]).tolist()]
+
+    pool = collections.Counter(rows(held))
+    shifts = [0] + [1 << int(m.group(1)) for r in repairs for m in _NOTED_SHIFT.finditer(r)]
+    foreign = 0
+    for t, x, y, p in rows(got):
+        for s in shifts:
+            key = (t + s, x, y, p)
+            if pool[key] > 0:
+                pool[key] -= 1
+                break
+        else:
+            foreign += 1
+    out = []
+    if foreign:
+        out.append(f"{foreign} event(s) at times (or places) the file does not hold")
+    noted = sum(int(m.group(1)) for r in repairs for rx in _NOTED_DROPS for m in rx.finditer(r))
+    gone = len(held) - (len(got) - foreign)
+    if gone != noted:
+        out.append(f"{gone} of the file's events gone, the notes name {noted}")
+    return out
+
+
+def held_by_file(target: Path, entry_name: str, order_events: np.ndarray | None, t_offset_us: int) -> np.ndarray | None:
+    """The events the damaged file holds, when known (file time): what was written in file order, or an EVT file
+    decoded word by word by the spec-literal decoder."""
+    if order_events is not None:
+        out = order_events.copy()
+        out["t"] += t_offset_us
+        return out
+    if entry_name in EVT and target.is_file():
+        from helpers.evt_reference import held_events
+
+        from eventcap.io.prophesee import header_kind, read_header
+
+        kind = header_kind(read_header(target)[0])
+        return held_events(target, kind if kind in EVT else entry_name)
+    return None
+
+
 # ------------------------------------------------------------------------------------------------------- checks
 def _abs_events(r: RawRecording) -> np.ndarray:
     out = r.events.copy()
@@ -316,8 +448,10 @@ def _read_zarr(target: Path) -> RawRecording:
     return RawRecording(ev, rec.width, rec.height, t0, target, "zarr", frames, None, None, ())
 
 
-def classify(target: Path, kind: str, reference: RawRecording, chunk_events: int = 257) -> tuple[str, str]:
-    """Read ``target`` and judge the outcome against the undamaged ``reference`` (see the module docstring)."""
+def classify(target: Path, kind: str, reference: RawRecording, chunk_events: int = 257,
+             held: np.ndarray | None = None) -> tuple[str, str]:
+    """Read ``target`` and judge the outcome against the undamaged ``reference`` and, when given, the events the
+    file holds (``held``, file time; see the module docstring)."""
     from eventcap.artifacts import ArtifactError
 
     zarr_entry = target.name.endswith(".zarr")
@@ -337,6 +471,8 @@ def classify(target: Path, kind: str, reference: RawRecording, chunk_events: int
         if not (_is_prefix(ev, ref) or (dropped and _is_subset(ev, ref))):
             bad.append("a truncated file gave events that are not a prefix of the original's (nor, with events "
                        "dropped and said so, a subset of them)")
+    if not bad and held is not None:
+        bad = unaccounted(ev, held, r.repairs)
     if not bad:
         bad = promises_broken(r, reference)
     if not bad and not zarr_entry:
@@ -372,7 +508,9 @@ def _plan(seed: int, i: int) -> tuple[Entry, str, str]:
     rng = random.Random(f"{seed}:{i}")
     entry = _CORPUS[i % len(_CORPUS)]
     rel = rng.choices(entry.files, entry.weights)[0]
-    kind = rng.choices(KINDS, (0.25, 0.15, 0.1, 0.1, 0.15, 0.07, 0.07, 0.07, 0.04))[0]
+    kind = rng.choices(KINDS, _WEIGHTS)[0]
+    if (kind in ORDER_KINDS and entry.name not in FILE_ORDER) or (kind in WORD_KINDS and entry.name not in EVT):
+        kind = "bitflip"
     if kind in EVENT_KINDS and (entry.name in ("aedat4_real", "zarr") or (kind == "x_outliers" and entry.name not in
                                                                          SIZELESS) or (kind == "unit" and
                                                                                        entry.name != "csv")):
@@ -395,6 +533,7 @@ def _child(seed: int, i: int, workdir: str, conn) -> None:
     base = Path(workdir) / f"case{i}"
     base.mkdir()
     target = None
+    order = None
     if kind in EVENT_KINDS:
         rec = _REFERENCE_RECORDINGS[entry.name]
         damaged = damage_events(rec, kind, rng) if kind != "unit" else rec
@@ -404,6 +543,18 @@ def _child(seed: int, i: int, workdir: str, conn) -> None:
             shutil.rmtree(base)
             base.mkdir()
             kind, target = "bitflip", None
+        ref = _REFERENCES[entry.name]
+    elif kind in ORDER_KINDS:
+        rec = _REFERENCE_RECORDINGS[entry.name]
+        order = damage_order(rec.events, kind, rng)
+        target = write_in_order(entry.name, base, rec, order)
+        ref = _REFERENCES[entry.name]
+    elif kind in WORD_KINDS:
+        from eventcap.io.prophesee import read_header
+
+        target = base / entry.path.name
+        data = entry.path.read_bytes()
+        target.write_bytes(damage_words(data, read_header(entry.path)[1], entry.name, kind, rng))
         ref = _REFERENCES[entry.name]
     if target is not None:
         pass
@@ -418,7 +569,8 @@ def _child(seed: int, i: int, workdir: str, conn) -> None:
         shutil.copy(entry.path, victim)
         victim.write_bytes(mutate(victim.read_bytes(), kind, rng))
         ref = _REFERENCES[entry.name]
-    outcome, detail = classify(target, kind, ref)
+    held = held_by_file(target, entry.name, order, _REFERENCE_RECORDINGS[entry.name].t_offset_us)
+    outcome, detail = classify(target, kind, ref, held=held)
     conn.send((outcome, detail, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, kind))
     conn.close()
 
