@@ -246,3 +246,26 @@ def test_the_most_active_moment_takes_memory_for_events_not_for_time():
         starts = np.arange(int(e["t"][0]), max(int(e["t"][-1]) - 20_000, int(e["t"][0])) + step, step)
         counts = np.searchsorted(e["t"], starts + 20_000) - np.searchsorted(e["t"], starts)
         assert most_active_time(e, 20_000) == (int(starts[np.argmax(counts)]) + 10_000, int(counts.max()))
+
+
+def test_a_zarr_shape_of_1e15_is_refused_by_preview_without_a_traceback(tmp_path):
+    """Issue 57: `eventcap preview` of a recording whose time array's zarr.json declares 1e15 rows ended in a
+    MemoryError traceback; the declared size is now checked against the chunk files before anything is read."""
+    import json
+    import subprocess
+    import sys
+
+    from helpers import fuzz_readers
+
+    path = fuzz_readers.write_entry("zarr", tmp_path, fuzz_readers.synthetic_recording())
+    meta = path / "events" / "events" / "t" / "zarr.json"
+    doc = json.loads(meta.read_text())
+    doc["shape"] = [10**15]
+    meta.write_text(json.dumps(doc))
+    p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "preview", str(path), "--out", str(tmp_path / "p.png")],
+                       capture_output=True, text=True, timeout=120)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "Traceback" not in out and "MemoryError" not in out
+    assert f"{meta}): declares shape (1000000000000000,) of int64 (8,000,000,000,000,000 bytes) in " \
+           f"666,666,666,667 chunk files, and the folder holds 1" in out
+    assert not (tmp_path / "p.png").exists()

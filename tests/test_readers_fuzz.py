@@ -88,6 +88,50 @@ def test_events_out_of_order_and_word_damage_change_nothing_beyond_the_notes(tmp
     assert seen.get("repaired", 0) >= 40  # the damage bites, and is named
 
 
+def test_declared_sizes_larger_than_the_bytes_are_refused_before_anything_is_allocated(tmp_path):
+    """Issue 57 item 4, our fuzz case: a zarr array's shape or chunk shape, HDF5 event datasets resized to 2^31-1e15
+    rows, an AEDAT4 packet's size, an AEDAT 3.1 packet's capacity made larger than the bytes behind them. Each read
+    (in a child limited to 2 GB of address space beyond what it has) is refused naming the file, or keeps the
+    complete packets with a note: never a MemoryError, never silently wrong."""
+    import multiprocessing
+    import shutil
+
+    (tmp_path / "corpus").mkdir()
+    corpus = {e.name: e for e in fuzz_readers.make_corpus(tmp_path / "corpus", include_real=False)}
+    outcomes = []
+    ctx = multiprocessing.get_context("fork")
+    for name in ("zarr", "hdf5", "aedat4", "aedat3"):
+        entry = corpus[name]
+        ref = fuzz_readers._read_zarr(entry.path) if name == "zarr" else read_recording(entry.path)
+        for trial in range(4):
+            target = tmp_path / f"{name}{trial}" / entry.path.name
+            target.parent.mkdir()
+            (shutil.copytree if entry.path.is_dir() else shutil.copy)(entry.path, target)
+            fuzz_readers.declare_larger(target, name, random.Random(trial))
+            recv, send = ctx.Pipe(duplex=False)
+            p = ctx.Process(target=_classify_limited, args=(target, ref, send))
+            p.start()
+            p.join(60)
+            outcome, detail = recv.recv()
+            assert outcome in ("refused", "repaired", "exact"), (name, trial, outcome, detail)
+            assert "MemoryError" not in detail
+            outcomes.append(outcome)
+    assert outcomes.count("refused") >= 8
+
+
+def _classify_limited(target, ref, conn):
+    import os
+    import resource
+
+    with open("/proc/self/statm") as f:  # address space in use, in pages
+        used = int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    resource.setrlimit(resource.RLIMIT_AS, (used + (2 << 30), resource.RLIM_INFINITY))
+    try:
+        conn.send(fuzz_readers.classify(target, "declared_size", ref))
+    except MemoryError as exc:
+        conn.send(("TRACEBACK", f"MemoryError {exc}"))
+
+
 def test_unaccounted_changes_are_caught():
     """The accounting itself can fail: an event moved, or one gone without a note."""
     ev = fuzz_readers.synthetic_recording().events[:50].copy()

@@ -348,9 +348,10 @@ class Aedat31Source(Source):
                     raise RecordingError(self.path, f"frame packet with {size}-byte events: shorter than the "
                                                     f"{_FRAME31_HEADER.itemsize}-byte frame header", where)
                 end = pos + 28 + capacity * size
-                if end > self._size:
-                    return out, (f"the file ends inside packet {k} (truncated, or a corrupted packet size): kept the "
-                                 f"{k} complete packets before it")
+                if end > self._size:  # checked before anything of the packet is read or allocated
+                    return out, (f"the file ends inside packet {k} (truncated, or a corrupted packet size): it "
+                                 f"declares {capacity:,} events of {size} bytes at byte {pos}, {self._size - pos - 28:,} "
+                                 f"bytes follow; kept the {k} complete packets before it")
                 out.append((pos + 28, h))
                 pos = end
                 k += 1

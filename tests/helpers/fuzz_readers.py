@@ -18,7 +18,9 @@ under the same header); events left in place but out of time order, re-written i
 ``swapped_blocks``: two blocks swapped; ``duplicated_block``: a block written twice) in the formats that keep file
 order (EVT2 and EVT3 written word by word by tests/helpers/evt_reference.py, npy, csv, HDF5); and, in the
 EVT files, word-level damage (``time_bitflip``: one bit of one time word; ``word_swap``: two blocks of words
-swapped; ``word_dup``: a block of words written twice). A forked child reads the case with ``read_recording`` (and, when that succeeds, streams
+swapped; ``word_dup``: a block of words written twice); and ``declared_size``: a size the file declares made far
+larger than the bytes behind it (a zarr array's shape or chunk shape, HDF5 event datasets resized, an AEDAT4
+packet's size, an AEDAT 3.1 packet's capacity). A forked child reads the case with ``read_recording`` (and, when that succeeds, streams
 it with ``iter_event_chunks``; the zarr entry is read as ``eventcap preview`` reads it) and reports one class:
 
 - ``exact``: the same events, size and frames as the original, and no repair the original did not have;
@@ -76,8 +78,12 @@ EVENT_KINDS = ("wild_time", "time_jump", "x_outliers", "unit")
 #: events out of time order, written in file order (issue 57), and word-level damage of the EVT files
 ORDER_KINDS = ("late_event", "moved_block", "swapped_blocks", "duplicated_block")
 WORD_KINDS = ("time_bitflip", "word_swap", "word_dup")
-KINDS = BYTE_KINDS + EVENT_KINDS + ORDER_KINDS + WORD_KINDS
-_WEIGHTS = (0.22, 0.13, 0.08, 0.08, 0.13, 0.06, 0.06, 0.06, 0.03, 0.03, 0.03, 0.03, 0.02, 0.02, 0.01, 0.01)
+#: a declared size made larger than the bytes behind it (issue 57 item 4): a zarr array's shape or chunk shape, HDF5
+#: event datasets resized far beyond what is stored, an AEDAT4 packet's size, an AEDAT 3.1 packet's capacity
+SIZE_KINDS = ("declared_size",)
+SIZE_ENTRIES = ("zarr", "hdf5", "aedat4", "aedat4_real", "aedat3")
+KINDS = BYTE_KINDS + EVENT_KINDS + ORDER_KINDS + WORD_KINDS + SIZE_KINDS
+_WEIGHTS = (0.21, 0.12, 0.08, 0.08, 0.12, 0.06, 0.06, 0.06, 0.03, 0.03, 0.03, 0.03, 0.02, 0.02, 0.01, 0.01, 0.03)
 #: the formats whose files keep the order events are written in (ORDER_KINDS apply to them)
 FILE_ORDER = ("evt2", "evt3", "npy", "npy_4n", "csv", "hdf5")
 EVT = ("evt2", "evt3")
@@ -307,6 +313,52 @@ def damage_words(data: bytes, header_bytes: int, version: str, kind: str, rng: r
     return data[:header_bytes] + body.tobytes()
 
 
+def declare_larger(target: Path, entry_name: str, rng: random.Random) -> None:
+    """Make one declared size of the copy at ``target`` larger than the bytes behind it (SIZE_KINDS)."""
+    import json
+
+    huge = rng.choice((10**15, 2**40, 2**31 - 1, 10**9))
+    if entry_name == "zarr":
+        meta = target / rng.choice(("events/events/t", "events/events/x", "frames/images")) / "zarr.json"
+        doc = json.loads(meta.read_text())
+        if rng.random() < 0.7:
+            doc["shape"][0] = huge
+        else:
+            doc["chunk_grid"]["configuration"]["chunk_shape"][0] = huge
+        meta.write_text(json.dumps(doc))
+    elif entry_name == "hdf5":
+        import h5py
+
+        with h5py.File(target, "r+") as f:
+            for k in ("t", "x", "y", "p"):
+                f["events"][k].resize((min(huge, 2**40),))
+    elif entry_name.startswith("aedat4"):
+        from eventcap.io.aedat4 import check_ioheader
+
+        start, _ = check_ioheader(target)
+        data = bytearray(target.read_bytes())
+        pos, offsets = start, []
+        while pos + 8 <= len(data):
+            offsets.append(pos)
+            pos += 8 + int.from_bytes(data[pos + 4:pos + 8], "little")
+        k = offsets[rng.randrange(len(offsets))]
+        data[k + 4:k + 8] = min(huge, 2**32 - 1).to_bytes(4, "little")
+        target.write_bytes(bytes(data))
+    else:  # aedat3: a packet's capacity (events of `size` bytes that follow its header)
+        from eventcap.io.aedat_legacy import read_legacy_header
+
+        data = bytearray(target.read_bytes())
+        pos = read_legacy_header(target)[2]
+        offsets = []
+        while pos + 28 <= len(data):
+            offsets.append(pos)
+            size, capacity = (int.from_bytes(data[pos + a:pos + a + 4], "little") for a in (4, 16))
+            pos += 28 + size * capacity
+        k = offsets[rng.randrange(len(offsets))]
+        data[k + 16:k + 20] = min(huge, 2**31 - 1).to_bytes(4, "little")
+        target.write_bytes(bytes(data))
+
+
 # ------------------------------------------------------------------------------------------------------- checks
 _NOTED_DROPS = (re.compile(r"dropped (\d+) event\(s\) with wild times"), re.compile(r"dropped the (\d+) event\(s\)"),
                 re.compile(r"dropped (\d+) duplicated event\(s\)"), re.compile(r"dropped (\d+) outlier event\(s\)"))
@@ -509,7 +561,8 @@ def _plan(seed: int, i: int) -> tuple[Entry, str, str]:
     entry = _CORPUS[i % len(_CORPUS)]
     rel = rng.choices(entry.files, entry.weights)[0]
     kind = rng.choices(KINDS, _WEIGHTS)[0]
-    if (kind in ORDER_KINDS and entry.name not in FILE_ORDER) or (kind in WORD_KINDS and entry.name not in EVT):
+    if (kind in ORDER_KINDS and entry.name not in FILE_ORDER) or (kind in WORD_KINDS and entry.name not in EVT) \
+            or (kind in SIZE_KINDS and entry.name not in SIZE_ENTRIES):
         kind = "bitflip"
     if kind in EVENT_KINDS and (entry.name in ("aedat4_real", "zarr") or (kind == "x_outliers" and entry.name not in
                                                                          SIZELESS) or (kind == "unit" and
@@ -548,6 +601,11 @@ def _child(seed: int, i: int, workdir: str, conn) -> None:
         rec = _REFERENCE_RECORDINGS[entry.name]
         order = damage_order(rec.events, kind, rng)
         target = write_in_order(entry.name, base, rec, order)
+        ref = _REFERENCES[entry.name]
+    elif kind in SIZE_KINDS:
+        target = base / entry.path.name
+        (shutil.copytree if entry.path.is_dir() else shutil.copy)(entry.path, target)
+        declare_larger(target, entry.name, rng)
         ref = _REFERENCES[entry.name]
     elif kind in WORD_KINDS:
         from eventcap.io.prophesee import read_header
