@@ -227,17 +227,20 @@ def file_digest(path: str | Path, chunk: int = 1 << 22) -> str:
 def input_path_problem(path: str | Path) -> str | None:
     """Why ``path``, named by a setting that takes a file or folder to read, cannot be one (one ``stat``, nothing
     opened): missing, a dangling or looping link, a pipe, device or socket (opening one can wait forever), or a
-    path under the kernel's folders (/proc, /sys, /dev). None when it is a regular file or a folder."""
+    path under the kernel's folders (/proc, /sys, /dev) or the system's configuration (/etc, /boot). None when it
+    is a regular file or a folder."""
     import errno
     import os
     import stat
 
-    from eventcap.core.ownership import PSEUDO_FILESYSTEMS, real
+    from eventcap.core.ownership import PRIVATE_SYSTEM_FOLDERS, PSEUDO_FILESYSTEMS, real
 
     p = real(path)
-    for root in PSEUDO_FILESYSTEMS:
-        if p == Path(root) or Path(root) in p.parents:
-            return f"{path} is under {root}, a folder of the kernel, not a file of yours: refused without reading it"
+    for roots, what in ((PSEUDO_FILESYSTEMS, "a folder of the kernel"),
+                        (PRIVATE_SYSTEM_FOLDERS, "the system's configuration (passwords, keys)")):
+        for root in roots:
+            if p == Path(root) or Path(root) in p.parents:
+                return f"{path} is under {root}, {what}, not a file of yours: refused without reading it"
     try:
         st = os.stat(path)
     except OSError as exc:

@@ -33,8 +33,10 @@ CACHE_TAG_TEXT = (f"{CACHE_TAG_SIGNATURE}\n{CACHE_TAG_OWNER}: written by eventca
 #: The sub-folders a stage cache holds (eventcap/core/cache.py).
 CACHE_FOLDERS = ("entries", "tmp", "failures", "trash", "locks")
 
-#: Folders of the kernel (pseudo-filesystems): nothing is ever written under them.
+#: Folders of the kernel (pseudo-filesystems): nothing is ever written under them, nor read as a setting's file.
 PSEUDO_FILESYSTEMS = ("/proc", "/sys", "/dev")
+#: The system's configuration and boot files (passwords, keys): never a file a setting takes, so never read.
+PRIVATE_SYSTEM_FOLDERS = ("/etc", "/boot", "/private/etc")
 #: The operating system's own folders: nothing is written under them either.
 SYSTEM_FOLDERS = ("/bin", "/boot", "/etc", "/lib", "/lib32", "/lib64", "/libx32", "/sbin", "/usr", "/run",
                   "/var/run", "/var/lib", "/var/log", "/var/cache", "/snap", "/System", "/Library", "/private/etc",

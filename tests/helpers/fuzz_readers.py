@@ -756,10 +756,16 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory(prefix="eventcap-bad-") as tmp:
             rows = bad_inputs.issue_table(Path(tmp), [] if args.no_settings else None)
             rows += bad_inputs.memory_rows(Path(tmp))
+            own = [] if args.no_settings else bad_inputs.ownership_rows(Path(tmp))
         print("issue 48's cases, run through the command line:")
         bad_inputs.print_table(rows)
         print()
         failed = any(r["exit"] == "HANG" or r["outcome"].startswith(("TRACEBACK", "HANG")) or r["left"] for r in rows)
+        if own:
+            print("issue 57's settings, each in a sandbox listed before and after (and /):")
+            bad_inputs.print_ownership(own)
+            print()
+            failed |= any(r["left"] or (r["exit"] == 0) != (r["expected"] == "accepted") for r in own)
     res = run_fuzz(args.n, args.seed, args.workers, args.timeout, not args.no_real, args.only,
                    log=lambda s: print(s, file=sys.stderr, flush=True))
     print_counts(res, args.n, args.seed, args.workers)
