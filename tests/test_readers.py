@@ -160,7 +160,7 @@ def test_detect_format_by_content_not_extension(tmp_path):
     (b"#!AER-DAT3.0\r\n#!END-HEADER\r\n", "AEDAT version 3.0 is not supported"),
     (b"#!AER-DAT3.1\r\n# no end", "no '#!END-HEADER' line"),
     (b"#!AER-DAT2.0\r\n# AEChip: ch.unizh.ini.jaer.chip.cochlea.CochleaAMS1c\r\n", "unsupported chip"),
-    (b"hello world", "unrecognised format"),
+    (b"hello world", r"not an AEDAT file: a \.aedat file starts with b'#!AER-DAT', this one with b'hello world'"),
 ])
 def test_unreadable_files_are_named(tmp_path, content, match):
     path = tmp_path / "rec.aedat"

@@ -54,13 +54,15 @@ are not visible for evt2/evt3/dat. Decoding libraries' panics are caught; the fu
 or ends in a traceback.
 """
 
-from eventcap.io.detect import READ_FORMATS, detect_format
+from eventcap.io.detect import detect_format
 from eventcap.io.readers import EventChunks, Roi, iter_event_chunks, read_recording
+from eventcap.io.registry import ReaderSpec, readers
 from eventcap.io.recording import Frames, RawRecording, RecordingError
 from eventcap.io.writers import WRITE_FORMATS, write_events, write_recording
 
 __all__ = [
-    "READ_FORMATS",
+    "ReaderSpec",
+    "readers",
     "WRITE_FORMATS",
     "EventChunks",
     "Frames",
@@ -73,3 +75,9 @@ __all__ = [
     "write_events",
     "write_recording",
 ]
+
+
+def __getattr__(name: str):
+    if name == "READ_FORMATS":  # the formats format= takes, from the registry
+        return tuple(readers().names())
+    raise AttributeError(name)

@@ -15,6 +15,7 @@ import numpy as np
 
 from eventcap.io.checks import RawChunk
 from eventcap.io.recording import RecordingError, logger
+from eventcap.io.registry import ReaderSpec
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, RowLocator, Source, native_call, numbered_chunks
 
 MAGIC = b"#!AER-DAT4.0"
@@ -250,3 +251,9 @@ def write_aedat4(path: Path, chunks: Iterator[np.ndarray], width: int, height: i
         for chunk in chunks:
             if len(chunk):
                 encoder.write(0, chunk)
+
+
+READERS = [ReaderSpec(
+    name="aedat4", description="iniVation DV AEDAT 4.0: events, frames with exposure", extensions=(".aedat4",),
+    magic=(MAGIC,), magic_name="an AEDAT4", source="eventcap.io.aedat4:Aedat4Source", library="aedat (read), faery (write)",
+    extras="frames + exposure")]

@@ -32,6 +32,7 @@ import numpy as np
 from eventcap.camera import Camera
 from eventcap.io.checks import RawChunk, parse_time_unit, times_to_us
 from eventcap.io.recording import RecordingError
+from eventcap.io.registry import ReaderSpec
 from eventcap.io.source import (
     DEFAULT_CHUNK_EVENTS,
     FrameData,
@@ -333,3 +334,10 @@ def write_hdf5(path: Path, chunks: Iterator[np.ndarray], width: int, height: int
             gg = f.create_group("ground_truth")
             for k, v in ground_truth.items():
                 gg[k] = np.asarray(v)
+
+
+READERS = [ReaderSpec(
+    name="hdf5", description="HDF5: events/{t,x,y,p}, a compound or (N, 4) 'events' dataset; frames, calibration, "
+                         "ground truth", extensions=(".h5", ".hdf5", ".hdf"), magic=(MAGIC,), magic_name="an HDF5",
+    source="eventcap.io.hdf5:Hdf5Source", columns=True, declares_size=False,
+    extras="frames, calibration, ground truth", library="h5py")]

@@ -27,6 +27,7 @@ from eventcap.io.evt import (
     decoder_notes,
 )
 from eventcap.io.recording import RecordingError
+from eventcap.io.registry import ReaderSpec
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS, RowLocator, Source, file_size, native_call, numbered_chunks
 
 _MAX_HEADER_BYTES = 1 << 20
@@ -333,3 +334,38 @@ def write_prophesee(path: Path, chunks: Iterator[np.ndarray], fmt: str, width: i
                 encoder.write(chunk.astype(dat_dtype))
             else:
                 encoder.write({"events": chunk})
+
+
+def detect_header(head: bytes, path) -> str | None:
+    """The format of a file starting with a Prophesee '%' header: evt2 / evt3 / dat as the header says (a RAW file
+    whose header names no EVT version is refused: format=evt2 or evt3); None when it is not such a header."""
+    if not head.startswith(b"%"):
+        return None
+    kind = header_kind(read_header(Path(path))[0])
+    if kind == "evt":
+        raise RecordingError(path, "the header names no EVT version (no '% evt 2.0/3.0' or '% format EVT…' line): "
+                                   "pass format='evt2' or format='evt3'", "file header")
+    if kind is None and Path(path).suffix.lower() == ".dat":
+        return "dat"
+    return kind
+
+
+def open_evt2(path: Path, time_unit: str | None = None) -> EvtSource:
+    return EvtSource(path, "evt2", time_unit)
+
+
+def open_evt3(path: Path, time_unit: str | None = None) -> EvtSource:
+    return EvtSource(path, "evt3", time_unit)
+
+
+READERS = [
+    ReaderSpec(name="evt2", description="Prophesee RAW, EVT 2.0", extensions=(".raw",),
+               detect="eventcap.io.prophesee:detect_header", source="eventcap.io.prophesee:open_evt2",
+               wraps_us=(2**34,), library="our decoder (eventcap.io.evt)"),
+    ReaderSpec(name="evt3", description="Prophesee RAW, EVT 3.0", extensions=(".raw",),
+               detect="eventcap.io.prophesee:detect_header", source="eventcap.io.prophesee:open_evt3",
+               wraps_us=(2**24,), library="our decoder (eventcap.io.evt)"),
+    ReaderSpec(name="dat", description="Prophesee DAT (CD events)", extensions=(".dat",),
+               detect="eventcap.io.prophesee:detect_header", source="eventcap.io.prophesee:DatSource",
+               wraps_us=(2**32,), library="our decoder; faery reads the header"),
+]

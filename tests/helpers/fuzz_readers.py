@@ -3,11 +3,12 @@
 Usage: ``python3 benchmarks/robustness/fuzz_readers.py --n 2000 [--seed 0] [--workers 2] [--timeout 20]``
 (``--no-table`` leaves out issue 48's table of bad inputs run through the command line, bad_inputs.py).
 
-Corpus: small simulated recordings (random events, smooth frames; not real sensor data) written by
-:mod:`eventcap.io` in every format the readers take: aedat4, EVT2 and EVT3 .raw, dat, hdf5 with frames and
-calibration, npz with frames, npy, a (4, N) Fortran-order npy, a csv with a header of column names, an rpg folder
-with PNG frames, AEDAT 2.0 (DAVIS240C, with special events; with APS frames) and AEDAT 3.1 with frames and invalid
-events, the project's own zarr recording, plus the real DAVIS346 AEDAT4 file when it is there.
+Corpus: small simulated recordings (random events, smooth frames; not real sensor data), one for every reader of
+the registry (:mod:`eventcap.io.registry`, plugins and EVENTCAP_READERS included: a reader this module cannot write
+is written by its spec's ``sample``), written by :mod:`eventcap.io`: aedat4, EVT2 and EVT3 .raw, dat, hdf5 with
+frames and calibration, npz with frames, npy, a (4, N) Fortran-order npy, a csv with a header of column names, an
+rpg folder with PNG frames, AEDAT 2.0 (DAVIS240C, with special events; with APS frames) and AEDAT 3.1 with frames
+and invalid events, the project's own zarr recording, plus the real DAVIS346 AEDAT4 file when it is there.
 
 Damage, one per case, to one file of one corpus entry: bytes (bit flips, truncation, bytes inserted or deleted,
 garbage in the header) and events re-written in the same format after a change (``wild_time``: one event 1e12 µs
@@ -181,22 +182,48 @@ def write_entry(name: str, folder: Path, rec: RawRecording, time_as_int_us: bool
 
         recording_from_raw(rec, name="small").to_zarr(zarr.open_group(str(folder / "rec.zarr"), mode="w"))
         return folder / "rec.zarr"
-    raise ValueError(f"unknown corpus entry {name!r}")
+    from eventcap.io.registry import readers
+
+    spec = readers().find(name)
+    if spec is None:
+        raise ValueError(f"unknown corpus entry {name!r}")
+    if not spec.sample:
+        raise ValueError(f"reader {name!r} ({spec.origin}) declares no sample writer (ReaderSpec.sample): it cannot "
+                         f"be fuzzed")
+    return spec.load("sample")(folder, rec)
 
 
 _FOLDERS = {"rpg": (("events.txt", "images.txt", "calib.txt", "images/frame_00000001.png"), (0.55, 0.15, 0.15, 0.15)),
             "zarr": (("zarr.json", "events/events/t/c/0", "events/events/x/c/0", "events/events/t/zarr.json",
                       "events/zarr.json", "frames/images/c/0/0/0", "camera/zarr.json"),
                      (0.2, 0.25, 0.15, 0.1, 0.1, 0.1, 0.1))}
-ENTRY_NAMES = ("aedat4", "evt2", "evt3", "dat", "hdf5", "npz", "npy", "npy_4n", "csv", "aedat2", "aedat2_aps",
+#: corpus entries beyond one per registered format: the layouts of a format worth damaging apart
+VARIANTS = {"npy": ("npy", "npy_4n"), "rpg": ("rpg", "csv"), "aedat2": ("aedat2", "aedat2_aps")}
+#: the project's own format (eventcap convert writes it; not a reader of the registry)
+EXTRA_ENTRIES = ("zarr",)
+#: the formats this module writes itself (richer than a reader's own sample: frames, special events, invalid events)
+OWN_WRITERS = ("aedat4", "evt2", "evt3", "dat", "hdf5", "npz", "npy", "npy_4n", "csv", "aedat2", "aedat2_aps",
                "aedat3", "rpg", "zarr")
+
+
+def entry_names() -> tuple[str, ...]:
+    """The corpus: every reader of the registry (eventcap/io/registry.py, plugins and EVENTCAP_READERS included),
+    its variants, and the project's zarr. A reader this module has no writer for is fuzzed from its spec's
+    ``sample``."""
+    from eventcap.io.registry import readers
+
+    names = [v for n in readers().names() for v in VARIANTS.get(n, (n,))]
+    return tuple(names) + EXTRA_ENTRIES
+
+
+ENTRY_NAMES = entry_names()
 
 
 def make_corpus(folder: Path, include_real: bool = True) -> list[Entry]:
     """Write the corpus into ``folder``."""
     rec = synthetic_recording()
     entries = []
-    for name in ENTRY_NAMES:
+    for name in entry_names():
         path = write_entry(name, folder, rec)
         files, weights = _FOLDERS.get(name, (("",), (1.0,)))
         entries.append(Entry(name, path, files, weights))
