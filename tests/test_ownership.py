@@ -76,9 +76,9 @@ def test_a_new_cache_is_marked_and_cleans_only_names_it_writes(tmp_path):
     trash_ours.mkdir()
     trash_theirs = cache.root / "trash" / "letter.txt"
     trash_theirs.write_text("x")
-    old = time.time() - 3 * 86400
+    days_ago = time.time() - 3 * 86400
     for p in (ours, theirs):
-        os.utime(p, (old, old))
+        os.utime(p, (days_ago, days_ago))
     removed = cache.clean_orphans()
     assert sorted(p.name for p in removed) == sorted([ours.name, trash_ours.name])
     assert theirs.is_dir() and trash_theirs.read_text() == "x"

@@ -378,6 +378,8 @@ def _check_declared(arr, where: str) -> None:
     nbytes = math.prod(shape) * itemsize
     if folder is not None and nchunks:
         files = sum(len([f for f in names if f != "zarr.json"]) for _, _, names in _walk(folder, nchunks + 1))
+        if files < nchunks <= 1_000_000:  # a few missing: say which chunk, and the rows it holds
+            raise ArtifactError(_bad_chunk_message(arr, where, None))
         if files < nchunks:
             raise ArtifactError(f"{at}: declares shape {shape} of {arr.dtype} ({nbytes:,} bytes) in {nchunks:,} chunk "
                                 f"files, and the folder holds {files:,}: a corrupted shape, or chunk files missing "

@@ -146,15 +146,15 @@ FAILURE_FILE = re.compile(rf"^(?:{KEY}\.json|\.{KEY}\.json\.\d+\.[0-9a-f]{{6}}\.
 
 
 def legacy_cache_layout(root: Path, limit: int = 200_000) -> bool:
-    """Whether ``root`` is a stage cache made before caches were marked: the four folders every such cache has
-    (entries, tmp, failures, trash; locks optional), nothing else at its top, and in each only names the cache
-    writes (40-hex keys and the temporary names it gives them). Anything else (someone's ``tmp/`` and ``trash/``)
-    is not a cache."""
+    """Whether ``root`` is a stage cache made before caches were marked (or being made: a process may take an entry
+    lock before the root is marked): only the cache's folders (entries, tmp, failures, trash, locks) at its top, and
+    in each only names the cache writes (40-hex keys and the temporary names it gives them). Anything else (someone's
+    ``tmp/`` and ``trash/``) is not a cache."""
     try:
         top = set(os.listdir(root))
     except OSError:
         return False
-    if not {"entries", "tmp", "failures", "trash"} <= top or not top <= set(CACHE_FOLDERS):
+    if not top or not top <= set(CACHE_FOLDERS):
         return False
     if any(not (root / d).is_dir() or (root / d).is_symlink() for d in top):
         return False
@@ -168,7 +168,7 @@ def legacy_cache_layout(root: Path, limit: int = 200_000) -> bool:
             if seen > limit or not pattern.match(name):
                 return False
     key = re.compile(rf"^{KEY}$")
-    for stage in os.listdir(root / "entries"):
+    for stage in os.listdir(root / "entries") if "entries" in top else ():
         stage_dir = root / "entries" / stage
         if not stage_dir.is_dir() or stage_dir.is_symlink():
             return False

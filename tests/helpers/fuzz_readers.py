@@ -303,7 +303,7 @@ def write_in_order(name: str, folder: Path, rec: RawRecording, ev: np.ndarray) -
     import dataclasses
 
     if name in EVT:
-        from helpers.evt_reference import write_in_file_order
+        from .evt_reference import write_in_file_order
 
         return write_in_file_order(folder / f"small_{name}.raw", ev, name, rec.width, rec.height, rec.t_offset_us)
     if name == "hdf5":
@@ -429,7 +429,7 @@ def held_by_file(target: Path, entry_name: str, order_events: np.ndarray | None,
         out["t"] += t_offset_us
         return out
     if entry_name in EVT and target.is_file():
-        from helpers.evt_reference import held_events
+        from .evt_reference import held_events
 
         from eventcap.io.prophesee import header_kind, read_header
 
