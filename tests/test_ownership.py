@@ -102,6 +102,20 @@ def test_an_empty_folder_becomes_a_cache_and_an_old_cache_is_recognised(tmp_path
     Cache(old)
 
 
+def test_a_folder_holding_only_empty_tmp_and_trash_is_not_an_old_cache(tmp_path):
+    """Only an old cache's full layout (entries, tmp, failures, trash) or a lone locks/ of a cache being made counts
+    as a cache without its marker: someone's empty tmp/ and trash/ are refused and nothing is written there."""
+    folder = tmp_path / "theirs"
+    for sub in ("tmp", "trash"):
+        (folder / sub).mkdir(parents=True)
+    with pytest.raises(CacheError, match=r"is not an eventcap cache .* \(it holds tmp, trash\)"):
+        Cache(folder)
+    assert sorted(os.listdir(folder)) == ["tmp", "trash"]
+    (tmp_path / "being_made" / "locks").mkdir(parents=True)
+    (tmp_path / "being_made" / "locks" / f"{KEY}.lock").write_text("")
+    assert is_marked_cache(Cache(tmp_path / "being_made").root)
+
+
 @pytest.mark.parametrize("given, why", [("/", "the root of the filesystem"), ("/proc", "a folder of the kernel"),
                                         ("/sys", "a folder of the kernel"), ("/dev/null", "a folder of the kernel"),
                                         ("/etc", "a folder of the operating system"),

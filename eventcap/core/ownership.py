@@ -32,6 +32,8 @@ CACHE_TAG_TEXT = (f"{CACHE_TAG_SIGNATURE}\n{CACHE_TAG_OWNER}: written by eventca
 
 #: The sub-folders a stage cache holds (eventcap/core/cache.py).
 CACHE_FOLDERS = ("entries", "tmp", "failures", "trash", "locks")
+#: The sub-folders every cache made before caches were marked holds (created together with the root).
+OLD_CACHE_FOLDERS = ("entries", "tmp", "failures", "trash")
 
 #: Folders of the kernel (pseudo-filesystems): nothing is ever written under them, nor read as a setting's file.
 PSEUDO_FILESYSTEMS = ("/proc", "/sys", "/dev")
@@ -146,15 +148,15 @@ FAILURE_FILE = re.compile(rf"^(?:{KEY}\.json|\.{KEY}\.json\.\d+\.[0-9a-f]{{6}}\.
 
 
 def legacy_cache_layout(root: Path, limit: int = 200_000) -> bool:
-    """Whether ``root`` is a stage cache made before caches were marked (or being made: a process may take an entry
-    lock before the root is marked): only the cache's folders (entries, tmp, failures, trash, locks) at its top, and
-    in each only names the cache writes (40-hex keys and the temporary names it gives them). Anything else (someone's
-    ``tmp/`` and ``trash/``) is not a cache."""
+    """Whether ``root`` is a stage cache made before caches were marked (the four folders every such cache has:
+    entries, tmp, failures, trash; locks optional) or being made (a process may take an entry lock before the root is
+    marked: ``locks/`` alone), nothing else at its top, and in each only names the cache writes (40-hex keys and the
+    temporary names it gives them). Anything else (someone's ``tmp/`` and ``trash/``, even empty) is not a cache."""
     try:
         top = set(os.listdir(root))
     except OSError:
         return False
-    if not top or not top <= set(CACHE_FOLDERS):
+    if not top <= set(CACHE_FOLDERS) or not (top == {"locks"} or set(OLD_CACHE_FOLDERS) <= top):
         return False
     if any(not (root / d).is_dir() or (root / d).is_symlink() for d in top):
         return False
