@@ -13,6 +13,9 @@ Conventions (the project's, everywhere):
 from __future__ import annotations
 
 import math
+import os
+import re
+import stat
 from dataclasses import dataclass
 from typing import ClassVar
 from pathlib import Path
@@ -300,16 +303,48 @@ def davis240c_default(distortion: bool = True, eye=DEFAULT_EYE_M, target=DEFAULT
     return Camera(240, 180, fx, fy, cx, cy, np.array(dist) if distortion else np.zeros(5), R, t)
 
 
+#: A calibration file is a line of numbers (and comments): anything larger is not one, and is not read.
+MAX_CALIBRATION_BYTES = 64 * 1024
+
+
+def check_rpg_calibration(path, key: str) -> None:
+    """Refuse, before anything runs, a calibration setting whose file is not an rpg calib.txt (ValueError naming
+    ``key``); reads at most MAX_CALIBRATION_BYTES, and nothing of a file that is not regular or is larger."""
+    try:
+        read_rpg_calibration(path, 1, 1)
+    except ValueError as exc:
+        raise ValueError(f"{key}: {exc}") from None
+
+
+def _shown_token(tok: str) -> str:
+    """A token of a file that failed to parse, quoted in a message only when it could be a mistyped number (a file
+    given by mistake, such as a password file, never has its content repeated in a log)."""
+    return f": {tok!r}" if re.fullmatch(r"[\w.+-]{1,16}", tok) else f" ({len(tok)} characters)"
+
+
 def read_rpg_calibration(path, width: int, height: int, R=None, t=None) -> Camera:
     """Read an rpg Event Camera Dataset ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or ``fx fy cx cy``).
 
-    Blank lines and ``#`` comments are ignored. Extrinsics default to the identity (camera = world frame).
+    Blank lines and ``#`` comments are ignored. Extrinsics default to the identity (camera = world frame). A path
+    that is not a regular file, or a file larger than MAX_CALIBRATION_BYTES, is refused without being read; an error
+    quotes the file's content only where it could be a mistyped number.
     """
     path = Path(path)
     try:
-        text = path.read_text()
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path}: not a calibration file: {'a folder' if stat.S_ISDIR(st.st_mode) else 'not a regular file'}"
+                             f" (expected an rpg calib.txt: one line 'fx fy cx cy [k1 k2 p1 p2 k3]')")
+        if st.st_size > MAX_CALIBRATION_BYTES:
+            raise ValueError(f"{path}: not a calibration file: {st.st_size:,} bytes (an rpg calib.txt is one line of "
+                             f"numbers, at most {MAX_CALIBRATION_BYTES // 1024} KiB with comments); not read")
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_CALIBRATION_BYTES + 1)
+        text = raw.decode("utf-8")
     except OSError as exc:
-        raise ValueError(f"{path}: cannot read calibration file ({exc})") from exc
+        raise ValueError(f"{path}: cannot read calibration file ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a calibration file: not text (an rpg calib.txt is one line of numbers)") from None
     lines = [(i + 1, ln.split("#", 1)[0].strip()) for i, ln in enumerate(text.splitlines())]
     lines = [(i, ln) for i, ln in lines if ln]
     if len(lines) != 1:
@@ -319,15 +354,15 @@ def read_rpg_calibration(path, width: int, height: int, R=None, t=None) -> Camer
     tokens = line.replace(",", " ").split()
     if len(tokens) not in (4, 9):
         raise ValueError(f"{path}:{lineno}: expected 4 numbers (fx fy cx cy) or 9 (fx fy cx cy k1 k2 p1 p2 k3), "
-                         f"got {len(tokens)}: {line!r}")
+                         f"got {len(tokens)} value(s)")
     values = []
     for k, tok in enumerate(tokens):
         try:
             v = float(tok)
         except ValueError:
-            raise ValueError(f"{path}:{lineno}: value {k + 1} is not a number: {tok!r}") from None
+            raise ValueError(f"{path}:{lineno}: value {k + 1} is not a number{_shown_token(tok)}") from None
         if not math.isfinite(v):
-            raise ValueError(f"{path}:{lineno}: value {k + 1} is not finite: {tok!r}")
+            raise ValueError(f"{path}:{lineno}: value {k + 1} is not finite{_shown_token(tok)}")
         values.append(v)
     fx, fy, cx, cy = values[:4]
     dist = np.array(values[4:]) if len(values) == 9 else np.zeros(5)

@@ -1,4 +1,5 @@
-"""What the core asks about operating-system processes (shared by the cache and the recording converter).
+"""What the core asks about operating-system processes and their memory (shared by the cache, the recording
+converter, the readers and the artifacts).
 
 A folder or entry named after the process that writes it (``<name>.partial-<pid>``, the cache's ``tmp/`` entries)
 is a leftover once that process is gone. This module imports nothing of eventcap, so the domain library (``io``)
@@ -19,3 +20,15 @@ def pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def available_memory_bytes() -> int | None:
+    """MemAvailable from /proc/meminfo, or ``None`` where it cannot be read."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None

@@ -81,18 +81,21 @@ def test_a_jump_of_hours_with_events_on_both_sides_is_refused_naming_the_index(t
     np.testing.assert_array_equal(_abs(r), jumped)
 
 
-def test_a_flipped_byte_of_an_evt2_time_word_is_undone(tmp_path, ev):
+def test_a_flipped_bit_of_an_evt2_time_word_drops_its_events_with_a_note(tmp_path, ev):
+    """Bit 20 of one EVT_TIME_HIGH set: its events lie 2^26 µs (67 s) late, as the file says, and time goes back at
+    the next word. Our decoder keeps both (no wrap invented, no clamp): the time checks drop the late events, named."""
     path = bi.evt2_flipped(tmp_path, ev)
     r = read_recording(path)
-    assert any("about the 2^34 µs range of the format's time counter" in s and "subtracted 2^34 µs from there on"
-               in s for s in r.repairs)
+    assert not any("2^34" in s for s in r.repairs)
     got = _abs(r)
     want = ev.copy()
     want["t"] += 1_633_000_000_000_000 - ev["t"][0]  # the file's t0 is the header's
     # the events of the damaged 64-µs slot are dropped (named); every other event is the original, at its time
     assert len(ev) - 100 < len(got) < len(ev) and np.all(np.isin(got.view(np.void), want.view(np.void)))
     assert int(r.events["t"][-1]) < 100_000
-    assert any("dropped 2 event(s) with wild times" in s for s in r.repairs)
+    assert any("dropped 2 event(s) with wild times" in s and "between a jump of 67.1 s and one back" in s
+               for s in r.repairs)
+    assert len(got) == len(ev) - 2
 
 
 def test_time_standing_still_after_a_jump_cuts_the_recording(tmp_path, ev):
@@ -243,3 +246,26 @@ def test_the_most_active_moment_takes_memory_for_events_not_for_time():
         starts = np.arange(int(e["t"][0]), max(int(e["t"][-1]) - 20_000, int(e["t"][0])) + step, step)
         counts = np.searchsorted(e["t"], starts + 20_000) - np.searchsorted(e["t"], starts)
         assert most_active_time(e, 20_000) == (int(starts[np.argmax(counts)]) + 10_000, int(counts.max()))
+
+
+def test_a_zarr_shape_of_1e15_is_refused_by_preview_without_a_traceback(tmp_path):
+    """Issue 57: `eventcap preview` of a recording whose time array's zarr.json declares 1e15 rows ended in a
+    MemoryError traceback; the declared size is now checked against the chunk files before anything is read."""
+    import json
+    import subprocess
+    import sys
+
+    from helpers import fuzz_readers
+
+    path = fuzz_readers.write_entry("zarr", tmp_path, fuzz_readers.synthetic_recording())
+    meta = path / "events" / "events" / "t" / "zarr.json"
+    doc = json.loads(meta.read_text())
+    doc["shape"] = [10**15]
+    meta.write_text(json.dumps(doc))
+    p = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "preview", str(path), "--out", str(tmp_path / "p.png")],
+                       capture_output=True, text=True, timeout=120)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "Traceback" not in out and "MemoryError" not in out
+    assert f"{meta}): declares shape (1000000000000000,) of int64 (8,000,000,000,000,000 bytes) in " \
+           f"666,666,666,667 chunk files, and the folder holds 1" in out
+    assert not (tmp_path / "p.png").exists()

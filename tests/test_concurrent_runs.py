@@ -83,7 +83,7 @@ def test_a_default_folder_is_always_fresh(tmp_path):
 
 def test_a_live_runs_folder_is_refused_and_left_alone(tmp_path):
     same = ["hydra.run.dir=runs/same", f"cache_dir={tmp_path / 'cache'}"]
-    a = subprocess.Popen(TOY + same + ["stages.scale.factor=5", "stages.smooth.sleep_s=0.5"], cwd=tmp_path,
+    a = subprocess.Popen(TOY + same + ["stages.scale.factor=5", "stages.smooth.sleep_s=2"], cwd=tmp_path,
                          env=toy_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         _wait_for(lambda: f"pid {a.pid} " in (tmp_path / "runs" / "same" / LOCK_NAME).read_text()
@@ -179,11 +179,14 @@ def test_entry_lock_is_exclusive_and_a_killed_holder_leaves_nothing_stuck(tmp_pa
     finally:
         holder.kill()
         holder.wait()
-    # a killed holder's file (unlocked) is removed by the cache's orphan clean-up
-    stale = EntryLock(tmp_path, "def456")
+    # a killed holder's file (unlocked) is removed by the cache's orphan clean-up; a file whose name is no lock the
+    # cache makes (<key>.lock, a 40-hex key) is not the cache's to remove
+    stale = EntryLock(tmp_path, "def456" * 6 + "abcd")
     stale.path.parent.mkdir(parents=True, exist_ok=True)
     stale.path.write_text("pid 1 on host gone")
-    assert clean_stale_locks(tmp_path) == 1 and not stale.path.exists()
+    foreign = stale.path.with_name("notes.lock")
+    foreign.write_text("someone else's")
+    assert clean_stale_locks(tmp_path) == 1 and not stale.path.exists() and foreign.read_text() == "someone else's"
 
 
 @pytest.mark.parametrize("executor", ["processes", pytest.param("dask", marks=pytest.mark.slow)])

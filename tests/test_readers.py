@@ -160,7 +160,7 @@ def test_detect_format_by_content_not_extension(tmp_path):
     (b"#!AER-DAT3.0\r\n#!END-HEADER\r\n", "AEDAT version 3.0 is not supported"),
     (b"#!AER-DAT3.1\r\n# no end", "no '#!END-HEADER' line"),
     (b"#!AER-DAT2.0\r\n# AEChip: ch.unizh.ini.jaer.chip.cochlea.CochleaAMS1c\r\n", "unsupported chip"),
-    (b"hello world", "unrecognised format"),
+    (b"hello world", r"not an AEDAT file: a \.aedat file starts with b'#!AER-DAT', this one with b'hello world'"),
 ])
 def test_unreadable_files_are_named(tmp_path, content, match):
     path = tmp_path / "rec.aedat"
@@ -358,8 +358,9 @@ def test_truncated_aedat4_keeps_complete_packets(real, tmp_path):
     p = tmp_path / "cut.aedat4"
     p.write_bytes(data[:600_000])
     r = read_recording(p)
-    assert r.repairs == (("the file ends inside packet 17 (truncated, or a corrupted packet size): kept the 17 "
-                          "complete packets before it"),)
+    # each packet's declared size is checked against the bytes that follow before the decoder reads it
+    assert r.repairs == (("packet 17 at byte 543465 declares 90,083 bytes but 56,527 follow (a truncated file, or a "
+                          "corrupted packet size): kept the 17 complete packets before it"),)
     assert 0 < len(r.events) < len(real.events)
     np.testing.assert_array_equal(r.events, real.events[:len(r.events)])  # a prefix, same clock
     with pytest.raises(RecordingError, match="declares .* bytes but .* follow"):

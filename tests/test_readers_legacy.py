@@ -7,6 +7,7 @@ own writers for round trips, and against a real public DAVIS240C file when one i
 from __future__ import annotations
 
 import os
+import re
 import struct
 from pathlib import Path
 
@@ -233,8 +234,10 @@ def test_aedat31_truncated_and_corrupted(tmp_path):
     p.write_bytes(data[:-100])
     r = read_recording(p)
     assert len(r.events) == 2000
-    assert r.repairs == ("the file ends inside packet 2 (truncated, or a corrupted packet size): kept the 2 complete "
-                         "packets before it",)
+    assert len(r.repairs) == 1
+    assert re.fullmatch(r"the file ends inside packet 2 \(truncated, or a corrupted packet size\): it declares 1,000 "
+                        r"events of 8 bytes at byte \d+, 7,9\d\d bytes follow; kept the 2 complete packets before it",
+                        r.repairs[0]), r.repairs
     header_end = data.index(b"#!END-HEADER\r\n") + 14
     bad = bytearray(data)
     bad[header_end + 4:header_end + 8] = struct.pack("<i", -8)  # event size of packet 0

@@ -64,14 +64,20 @@ def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cac
                               caplog=caplog)
     assert code == 1 and "source.duration_s: expected a finite number in (0, 3600], got -1" in capsys.readouterr().err
     assert not (tmp_path / "refused").exists()
-    # a source that fails while it runs: every node after it is skipped with that cause
-    code, log_text = run_main(run_dir, *SMALL, "source.motion=no_such_motion", f"cache_dir={shared_cache}",
+    # an unknown motion is refused before the run folder too (issue 57)
+    code, log_text = run_main(tmp_path / "unknown", *SMALL, "source.motion=no_such_motion", f"cache_dir={shared_cache}",
                               caplog=caplog)
+    assert code == 1 and "source.motion: unknown motion 'no_such_motion'" in capsys.readouterr().err
+    assert not (tmp_path / "unknown").exists()
+    # a source that fails while it runs (a clip file that is no BVH): every node after it is skipped with that cause
+    clip = tmp_path / "no_such_motion.bvh"
+    clip.write_text("not a BVH file\n")
+    code, log_text = run_main(run_dir, *SMALL, f"source.motion={clip}", f"cache_dir={shared_cache}", caplog=caplog)
     assert code == 1
-    assert (run_dir / "config.yaml").is_file() and "motion: no_such_motion" in (run_dir / "config.yaml").read_text()
+    assert (run_dir / "config.yaml").is_file() and "no_such_motion.bvh" in (run_dir / "config.yaml").read_text()
     s = summary(run_dir)
     [fail] = s["nodes"]["source"]["failed"]
-    assert fail["error"].startswith("ValueError: ") and "no_such_motion" in fail["error"]
+    assert "no_such_motion" in fail["error"]
     cause = f"upstream failed: source: {fail['error']}"
     for n in DOWNSTREAM:
         assert s["nodes"][n]["skip_causes"] == [{"batch": None, "cause": cause}], n
@@ -79,7 +85,7 @@ def test_failed_synthetic_source_is_the_cause_of_every_skip(tmp_path, shared_cac
     assert "not in the cache" not in log_text
     # the error once, where it happened; the summary names the failure and counts the nodes skipped because of it
     assert log_text.count(fail["error"]) == 1
-    assert (f"run incomplete: source failed (ValueError); skipped because of it: {len(DOWNSTREAM)} nodes "
+    assert (f"run incomplete: source failed (BvhError); skipped because of it: {len(DOWNSTREAM)} nodes "
             f"({', '.join(DOWNSTREAM)}); the first error is above (source)") in log_text
 
 
@@ -256,9 +262,10 @@ def test_cache_commands_on_a_file_or_a_missing_path(toy, tmp_path, capsys):
         assert main(["cache", *action, "--cache-dir", str(missing)]) == 2
         assert f"{missing} does not exist" in capsys.readouterr().err
         assert not (tmp_path / "missing").exists()
-    # a run refuses a file as its cache, before anything runs
+    # a run refuses a file as its cache, before anything runs (before its run folder exists)
     code, log_text = run_main(tmp_path / "r", *TOY, f"cache_dir={tmp_path / 'afile'}")
-    assert code == 1 and f"{tmp_path / 'afile'} is a file, not a directory" in log_text
+    assert code == 1 and f"{tmp_path / 'afile'} is a file, not a directory" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="permissions as on Linux")

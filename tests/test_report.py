@@ -93,18 +93,19 @@ def test_a_real_tiny_sweep(tmp_path):
                           "pipeline=known_poses", "stages/solve=known_poses", "template=procedural", "template.target_faces=2000",
                           "source.duration_s=0.09", "source.supersample=1", "source.motion=jumping_jack",
                           "outputs.video=false", "stages.solve.motion=jumping_jack,karate_kick", "source.seed=0,1",
-                          "hydra.sweep.dir=sweep"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+                          "hydra.sweep.dir=runs/sweep"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
-    rep = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "report", "sweep"], cwd=tmp_path, env=env,
+    assert "sweep folder runs/sweep/: 4 job folder(s); one table of them: eventcap report runs/sweep" in run.stderr
+    rep = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "report", "runs/sweep"], cwd=tmp_path, env=env,
                          capture_output=True, text=True, timeout=120)
     assert rep.returncode == 0, rep.stderr[-3000:]
     assert "4 job(s), 4 override set(s); the jobs differ in stages.solve.motion, source.seed" in rep.stdout
-    rows = list(csv.DictReader(open(tmp_path / "sweep" / "report.csv")))
+    rows = list(csv.DictReader(open(tmp_path / "runs" / "sweep" / "report.csv")))
     assert [(r["stages.solve.motion"], r["source.seed"], r["status"]) for r in rows] == [
         ("jumping_jack", "0", "ok"), ("jumping_jack", "1", "ok"), ("karate_kick", "0", "ok"), ("karate_kick", "1", "ok")]
     ae = {(r["stages.solve.motion"], r["source.seed"]): float(r["AE (mm)"]) for r in rows}
     assert ae[("jumping_jack", "0")] < ae[("karate_kick", "0")]  # the motion performed fits better
-    assert (tmp_path / "sweep" / "report.png").is_file()
+    assert (tmp_path / "runs" / "sweep" / "report.png").is_file()
     bad = subprocess.run([sys.executable, "-m", "eventcap.apps.cli", "report", "nowhere"], cwd=tmp_path, env=env,
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "eventcap report: nowhere: not a folder" in bad.stderr

@@ -79,9 +79,24 @@ def test_zero_batches_is_a_named_skip_not_a_crash(toy, tmp_path, caplog):
     assert s["nodes"]["total"]["computed"] == 0
 
 
-def test_missing_recording_fails_the_source_node_and_run_json_is_written(tmp_path):
-    # The real pipeline: a recording path that does not exist fails the source node (in the driver, while
-    # keying it), the rest is skipped with that cause, and the run is summarised.
+def test_missing_recording_is_refused_before_the_run_folder_exists(tmp_path, capsys):
+    # The real pipeline: a recording path that does not exist is refused with every other setting, before the run
+    # folder and the cache exist (issue 57), naming the key and the path.
+    run_dir = tmp_path / "e"
+    code = main(["run", "pipeline=simulate", "source=recording", f"source.path={tmp_path / 'nope.aedat4'}",
+                 "template=procedural", "template.target_faces=3000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
+    assert code == 1
+    assert f"source.path: {tmp_path / 'nope.aedat4'}: no such file or folder" in capsys.readouterr().err
+    assert not run_dir.exists() and not (tmp_path / "cache").exists()
+
+
+def test_a_recording_vanishing_after_the_checks_fails_the_source_node(tmp_path, monkeypatch):
+    # A path checked before the run that is gone when the source is keyed: the source node fails (in the driver),
+    # the rest is skipped with that cause, and the run is summarised.
+    from eventcap.core import config as config_module
+
+    monkeypatch.setattr(config_module, "check_file_settings", lambda spec, config, where: None)
+    monkeypatch.setattr("eventcap.core.pipeline.check_file_settings", lambda spec, config, where: None)
     run_dir = tmp_path / "e"
     code = main(["run", "pipeline=simulate", "source=recording", f"source.path={tmp_path / 'nope.aedat4'}",
                  "template=procedural", "template.target_faces=3000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])

@@ -150,9 +150,10 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
 
 
 @pytest.mark.parametrize("values, message", [
-    ({"kind": "processes", "workers": "abc"}, "executor.workers: expected an integer >= 1, got 'abc'"),
-    ({"kind": "processes", "workers": 0}, "executor.workers: expected an integer >= 1, got 0"),
-    ({"kind": "dask", "workers": -1}, "executor.workers: expected an integer >= 1, got -1"),
+    ({"kind": "processes", "workers": "abc"}, "executor.workers: expected an integer in [1, 256], got 'abc'"),
+    ({"kind": "processes", "workers": 0}, "executor.workers: expected an integer in [1, 256], got 0"),
+    ({"kind": "dask", "workers": -1}, "executor.workers: expected an integer in [1, 256], got -1"),
+    ({"kind": "processes", "workers": 100000}, "executor.workers: expected an integer in [1, 256], got 100000"),
     ({"kind": "dask", "threads_per_worker": 0}, "executor.threads_per_worker: expected an integer >= 1, got 0"),
     ({"kind": "dask", "retries": -1}, "executor.retries: expected an integer >= 0, got -1"),
     ({"kind": "threads"}, "executor.kind: expected one of serial | processes | dask, got 'threads'"),
@@ -197,8 +198,8 @@ def test_log_level():
     ("source.fps=nan", "source.fps: expected a finite number > 0, got nan"),
     ("stages.track.max_features=abc", "stages.track.max_features: expected an integer >= 1, got 'abc'"),
     ("log_level=VERBOSE", "log_level: expected one of DEBUG | INFO | WARNING | ERROR, got 'VERBOSE'"),
-    ("executor=processes executor.workers=0", "executor.workers: expected an integer >= 1, got 0"),
-    ("executor=dask executor.workers=-1", "executor.workers: expected an integer >= 1, got -1"),
+    ("executor=processes executor.workers=0", "executor.workers: expected an integer in [1, 256], got 0"),
+    ("executor=dask executor.workers=-1", "executor.workers: expected an integer in [1, 256], got -1"),
 ])
 def test_the_real_cli_refuses_before_anything_runs(tmp_path, override, message):
     env = {**os.environ, "EVENTCAP_CACHE_DIR": str(tmp_path / "cache")}

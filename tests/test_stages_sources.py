@@ -97,7 +97,8 @@ def test_missing_path_is_a_clear_error(tmp_path):
                         f"source.path={tmp_path / 'nope.aedat4'}", "template=procedural", "template.target_faces=3000"],
                        cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert p.returncode == 1
-    assert "source.path: file not found" in p.stdout + p.stderr
+    assert f"source.path: {tmp_path / 'nope.aedat4'}: no such file or folder" in p.stdout + p.stderr
+    assert not (tmp_path / "runs").exists()  # refused before the run folder (and the cache) exist
 
 
 def test_recording_without_frames_runs_the_event_only_pipeline_unless_told_otherwise(tmp_path):

@@ -993,14 +993,17 @@ def main(argv: Sequence[str], config_dir: Path) -> int:
             raise ValueError(f"{exc}\n(arguments that are not benchmark keys are overrides of every run; the "
                              f"benchmark keys: {', '.join(sorted(probe))}, benchmark=PRESET)") from exc
         raise
-    from eventcap.core.rundir import RunFolderBusy, claim
+    from eventcap.core.rundir import RunFolderBusy, claim, release
 
-    try:  # held until this process ends: two benchmarks writing into one folder would mix their runs and tables
-        claim(bench.out, what="benchmark")
+    try:  # held until the benchmark ends: two benchmarks writing into one folder would mix their runs and tables
+        claim(bench.out, what="benchmark", key="out")
     except RunFolderBusy as exc:
         raise ValueError(f"{exc} (a benchmark's folder is out=..., runs/benchmark/<name> by default)") from None
-    results = bench.run(echo=lambda s: print(s, flush=True))
-    files = write_results(bench.out, results, plot=bool(cfg.get("plot", True)))
+    try:
+        results = bench.run(echo=lambda s: print(s, flush=True))
+        files = write_results(bench.out, results, plot=bool(cfg.get("plot", True)))
+    finally:
+        release(bench.out)
     seq = (f"{len(bench.motions)} motion(s) x {len(bench.seeds)} seed(s) x {cfg['duration_s']} s; AE after "
            f"Procrustes, every 10th tracking frame")
     print()

@@ -14,8 +14,9 @@
     eventcap report RUNS_DIR             one table (+ CSV, plot) of the jobs of a sweep (eventcap run -m ...)
     eventcap view RUN_DIR | FILE.rrd     the run in the Rerun viewer (capture.rrd; built from the run into the view
                                          cache if missing: the run folder is only read)
-    eventcap convert IN OUT              convert a recording (AEDAT4, HDF5, EVT2/3, DAT, npy/npz, rpg) into the
-                                         project's format, streaming (--t-start/--t-end, --roi, --calibration)
+    eventcap convert IN OUT              convert a recording (any format of `eventcap formats`) into the project's
+                                         format, streaming (--t-start/--t-end, --roi, --calibration)
+    eventcap formats                     the recording formats the registered readers take
 """
 
 from __future__ import annotations
@@ -344,8 +345,28 @@ def _variant_stage(path: Path) -> str | None:
     return None
 
 
+def cmd_formats() -> int:
+    """The registered readers (eventcap/io/registry.py): one block per format."""
+    from eventcap.io.registry import readers
+
+    for spec in readers().specs():
+        wraps = ", ".join(f"2^{w.bit_length() - 1} µs" for w in spec.wraps_us)
+        print(f"{spec.name:<8} {spec.description}")
+        details = [("files", ", ".join(spec.extensions) + (" or a folder" if spec.folder else "")),
+                   ("signature", " or ".join(repr(m) for m in spec.magic)), ("also reads", spec.extras),
+                   ("time counter", wraps), ("columns=, time_unit=", "yes" if spec.columns else ""),
+                   ("sensor size", "" if spec.declares_size else "inferred from the events unless given"),
+                   ("decoded by", spec.library), ("from", spec.origin)]
+        for label, value in details:
+            if value:
+                print(f"{'':<9}{label}: {value}")
+    print("eventcap (source.format=eventcap): the project's own zarr recording (eventcap convert writes it)")
+    return 0
+
+
 def cmd_cache(args) -> int:
     from eventcap.core.cache import Cache, CacheError
+    from eventcap.core.ownership import FAILURE_FILE
 
     try:
         cache = Cache(args.cache_dir, create=False)  # a missing directory is said so, not created
@@ -365,6 +386,7 @@ def cmd_cache(args) -> int:
         elif args.action == "explain":
             _explain(cache, args.key)
         elif args.action == "gc":
+            cache.ensure_marked()  # deletes only inside a cache the tool made (eventcap/core/ownership.py)
             removed = cache.clean_orphans(max_age_s=0 if args.all else 24 * 3600)
             n = 0
             import shutil
@@ -376,7 +398,8 @@ def cmd_cache(args) -> int:
                     shutil.rmtree(e.path, ignore_errors=True)
                     n += 1
             for f in (cache.root / "failures").glob(".*.tmp"):
-                f.unlink(missing_ok=True)
+                if FAILURE_FILE.match(f.name) and not f.is_symlink():
+                    f.unlink(missing_ok=True)
             print(f"removed {len(removed)} orphaned temporary entries and {n} cache entries from {cache.root}")
     except CacheError as exc:
         print(f"eventcap cache: {exc}", file=sys.stderr)
@@ -691,14 +714,14 @@ def settings_as_options(subparsers, argv: list[str]) -> list[str]:
 def _add_preview_parser(sub) -> None:
     p = sub.add_parser("preview", help="PNG of a recording: frame (or image from events), sharp image, events, "
                                        "ground-truth skeleton")
-    p.add_argument("recording", help="a recording in any format the readers take (AEDAT4, AEDAT 2.0/3.1, HDF5, "
-                                      "EVT2/EVT3 .raw, DAT, npy/npz, csv/txt, an rpg folder) or the project's zarr "
-                                      "(e.g. runs/simulate/*/source.recording.zarr)")
+    p.add_argument("recording", help="a recording in any format a reader takes (`eventcap formats` lists them) or "
+                                      "the project's zarr (e.g. runs/simulate/*/source.recording.zarr)")
     p.add_argument("--frame", type=int, default=None, help="intensity frame (or event-only image) index; default: "
                                                             "the recording's most active moment")
     p.add_argument("--t", type=float, default=None, help="time to show, seconds from the first event (the nearest "
                                                          "frame)")
-    p.add_argument("--format", default="", help="force a format (as source.format); default: detect it")
+    p.add_argument("--format", default="", help="force a format (a name of `eventcap formats`, as source.format); "
+                                                "default: detect it")
     p.add_argument("--width", type=int, default=0, help="sensor width for files that do not store it")
     p.add_argument("--height", type=int, default=0, help="sensor height for files that do not store it")
     p.add_argument("--columns", default="", help="column order of unnamed array/text columns, e.g. x,y,t,p")
@@ -740,6 +763,8 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     p.add_argument("name", nargs="?", help="a stage: print its config keys, defaults and meaning")
     p.add_argument("--kind", help="only stages of this kind (e.g. track)")
     p.add_argument("-v", "--verbose", action="store_true", help="show where each stage comes from")
+    sub.add_parser("formats", help="the recording formats the registered readers take: name, file names, signature, "
+                                   "what is read, time counters (eventcap/io/registry.py)")
     p = sub.add_parser("cache", help="inspect or clean the stage cache")
     p.add_argument("action", choices=["ls", "explain", "gc"])
     p.add_argument("key", nargs="?", help="key (or unique prefix) for explain")
@@ -759,11 +784,10 @@ def _parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     p.add_argument("--grpc-port", type=int, default=9876, help="web viewer's data port (default: %(default)s)")
     p.add_argument("--no-open", action="store_true", help="only build the recording and print how to open it")
     p = sub.add_parser("convert", help="convert a recording into the project's format (streaming, bounded memory)")
-    p.add_argument("input", metavar="IN", help="the recording: AEDAT4, AEDAT 2.0/3.1, HDF5, EVT2/EVT3 .raw, DAT, "
-                                                "npy/npz, csv/txt or an rpg folder")
+    p.add_argument("input", metavar="IN", help="the recording, in any format a reader takes (`eventcap formats` "
+                                                "lists them)")
     p.add_argument("output", metavar="OUT", help="the folder to write (a zarr group, e.g. rec.zarr)")
-    p.add_argument("--format", help="force the input format (aedat4, aedat2, aedat3, hdf5, evt2, evt3, dat, npy, "
-                                    "npz, rpg)")
+    p.add_argument("--format", help="force the input format (a name of `eventcap formats`)")
     p.add_argument("--calibration", help="rpg calib.txt (fx fy cx cy [k1 k2 p1 p2 k3]) of the full sensor, "
                                          "overriding the file's")
     p.add_argument("--width", type=int, help="sensor width for files that do not store it")
@@ -856,6 +880,8 @@ def _main(argv: list[str] | None = None) -> int:
             print(f"eventcap report: {exc}", file=sys.stderr)
             return 2
         return 0
+    if args.command == "formats":
+        return cmd_formats()
     if args.command == "preview":
         return cmd_preview(args)
     if args.command == "convert":

@@ -120,6 +120,7 @@ def preflight(data: Mapping[str, Any], overrides: Sequence[str] = ()) -> None:
     from eventcap.core.runner import ExecutorConfig, _parse_selection
 
     log_level_number(data.get("log_level", "INFO"))
+    check_places(data)
     for key in data:
         if key not in TOP_LEVEL_KEYS and key != "hydra":
             raise ConfigError(f"{key}: " + unknown_name_message("config key", str(key), list(TOP_LEVEL_KEYS),
@@ -144,6 +145,29 @@ def preflight(data: Mapping[str, Any], overrides: Sequence[str] = ()) -> None:
     check_outputs_config(SimpleNamespace(cfg=data, by_name={n.name: n for n in nodes}))
 
 
+def check_places(data: Mapping[str, Any]) -> None:
+    """The settings that say where a run writes, checked writing nothing: ``name`` (a folder name inside the runs
+    folder: no ``..``, not absolute) and ``cache_dir`` (a cache of the tool's, or a new or empty folder; never a
+    system folder: eventcap.core.cache.check_cache_root). ConfigError naming the key."""
+    from pathlib import PurePath
+
+    from eventcap.core.cache import CacheError, check_cache_root
+    from eventcap.core.config import ConfigError
+
+    name = data.get("name")
+    if name is not None:
+        parts = PurePath(str(name)).parts
+        if (not str(name).strip() or PurePath(str(name)).is_absolute() or any(p in ("..", ".") for p in parts)
+                or "\x00" in str(name)):
+            raise ConfigError(f"name={name!r}: expected the experiment's folder name inside runs/ (letters, digits, "
+                              f"'-', '_'; a/b nests), not an absolute path or one with '..': runs go to "
+                              f"runs/<name>/<timestamp>/ (hydra.run.dir= gives another folder)")
+    try:
+        check_cache_root(data.get("cache_dir") or "runs/cache")
+    except CacheError as exc:
+        raise ConfigError(str(exc)) from None
+
+
 try:
     from hydra.experimental.callback import Callback as _HydraCallback
 except ImportError:  # pragma: no cover - hydra is a dependency
@@ -154,7 +178,19 @@ class RefuseBadSettings(_HydraCallback):
     """Hydra callback (``hydra.callbacks.settings`` in conf/config.yaml, listed before ``run_folder``): run
     :func:`preflight` on the composed config before the run folder is claimed, so that a refused setting leaves
     nothing on disk. It exits with status 1 and one line naming the key. Sweeps (``-m``) are checked per job, when
-    each runs."""
+    each runs, and as a whole for where they write (``name``, ``cache_dir``: :func:`check_places`) before the sweep
+    folder is made."""
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        import sys
+
+        from omegaconf import OmegaConf
+
+        try:
+            check_places({k: OmegaConf.select(config, k) for k in ("name", "cache_dir")})
+        except ValueError as exc:
+            print(f"eventcap run: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(1) from None
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         import sys

@@ -26,6 +26,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from eventcap.memo import ProcessCache
+from eventcap.processes import available_memory_bytes
 
 
 class ArtifactError(ValueError):
@@ -337,6 +338,7 @@ def read_array(arr, where: str) -> np.ndarray:
     compressed data) or whose file is missing raises an ArtifactError naming the chunk's file, the array and the
     rows it holds, instead of the codec's bare message or, for a missing chunk, fill values read back silently
     (:meth:`Artifact.to_zarr` writes every chunk, so a missing one is damage)."""
+    _check_declared(arr, where)
     try:
         values = np.asarray(arr[...])
     except Exception as exc:  # noqa: BLE001 - numcodecs raises RuntimeError/ValueError/...; named below
@@ -344,6 +346,60 @@ def read_array(arr, where: str) -> np.ndarray:
     if arr.nchunks_initialized < arr.nchunks:
         raise ArtifactError(_bad_chunk_message(arr, where, None))
     return values
+
+
+def _array_folder(arr):
+    """The folder of a zarr array on a local disk (None for other stores)."""
+    from pathlib import Path
+
+    store_path = getattr(arr, "store_path", None)
+    root = getattr(getattr(store_path, "store", None), "root", None)
+    if root is None:
+        return None
+    return Path(str(root)) / str(store_path.path)
+
+
+def _check_declared(arr, where: str) -> None:
+    """Refuse, before anything is allocated, an array whose metadata declares more than its chunk files can hold:
+    a chunk layout this tool never writes (chunked along the first axis only, at most about _CHUNK_BYTES a chunk),
+    fewer chunk files than its shape needs, or more bytes than half the available memory. A corrupted
+    ``zarr.json`` can declare a shape of 1e15 (issue 57: a MemoryError traceback)."""
+    shape, chunks, itemsize = tuple(arr.shape), tuple(arr.chunks), int(arr.dtype.itemsize)
+    folder = _array_folder(arr)
+    at = where if folder is None else f"{where} ({folder / 'zarr.json'})"
+    if not shape:
+        return
+    row = max(1, itemsize * math.prod(shape[1:]))
+    if tuple(chunks[1:]) != shape[1:] or not 1 <= chunks[0] <= max(1, _CHUNK_BYTES // row):
+        raise ArtifactError(f"{at}: declares chunks {chunks} for shape {shape} ({arr.dtype}): not a layout eventcap "
+                            f"writes (chunks along the first axis of at most {_CHUNK_BYTES >> 20} MiB): a corrupted "
+                            f"or foreign zarr.json")
+    nchunks = math.prod(-(-n // c) for n, c in zip(shape, chunks)) if all(shape) else 0
+    nbytes = math.prod(shape) * itemsize
+    if folder is not None and nchunks:
+        files = sum(len([f for f in names if f != "zarr.json"]) for _, _, names in _walk(folder, nchunks + 1))
+        if files < nchunks <= 1_000_000:  # a few missing: say which chunk, and the rows it holds
+            raise ArtifactError(_bad_chunk_message(arr, where, None))
+        if files < nchunks:
+            raise ArtifactError(f"{at}: declares shape {shape} of {arr.dtype} ({nbytes:,} bytes) in {nchunks:,} chunk "
+                                f"files, and the folder holds {files:,}: a corrupted shape, or chunk files missing "
+                                f"(they would read back as fill values)")
+    avail = available_memory_bytes()
+    if avail is not None and nbytes > avail // 2:
+        raise ArtifactError(f"{at}: declares shape {shape} of {arr.dtype}: {nbytes / 1e9:.3g} GB, more than half the "
+                            f"available memory ({avail / 1e9:.3g} GB): refused before reading")
+
+
+def _walk(folder, limit: int):
+    """os.walk of ``folder``, stopping once more than ``limit`` files were seen (a damaged array can have many)."""
+    import os
+
+    seen = 0
+    for entry in os.walk(folder):
+        yield entry
+        seen += len(entry[2])
+        if seen > limit:
+            return
 
 
 def _chunk_file(arr, coords: tuple[int, ...], where: str) -> str:

@@ -5,6 +5,7 @@ Layout under the cache root::
 
     entries/<stage>/<key>/manifest.json   key document, outputs, every file with size and sha256
     entries/<stage>/<key>/data/           zarr v3 group, one sub-group per output port
+    CACHEDIR.TAG                          the marker: this folder is eventcap's cache (eventcap/core/ownership.py)
     tmp/<key>.<host>.<pid>.<nonce>/       an entry being written; renamed into entries/ when complete
     failures/<key>.json                   a failed computation (never a hit; removed when it later succeeds)
     locks/<key>.lock                      held (flock) by the one process computing the entry right now
@@ -13,6 +14,11 @@ A key is the sha256 of the canonical JSON of its key document (stage, version, r
 digests, input keys, batch). An entry exists for readers only once its directory has been renamed into place with its
 manifest inside; a killed writer leaves only a ``tmp/`` orphan, removed by :meth:`Cache.clean_orphans`. Reading checks
 every file against the manifest, so a missing or damaged chunk raises instead of reading back as fill values.
+
+The cache writes and deletes only inside a root it marked (``CACHEDIR.TAG``, written when it creates the root or
+takes an empty folder) and only names it writes itself: a non-empty folder without the marker is refused as a
+cache (:func:`check_cache_root`), and clean-up leaves anything in ``tmp/``, ``trash/`` or ``locks/`` whose name the
+cache does not give.
 
 Concurrent runs on one cache compute each entry once: the task computing an entry holds its :class:`EntryLock` (an
 exclusive ``flock``, dropped by the kernel when the holder dies, even by ``kill -9``); another run wanting the same
@@ -39,6 +45,18 @@ from pathlib import Path
 from typing import Any
 
 from eventcap.artifacts import Artifact
+from eventcap.core.ownership import (
+    CACHE_TAG,
+    LOCK_FILE,
+    TMP_NAME,
+    TRASH_NAME,
+    folder_listing,
+    is_empty_folder,
+    is_marked_cache,
+    legacy_cache_layout,
+    mark_cache,
+    system_folder,
+)
 from eventcap.memo import ProcessCache
 from eventcap.processes import pid_alive
 
@@ -93,8 +111,9 @@ class Entry:
 
 
 class Cache:
-    """The cache rooted at ``root`` (a local directory; created on first use). ``create=False`` (inspecting
-    commands) refuses a root that does not exist instead of creating it, and writes nothing."""
+    """The cache rooted at ``root`` (a local directory; created and marked on first use). ``create=False``
+    (inspecting commands) refuses a root that does not exist instead of creating it, and writes nothing. A
+    non-empty folder that is not a cache is refused (:func:`check_cache_root`)."""
 
     def __init__(self, root: str | Path, create: bool = True):
         self.root = _local_root(root)
@@ -103,11 +122,24 @@ class Cache:
         if not create:
             return
         try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            if not is_marked_cache(self.root):
+                check_cache_root(root)  # again: the folder may have been filled since (or made by another run)
+                if legacy_cache_layout(self.root):
+                    log.info("cache: %s is a cache made before caches were marked: marked it (%s)", self.root,
+                             CACHE_TAG)
+                mark_cache(self.root)
             for sub in ("entries", "tmp", "failures", "trash"):
-                (self.root / sub).mkdir(parents=True, exist_ok=True)
+                (self.root / sub).mkdir(exist_ok=True)
         except OSError as exc:
             raise CacheError(_unusable_message(root, exc, "cannot create the cache there")) from None
         _check_atomic_rename(self.root)
+
+    def ensure_marked(self) -> None:
+        """Mark a cache made before caches were marked (see :func:`check_cache_root`) before deleting in it."""
+        if not is_marked_cache(self.root):
+            check_cache_root(self.root)
+            mark_cache(self.root)
 
     # -- paths ----------------------------------------------------------------------------------------------------
     def entry_path(self, stage: str, key: str) -> Path:
@@ -251,12 +283,18 @@ class Cache:
 
     def clean_orphans(self, max_age_s: float = 24 * 3600) -> list[Path]:
         """Remove temporary directories of writers that are gone (dead pid on this host, or older than max_age_s)."""
-        removed = []
+        removed, foreign = [], []
         now = time.time()
+        if not is_marked_cache(self.root):  # made by an older version and never marked, or a foreign folder
+            check_cache_root(self.root)
+            mark_cache(self.root)
         subs = [self.root / "tmp", self.root / "trash"]
         for d in [d for sub in subs if sub.is_dir() for d in sub.iterdir()]:
             parts = d.name.split(".")
             dead = False
+            if not (TRASH_NAME if d.parent.name == "trash" else TMP_NAME).match(d.name) or d.is_symlink():
+                foreign.append(d)  # not a name the cache gives: not ours to remove
+                continue
             if d.parent.name == "trash":
                 dead = True
             elif len(parts) >= 4 and parts[-3] == _HOST:
@@ -271,6 +309,9 @@ class Cache:
                 removed.append(d)
         if removed:
             log.info("cache: removed %d orphaned temporary entr%s", len(removed), "y" if len(removed) == 1 else "ies")
+        if foreign:
+            log.warning("cache: left %d file(s) in %s that the cache did not write (e.g. %s)", len(foreign),
+                        ", ".join(sorted({str(d.parent) for d in foreign})), foreign[0].name)
         clean_stale_locks(self.root)
         return removed
 
@@ -359,12 +400,32 @@ _NOT_WRITABLE = (errno.EACCES, errno.EPERM, errno.EROFS)
 
 
 def _check_root(given, root: Path, must_exist: bool) -> None:
-    """A root that is a file, or (``must_exist``) missing, is refused with a message saying so."""
-    if root.exists() and not root.is_dir():
-        raise CacheError(f"cache_dir {given}: {root} is a file, not a directory; give the cache's directory")
+    """A root that is a file, or (``must_exist``) missing, is refused with a message saying so; so is one that
+    is not a cache (:func:`check_cache_root`)."""
     if must_exist and not root.exists():
         raise CacheError(f"cache_dir {given}: {root} does not exist (no cache there: a run creates it; "
                          f"the default is runs/cache relative to where you run, or $EVENTCAP_CACHE_DIR)")
+    check_cache_root(given)
+
+
+def check_cache_root(given) -> None:
+    """Refuse, writing nothing, a ``cache_dir`` the cache must not take: a system folder (``/``, ``/proc``, ...),
+    something that is not a folder, or a non-empty folder without the cache's marker (``CACHEDIR.TAG`` written by
+    eventcap; a cache made before markers existed is recognised by its layout). Absent and empty folders are fine:
+    the cache creates and marks them."""
+    root = _local_root(given)
+    why = system_folder(root)
+    if why:
+        raise CacheError(f"cache_dir {given}: {why}; the cache writes and deletes under its folder: give a folder "
+                         f"of its own (the default is runs/cache)")
+    if os.path.lexists(root) and not root.is_dir():
+        raise CacheError(f"cache_dir {given}: {root} is a file, not a directory; give the cache's directory")
+    if not root.is_dir() or is_marked_cache(root) or is_empty_folder(root) or legacy_cache_layout(root):
+        return
+    raise CacheError(f"cache_dir {given}: {root} is not an eventcap cache (it has no {CACHE_TAG} written by eventcap) "
+                     f"and it is not empty (it holds {folder_listing(root)}): the cache removes what it finds in its "
+                     f"tmp/ and trash/ folders, so it never takes a folder it did not make. Give a new or empty "
+                     f"folder, or an eventcap cache")
 
 
 def _unusable_message(given, exc: OSError, what: str) -> str:
@@ -472,6 +533,8 @@ def clean_stale_locks(root: str | Path) -> int:
     if not locks.is_dir():
         return 0
     for f in locks.glob("*.lock"):
+        if not LOCK_FILE.match(f.name) or f.is_symlink():
+            continue  # not a lock the cache made
         lock = EntryLock(root, f.stem)
         if lock.acquire(blocking=False):
             lock.release()

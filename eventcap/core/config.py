@@ -224,6 +224,56 @@ def file_digest(path: str | Path, chunk: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
+def input_path_problem(path: str | Path) -> str | None:
+    """Why ``path``, named by a setting that takes a file or folder to read, cannot be one (one ``stat``, nothing
+    opened): missing, a dangling or looping link, a pipe, device or socket (opening one can wait forever), or a
+    path under the kernel's folders (/proc, /sys, /dev) or the system's configuration (/etc, /boot). None when it
+    is a regular file or a folder."""
+    import errno
+    import os
+    import stat
+
+    from eventcap.core.ownership import PRIVATE_SYSTEM_FOLDERS, PSEUDO_FILESYSTEMS, real
+
+    p = real(path)
+    for roots, what in ((PSEUDO_FILESYSTEMS, "a folder of the kernel"),
+                        (PRIVATE_SYSTEM_FOLDERS, "the system's configuration (passwords, keys)")):
+        for root in roots:
+            if p == Path(root) or Path(root) in p.parents:
+                return f"{path} is under {root}, {what}, not a file of yours: refused without reading it"
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return f"{path}: a loop of symbolic links"
+        if exc.errno == errno.ENOENT:
+            return (f"{path}: no such file or folder" + (f" (a link to {os.readlink(path)}, which does not exist)"
+                    if os.path.islink(path) else f" (relative paths start at {Path.cwd()})"))
+        return f"{path}: cannot read it ({exc.strerror or exc})"
+    if stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode):
+        return None
+    kind = ("a named pipe (FIFO)" if stat.S_ISFIFO(st.st_mode) else "a device" if stat.S_ISCHR(st.st_mode)
+            or stat.S_ISBLK(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+    return f"{path} is {kind}, not a file to read: refused without opening it"
+
+
+def check_file_settings(spec: StageSpec, config: Any, where: str) -> None:
+    """Every file setting that is set names a file or folder that exists and can be read (:func:`input_path_problem`),
+    checked with ``stat`` before anything runs (and before the run folder exists); ConfigError naming
+    ``where.<key>``. What the file holds is checked by the stage's ``check`` hook where the stage can tell cheaply
+    (a calibration file, a motion's clip), else when it is read."""
+    kinds = {k: f.metadata.get("file") for k, f in leaves(type(config))}
+    for name in spec.file_fields():
+        value = value_at(config, name)
+        if value in (None, ""):
+            continue
+        paths = [value] if kinds.get(name) is True else list(kinds[name](value))
+        for path in paths:
+            problem = input_path_problem(path)
+            if problem:
+                raise ConfigError(f"{where}.{name}: {problem}")
+
+
 def file_digests(spec: StageSpec, config: Any, where: str) -> dict[str, str]:
     """Digest of every file config field that is set (empty string / None means unused): ``file=True`` fields by
     their path, ``file=<function>`` fields by the paths the function finds in the value (none: no entry)."""

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from eventcap.artifacts import BatchPlan
-from eventcap.core.config import ConfigError, build_config
+from eventcap.core.config import ConfigError, build_config, check_file_settings
 from eventcap.core.registry import Registry, UnknownStageError, unknown_name_message
 from eventcap.core.stage import StageSpec
 
@@ -120,6 +120,7 @@ def _read_nodes(cfg: Mapping[str, Any], raw_nodes: Mapping[str, Any], registry: 
         specs[name] = spec
         try:
             configs[name] = build_config(spec, {k: v for k, v in values.items() if k != "stage"}, path)
+            check_file_settings(spec, configs[name], path)
             check = spec.load_check()
             if check is not None:
                 check(configs[name], path)

@@ -268,7 +268,7 @@ class ExecutorConfig:
     kind: str = param("serial", choices=("serial", "processes", "dask"),
                       help="serial (in this process) | processes (a local pool over batches) | dask (a LocalCluster, "
                            "or the scheduler at address)")
-    workers: int = param(2, ge=1, help="processes / dask LocalCluster: worker processes")
+    workers: int = param(2, ge=1, le=256, help="processes / dask LocalCluster: worker processes")
     threads_per_worker: int = param(1, ge=1, help="BLAS/OpenMP/numba threads per worker")
     address: str | None = param(None, help="dask: the scheduler's address, tcp://host:8786 (null: start a "
                                            "LocalCluster on this machine)")
@@ -835,7 +835,8 @@ class Runner:
         run_dir.mkdir(parents=True, exist_ok=True)
         RunRecord(result.ok, str(self.cache.root), dict(result.nodes)).write(run_dir)
         self._export(run_dir, node_keys, batch_keys, result)
-        (run_dir / "metrics.json").write_text(json.dumps(result.metrics, indent=1, default=str))
+        if result.metrics:  # a run that measured nothing writes no metrics.json (run.json says why)
+            (run_dir / "metrics.json").write_text(json.dumps(result.metrics, indent=1, default=str))
 
     def _export(self, run_dir: Path, node_keys, batch_keys, result: RunResult) -> None:
         """Copy the outputs named in ``export`` (``node.port``) into the run folder as standalone zarr groups:

@@ -1,21 +1,10 @@
 """Reading and writing event-camera recordings, robust to bad input: an error names the file, the row or offset
 and what was expected (the shared checks and repairs are in :mod:`eventcap.io.checks`).
 
-Formats (detected from the content, then the extension; or ``format=``):
-
-=========  ================================================  ========================  =======
-format     what                                               extras                    library
-=========  ================================================  ========================  =======
-aedat4     iniVation DV AEDAT 4.0                             frames + exposure         aedat (read), faery (write)
-aedat2     jAER AEDAT 2.0 (DVS128, DAVIS240/346, DHP19)       APS frames (global sh.)   our decoder (numpy)
-aedat3     cAER / DV legacy AEDAT 3.1                         frames + exposure         our decoder (numpy)
-hdf5       ``events/{t,x,y,p}``, compound or (N, 4) ``events``  frames, calibration, GT   h5py
-rpg        rpg Event Camera Dataset folder (events.txt, ...)  frames, calib.txt, GT     numpy, OpenCV
-evt2/evt3  Prophesee RAW                                      —                         faery
-dat        Prophesee DAT (CD events)                          —                         faery
-npy/npz    structured / column arrays                         npz: frames, calibration  numpy
-csv/txt    text columns (read by the rpg reader)              —                         numpy
-=========  ================================================  ========================  =======
+Formats (detected from the content, then the extension; or ``format=``): every reader declares its own in
+:mod:`eventcap.io.registry` (``eventcap formats`` prints them): AEDAT4, AEDAT 2.0 and 3.1, HDF5, rpg folders and
+csv/txt, Prophesee EVT 2.0 / 3.0 and DAT (our own decoders, :mod:`eventcap.io.evt`), npy/npz; plugins add theirs
+through the ``eventcap.readers`` entry points or ``EVENTCAP_READERS``.
 
 Layout options of :func:`read_recording` / :func:`iter_event_chunks`: ``columns=`` names the column order of
 unnamed (N, 4) or (4, N) arrays (C or Fortran order) and text files (e.g. ``"x,y,t,p"``; a csv's first line of
@@ -37,7 +26,8 @@ event index, packet, dataset) and the problem. docs/io-robustness.md says it to 
 - sizes inferred from coordinates (:mod:`eventcap.io.sizes`): outliers beyond a gap, beyond every known sensor or
   beyond the edge of a known sensor's block are dropped when few and refused otherwise, never taken as a wider
   sensor; an inferred size that is no sensor's shape is refused;
-- repaired as well: events out of time order (sorted), exact duplicate events (dropped), 32-bit timestamp
+- repaired as well: events out of time order (sorted), exact duplicate events (equal as the file holds them:
+  dropped), 32-bit timestamp
   wrap-around (unwrapped), a truncated tail (the complete part kept: AEDAT4 packets, npy rows, a text line, a
   partial EVT/DAT word, an EVT3 event group left open), unnamed (N, 4) columns (recognised by the time-ordered
   column), colour frames (to grey), unsorted or repeated frame times, a corrupt compressed AEDAT4 packet (skipped);
@@ -48,19 +38,23 @@ event index, packet, dataset) and the problem. docs/io-robustness.md says it to 
   (whatever the decoding library reports; HDF5 structure read first in a forked probe, refused if the library
   loops), EVT data whose words carry event types the format does not define, corrupted AEDAT 3.1 packet headers.
 
-Prophesee decoders (faery) clamp backwards time steps and unwrap their counters themselves, so those repairs
-are not visible for evt2/evt3/dat. Decoding libraries' panics are caught; the fuzz script
+EVT and DAT times are decoded by our own code: every event at the time the file gives it, never clamped (a time
+going backwards is sorted or dropped with a note like any other format's). Declared sizes (zarr and HDF5 shapes,
+AEDAT packet sizes) are checked against the bytes before anything is allocated. Decoding libraries' panics are
+caught; the fuzz script
 ``benchmarks/robustness/fuzz_readers.py`` checks that no damaged file of any format is read silently wrong, hangs
 or ends in a traceback.
 """
 
-from eventcap.io.detect import READ_FORMATS, detect_format
+from eventcap.io.detect import detect_format
 from eventcap.io.readers import EventChunks, Roi, iter_event_chunks, read_recording
+from eventcap.io.registry import ReaderSpec, readers
 from eventcap.io.recording import Frames, RawRecording, RecordingError
 from eventcap.io.writers import WRITE_FORMATS, write_events, write_recording
 
 __all__ = [
-    "READ_FORMATS",
+    "ReaderSpec",
+    "readers",
     "WRITE_FORMATS",
     "EventChunks",
     "Frames",
@@ -73,3 +67,9 @@ __all__ = [
     "write_events",
     "write_recording",
 ]
+
+
+def __getattr__(name: str):
+    if name == "READ_FORMATS":  # the formats format= takes, from the registry
+        return tuple(readers().names())
+    raise AttributeError(name)

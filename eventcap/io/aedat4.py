@@ -15,6 +15,7 @@ import numpy as np
 
 from eventcap.io.checks import RawChunk
 from eventcap.io.recording import RecordingError, logger
+from eventcap.io.registry import ReaderSpec
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, RowLocator, Source, native_call, numbered_chunks
 
 MAGIC = b"#!AER-DAT4.0"
@@ -25,8 +26,9 @@ _CORRUPT_PACKET = ("LZ4 error", "lz4", "zstd", "Zstd", "ZSTD")
 _MAX_CORRUPT_PACKETS = 16
 
 
-def check_ioheader(path: Path) -> None:
-    """Bounds- and UTF-8-check the file's IO header (a small flatbuffer) before a native decoder sees it.
+def check_ioheader(path: Path) -> tuple[int, int]:
+    """Bounds- and UTF-8-check the file's IO header (a small flatbuffer) before a native decoder sees it; return
+    (the byte where the packets start, the header's file_data_position: where they end, or -1).
 
     Both ``aedat`` and ``faery`` read this header without flatbuffer verification; a corrupted header then
     hands invalid UTF-8 or out-of-range offsets to Rust code, which aborts the interpreter. The check follows
@@ -69,6 +71,37 @@ def check_ioheader(path: Path) -> None:
         except UnicodeDecodeError as exc:
             raise RecordingError(path, f"corrupted IO header: the stream description is not UTF-8 ({exc.reason} at "
                                        f"byte {start + 4 + exc.start} of the header)", "file header") from None
+    data_position = -1
+    if fields[1]:
+        raw = u(table + fields[1], 8, "file_data_position")
+        data_position = raw - (1 << 64) if raw >= 1 << 63 else raw
+    return len(MAGIC) + 2 + 4 + length, data_position
+
+
+def scan_packets(path: Path, start: int, data_position: int) -> tuple[int, str | None]:
+    """Check every packet's declared size against the bytes that follow it, before a decoder allocates it: (the
+    number of complete packets, a note when the last one declares more bytes than the file holds). A packet is
+    a 4-byte stream id and a 4-byte size, then that many bytes; the packets end at the header's
+    file_data_position (when given) or at the end of the file."""
+    import os
+
+    end = os.path.getsize(path)
+    if 0 < data_position <= end:
+        end = data_position
+    pos, k = start, 0
+    with open(path, "rb") as f:
+        while pos < end:
+            if end - pos < 8:
+                return k, (f"the file ends inside the header of packet {k} ({end - pos} byte(s) at byte {pos}, "
+                           f"truncated): kept the {k} complete packets before it")
+            f.seek(pos + 4)
+            size = int.from_bytes(f.read(4), "little")
+            if pos + 8 + size > end:
+                return k, (f"packet {k} at byte {pos} declares {size:,} bytes but {end - pos - 8:,} follow (a "
+                           f"truncated file, or a corrupted packet size): kept the {k} complete packets before it")
+            pos += 8 + size
+            k += 1
+    return k, None
 
 
 class Aedat4Source(Source):
@@ -81,7 +114,7 @@ class Aedat4Source(Source):
         import aedat
 
         self._aedat = aedat
-        check_ioheader(path)
+        self._complete, self._cut_note = scan_packets(path, *check_ioheader(path))
         with native_call(path, "AEDAT4 decoder (aedat)", "file header"):
             streams = aedat.Decoder(str(path)).id_to_stream()
         events = sorted(i for i, s in streams.items() if s.get("type") == "events")
@@ -110,6 +143,11 @@ class Aedat4Source(Source):
         k = 0
         corrupt: list[str] = []
         while True:
+            if k == self._complete:  # the packets after it declare more bytes than the file holds: never read
+                self._note_corrupt(corrupt)
+                if self._cut_note:
+                    self.notes.append(self._cut_note)
+                return
             try:
                 packet = next(decoder)
             except StopIteration:
@@ -213,3 +251,9 @@ def write_aedat4(path: Path, chunks: Iterator[np.ndarray], width: int, height: i
         for chunk in chunks:
             if len(chunk):
                 encoder.write(0, chunk)
+
+
+READERS = [ReaderSpec(
+    name="aedat4", description="iniVation DV AEDAT 4.0: events, frames with exposure", extensions=(".aedat4",),
+    magic=(MAGIC,), magic_name="an AEDAT4", source="eventcap.io.aedat4:Aedat4Source", library="aedat (read), faery (write)",
+    extras="frames + exposure")]

@@ -49,6 +49,7 @@ import numpy as np
 
 from eventcap.io.checks import RawChunk
 from eventcap.io.recording import RecordingError, logger
+from eventcap.io.registry import ReaderSpec
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, RowLocator, Source, file_size, numbered_chunks
 
 MAGIC = b"#!AER-DAT"
@@ -348,9 +349,10 @@ class Aedat31Source(Source):
                     raise RecordingError(self.path, f"frame packet with {size}-byte events: shorter than the "
                                                     f"{_FRAME31_HEADER.itemsize}-byte frame header", where)
                 end = pos + 28 + capacity * size
-                if end > self._size:
-                    return out, (f"the file ends inside packet {k} (truncated, or a corrupted packet size): kept the "
-                                 f"{k} complete packets before it")
+                if end > self._size:  # checked before anything of the packet is read or allocated
+                    return out, (f"the file ends inside packet {k} (truncated, or a corrupted packet size): it "
+                                 f"declares {capacity:,} events of {size} bytes at byte {pos}, {self._size - pos - 28:,} "
+                                 f"bytes follow; kept the {k} complete packets before it")
                 out.append((pos + 28, h))
                 pos = end
                 k += 1
@@ -526,3 +528,26 @@ def write_aedat31(path: Path, events: np.ndarray, source: str = "DAVIS346B", pac
             packets.append((b, head.tobytes() + body))
     packets.sort(key=lambda p: p[0])
     Path(path).write_bytes(b"".join(parts + [p for _, p in packets]))
+
+
+def detect_version(head: bytes, path) -> str:
+    """The format of a file starting with ``#!AER-DAT``: aedat2 or aedat3 by its version; others refused."""
+    version = head[9:16].split(b"\r")[0].split(b"\n")[0].strip().decode("ascii", "replace")
+    if version == "2.0":
+        return "aedat2"
+    if version == "3.1":
+        return "aedat3"
+    raise RecordingError(path, f"AEDAT version {version} is not supported (AEDAT 2.0, 3.1 and 4.0 are): convert it "
+                               f"with DV or jAER", "file header")
+
+
+READERS = [
+    ReaderSpec(name="aedat2", description="jAER AEDAT 2.0 (DVS128, DAVIS240/346, DHP19): events, APS frames",
+               extensions=(".aedat",), magic=(b"#!AER-DAT",), magic_name="an AEDAT", detect=
+               "eventcap.io.aedat_legacy:detect_version", source="eventcap.io.aedat_legacy:Aedat2Source",
+               wraps_us=(2**32,), extras="APS frames (global shutter)", library="our decoder (numpy)"),
+    ReaderSpec(name="aedat3", description="cAER / DV legacy AEDAT 3.1: events, frames with exposure",
+               extensions=(".aedat",), magic=(b"#!AER-DAT",), magic_name="an AEDAT",
+               detect="eventcap.io.aedat_legacy:detect_version", source="eventcap.io.aedat_legacy:Aedat31Source",
+               wraps_us=(2**31, 2**32), extras="frames + exposure", library="our decoder (numpy)"),
+]

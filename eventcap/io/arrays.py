@@ -26,6 +26,7 @@ import numpy as np
 from eventcap.camera import Camera
 from eventcap.io.checks import RawChunk, parse_time_unit, times_to_us
 from eventcap.io.recording import RecordingError
+from eventcap.io.registry import ReaderSpec
 from eventcap.io.source import (
     DEFAULT_CHUNK_EVENTS,
     FrameData,
@@ -236,3 +237,13 @@ def write_npz(path: Path, events: np.ndarray, width: int, height: int, frames=No
         arrays[f"ground_truth/{k}"] = np.asarray(v)
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
+
+
+READERS = [
+    ReaderSpec(name="npy", description="NumPy .npy: a structured array, or (N, 4) / (4, N) columns",
+               extensions=(".npy",), magic=(NPY_MAGIC,), magic_name="a NumPy .npy", source="eventcap.io.arrays:NpySource",
+               columns=True, declares_size=False, library="numpy"),
+    ReaderSpec(name="npz", description="NumPy .npz: event columns, frames, calibration", extensions=(".npz",),
+               magic=ZIP_MAGICS, magic_name="a NumPy .npz (zip)", source="eventcap.io.arrays:NpzSource", columns=True,
+               declares_size=False, extras="frames, calibration", library="numpy"),
+]

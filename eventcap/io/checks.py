@@ -380,8 +380,8 @@ MAX_EVENTS_PER_US = 2_000
 MIN_EVENT_RATE_HZ = 1.0
 MIN_EVENTS_FOR_RATE = 100
 #: Time counters whose wrap-around a decoder adds when a corrupted word makes time go backwards: a jump of about
-#: this size is the decoder's, not the camera's (format -> counter ranges in µs).
-DECODER_WRAPS_US = {"evt2": (2**34,), "evt3": (2**24,), "dat": (2**32,), "aedat2": (2**32,), "aedat3": (2**31, 2**32)}
+#: one is the decoder's, not the camera's. Each reader declares its own (``ReaderSpec.wraps_us``,
+#: :mod:`eventcap.io.registry`); the readers hand them to :class:`TimeGuard`.
 
 
 def check_event_rate(path, n: int, span_us: int) -> None:

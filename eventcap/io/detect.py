@@ -1,4 +1,5 @@
-"""Which reader a path needs: by content (magic bytes, Prophesee header) first, extension second."""
+"""Which reader a path needs: by content (signatures, headers) first, extension second, as the registered readers
+declare them (:mod:`eventcap.io.registry`)."""
 
 from __future__ import annotations
 
@@ -6,39 +7,33 @@ import json
 import os
 from pathlib import Path
 
-from eventcap.io.aedat4 import MAGIC as AEDAT4_MAGIC
-from eventcap.io.arrays import NPY_MAGIC, ZIP_MAGICS
-from eventcap.io.hdf5 import MAGIC as HDF5_MAGIC
-from eventcap.io.prophesee import header_kind, read_header
 from eventcap.io.recording import RecordingError
-from eventcap.io.rpg import EVENTS
-from eventcap.io.source import check_regular, regular_sibling
-
-#: Formats :func:`eventcap.io.read_recording` accepts as ``format=``.
-READ_FORMATS = ("aedat4", "aedat2", "aedat3", "hdf5", "rpg", "evt2", "evt3", "dat", "npy", "npz")
-
-_EXTENSIONS = {".aedat4": "aedat4", ".h5": "hdf5", ".hdf5": "hdf5", ".hdf": "hdf5", ".raw": "evt", ".dat": "dat",
-               ".npy": "npy", ".npz": "npz", ".txt": "rpg", ".csv": "rpg"}
+from eventcap.io.registry import readers
+from eventcap.io.source import check_regular
 
 
-#: Formats whose files start with a signature: what a file with their extension but not their signature lacks.
-_MAGICS = {"aedat4": ("an AEDAT4", AEDAT4_MAGIC), "hdf5": ("an HDF5", HDF5_MAGIC), "npy": ("a NumPy .npy", NPY_MAGIC),
-           "npz": ("a NumPy .npz (zip)", ZIP_MAGICS[0])}
+def __getattr__(name: str):
+    if name == "READ_FORMATS":  # the formats format= takes, from the registry (kept for callers of the old constant)
+        return tuple(readers().names())
+    raise AttributeError(name)
 
 
 def detect_format(path) -> str:
-    """The format name of ``path`` (one of ``READ_FORMATS``, or ``"evt"`` for a RAW file whose header names no
-    version); raises :class:`RecordingError` for missing, empty or unrecognised files."""
+    """The format name of ``path`` (a registered reader's); raises :class:`RecordingError` for missing, empty or
+    unrecognised files, naming what a file with its extension should start with when it does not."""
     path = Path(path)
     check_regular(path)
+    registry = readers()
     if path.is_dir():
-        if regular_sibling(path / EVENTS):
-            return "rpg"
+        for spec in registry.specs():
+            if spec.folder and spec.detect and spec.load("detect")(None, path):
+                return spec.name
         for meta in ("zarr.json", ".zgroup"):
             if os.path.lexists(path / meta):
                 raise RecordingError(path / meta, project_recording_problem(path) or "a zarr folder that is not a "
                                      "recording in the project's format")
-        raise RecordingError(path, f"a folder without {EVENTS}: expected the rpg layout (events.txt, images.txt, …) "
+        folders = [f"{s.name} ({s.description})" for s in registry.specs() if s.folder]
+        raise RecordingError(path, f"a folder that no reader takes: expected {'; '.join(folders) or 'no folder'}, "
                                    f"or a recording in the project's format (zarr.json)")
     try:
         size = path.stat().st_size
@@ -48,38 +43,36 @@ def detect_format(path) -> str:
         raise RecordingError(path, f"cannot read the file: {exc.strerror or exc}") from exc
     if size == 0:
         raise RecordingError(path, "the file is empty (0 bytes)")
-    if head.startswith(AEDAT4_MAGIC):
-        return "aedat4"
-    if head.startswith(b"#!AER-DAT"):
-        version = head[9:16].split(b"\r")[0].split(b"\n")[0].strip().decode("ascii", "replace")
-        if version == "2.0":
-            return "aedat2"
-        if version == "3.1":
-            return "aedat3"
-        raise RecordingError(path, f"AEDAT version {version} is not supported (AEDAT 2.0, 3.1 and 4.0 are): convert "
-                                   f"it with DV or jAER", "file header")
-    if head.startswith(HDF5_MAGIC):
-        return "hdf5"
-    if head.startswith(NPY_MAGIC):
-        return "npy"
-    if head.startswith(ZIP_MAGICS):
-        return "npz"
-    ext = _EXTENSIONS.get(path.suffix.lower())
-    if head.startswith(b"%"):
-        kind = header_kind(read_header(path)[0])
-        if kind is not None:
-            return kind
-        if ext in ("evt", "dat"):
-            return ext
-    elif ext is not None and ext not in ("aedat4", "hdf5", "npy", "npz"):
-        return ext
-    if ext in _MAGICS:  # the extension promises a format whose signature the file lacks: say that, not "unknown"
-        name, magic = _MAGICS[ext]
-        raise RecordingError(path, f"not {name} file: a {path.suffix} file starts with {magic!r}, this one with "
-                                   f"{head[:16]!r} (a different or damaged file, or a wrong extension)", "file header")
-    expected = ", ".join(sorted(_EXTENSIONS))
+    # 1. a signature at the start of the file (its reader's detect hook may refine it: a version)
+    for spec in registry.specs():
+        if spec.magic and head.startswith(spec.magic):
+            found = spec.load("detect")(head, path) if spec.detect else spec.name
+            if found:
+                return found
+    # 2. content tests of readers without a signature (a Prophesee '%' header)
+    tried = set()
+    for spec in registry.specs():
+        if spec.detect and not spec.magic and not spec.folder and spec.detect not in tried:
+            tried.add(spec.detect)
+            found = spec.load("detect")(head, path)
+            if found:
+                return found
+    # 3. the extension
+    by_ext = registry.by_extension(path.suffix)
+    signed = [s for s in by_ext if s.magic]
+    if signed:  # the extension promises a format whose signature the file lacks: say that, not "unknown"
+        s = signed[0]
+        raise RecordingError(path, f"not {s.magic_name} file: a {path.suffix} file starts with {s.magic[0]!r}, this "
+                                   f"one with {head[:16]!r} (a different or damaged file, or a wrong extension)",
+                             "file header")
+    if len(by_ext) == 1:
+        return by_ext[0].name
+    if len(by_ext) > 1:
+        raise RecordingError(path, f"a {path.suffix} file is {' or '.join(s.name for s in by_ext)} and its content "
+                                   f"does not say which: pass format=", "file header")
+    expected = ", ".join(registry.extensions())
     raise RecordingError(path, f"unrecognised format: first bytes {head[:16]!r}, extension {path.suffix!r} "
-                               f"(expected {expected}, an rpg folder, or format=…)")
+                               f"(expected {expected}, a folder of a reader, or format=…)")
 
 
 def project_recording_problem(path) -> str | None:

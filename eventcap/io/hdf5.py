@@ -32,6 +32,7 @@ import numpy as np
 from eventcap.camera import Camera
 from eventcap.io.checks import RawChunk, parse_time_unit, times_to_us
 from eventcap.io.recording import RecordingError
+from eventcap.io.registry import ReaderSpec
 from eventcap.io.source import (
     DEFAULT_CHUNK_EVENTS,
     FrameData,
@@ -111,6 +112,30 @@ class Hdf5Source(Source):
     def _open(self):
         return self._h5py.File(self.path, "r", locking=False)
 
+    def _check_stored(self, ds) -> None:
+        """Refuse a dataset that declares more than the file stores (checked from its metadata, before anything is
+        read or allocated): a contiguous dataset whose bytes are not all in the file, or a chunked one whose chunks
+        are not all written. HDF5 reads what was never written as the fill value (zeros), silently; a corrupted
+        shape declares terabytes the file cannot hold."""
+        h5d = self._h5py.h5d
+        nbytes = int(np.prod(ds.shape, dtype=np.float64) * ds.dtype.itemsize) if ds.shape else ds.dtype.itemsize
+        with native_call(self.path, _WHAT, ds.name):
+            layout = ds.id.get_create_plist().get_layout()
+            stored = int(ds.id.get_storage_size())
+            if layout == h5d.CONTIGUOUS and nbytes and stored < nbytes:
+                raise RecordingError(self.path, f"dataset {ds.name} declares shape {ds.shape} of {ds.dtype} "
+                                                f"({nbytes:,} bytes) but the file stores {stored:,} bytes of it: a "
+                                                f"corrupted shape, or data never written (read back as zeros)",
+                                     ds.name)
+            if layout == h5d.CHUNKED and ds.shape and all(ds.shape):
+                expected = int(np.prod([-(-n // c) for n, c in zip(ds.shape, ds.chunks)], dtype=np.float64))
+                have = int(ds.id.get_num_chunks()) if expected < 1 << 40 else 0
+                if have < expected:
+                    raise RecordingError(self.path, f"dataset {ds.name} declares shape {ds.shape} in {expected:,} "
+                                                    f"chunks of {ds.chunks} but the file holds {have:,} of them "
+                                                    f"({stored:,} bytes): a corrupted shape, or data never written "
+                                                    f"(the missing chunks would read back as zeros)", ds.name)
+
     # ----------------------------------------------------------------------------------------------- layout
     def _find_events(self, f) -> tuple:
         h5py = self._h5py
@@ -122,6 +147,8 @@ class Hdf5Source(Source):
                 continue
             names = {r: f"{g.name.rstrip('/')}/{n}" for r, n in roles.items()}
             lengths = {r: g[n].shape[0] for r, n in roles.items()}
+            for n in roles.values():
+                self._check_stored(g[n])
             if len(set(lengths.values())) != 1:
                 raise RecordingError(self.path, f"event columns differ in length: {lengths} ({names})", g.name)
             unit = _attr_unit(g[roles["t"]], g)
@@ -129,6 +156,7 @@ class Hdf5Source(Source):
             return ("columns", names, lengths["t"])
         ds = f.get("events")
         if isinstance(ds, h5py.Dataset):
+            self._check_stored(ds)
             self.time_unit = self.time_unit or _attr_unit(ds)
             if ds.dtype.names:
                 roles = match_columns(ds.dtype.names)
@@ -220,6 +248,7 @@ class Hdf5Source(Source):
         images_name, t_name, exp_name = self._frames_key
         with native_call(self.path, _WHAT, images_name), self._open() as f:
             ds = f[images_name]
+            self._check_stored(ds)
             check_fits_in_memory(self.path, int(ds.size) * ds.dtype.itemsize, f"frames {images_name}")
             images = ds[()]
             t_ds = f[t_name]
@@ -256,6 +285,7 @@ class Hdf5Source(Source):
             out = {}
             for k in g:
                 if isinstance(g[k], self._h5py.Dataset):
+                    self._check_stored(g[k])
                     check_fits_in_memory(self.path, int(g[k].size) * g[k].dtype.itemsize, f"ground_truth/{k}")
                     out[k] = g[k][()]
         return out or None
@@ -304,3 +334,10 @@ def write_hdf5(path: Path, chunks: Iterator[np.ndarray], width: int, height: int
             gg = f.create_group("ground_truth")
             for k, v in ground_truth.items():
                 gg[k] = np.asarray(v)
+
+
+READERS = [ReaderSpec(
+    name="hdf5", description="HDF5: events/{t,x,y,p}, a compound or (N, 4) 'events' dataset; frames, calibration, "
+                         "ground truth", extensions=(".h5", ".hdf5", ".hdf"), magic=(MAGIC,), magic_name="an HDF5",
+    source="eventcap.io.hdf5:Hdf5Source", columns=True, declares_size=False,
+    extras="frames, calibration, ground truth", library="h5py")]

@@ -1,9 +1,6 @@
-"""Prophesee event files: RAW (EVT 2.0 / EVT 3.0) and DAT (CD events), read and written with ``faery``.
-
-Events only. ``faery`` unwraps the formats' short time counters (EVT3: 24 bit, EVT2: 34 bit, DAT: 32 bit) and
-clamps a time stamp that goes backwards to the previous one, so out-of-order events in these formats come out
-in order without a repair note. It rejects an event outside the header's sensor size (a
-:class:`RecordingError` here naming the event index after which decoding stopped).
+"""Prophesee event files: RAW (EVT 2.0 / EVT 3.0) and DAT (CD events). Read with our own decoders
+(:mod:`eventcap.io.evt`: every event at the time the file gives it, times going backwards kept for the shared time
+checks); ``faery`` reads the headers' sensor size and writes the files.
 
 Truncated files: a cut inside a word (EVT2: 4 bytes, EVT3: 2, DAT: 8) is noted. A cut on a word boundary is
 noted only where the format shows it: an EVT3 file whose last word opens an event group (ADDR_Y, VECT_BASE_X)
@@ -19,8 +16,19 @@ from pathlib import Path
 import numpy as np
 
 from eventcap.io.checks import RawChunk
+from eventcap.io.evt import (
+    DAT_EVENT,
+    EVT2_TYPES,
+    EVT3_TYPES,
+    DatCounter,
+    DecoderState,
+    dat_columns,
+    decode_words,
+    decoder_notes,
+)
 from eventcap.io.recording import RecordingError
-from eventcap.io.source import DEFAULT_CHUNK_EVENTS, Source, file_size, native_call, numbered_chunks
+from eventcap.io.registry import ReaderSpec
+from eventcap.io.source import DEFAULT_CHUNK_EVENTS, RowLocator, Source, file_size, native_call, numbered_chunks
 
 _MAX_HEADER_BYTES = 1 << 20
 # Passed to faery when the header has no size: large enough to disable its range check; the size is then
@@ -61,8 +69,20 @@ def header_kind(lines: list[str]) -> str | None:
 
 
 # Event types (the top 4 bits of a word) each format defines; other codes never occur in a valid stream.
-_EVT_TYPES = {"evt3": (0x0, 0x2, 0x3, 0x4, 0x5, 0x6, 0x7, 0x8, 0xA, 0xE, 0xF), "evt2": (0x0, 0x1, 0x8, 0xA, 0xE, 0xF)}
+_EVT_TYPES = {"evt3": EVT3_TYPES, "evt2": EVT2_TYPES}
 _SAMPLE_BYTES = 1 << 20
+#: Words (EVT) or events (DAT) decoded at a time.
+_BLOCK = 1 << 20
+
+
+def header_t0(lines: list[str]) -> int:
+    """The file time of t = 0 a Prophesee header states (``% t0 <µs>`` / ``% T0 <µs>``, the last one), or 0."""
+    t0 = 0
+    for line in lines:
+        words = line.replace(";", " ").split()
+        if len(words) > 1 and words[0] in ("t0", "T0") and words[1].isdigit():
+            t0 = int(words[1])
+    return t0
 
 
 def check_evt_words(path: Path, header_length: int, version: str) -> None:
@@ -105,6 +125,7 @@ class EvtSource(Source):
 
         self._faery = faery
         lines, self._header_length = read_header(path)
+        self._t0 = header_t0(lines)
         kind = header_kind(lines)
         header_version = kind if kind in ("evt2", "evt3") else None
         if header_version and version and header_version != version:
@@ -131,17 +152,29 @@ class EvtSource(Source):
         dangling = self._dangling_group(extra)
         if dangling:
             self.notes.append(dangling)
+        locate = RowLocator()
 
         def columns():
-            dims = (self.width, self.height) if self.width else _NO_SIZE
-            with self._faery.evt.Decoder(self.path, dims, self.version) as decoder:
-                for packet in decoder:
-                    ev = packet.get("events")
-                    if ev is not None and len(ev):
-                        yield ev["t"], ev["x"], ev["y"], ev["on"]
+            state = DecoderState(self.version)
+            dtype = "<u4" if self.version == "evt2" else "<u2"
+            row, first_word = 0, 0
+            with open(self.path, "rb") as f:
+                f.seek(self._header_length)
+                while True:
+                    words = np.fromfile(f, dtype, count=_BLOCK)
+                    if not len(words):
+                        break
+                    t, x, y, p, _ = decode_words(words, state)
+                    if len(t):
+                        start = self._header_length + self._word * first_word
+                        locate.add(row, f"data bytes {start}-{start + self._word * len(words) - 1}")
+                        row += len(t)
+                        yield t + self._t0, x, y, p
+                    first_word += len(words)
+            self.notes.extend(decoder_notes(state, self._word, self._header_length))
 
-        yield from numbered_chunks(_guarded(columns(), self.path, "EVT decoder (faery)"), chunk_events)
-
+        yield from numbered_chunks(_guarded(columns(), self.path, f"{self.version.upper()} decoder"), chunk_events,
+                                   locate)
 
     def _dangling_group(self, extra: int) -> str | None:
         """EVT3 only: a note when the file ends inside an event group: after its last event word (ADDR_X, VECT_12,
@@ -193,6 +226,7 @@ class DatSource(Source):
             with faery.dat.Decoder(path, _NO_SIZE, self.version) as decoder:
                 dims, kind = decoder.dimensions, decoder.event_type
         self._version_note = list(self.notes)
+        self.t_add_us = header_t0(read_header(path)[0])
         if kind != "cd":
             raise RecordingError(path, f"DAT event type {kind!r} has no polarity: only CD event files are supported",
                                  "file header")
@@ -205,14 +239,18 @@ class DatSource(Source):
             self.notes.append(f"the file ends with a partial 8-byte DAT event ({extra} byte(s), truncated file?): "
                               f"ignored")
 
-        def columns():
-            dims = (self.width, self.height) if self.width else _NO_SIZE
-            with self._faery.dat.Decoder(self.path, dims, self.version) as decoder:
-                for ev in decoder:
-                    if len(ev):
-                        yield ev["t"], ev["x"], ev["y"], ev["payload"]
+        def columns():  # every event at the time it holds, its 32-bit counter's wraps added (eventcap.io.evt)
+            counter = DatCounter()
+            with open(self.path, "rb") as f:
+                f.seek(self._header_length + 2)
+                while True:
+                    raw = np.fromfile(f, DAT_EVENT, count=_BLOCK)
+                    if not len(raw):
+                        break
+                    t, x, y, p = dat_columns(raw, self.version)
+                    yield counter.unwrap(t), x, y, p
 
-        yield from numbered_chunks(_guarded(columns(), self.path, "DAT decoder (faery)"), chunk_events)
+        yield from numbered_chunks(_guarded(columns(), self.path, "DAT decoder"), chunk_events)
 
 
 def _guarded(columns: Iterator[tuple], path: Path, what: str) -> Iterator[tuple]:
@@ -248,7 +286,8 @@ def _encoder(path: Path, fmt: str, width: int, height: int):
 def _check_decodable(t: np.ndarray, state: dict, fmt: str) -> None:
     """Refuse time gaps the format's short counters cannot carry across (the file would decode to wrong times).
 
-    DAT stores 32 bits of µs and EVT2 34 bits: a gap of half (DAT) or all (EVT2) of that range is ambiguous.
+    DAT stores 32 bits of µs and EVT2 34 bits: a gap of half that range is ambiguous (a decoder takes a step back by
+    more than half the range for a wrap).
     EVT3 stores 24 bits; faery's decoder recognises a wrap only when the 4096-µs tick goes from 4095 to 0, and
     its encoder writes ticks only where events are, so a recording must have events in the ticks on both sides
     of every 2^24-µs boundary.
@@ -268,10 +307,11 @@ def _check_decodable(t: np.ndarray, state: dict, fmt: str) -> None:
         bad = ((tick[1:] >> 12) != (tick[:-1] >> 12)) & (step != 1)
         why = ("no events in the 4.1 ms before or after a wrap of EVT3's 24-bit time counter (every 16.8 s): "
                "faery would write times that decode wrongly; write EVT2, DAT, HDF5 or AEDAT4 instead")
-    else:
-        limit = 2**31 if fmt == "dat" else 2**34
+    else:  # a step back of more than half the counter's range is a wrap (eventcap.io.evt)
+        limit = 2**31 if fmt == "dat" else 2**33
         bad = np.diff(full) >= limit
-        why = f"a gap of 2^{31 if fmt == 'dat' else 34} µs or more, beyond what {fmt.upper()}'s time counter can carry"
+        why = (f"a gap of 2^{31 if fmt == 'dat' else 33} µs or more, half the range of {fmt.upper()}'s time counter: "
+               f"it could not be told from the counter's wrap-around")
     if bad.any():
         i = int(np.argmax(bad))
         raise ValueError(f"cannot write {fmt.upper()}: events at {int(full[i])} µs and {int(full[i + 1])} µs (file "
@@ -294,3 +334,38 @@ def write_prophesee(path: Path, chunks: Iterator[np.ndarray], fmt: str, width: i
                 encoder.write(chunk.astype(dat_dtype))
             else:
                 encoder.write({"events": chunk})
+
+
+def detect_header(head: bytes, path) -> str | None:
+    """The format of a file starting with a Prophesee '%' header: evt2 / evt3 / dat as the header says (a RAW file
+    whose header names no EVT version is refused: format=evt2 or evt3); None when it is not such a header."""
+    if not head.startswith(b"%"):
+        return None
+    kind = header_kind(read_header(Path(path))[0])
+    if kind == "evt":
+        raise RecordingError(path, "the header names no EVT version (no '% evt 2.0/3.0' or '% format EVT…' line): "
+                                   "pass format='evt2' or format='evt3'", "file header")
+    if kind is None and Path(path).suffix.lower() == ".dat":
+        return "dat"
+    return kind
+
+
+def open_evt2(path: Path, time_unit: str | None = None) -> EvtSource:
+    return EvtSource(path, "evt2", time_unit)
+
+
+def open_evt3(path: Path, time_unit: str | None = None) -> EvtSource:
+    return EvtSource(path, "evt3", time_unit)
+
+
+READERS = [
+    ReaderSpec(name="evt2", description="Prophesee RAW, EVT 2.0", extensions=(".raw",),
+               detect="eventcap.io.prophesee:detect_header", source="eventcap.io.prophesee:open_evt2",
+               wraps_us=(2**34,), library="our decoder (eventcap.io.evt)"),
+    ReaderSpec(name="evt3", description="Prophesee RAW, EVT 3.0", extensions=(".raw",),
+               detect="eventcap.io.prophesee:detect_header", source="eventcap.io.prophesee:open_evt3",
+               wraps_us=(2**24,), library="our decoder (eventcap.io.evt)"),
+    ReaderSpec(name="dat", description="Prophesee DAT (CD events)", extensions=(".dat",),
+               detect="eventcap.io.prophesee:detect_header", source="eventcap.io.prophesee:DatSource",
+               wraps_us=(2**32,), library="our decoder; faery reads the header"),
+]

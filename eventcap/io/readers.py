@@ -11,7 +11,6 @@ import numpy as np
 from eventcap.camera import Camera
 from eventcap.events import EVENT_DTYPE
 from eventcap.io.checks import (
-    DECODER_WRAPS_US,
     MAX_GAP_US,
     ColumnConverter,
     OrderReport,
@@ -20,7 +19,8 @@ from eventcap.io.checks import (
     parse_time_unit,
     sort_and_dedup,
 )
-from eventcap.io.detect import READ_FORMATS, detect_format
+from eventcap.io.detect import detect_format
+from eventcap.io.registry import readers
 from eventcap.io.recording import Frames, RawRecording, RecordingError, logger
 from eventcap.io.sizes import (  # noqa: F401 - part of this module's API
     KNOWN_SENSORS,
@@ -30,11 +30,10 @@ from eventcap.io.sizes import (  # noqa: F401 - part of this module's API
     PLAUSIBLE_HEIGHT,
     PLAUSIBLE_WIDTH,
     CoordinateStats,
+    size_note,
 )
 from eventcap.io.source import DEFAULT_CHUNK_EVENTS, FrameData, Source, check_regular, parse_columns
 
-#: Formats whose event arrays or text columns can be unnamed, so that ``columns=`` applies.
-COLUMN_FORMATS = ("npy", "npz", "hdf5", "rpg")
 
 
 @dataclass(frozen=True)
@@ -48,55 +47,27 @@ class Roi:
 
 
 def open_source(path, format: str | None = None, time_unit: str | None = None, columns=None) -> Source:
-    """The format reader for ``path`` (format detected from the content when ``format`` is ``None``)."""
+    """The format reader for ``path`` (format detected from the content when ``format`` is ``None``), from the
+    registered readers (:mod:`eventcap.io.registry`)."""
     path = Path(path)
     check_regular(path)
+    registry = readers()
     fmt = detect_format(path) if format is None else str(format).lower()
-    if fmt not in READ_FORMATS and fmt != "evt":
-        raise ValueError(f"unknown format {format!r}: expected one of {', '.join(READ_FORMATS)}")
+    spec = registry.find(fmt)
+    if spec is None:
+        raise ValueError(f"unknown format {format!r}: expected one of {', '.join(registry.names())}")
     unit = parse_time_unit(time_unit)
     cols = parse_columns(columns)
-    if cols is not None:
-        if fmt not in COLUMN_FORMATS:
-            raise ValueError(f"columns={columns!r} applies to array and text files ({', '.join(COLUMN_FORMATS)}); "
-                             f"{path} is {fmt}, whose fields are named by the format")
-        from eventcap.io.arrays import NpySource, NpzSource
-        from eventcap.io.hdf5 import Hdf5Source
-        from eventcap.io.rpg import RpgSource
+    if cols is not None and not spec.columns:
+        raise ValueError(f"columns={columns!r} applies to array and text files ({', '.join(registry.column_formats())}); "
+                         f"{path} is {fmt}, whose fields are named by the format")
+    return spec.load("source")(path, unit, **({"columns": cols} if cols is not None else {}))
 
-        cls = {"npy": NpySource, "npz": NpzSource, "hdf5": Hdf5Source, "rpg": RpgSource}[fmt]
-        return cls(path, unit, columns=cols)
-    if fmt == "aedat4":
-        from eventcap.io.aedat4 import Aedat4Source
 
-        return Aedat4Source(path, unit)
-    if fmt in ("aedat2", "aedat3"):
-        from eventcap.io.aedat_legacy import Aedat2Source, Aedat31Source
-
-        return (Aedat2Source if fmt == "aedat2" else Aedat31Source)(path, unit)
-    if fmt == "hdf5":
-        from eventcap.io.hdf5 import Hdf5Source
-
-        return Hdf5Source(path, unit)
-    if fmt in ("evt", "evt2", "evt3"):
-        from eventcap.io.prophesee import EvtSource
-
-        return EvtSource(path, None if fmt == "evt" else fmt, unit)
-    if fmt == "dat":
-        from eventcap.io.prophesee import DatSource
-
-        return DatSource(path, unit)
-    if fmt == "npy":
-        from eventcap.io.arrays import NpySource
-
-        return NpySource(path, unit)
-    if fmt == "npz":
-        from eventcap.io.arrays import NpzSource
-
-        return NpzSource(path, unit)
-    from eventcap.io.rpg import RpgSource
-
-    return RpgSource(path, unit)
+def __getattr__(name: str):
+    if name == "COLUMN_FORMATS":  # the formats whose columns can be unnamed, from the registry
+        return readers().column_formats()
+    raise AttributeError(name)
 
 
 def _sensor_size(source: Source, width: int | None, height: int | None) -> tuple[int | None, int | None]:
@@ -115,7 +86,7 @@ def _sensor_size(source: Source, width: int | None, height: int | None) -> tuple
 
 def _converter(source: Source, width, height) -> ColumnConverter:
     conv = ColumnConverter(source.events_path, width, height, source.time_unit, source.t_add_us)
-    conv.unit_guessed = source.time_unit is None and source.format in COLUMN_FORMATS
+    conv.unit_guessed = source.time_unit is None and source.format in readers().column_formats()
     return conv
 
 
@@ -134,7 +105,7 @@ def _max_gap_us(max_gap_s) -> int | None:
 
 def _time_guard(source: Source, max_gap_us: int | None) -> TimeGuard:
     return TimeGuard(source.events_path, MAX_GAP_US if max_gap_us is None else max_gap_us,
-                     wraps_us=DECODER_WRAPS_US.get(source.format, ()), relative=max_gap_us is None)
+                     wraps_us=readers().wraps_us(source.format), relative=max_gap_us is None)
 
 
 def _check_rate(source: Source, n: int, span_us: int) -> None:
@@ -174,7 +145,8 @@ def read_recording(path, format: str | None = None, time_window_us: tuple[int, i
                    y_up: bool = False, max_gap_s: float | None = None) -> RawRecording:
     """Decode a recording (any format of :mod:`eventcap.io`) into a checked :class:`RawRecording`.
 
-    - ``format``: one of ``READ_FORMATS``; ``None`` detects it from the content (then the extension).
+    - ``format``: a registered reader's format (``eventcap.io.registry.readers().names()``); ``None`` detects it
+      from the content (then the extension).
     - ``time_window_us``: ``(start, end)`` in µs on the recording's clock (0 = first event), half-open; keeps
       the events and the frames (by exposure centre) inside it. Times stay on the recording's clock.
     - ``roi``: :class:`Roi` or ``(x, y, width, height)``; keeps events and frame pixels inside it, shifted so
@@ -241,9 +213,13 @@ def infer_sensor_size(events: np.ndarray, path=None, how: str = "pass width= and
     stats = CoordinateStats()
     stats.add(events["x"], events["y"])
     d = stats.judge(path, how)
+    note = d.note
     if d.dropped:
-        events = events[(events["x"] < d.keep_x) & (events["y"] < d.keep_y)]
-    return events, d.width, d.height, d.note
+        kept = events[(events["x"] < d.keep_x) & (events["y"] < d.keep_y)]
+        # the exact count (the streaming statistics bound it from below when both axes are cut)
+        note = size_note(d.width, d.height, len(events) - len(kept), d.reasons)
+        events = kept
+    return events, d.width, d.height, note
 
 
 # ------------------------------------------------------------------------------------------------------- frames

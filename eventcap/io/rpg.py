@@ -30,6 +30,7 @@ import numpy as np
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.io.checks import RawChunk, times_to_us
 from eventcap.io.recording import RecordingError
+from eventcap.io.registry import ReaderSpec
 from eventcap.io.source import (
     DEFAULT_CHUNK_EVENTS,
     FrameData,
@@ -334,3 +335,17 @@ def write_rpg(folder: Path, events: Iterator[np.ndarray], frames=None, calibrati
             for t, pose in zip(np.asarray(ground_truth["t_us"], dtype=np.int64), np.asarray(ground_truth["pose"])):
                 secs, micro = divmod(int(t), 1_000_000)
                 f.write(f"{secs}.{micro:06d} " + " ".join(repr(float(v)) for v in pose) + "\n")
+
+
+def detect_folder(head, path) -> str | None:
+    """An rpg dataset folder is one with events.txt (a regular file) in it."""
+    from eventcap.io.source import regular_sibling
+
+    return "rpg" if head is None and regular_sibling(Path(path) / EVENTS) else None
+
+
+READERS = [ReaderSpec(
+    name="rpg", description="text columns (csv/txt) or an rpg Event Camera Dataset folder (events.txt, images.txt, "
+                        "calib.txt)", extensions=(".txt", ".csv"), source="eventcap.io.rpg:RpgSource", columns=True,
+    folder=True, detect="eventcap.io.rpg:detect_folder", declares_size=False, extras="frames, calib.txt, ground truth",
+    library="numpy, OpenCV")]

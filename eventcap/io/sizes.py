@@ -59,6 +59,13 @@ def few(k: int, n: int) -> bool:
     return k <= max(OUTLIER_BUDGET_MAX, MAX_OUTSIDE_SHARE * n)
 
 
+def size_note(width: int, height: int, dropped: int, reasons: str) -> str:
+    """The repair sentence of an inferred size and the outliers dropped (``dropped`` events; ``reasons`` why)."""
+    note = (f"sensor size not in the file: inferred {width} × {height} from the largest event coordinates (pass "
+            f"width= and height= to set it)")
+    return note + (f"; ignored and dropped {dropped} outlier event(s): {reasons}" if dropped else "")
+
+
 @dataclass
 class SizeDecision:
     """The judged size: ``width`` × ``height``; events with x >= ``keep_x`` or y >= ``keep_y`` are dropped
@@ -70,6 +77,7 @@ class SizeDecision:
     keep_y: int
     dropped: int
     note: str
+    reasons: str = ""  # why the dropped events are outliers (the note's tail)
 
 
 @dataclass
@@ -166,12 +174,9 @@ class CoordinateStats:
         if err is not None:
             raise err
         width, height = max_x + 1, max_y + 1
-        note = (f"sensor size not in the file: inferred {width} × {height} from the largest event coordinates (pass "
-                f"width= and height= to set it)")
         dropped = n - self._count_inside(keep_x, keep_y)
-        if dropped:
-            note += f"; ignored and dropped {dropped} outlier event(s): " + "; ".join(why)
-        return SizeDecision(width, height, keep_x, keep_y, dropped, note)
+        reasons = "; ".join(why)
+        return SizeDecision(width, height, keep_x, keep_y, dropped, size_note(width, height, dropped, reasons), reasons)
 
     @staticmethod
     def _max(h: np.ndarray, keep: int) -> int:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from eventcap.camera import Camera
+from eventcap.processes import available_memory_bytes  # noqa: F401 - part of this module's API
 from eventcap.io.checks import RawChunk
 from eventcap.io.recording import RecordingError
 
@@ -175,18 +176,6 @@ def probe_in_child(path, what: str, fn: Callable[[], object], timeout_s: float =
                                        f"(damaged metadata that the library loops on): refused")
         time.sleep(delay)
         delay = min(delay * 2, 0.05)
-
-
-def available_memory_bytes() -> int | None:
-    """MemAvailable from /proc/meminfo, or ``None`` where it cannot be read."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
 
 
 def check_fits_in_memory(path, nbytes: int, what: str) -> None:

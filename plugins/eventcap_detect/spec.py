@@ -32,8 +32,8 @@ class ViewChecksConfig:
                                             "body")
     check_window_us: int = param(40000, help="check region: the events within this window around an image make "
                                              "its moving region, us")
-    min_found: float = param(0.5, help="the stage stops when fewer than this share of the images hold an "
-                                       "accepted detection (nothing to solve)", affects_result=False)
+    min_found: float = param(0.5, ge=0, le=1, help="the stage stops when fewer than this share of the images hold "
+                                                   "an accepted detection (nothing to solve)", affects_result=False)
 
 
 @dataclass
@@ -58,8 +58,8 @@ class SimulatedDetectorConfig:
                                        "confidence 0")
     occlusion_margin_m: float = param(0.15, ge=0, help="a keypoint is hidden when the surface in front of it is nearer "
                                                  "than its depth minus this margin (joints lie inside the body)")
-    min_found: float = param(0.5, help="the stage stops when fewer than this share of the images hold a detection",
-                             affects_result=False)
+    min_found: float = param(0.5, ge=0, le=1, help="the stage stops when fewer than this share of the images hold "
+                                                   "a detection", affects_result=False)
 
 
 @dataclass

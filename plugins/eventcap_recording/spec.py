@@ -12,10 +12,10 @@ from eventcap.core.stage import Port, StageSpec, param
 
 @dataclass
 class RecordingConfig:
-    path: str = param("", help="the recording: the project's zarr format, AEDAT4, AEDAT 2.0/3.1, HDF5, EVT2/EVT3 "
-                               ".raw, DAT, npy/npz, csv/txt, or an rpg dataset folder", file=True)
-    format: str = param("", help="force a format (aedat4, aedat2, aedat3, hdf5, evt2, evt3, dat, npy, npz, rpg, "
-                                 "eventcap); empty = detect from content/extension")
+    path: str = param("", help="the recording: the project's zarr format, or a file or folder of any format a "
+                               "reader takes (`eventcap formats` lists them)", file=True)
+    format: str = param("", help="force a format: a name `eventcap formats` lists, or eventcap (the project's "
+                                 "zarr); empty = detect from content/extension")
     t_start_s: float = param(0.0, ge=0, help="start of the time window, seconds from the first event")
     t_end_s: float = param(0.0, ge=0, help="end of the time window (0 = to the end)")
     roi: list[int] = param(default_factory=list, ge=0, help="region of interest [x0, y0, x1, y1] (external formats)")
@@ -54,5 +54,24 @@ RECORDING = StageSpec(
     description="a recording from a file (real cameras' formats or the project's own), cut into batches",
     config=RecordingConfig, inputs={"template": Port(Template, optional=True)},
     outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},
-    run="eventcap_recording._impl:run_recording",
+    run="eventcap_recording._impl:run_recording", check="eventcap_recording.spec:check_config",
 )
+
+
+def check_config(config, where: str = "source") -> None:
+    """The spec's ``check`` hook, before anything runs: a calibration file that is not an rpg calib.txt is refused
+    (read only when it is a small regular file), and a format no registered reader takes. Whether ``path`` exists
+    is the file settings' check."""
+    if config.calibration:
+        from eventcap.camera import check_rpg_calibration
+
+        check_rpg_calibration(config.calibration, f"{where}.calibration")
+    if config.format and config.format.lower() != "eventcap":
+        from eventcap.io.registry import readers
+
+        registry = readers()
+        if config.format.lower() not in registry:
+            from eventcap.names import unknown_name_message
+
+            raise ValueError(f"{where}.format: " + unknown_name_message(
+                "format", config.format, [*registry.names(), "eventcap"], "the recording readers (eventcap formats)"))

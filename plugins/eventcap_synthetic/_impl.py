@@ -12,7 +12,7 @@ import numpy as np
 from eventcap import camera as camera_module
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import EventStream, FrameStack, GroundTruth, Recording
-from eventcap.camera import Camera, look_at, read_rpg_calibration
+from eventcap.camera import Camera, check_rpg_calibration, look_at, read_rpg_calibration
 from eventcap.camera_presets import CameraPreset, load_preset
 from eventcap.imaging.render import background
 from eventcap.sim.capture import CaptureConfig, simulate_synthetic
@@ -103,8 +103,35 @@ def _check_values(config, eff: dict, where: str = "source") -> None:
 
 def check_config(config, where: str = "source") -> None:
     """The spec's ``check`` hook: run when the pipeline is built, before anything runs (the preset's values and the
-    ROI; every single key is bounded by its declaration)."""
+    ROI, the motion names, the calibration file; every single key is bounded by its declaration)."""
     resolve_camera(config, where)
+    check_motion(config.motion, f"{where}.motion")
+    if config.calibration:
+        check_rpg_calibration(config.calibration, f"{where}.calibration")
+
+
+def check_motion(value: str, key: str) -> None:
+    """Every name of a ``source.motion`` value is a built-in motion or a clip (a .bvh file, cmu/<trial>; whether its
+    file exists is the file settings' check); ValueError naming ``key`` and what is available."""
+    import difflib
+
+    from eventcap.body.clips import is_clip, shipped_clips
+    from eventcap.body.motions import MOTIONS, STATIC_MOTIONS
+
+    names = [m.strip() for m in str(value).split(",") if m.strip()]
+    known = sorted({*MOTIONS, *STATIC_MOTIONS})
+    if not names:
+        raise ValueError(f"{key}: give at least one motion name ({', '.join(known)}), a .bvh file or a shipped clip "
+                         f"(cmu/<subject_trial>), got {value!r}")
+    for name in names:
+        if is_clip(name):
+            if name.startswith("cmu/") and name not in shipped_clips():
+                raise ValueError(f"{key}: {name!r} is no shipped clip; shipped: {', '.join(shipped_clips())}")
+            continue
+        if name not in known:
+            close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+            raise ValueError(f"{key}: unknown motion {name!r} (not a motion name, and not a .bvh file or cmu/<trial>)"
+                             f"{f'; did you mean {close[0]!r}?' if close else ''}; motions: {', '.join(known)}")
 
 
 def camera_for(config, resolved=None) -> Camera:

@@ -15,8 +15,9 @@ from eventcap.core.stage import Port, StageSpec, given_or_unset, group, param
 @dataclass
 class ProceduralConfig:
     seed: int = param(0, ge=0, help="varies body proportions details and the clothing texture")
-    height_m: float | None = param(None, gt=0, unset=1.75, help="stature of the actor in metres; null: not stated "
-                                                               "(1.75, and the body stage estimates it)")
+    height_m: float | None = param(None, ge=1.0, le=2.3, unset=1.75, help="stature of the actor in metres; null: "
+                                                                          "not stated (1.75, and the body stage "
+                                                                          "estimates it)")
     target_faces: int = param(12000, ge=100, help="approximate triangle count of the mesh")
 
 
@@ -36,8 +37,9 @@ class MeshConfig:
 class AnnyConfig:
     # null = not stated: ANNY's default body is built (the `unset` value) and the body stage estimates what was not
     # stated from the detections; a stated value is kept (eventcap.core.stage.param, `unset`).
-    height_m: float | None = param(None, gt=0, unset=1.75, help="stature of the person in metres (1.2-2.3); null: "
-                                                               "not stated (1.75, estimated by the body stage)")
+    height_m: float | None = param(None, ge=1.2, le=2.3, unset=1.75, help="stature of the person in metres; null: "
+                                                                          "not stated (1.75, estimated by the body "
+                                                                          "stage)")
     build: float | None = param(None, ge=-1, le=1, unset=0.0, help="thin (-1) to heavy (+1): ANNY's weight "
                                                                    "phenotype; null: not stated (0; not estimated: "
                                                                    "it moves no joint)")
@@ -53,8 +55,8 @@ class ActorConfig:
     """The filmed person's own body (``source.actor``): an ANNY body. Every key null: the template's body is
     filmed (as before the group existed); any key given: an ANNY actor whose other keys take ANNY's defaults."""
 
-    height_m: float | None = param(None, gt=0, help="stature of the filmed person in metres (1.2-2.3); null: 1.75 "
-                                                    "(when another actor key is given)")
+    height_m: float | None = param(None, ge=1.2, le=2.3, help="stature of the filmed person in metres; null: 1.75 "
+                                                              "(when another actor key is given)")
     build: float | None = param(None, ge=-1, le=1, help="thin (-1) to heavy (+1): ANNY's weight phenotype; null: 0")
     muscle: float | None = param(None, ge=-1, le=1, help="-1 to +1: ANNY's muscle phenotype; null: 0")
     sex: float | None = param(None, ge=-1, le=1, help="-1 female, 0 ANNY's mean body, +1 male; null: 0")
@@ -142,7 +144,7 @@ class SyntheticConfig:
                             choices=("textured", "low_texture", "plain"))  # eventcap.imaging.render.BACKGROUNDS
     background_seed: int = param(0, ge=0, help="texture of the static background")
     gt_rate_hz: float = param(1000.0, gt=0, help="rate of the ground-truth poses, joints and tracks")
-    n_track_points: int = param(300, ge=0, help="surface points whose ground-truth 2D tracks are recorded")
+    n_track_points: int = param(300, ge=0, le=10_000, help="surface points whose ground-truth 2D tracks are recorded")
 
 
 PROCEDURAL = StageSpec(name="procedural", kind="template", version=1,

@@ -49,11 +49,11 @@ class Outcome:
         return " | ".join(pick[:3]) if pick else (lines[-1] if lines else "")
 
 
-def run(argv: list[str], cwd: Path, timeout_s: float = 60.0) -> Outcome:
+def run(argv: list[str], cwd: Path, timeout_s: float = 60.0, env: dict | None = None) -> Outcome:
     """Run the CLI in a child process (its own session, so a stuck child is killed with its children), with the
     child's peak resident memory."""
     t0 = time.perf_counter()
-    env = {**os.environ, "EVENTCAP_CACHE_DIR": str(cwd / "cache"), "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, "EVENTCAP_CACHE_DIR": str(cwd / "cache"), "PYTHONPATH": str(ROOT)} if env is None else env
     with tempfile.TemporaryFile() as log:
         p = subprocess.Popen([*CLI, *argv], cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
                              stdin=subprocess.DEVNULL, start_new_session=True)
@@ -265,6 +265,139 @@ def issue_table(work: Path, settings: list[str] | None = None, timeout_s: float 
     return rows
 
 
+# ------------------------------------------------------------------------- issue 57: never touch what is not ours
+def listing(root: Path) -> dict[str, tuple[str, int, int]]:
+    """Every path under ``root`` (links not followed): kind, size and mtime. A case may change nothing but its run
+    folder and its marked cache."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            try:
+                st = p.lstat()
+            except FileNotFoundError:
+                continue
+            kind = "dir" if p.is_dir() and not p.is_symlink() else "file"
+            out[str(p)] = (kind, st.st_size if kind == "file" else 0, st.st_mtime_ns if kind == "file" else 0)
+    return out
+
+
+def root_listing() -> dict[str, tuple[str, int, int]]:
+    """The entries directly in ``/`` (never written by a case: ``hydra.run.dir=/`` once wrote three there)."""
+    out = {}
+    for name in os.listdir("/"):
+        try:
+            st = os.lstat("/" + name)
+        except FileNotFoundError:
+            continue
+        is_dir = os.path.isdir("/" + name)  # a folder's mtime moves whenever anyone writes in it (/tmp): not ours
+        out["/" + name] = ("dir" if is_dir else "file", 0 if is_dir else st.st_size, 0 if is_dir else st.st_mtime_ns)
+    return out
+
+
+def outside(before: dict, after: dict, allowed: list[Path]) -> list[str]:
+    """Paths added, removed or changed between two listings that lie in none of the ``allowed`` folders."""
+    changed = [p for p in set(before) | set(after) if before.get(p) != after.get(p)]
+    ok = [str(a).rstrip("/") + "/" for a in allowed]
+    # the new folders leading to an allowed one (runs/<name>/ made for the run's folder) belong to it
+    made = [p for p in changed if p not in before and after[p][0] == "dir" and any(a.startswith(p + "/") for a in ok)]
+    return sorted(p for p in changed if not any((p + "/").startswith(a) for a in ok) and p not in made)
+
+
+#: Issue 57's settings (and accepted neighbours) for ``eventcap run``: {theirs} is someone's folder holding tmp/ and
+#: trash/ (a 3-day-old file and folder in tmp/), {secret} a small text file that is no calibration, {empty} an empty
+#: folder, {fresh} a folder that does not exist yet, {old} a finished run's folder. (override, expected: "refused",
+#: or "accepted" on the toy pipeline, whose run folder and cache are the only places it may write)
+ISSUE57_SETTINGS = [
+    ("cache_dir={theirs}", "refused"), ("cache_dir=/", "refused"), ("cache_dir=/proc", "refused"),
+    ("cache_dir=/sys", "refused"), ("cache_dir=/dev/null", "refused"), ("hydra.run.dir=/", "refused"),
+    ("hydra.run.dir=/proc/self", "refused"), ("hydra.run.dir=/dev/null", "refused"),
+    ("hydra.run.dir={theirs}", "refused"), ("hydra.run.dir=../elsewhere", "refused"),
+    ("name=../../escape", "refused"), ("template.height_m=1000", "refused"), ("source.motion=", "refused"),
+    ("source.motion=../../../../etc/passwd", "refused"), ("source.calibration={secret}", "refused"),
+    ("source.calibration=/etc/shadow", "refused"), ("stages.detect.min_found=-0.5", "refused"),
+    ("stages.detect.min_found=5", "refused"), ("source.n_track_points=1000000000", "refused"),
+    ("executor=processes executor.workers=100000", "refused"),
+    ("toy cache_dir={empty}", "accepted"), ("toy hydra.run.dir={fresh}", "accepted"),
+    ("toy hydra.run.dir={old}", "accepted"), ("toy", "accepted"),
+]
+
+
+def _sandbox(root: Path) -> dict[str, Path]:
+    """Fresh folders for one case: the working folder (its runs/), someone's folder, a secret, an empty folder."""
+    shutil.rmtree(root, ignore_errors=True)
+    places = {"work": root / "work", "theirs": root / "theirs", "empty": root / "empty", "fresh": root / "abs_run",
+              "secret": root / "secret.txt", "old": root / "work" / "runs" / "earlier"}
+    (places["theirs"] / "tmp" / "old_dir").mkdir(parents=True)
+    (places["theirs"] / "tmp" / "old_dir" / "notes.txt").write_text("theirs")
+    (places["theirs"] / "tmp" / "old.txt").write_text("theirs")
+    (places["theirs"] / "trash").mkdir()
+    (places["theirs"] / "trash" / "draft.doc").write_text("theirs")
+    three_days = time.time() - 3 * 86400
+    for p in (places["theirs"] / "tmp" / "old.txt", places["theirs"] / "tmp" / "old_dir"):
+        os.utime(p, (three_days, three_days))
+    places["secret"].write_text("root:$6$s3cr3tsalt$hash:19000:0:99999:7:::\n")
+    places["empty"].mkdir()
+    places["old"].mkdir(parents=True)
+    (places["old"] / "run.json").write_text("{}")  # an earlier run's folder
+    return places
+
+
+def ownership_rows(work: Path, timeout_s: float = 120.0) -> list[dict]:
+    """Run every case of ISSUE57_SETTINGS in a fresh sandbox and list the sandbox (and ``/``) before and after: the
+    exit, the line that says what happened, and every path written or deleted outside the case's run folder and
+    marked cache (must be none)."""
+    from eventcap.core.ownership import check_run_folder, is_marked_cache
+
+    rows = []
+    toy = [f"hydra.searchpath=[file://{ROOT / 'tests' / 'conf'}]", "experiment=toy"]
+    toy_env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), str(ROOT)]),
+               "EVENTCAP_STAGES": "toy_stages:SPECS"}
+    for case, expected in ISSUE57_SETTINGS:
+        box = _sandbox(work / "sandbox")
+        words = case.format(**{k: str(v) for k, v in box.items()}).split()
+        is_toy = words[:1] == ["toy"]
+        argv = ["run", *(toy + words[1:] if is_toy else ["experiment=quick", *words])]
+        if "hydra.run.dir=/" in words and check_run_folder("/", "hydra.run.dir", False) is None:
+            rows.append({"case": case, "command": "run", "exit": "NOT RUN", "seconds": 0.0, "peak_mb": 0.0,
+                         "outcome": "the run-folder check takes /: not run", "left": ["/"]})
+            continue
+        env = {**(toy_env if is_toy else os.environ), "EVENTCAP_CACHE_DIR": str(box["work"] / "runs" / "cache")}
+        before, before_root = listing(work / "sandbox"), root_listing()
+        o = run(argv, box["work"], timeout_s, env=env)
+        after, after_root = listing(work / "sandbox"), root_listing()
+        allowed: list[Path] = []
+        cache = next((Path(w.split("=", 1)[1]) for w in words if w.startswith("cache_dir=")),
+                     box["work"] / "runs" / "cache")
+        if o.code == 0:
+            given = next((w.split("=", 1)[1] for w in words if w.startswith("hydra.run.dir=")), None)
+            new_runs = sorted({str(Path(p).parent) for p in set(after) - set(before)
+                               if Path(p).parent.parent == box["work"] / "runs" / "toy"})
+            allowed = [Path(given) if given else Path(new_runs[0]) if new_runs else box["work"] / "runs" / "toy"]
+            if is_marked_cache(cache):
+                allowed.append(cache)
+        o.left = outside(before, after, allowed) + outside(before_root, after_root, [])
+        row = _table_row(case, "run", o)
+        row["expected"] = expected
+        rows.append(row)
+    return rows
+
+
+def print_ownership(rows: list[dict], file=sys.stdout) -> None:
+    print("| setting | expected | exit | s | outcome | written or deleted outside the run folder and the marked cache |",
+          file=file)
+    print("|---|---|---|---|---|---|", file=file)
+    for r in rows:
+        print(f"| `{r['case']}` | {r['expected']} | {r['exit']} | {r['seconds']:.1f} | {r['outcome'][:300]} | "
+              f"{len(r['left'])}{': ' + ', '.join(r['left'][:4]) if r['left'] else ''} |", file=file)
+    wrong = [r for r in rows if (r["exit"] == 0) != (r["expected"] == "accepted")]
+    tb = [r for r in rows if r["outcome"].startswith(("TRACEBACK", "HANG"))]
+    print(f"\nissue 57's settings: {len(rows)} cases, {sum(r['exit'] not in (0, 'HANG') for r in rows)} refused, "
+          f"{len(wrong)} not as expected, {len(tb)} tracebacks or hangs, "
+          f"{sum(len(r['left']) for r in rows)} paths written or deleted outside a run folder or a marked cache",
+          file=file)
+
+
 def print_table(rows: list[dict], file=sys.stdout) -> None:
     print("| case | command | exit | s | peak MB | new outcome |", file=file)
     print("|---|---|---|---|---|---|", file=file)
@@ -286,13 +419,21 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=60.0, help="seconds before a command counts as stuck")
     ap.add_argument("--no-settings", action="store_true", help="leave out the bad settings (eventcap run)")
     ap.add_argument("--memory-events", type=int, default=3_000_000, help="events of the memory rows (0: none)")
+    ap.add_argument("--only-ownership", action="store_true", help="only issue 57's settings (sandbox listings)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="eventcap-bad-") as tmp:
-        rows = issue_table(Path(tmp), [] if args.no_settings else None, args.timeout)
-        if args.memory_events:
+        rows = [] if args.only_ownership else issue_table(Path(tmp), [] if args.no_settings else None, args.timeout)
+        if args.memory_events and not args.only_ownership:
             rows += memory_rows(Path(tmp), args.memory_events)
-    print_table(rows)
+        own = [] if args.no_settings else ownership_rows(Path(tmp), max(args.timeout, 120.0))
+    if rows:
+        print_table(rows)
+    if own:
+        print()
+        print_ownership(own)
     bad = [r for r in rows if r["exit"] == "HANG" or r["outcome"].startswith(("TRACEBACK", "HANG")) or r["left"]]
+    bad += [r for r in own if r["left"] or (r["exit"] == 0) != (r["expected"] == "accepted")
+            or r["outcome"].startswith(("TRACEBACK", "HANG"))]
     return 1 if bad else 0
 
 

@@ -3,17 +3,25 @@
 Usage: ``python3 benchmarks/robustness/fuzz_readers.py --n 2000 [--seed 0] [--workers 2] [--timeout 20]``
 (``--no-table`` leaves out issue 48's table of bad inputs run through the command line, bad_inputs.py).
 
-Corpus: small simulated recordings (random events, smooth frames; not real sensor data) written by
-:mod:`eventcap.io` in every format the readers take: aedat4, EVT2 and EVT3 .raw, dat, hdf5 with frames and
-calibration, npz with frames, npy, a (4, N) Fortran-order npy, a csv with a header of column names, an rpg folder
-with PNG frames, AEDAT 2.0 (DAVIS240C, with special events; with APS frames) and AEDAT 3.1 with frames and invalid
-events, the project's own zarr recording, plus the real DAVIS346 AEDAT4 file when it is there.
+Corpus: small simulated recordings (random events, smooth frames; not real sensor data), one for every reader of
+the registry (:mod:`eventcap.io.registry`, plugins and EVENTCAP_READERS included: a reader this module cannot write
+is written by its spec's ``sample``), written by :mod:`eventcap.io`: aedat4, EVT2 and EVT3 .raw, dat, hdf5 with
+frames and calibration, npz with frames, npy, a (4, N) Fortran-order npy, a csv with a header of column names, an
+rpg folder with PNG frames, AEDAT 2.0 (DAVIS240C, with special events; with APS frames) and AEDAT 3.1 with frames
+and invalid events, the project's own zarr recording, plus the real DAVIS346 AEDAT4 file when it is there.
 
 Damage, one per case, to one file of one corpus entry: bytes (bit flips, truncation, bytes inserted or deleted,
 garbage in the header) and events re-written in the same format after a change (``wild_time``: one event 1e12 µs
 late; ``time_jump``: every event from one on 2^26..2^40 µs late; ``x_outliers``: 0.1-100 % of the events beyond
 the sensor's right edge, in the formats that do not declare a size; ``unit``: a csv's times written as integer µs
-under the same header). A forked child reads the case with ``read_recording`` (and, when that succeeds, streams
+under the same header); events left in place but out of time order, re-written in file order (issue 57:
+``late_event``: one event 5 s late; ``moved_block``: a block of events moved earlier in the file;
+``swapped_blocks``: two blocks swapped; ``duplicated_block``: a block written twice) in the formats that keep file
+order (EVT2 and EVT3 written word by word by tests/helpers/evt_reference.py, npy, csv, HDF5); and, in the
+EVT files, word-level damage (``time_bitflip``: one bit of one time word; ``word_swap``: two blocks of words
+swapped; ``word_dup``: a block of words written twice); and ``declared_size``: a size the file declares made far
+larger than the bytes behind it (a zarr array's shape or chunk shape, HDF5 event datasets resized, an AEDAT4
+packet's size, an AEDAT 3.1 packet's capacity). A forked child reads the case with ``read_recording`` (and, when that succeeds, streams
 it with ``iter_event_chunks``; the zarr entry is read as ``eventcap preview`` reads it) and reports one class:
 
 - ``exact``: the same events, size and frames as the original, and no repair the original did not have;
@@ -22,7 +30,10 @@ it with ``iter_event_chunks``; the zarr entry is read as ``eventcap preview`` re
   value that is still a valid one (a flipped bit of an x, a polarity, a time within the events' pace; a file cut
   where its format cannot show a cut: docs/io-robustness.md says which);
 - ``refused``: a ``RecordingError`` (or the zarr reader's ``ArtifactError``) whose message names the damaged file;
-- ``SILENTLY_WRONG`` (must be 0): a promise broken: events unsorted, not starting at 0, outside the sensor,
+- ``SILENTLY_WRONG`` (must be 0): events the file does not hold, or events it holds gone without a note (checked
+  where what the file holds is known: the EVT files, decoded again word by word by a plain spec-literal decoder,
+  tests/helpers/evt_reference.py, and every file written in file order); or a promise broken: events unsorted, not
+  starting at 0, outside the sensor,
   polarity not ±1, duplicated; frames not finite in [0, 1], mis-shaped, times not increasing, negative exposure;
   a truncated file giving events that are not a prefix of the original's; streaming giving other events than
   reading whole; a time span longer than the original's by more than the time checks let pass (1 s); a sensor size
@@ -43,6 +54,7 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import random
+import re
 import shutil
 import sys
 import tempfile
@@ -64,7 +76,18 @@ OUTCOMES = ("exact", "repaired", "undetectable", "refused", "SILENTLY_WRONG", "T
 MUST_BE_ZERO = ("SILENTLY_WRONG", "TRACEBACK", "HANG")
 BYTE_KINDS = ("bitflip", "truncate", "insert", "delete", "header")
 EVENT_KINDS = ("wild_time", "time_jump", "x_outliers", "unit")
-KINDS = BYTE_KINDS + EVENT_KINDS
+#: events out of time order, written in file order (issue 57), and word-level damage of the EVT files
+ORDER_KINDS = ("late_event", "moved_block", "swapped_blocks", "duplicated_block")
+WORD_KINDS = ("time_bitflip", "word_swap", "word_dup")
+#: a declared size made larger than the bytes behind it (issue 57 item 4): a zarr array's shape or chunk shape, HDF5
+#: event datasets resized far beyond what is stored, an AEDAT4 packet's size, an AEDAT 3.1 packet's capacity
+SIZE_KINDS = ("declared_size",)
+SIZE_ENTRIES = ("zarr", "hdf5", "aedat4", "aedat4_real", "aedat3")
+KINDS = BYTE_KINDS + EVENT_KINDS + ORDER_KINDS + WORD_KINDS + SIZE_KINDS
+_WEIGHTS = (0.21, 0.12, 0.08, 0.08, 0.12, 0.06, 0.06, 0.06, 0.03, 0.03, 0.03, 0.03, 0.02, 0.02, 0.01, 0.01, 0.03)
+#: the formats whose files keep the order events are written in (ORDER_KINDS apply to them)
+FILE_ORDER = ("evt2", "evt3", "npy", "npy_4n", "csv", "hdf5")
+EVT = ("evt2", "evt3")
 #: formats that declare no sensor size (x_outliers applies to them) and the csv (unit applies to it)
 SIZELESS = ("npy", "npy_4n", "csv")
 #: the time checks let a jump below this pass (eventcap.io.checks.JUMP_MIN_US): a longer span is a broken promise
@@ -159,22 +182,48 @@ def write_entry(name: str, folder: Path, rec: RawRecording, time_as_int_us: bool
 
         recording_from_raw(rec, name="small").to_zarr(zarr.open_group(str(folder / "rec.zarr"), mode="w"))
         return folder / "rec.zarr"
-    raise ValueError(f"unknown corpus entry {name!r}")
+    from eventcap.io.registry import readers
+
+    spec = readers().find(name)
+    if spec is None:
+        raise ValueError(f"unknown corpus entry {name!r}")
+    if not spec.sample:
+        raise ValueError(f"reader {name!r} ({spec.origin}) declares no sample writer (ReaderSpec.sample): it cannot "
+                         f"be fuzzed")
+    return spec.load("sample")(folder, rec)
 
 
 _FOLDERS = {"rpg": (("events.txt", "images.txt", "calib.txt", "images/frame_00000001.png"), (0.55, 0.15, 0.15, 0.15)),
             "zarr": (("zarr.json", "events/events/t/c/0", "events/events/x/c/0", "events/events/t/zarr.json",
                       "events/zarr.json", "frames/images/c/0/0/0", "camera/zarr.json"),
                      (0.2, 0.25, 0.15, 0.1, 0.1, 0.1, 0.1))}
-ENTRY_NAMES = ("aedat4", "evt2", "evt3", "dat", "hdf5", "npz", "npy", "npy_4n", "csv", "aedat2", "aedat2_aps",
+#: corpus entries beyond one per registered format: the layouts of a format worth damaging apart
+VARIANTS = {"npy": ("npy", "npy_4n"), "rpg": ("rpg", "csv"), "aedat2": ("aedat2", "aedat2_aps")}
+#: the project's own format (eventcap convert writes it; not a reader of the registry)
+EXTRA_ENTRIES = ("zarr",)
+#: the formats this module writes itself (richer than a reader's own sample: frames, special events, invalid events)
+OWN_WRITERS = ("aedat4", "evt2", "evt3", "dat", "hdf5", "npz", "npy", "npy_4n", "csv", "aedat2", "aedat2_aps",
                "aedat3", "rpg", "zarr")
+
+
+def entry_names() -> tuple[str, ...]:
+    """The corpus: every reader of the registry (eventcap/io/registry.py, plugins and EVENTCAP_READERS included),
+    its variants, and the project's zarr. A reader this module has no writer for is fuzzed from its spec's
+    ``sample``."""
+    from eventcap.io.registry import readers
+
+    names = [v for n in readers().names() for v in VARIANTS.get(n, (n,))]
+    return tuple(names) + EXTRA_ENTRIES
+
+
+ENTRY_NAMES = entry_names()
 
 
 def make_corpus(folder: Path, include_real: bool = True) -> list[Entry]:
     """Write the corpus into ``folder``."""
     rec = synthetic_recording()
     entries = []
-    for name in ENTRY_NAMES:
+    for name in entry_names():
         path = write_entry(name, folder, rec)
         files, weights = _FOLDERS.get(name, (("",), (1.0,)))
         entries.append(Entry(name, path, files, weights))
@@ -225,6 +274,168 @@ def damage_events(rec: RawRecording, kind: str, rng: random.Random) -> RawRecord
     ev = ev[np.argsort(ev["t"], kind="stable")]
     ev["t"] -= ev["t"][0]
     return dataclasses.replace(rec, events=ev)
+
+
+def damage_order(ev: np.ndarray, kind: str, rng: random.Random) -> np.ndarray:
+    """The events in file order after ``kind`` (ORDER_KINDS): times unchanged except the one late event's."""
+    n = len(ev)
+    ev = ev.copy()
+    if kind == "late_event":
+        ev["t"][rng.randrange(1, n - 1)] += 5_000_000
+        return ev
+    size = rng.randint(1, max(1, n // 3))
+    a = rng.randrange(0, n - size)
+    if kind == "moved_block":  # a block from later in the file put earlier
+        b = rng.randrange(a, n - size + 1)
+        block = ev[b:b + size]
+        rest = np.concatenate([ev[:b], ev[b + size:]])
+        return np.concatenate([rest[:a], block, rest[a:]])
+    if kind == "duplicated_block":
+        return np.concatenate([ev[:a + size], ev[a:a + size], ev[a + size:]])
+    size = min(size, n // 2)  # swapped_blocks: two non-overlapping blocks
+    a = rng.randrange(0, n - 2 * size + 1)
+    b = rng.randrange(a + size, n - size + 1)
+    return np.concatenate([ev[:a], ev[b:b + size], ev[a + size:b], ev[a:a + size], ev[b + size:]])
+
+
+def write_in_order(name: str, folder: Path, rec: RawRecording, ev: np.ndarray) -> Path:
+    """Write events (file order, on ``rec``'s clock) as corpus entry ``name`` keeping their order."""
+    import dataclasses
+
+    if name in EVT:
+        from .evt_reference import write_in_file_order
+
+        return write_in_file_order(folder / f"small_{name}.raw", ev, name, rec.width, rec.height, rec.t_offset_us)
+    if name == "hdf5":
+        import h5py
+
+        with h5py.File(folder / "small.h5", "w") as f:
+            g = f.create_group("events")
+            g["t"], g["x"], g["y"], g["p"] = ev["t"] + rec.t_offset_us, ev["x"], ev["y"], (ev["p"] > 0).astype("u1")
+        return folder / "small.h5"
+    return write_entry(name, folder, dataclasses.replace(rec, events=ev))
+
+
+def damage_words(data: bytes, header_bytes: int, version: str, kind: str, rng: random.Random) -> bytes:
+    """One word-level damage (WORD_KINDS) of an EVT file's bytes."""
+    size = 2 if version == "evt3" else 4
+    dtype = "<u2" if size == 2 else "<u4"
+    body = np.frombuffer(data[header_bytes:len(data) - (len(data) - header_bytes) % size], dtype).copy()
+    n = len(body)
+    if kind == "time_bitflip":
+        shift = 12 if size == 2 else 28
+        times = np.flatnonzero(np.isin(body >> shift, (0x6, 0x8) if size == 2 else (0x8,)))
+        k = int(times[rng.randrange(len(times))])
+        body[k] ^= 1 << rng.randrange(12 if size == 2 else 28)
+        return data[:header_bytes] + body.tobytes()
+    m = rng.randint(1, max(1, n // 4))
+    a = rng.randrange(0, n - m)
+    if kind == "word_dup":
+        body = np.concatenate([body[:a + m], body[a:a + m], body[a + m:]])
+    else:
+        m = min(m, n // 2)
+        a = rng.randrange(0, n - 2 * m + 1)
+        b = rng.randrange(a + m, n - m + 1)
+        body = np.concatenate([body[:a], body[b:b + m], body[a + m:b], body[a:a + m], body[b + m:]])
+    return data[:header_bytes] + body.tobytes()
+
+
+def declare_larger(target: Path, entry_name: str, rng: random.Random) -> None:
+    """Make one declared size of the copy at ``target`` larger than the bytes behind it (SIZE_KINDS)."""
+    import json
+
+    huge = rng.choice((10**15, 2**40, 2**31 - 1, 10**9))
+    if entry_name == "zarr":
+        meta = target / rng.choice(("events/events/t", "events/events/x", "frames/images")) / "zarr.json"
+        doc = json.loads(meta.read_text())
+        if rng.random() < 0.7:
+            doc["shape"][0] = huge
+        else:
+            doc["chunk_grid"]["configuration"]["chunk_shape"][0] = huge
+        meta.write_text(json.dumps(doc))
+    elif entry_name == "hdf5":
+        import h5py
+
+        with h5py.File(target, "r+") as f:
+            for k in ("t", "x", "y", "p"):
+                f["events"][k].resize((min(huge, 2**40),))
+    elif entry_name.startswith("aedat4"):
+        from eventcap.io.aedat4 import check_ioheader
+
+        start, _ = check_ioheader(target)
+        data = bytearray(target.read_bytes())
+        pos, offsets = start, []
+        while pos + 8 <= len(data):
+            offsets.append(pos)
+            pos += 8 + int.from_bytes(data[pos + 4:pos + 8], "little")
+        k = offsets[rng.randrange(len(offsets))]
+        data[k + 4:k + 8] = min(huge, 2**32 - 1).to_bytes(4, "little")
+        target.write_bytes(bytes(data))
+    else:  # aedat3: a packet's capacity (events of `size` bytes that follow its header)
+        from eventcap.io.aedat_legacy import read_legacy_header
+
+        data = bytearray(target.read_bytes())
+        pos = read_legacy_header(target)[2]
+        offsets = []
+        while pos + 28 <= len(data):
+            offsets.append(pos)
+            size, capacity = (int.from_bytes(data[pos + a:pos + a + 4], "little") for a in (4, 16))
+            pos += 28 + size * capacity
+        k = offsets[rng.randrange(len(offsets))]
+        data[k + 16:k + 20] = min(huge, 2**31 - 1).to_bytes(4, "little")
+        target.write_bytes(bytes(data))
+
+
+# ------------------------------------------------------------------------------------------------------- checks
+_NOTED_DROPS = (re.compile(r"dropped (\d+) event\(s\) with wild times"), re.compile(r"dropped the (\d+) event\(s\)"),
+                re.compile(r"dropped (\d+) duplicated event\(s\)"), re.compile(r"dropped (\d+) outlier event\(s\)"))
+_NOTED_SHIFT = re.compile(r"subtracted 2\^(\d+) µs from there on")
+
+
+def unaccounted(got: np.ndarray, held: np.ndarray, repairs) -> list[str]:
+    """What a read changed beyond what its notes say, given the events the file holds (``held``, file time, any
+    order) and those read (``got``, file time): events at times the file does not hold (a shift the notes name
+    excepted), or events gone without a note (wild times, a cut, duplicates and outliers dropped are named with
+    their counts). Empty when everything is accounted for."""
+    def rows(a: np.ndarray) -> list[tuple]:
+        return [tuple(r) for r in np.asarray(a[["t", "x", "y", "p"]]).tolist()]
+
+    pool = collections.Counter(rows(held))
+    shifts = [0] + [1 << int(m.group(1)) for r in repairs for m in _NOTED_SHIFT.finditer(r)]
+    foreign = 0
+    for t, x, y, p in rows(got):
+        for s in shifts:
+            key = (t + s, x, y, p)
+            if pool[key] > 0:
+                pool[key] -= 1
+                break
+        else:
+            foreign += 1
+    out = []
+    if foreign:
+        out.append(f"{foreign} event(s) at times (or places) the file does not hold")
+    noted = sum(int(m.group(1)) for r in repairs for rx in _NOTED_DROPS for m in rx.finditer(r))
+    gone = len(held) - (len(got) - foreign)
+    if gone != noted:
+        out.append(f"{gone} of the file's events gone, the notes name {noted}")
+    return out
+
+
+def held_by_file(target: Path, entry_name: str, order_events: np.ndarray | None, t_offset_us: int) -> np.ndarray | None:
+    """The events the damaged file holds, when known (file time): what was written in file order, or an EVT file
+    decoded word by word by the spec-literal decoder."""
+    if order_events is not None:
+        out = order_events.copy()
+        out["t"] += t_offset_us
+        return out
+    if entry_name in EVT and target.is_file():
+        from .evt_reference import held_events
+
+        from eventcap.io.prophesee import header_kind, read_header
+
+        kind = header_kind(read_header(target)[0])
+        return held_events(target, kind if kind in EVT else entry_name)
+    return None
 
 
 # ------------------------------------------------------------------------------------------------------- checks
@@ -316,8 +527,10 @@ def _read_zarr(target: Path) -> RawRecording:
     return RawRecording(ev, rec.width, rec.height, t0, target, "zarr", frames, None, None, ())
 
 
-def classify(target: Path, kind: str, reference: RawRecording, chunk_events: int = 257) -> tuple[str, str]:
-    """Read ``target`` and judge the outcome against the undamaged ``reference`` (see the module docstring)."""
+def classify(target: Path, kind: str, reference: RawRecording, chunk_events: int = 257,
+             held: np.ndarray | None = None) -> tuple[str, str]:
+    """Read ``target`` and judge the outcome against the undamaged ``reference`` and, when given, the events the
+    file holds (``held``, file time; see the module docstring)."""
     from eventcap.artifacts import ArtifactError
 
     zarr_entry = target.name.endswith(".zarr")
@@ -337,6 +550,8 @@ def classify(target: Path, kind: str, reference: RawRecording, chunk_events: int
         if not (_is_prefix(ev, ref) or (dropped and _is_subset(ev, ref))):
             bad.append("a truncated file gave events that are not a prefix of the original's (nor, with events "
                        "dropped and said so, a subset of them)")
+    if not bad and held is not None:
+        bad = unaccounted(ev, held, r.repairs)
     if not bad:
         bad = promises_broken(r, reference)
     if not bad and not zarr_entry:
@@ -372,7 +587,10 @@ def _plan(seed: int, i: int) -> tuple[Entry, str, str]:
     rng = random.Random(f"{seed}:{i}")
     entry = _CORPUS[i % len(_CORPUS)]
     rel = rng.choices(entry.files, entry.weights)[0]
-    kind = rng.choices(KINDS, (0.25, 0.15, 0.1, 0.1, 0.15, 0.07, 0.07, 0.07, 0.04))[0]
+    kind = rng.choices(KINDS, _WEIGHTS)[0]
+    if (kind in ORDER_KINDS and entry.name not in FILE_ORDER) or (kind in WORD_KINDS and entry.name not in EVT) \
+            or (kind in SIZE_KINDS and entry.name not in SIZE_ENTRIES):
+        kind = "bitflip"
     if kind in EVENT_KINDS and (entry.name in ("aedat4_real", "zarr") or (kind == "x_outliers" and entry.name not in
                                                                          SIZELESS) or (kind == "unit" and
                                                                                        entry.name != "csv")):
@@ -395,6 +613,7 @@ def _child(seed: int, i: int, workdir: str, conn) -> None:
     base = Path(workdir) / f"case{i}"
     base.mkdir()
     target = None
+    order = None
     if kind in EVENT_KINDS:
         rec = _REFERENCE_RECORDINGS[entry.name]
         damaged = damage_events(rec, kind, rng) if kind != "unit" else rec
@@ -404,6 +623,23 @@ def _child(seed: int, i: int, workdir: str, conn) -> None:
             shutil.rmtree(base)
             base.mkdir()
             kind, target = "bitflip", None
+        ref = _REFERENCES[entry.name]
+    elif kind in ORDER_KINDS:
+        rec = _REFERENCE_RECORDINGS[entry.name]
+        order = damage_order(rec.events, kind, rng)
+        target = write_in_order(entry.name, base, rec, order)
+        ref = _REFERENCES[entry.name]
+    elif kind in SIZE_KINDS:
+        target = base / entry.path.name
+        (shutil.copytree if entry.path.is_dir() else shutil.copy)(entry.path, target)
+        declare_larger(target, entry.name, rng)
+        ref = _REFERENCES[entry.name]
+    elif kind in WORD_KINDS:
+        from eventcap.io.prophesee import read_header
+
+        target = base / entry.path.name
+        data = entry.path.read_bytes()
+        target.write_bytes(damage_words(data, read_header(entry.path)[1], entry.name, kind, rng))
         ref = _REFERENCES[entry.name]
     if target is not None:
         pass
@@ -418,7 +654,8 @@ def _child(seed: int, i: int, workdir: str, conn) -> None:
         shutil.copy(entry.path, victim)
         victim.write_bytes(mutate(victim.read_bytes(), kind, rng))
         ref = _REFERENCES[entry.name]
-    outcome, detail = classify(target, kind, ref)
+    held = held_by_file(target, entry.name, order, _REFERENCE_RECORDINGS[entry.name].t_offset_us)
+    outcome, detail = classify(target, kind, ref, held=held)
     conn.send((outcome, detail, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, kind))
     conn.close()
 
@@ -546,10 +783,16 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory(prefix="eventcap-bad-") as tmp:
             rows = bad_inputs.issue_table(Path(tmp), [] if args.no_settings else None)
             rows += bad_inputs.memory_rows(Path(tmp))
+            own = [] if args.no_settings else bad_inputs.ownership_rows(Path(tmp))
         print("issue 48's cases, run through the command line:")
         bad_inputs.print_table(rows)
         print()
         failed = any(r["exit"] == "HANG" or r["outcome"].startswith(("TRACEBACK", "HANG")) or r["left"] for r in rows)
+        if own:
+            print("issue 57's settings, each in a sandbox listed before and after (and /):")
+            bad_inputs.print_ownership(own)
+            print()
+            failed |= any(r["left"] or (r["exit"] == 0) != (r["expected"] == "accepted") for r in own)
     res = run_fuzz(args.n, args.seed, args.workers, args.timeout, not args.no_real, args.only,
                    log=lambda s: print(s, file=sys.stderr, flush=True))
     print_counts(res, args.n, args.seed, args.workers)
