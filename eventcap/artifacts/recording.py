@@ -15,7 +15,7 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.events import EVENT_DTYPE
 
-from .base import Artifact, ArtifactError, array, attr
+from eventcap.artifact import Artifact, ArtifactError, array, attr
 
 
 @dataclass(frozen=True, eq=False)

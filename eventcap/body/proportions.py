@@ -6,10 +6,10 @@ over a capture tell the rest:
 - **the measured segments** (:data:`SEGMENTS`): upper arms, forearms, thighs and shins (each side) and the shoulder
   and hip widths, between landmarks that sit on joints (BODY_25 points on SMPL joints);
 - **a seen length per image** (:func:`seen_segments`): the segment along the direction the 3D detection gives it,
-  its ends on the two 2D points' rays (:func:`seen_length`, perspective included), its middle at the depth of the
-  person's pelvis plus the 3D detection's depth offset of that middle. Only images where the segment lies mostly
-  across the line of sight count (its share across >= :data:`MIN_ACROSS`): along the line of sight the 2D points
-  say little about the length;
+  its ends on the two 2D points' rays (:func:`eventcap.camera.seen_length`, perspective included), its middle at the
+  depth of the person's pelvis plus the 3D detection's depth offset of that middle. Only images where the segment
+  lies mostly across the line of sight count (its share across >= :data:`MIN_ACROSS`): along the line of sight the
+  2D points say little about the length;
 - **the depth of the pelvis** per image: from the floor when the camera's height above it is known (a world from
   the camera's extrinsics: the floor is y = 0): the sole point of the supporting foot (the lower one in the 3D
   detection) lies on the floor, so its ray meets the floor at its depth (:func:`floor_depths`). Otherwise it is
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, PARENTS
-from eventcap.energy.landmarks import seen_length
+from eventcap.camera import seen_length
 
 #: The measured segments: name -> (joint a, joint b); each joint carries a BODY_25 landmark on it.
 SEGMENTS: dict[str, tuple[str, str]] = {

@@ -29,6 +29,7 @@ import numpy as np
 
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, PARENTS
+from eventcap.camera import seen_length
 
 #: The left-right pairs whose width a detector defines its own way.
 PAIRS = (("l_hip", "r_hip"), ("l_shoulder", "r_shoulder"))
@@ -43,24 +44,6 @@ class LandmarkWidths:
 
     scale: dict  #: pair name ("l_hip-r_hip") -> scale
     frames: dict  #: pair name -> frames used (0: the template's width kept)
-
-
-def seen_length(n_a: np.ndarray, n_b: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """(K,) the length ℓ of segments seen at the normalised image points n_a, n_b (K, 2), lying along the
-    directions v (K, 3, camera axes), with their middles at depth z (K,): the points z_a (n_a, 1) and z_b (n_b, 1)
-    with z_a (n_a, 1) - z_b (n_b, 1) = ℓ v / ‖v‖ (least squares, exact for consistent data; perspective included:
-    an off-axis segment along the line of sight still projects shorter than its image-plane part)."""
-    ra = np.concatenate([n_a, np.ones((len(n_a), 1))], axis=1)
-    rb = np.concatenate([n_b, np.ones((len(n_b), 1))], axis=1)
-    u = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
-    A = np.stack([ra, -u], axis=2)  # (K, 3, 2): [r_a, -u] (z_a, ℓ) = r_b with z_b = 1
-    AtA = np.einsum("kij,kil->kjl", A, A)
-    Atb = np.einsum("kij,ki->kj", A, rb)
-    det = AtA[:, 0, 0] * AtA[:, 1, 1] - AtA[:, 0, 1] * AtA[:, 1, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        za = (AtA[:, 1, 1] * Atb[:, 0] - AtA[:, 0, 1] * Atb[:, 1]) / det
-        ell = (AtA[:, 0, 0] * Atb[:, 1] - AtA[:, 1, 0] * Atb[:, 0]) / det
-        return ell * z / (0.5 * (za + 1.0))
 
 
 def measure_widths(template, camera, fits: np.ndarray, det) -> LandmarkWidths:
@@ -109,4 +92,4 @@ def with_widths(template, widths: LandmarkWidths):
     return replace(template, name=f"{template.name}[widths {tag}]", landmark_joint=lj, landmark_offset=lo)
 
 
-__all__ = ["PAIRS", "seen_length", "LandmarkWidths", "measure_widths", "with_widths"]
+__all__ = ["PAIRS", "LandmarkWidths", "measure_widths", "with_widths"]
