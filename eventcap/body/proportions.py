@@ -59,8 +59,8 @@ DETECTOR_DEFINITIONS: dict[str, dict[str, float]] = {
                   "hips": 0.870},
 }
 #: The floor tells the person's depth only when the camera looks down on it steeply enough: the camera's height
-#: over the person's distance at least this (a ray's depth error per pixel grows as distance / height). On the
-#: tuning captures every camera below it put the person 10-25 % too far (too tall), every one above it within 7 %.
+#: over the person's distance at least this (a ray's depth error per pixel grows as distance / height; chosen on the
+#: tuning captures: docs/results/implementation.md).
 MIN_FLOOR_ELEVATION = 0.3
 #: The sole points of each foot (heels and big toes), BODY_25 landmarks.
 _SOLES = {"l": ("l_heel", "l_big_toe"), "r": ("r_heel", "r_big_toe")}
@@ -272,8 +272,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
             scale_from = f"template default (the supporting foot's sole seen on the floor in {int(ok.sum())} images)"
             break
         # the model at `height` is seen at depth z; the person at the floor's depth is k times as tall
-        k = float(np.median(fz[ok] / x[len(pheno):][ok]))  # (a lower quantile, against feet off the floor, did
-        # no better on the tuning captures)
+        k = float(np.median(fz[ok] / x[len(pheno):][ok]))
         height = float(np.clip(height * k, *STATURE_RANGE_M))
         floor_images = int(ok.sum())
         scale_from = "floor"

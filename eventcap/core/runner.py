@@ -35,8 +35,8 @@ from eventcap.core.stage import StageContext, StageSpec
 
 log = logging.getLogger("eventcap.core.runner")
 
-#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines costs 10-30x (a dense
-#: Cholesky took 1.4 s instead of 49 ms with two threads fighting on a busy 2-core machine).
+#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines makes small products many
+#: times slower (docs/results/implementation.md).
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
@@ -112,7 +112,7 @@ def artifact_nbytes(a: Artifact) -> int:
 #: Artifacts this process loaded or committed, by (cache root, stage, key, port): a node's outputs are read by the
 #: nodes after it without reading them back. Bounded by count and by their arrays' bytes; the bytes bound is well
 #: above a long capture's recording: a recording evicted by smaller entries would be read again by every task that
-#: needs it (a 20 s capture read its recording 265 times with a 256 MB bound, and the process grew to 3.1 GB).
+#: needs it (docs/results/implementation.md).
 _ARTIFACTS = ProcessCache("runner.inputs", maxsize=32, max_bytes=2 << 30, weigh=artifact_nbytes)
 
 

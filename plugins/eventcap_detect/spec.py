@@ -112,7 +112,7 @@ class BlazePoseConfig(ViewChecksConfig):
 
 
 BLAZEPOSE = StageSpec(
-    name="blazepose", kind="detect", version=4,  # 4: the region check at a noisy sensor
+    name="blazepose", kind="detect", version=4,
     description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints",
     config=BlazePoseConfig,
     inputs={"recording": Port(Recording),
@@ -130,7 +130,7 @@ SIMULATED = StageSpec(
 )
 
 FILE = StageSpec(
-    name="detections_file", kind="detect", version=3,  # 3: the region check at a noisy sensor
+    name="detections_file", kind="detect", version=3,
     description="2D/3D detections produced elsewhere (OpenPose JSON, npz, csv), aligned with the frames",
     config=DetectionsFileConfig, inputs={"recording": Port(Recording)},
     outputs={"detections": Port(Detections)},

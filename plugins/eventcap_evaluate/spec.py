@@ -30,8 +30,7 @@ class EvaluateConfig:
 
 
 EVALUATE = StageSpec(
-    name="evaluate", kind="evaluate", version=5,  # 3: gaps not evaluated, coverage; 4: depth and image-plane split;
-    # 5: the body's segment lengths against the truth
+    name="evaluate", kind="evaluate", version=5,
     description="mean per-joint 3D error (AE, Procrustes-aligned) and its STD on every 10th frame, AE.raw / "
                 "AE.nonRaw, per-joint errors, data rate (MB/s) against 1000 fps frames; velocity error (MPJVE), acceleration "
                 "error and end-effector peak speed per batch, root-relative; the root-relative error split along the "

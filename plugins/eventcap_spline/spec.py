@@ -105,9 +105,7 @@ class SplineSolveConfig:
     contact: ContactConfig = group(ContactConfig, help="evidence: when a sole point counts as in contact with the "
                                                        "floor (the floor and slide terms)")
     terms: SplineTerms = group(SplineTerms, help="the terms of the energy: each one's weight (0: off) and settings")
-    ipopt: IpoptConfig = group(IpoptConfig, barrier="adaptive", help="IPOPT's options for every solve of a window "
-                                                                      "(adaptive barrier: a chunk's long window "
-                                                                      "needs 37 iterations instead of 64)")
+    ipopt: IpoptConfig = group(IpoptConfig, barrier="adaptive", help="IPOPT's options for every solve of a window")
 
 
 #: Settings that moved when the config was nested: {old key: new key}; an old key is refused naming its new one.
@@ -132,10 +130,7 @@ SPLINE_RENAMED = {
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=14,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
-    # widths; 10: window_step (a batch another window keeps returns no frames); 11: nested settings, energies named
-    # by the terms' groups; 12: a unit may be a chunk of batches; 13: the adaptive barrier capped; 14: each joint's
-    # Laplace σ (sigma_mm)
+    name="spline", kind="solve", version=14,
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
                 "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
                 "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
@@ -182,8 +177,7 @@ class StitchConfig:
 
 
 STITCH = StageSpec(
-    name="stitch", kind="fuse", version=4,  # 3: windows advancing by several batches; windows that only touch;
-    # 4: the windows' σ blended
+    name="stitch", kind="fuse", version=4,
     description="the spline solve's overlapping windows blended into one motion over the whole recording, each "
                 "window weighted by a C² bump over its span (no seam where batches meet; not in the paper)",
     config=StitchConfig,
@@ -199,7 +193,7 @@ class CutConfig:
 
 
 CUT = StageSpec(
-    name="cut", kind="fuse", version=2,  # 2: with the motion's σ
+    name="cut", kind="fuse", version=2,
     description="a batch's frames of the stitched whole-recording motion",
     config=CutConfig,
     inputs={"motion": Port(PoseSequence, "the stitch stage's motion"), "batches": Port(BatchPlan)},
