@@ -17,7 +17,7 @@ over a capture tell the rest:
   height);
 - **a detector's own definitions** (:data:`DETECTOR_DEFINITIONS`): a detector puts some points elsewhere than the
   template's joints (BlazePose: hips and shoulders nearer together); its seen lengths are divided by the share
-  measured on the tuning captures before they are compared with a body's;
+  found on the tuning captures before they are compared with a body's;
 - **the fit** (:func:`fit_body`): ANNY's phenotypes (the stature, ``sex`` and ``muscle``; ``build`` moves no joint
   by more than 2 mm and is left as it is) that best explain the seen lengths, robustly (soft-L1 on the relative
   length error), with weak priors towards ANNY's mean body, within ANNY's ranges. What the user stated is not fitted.
@@ -48,8 +48,8 @@ GIRDLES = ("shoulders", "hips")
 MIN_ACROSS = 0.7
 #: A segment with fewer images than this is not measured.
 MIN_IMAGES = 3
-#: Where a detector puts its points against the template's joints: seen length / true length per segment,
-#: measured on the open benchmark's tuning captures (seeds 0-19; docs/results/body.md). A detector
+#: Where a detector puts its points against the template's joints: seen length / true length per segment, on the
+#: open benchmark's tuning captures (seeds 0-19; docs/results/body.md). A detector
 #: not listed is taken to put them on the joints (the simulated detector does).
 DETECTOR_DEFINITIONS: dict[str, dict[str, float]] = {
     # BlazePose GHUM (full): the medians over the 10 whole-body tuning captures with frames, left and right averaged

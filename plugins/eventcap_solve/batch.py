@@ -57,8 +57,7 @@ built into the NLP.
 Initialisation (paper): S_0 and S_N are fitted to E_2D + E_3D (a one-frame problem, built once as well). The fit
 starts from a closed-form guess (T-pose with the root rotation from a Kabsch fit of the detected 3D torso, the
 pelvis from a linear fit of the 2D rays) and first fits E_3D alone, then both: from a T-pose the projection term
-has poor local minima (limbs swung to the wrong side; measured 50-150 mm errors with exact detections, 0.3 mm
-staged). S_1..S_{N-1} are interpolated linearly in time, after unwrapping S_N's root angles to the nearest
+has poor local minima (limbs swung to the wrong side, even with exact detections). S_1..S_{N-1} are interpolated linearly in time, after unwrapping S_N's root angles to the nearest
 2π-equivalent of S_0's. Then correspondence search and solve alternate (``icp_rounds``, as in ICP), each solve
 warm-started from the previous estimate.
 
@@ -69,8 +68,8 @@ parallel, cached per batch). ``free`` lets the solve move them (the batches then
 
 Correspondences near silhouette or self-occlusion edges of the current estimate (``edge_margin_px``, 1 px) are
 left out: there a feature is on an occluding contour, not on one surface point, and the estimate's edge is off by
-its own error. Measured: with EKLT tracks on fast synthetic motion, 0 → 1 → 2 px margin gave 5.2 → 4.0 → 3.2 mm;
-with exact tracks on a 240×180 image, where limbs are a few pixels wide, 3.8 → 5.1 → 8.5 mm. 1 px is the default.
+its own error; on a small image, where limbs are a few pixels wide, a wide margin leaves too little. 1 px is the
+default (docs/results/implementation.md).
 
 Modes (baselines of the paper's evaluation, from the same code):
 

@@ -16,7 +16,7 @@ average that error instead. Two stages do it, after a solve in mode ``odometry``
 - ``place`` (per batch) puts each batch's event trajectory onto the graph: anchored at X_k, with the mismatch at
   frame N spread linearly, so batch k ends exactly where batch k+1 starts.
 
-The estimate of rho needs many batches (what the fusion measured: docs/results/implementation.md).
+The estimate of rho needs many batches (the fusion against linear: docs/results/implementation.md).
 """
 
 from __future__ import annotations

@@ -1121,7 +1121,7 @@ def relocate(
     under rotation or deformation, and a stitched track would switch points at mid-batch.
 
     The patch must lie on the moving object: a patch that is mostly static background around a thin limb makes
-    stitching worse (the radii measured: docs/results/implementation.md).
+    stitching worse (the radii tried: docs/results/implementation.md).
     """
     a = _check_log_image("log_image_0", log_image_0).astype(np.float32)
     b = _check_log_image("log_image_1", log_image_1).astype(np.float32)
