@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eventcap.artifacts.base import Artifact, array, attr
+from eventcap.artifact import Artifact, array, attr
 
 #: Public calibration of a DAVIS240C (rpg Event Camera Dataset), order fx fy cx cy k1 k2 p1 p2 k3.
 DAVIS240C_CALIBRATION = (199.092, 198.829, 132.192, 110.713, -0.3684, 0.1509, -0.0003, -0.0008, 0.0)
@@ -294,6 +294,24 @@ def tilt_from_up(up_camera) -> tuple[float, float]:
     pitch = math.degrees(math.asin(float(np.clip(u[2], -1.0, 1.0))))
     roll = math.degrees(math.atan2(u[0], -u[1]))
     return pitch, roll
+
+
+def seen_length(n_a: np.ndarray, n_b: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """(K,) the length ℓ of segments seen at the normalised image points n_a, n_b (K, 2), lying along the
+    directions v (K, 3, camera axes), with their middles at depth z (K,): the points z_a (n_a, 1) and z_b (n_b, 1)
+    with z_a (n_a, 1) - z_b (n_b, 1) = ℓ v / ‖v‖ (least squares, exact for consistent data; perspective included:
+    an off-axis segment along the line of sight still projects shorter than its image-plane part)."""
+    ra = np.concatenate([n_a, np.ones((len(n_a), 1))], axis=1)
+    rb = np.concatenate([n_b, np.ones((len(n_b), 1))], axis=1)
+    u = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    A = np.stack([ra, -u], axis=2)  # (K, 3, 2): [r_a, -u] (z_a, ℓ) = r_b with z_b = 1
+    AtA = np.einsum("kij,kil->kjl", A, A)
+    Atb = np.einsum("kij,ki->kj", A, rb)
+    det = AtA[:, 0, 0] * AtA[:, 1, 1] - AtA[:, 0, 1] * AtA[:, 1, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        za = (AtA[:, 1, 1] * Atb[:, 0] - AtA[:, 0, 1] * Atb[:, 1]) / det
+        ell = (AtA[:, 0, 0] * Atb[:, 1] - AtA[:, 1, 0] * Atb[:, 0]) / det
+        return ell * z / (0.5 * (za + 1.0))
 
 
 def davis240c_default(distortion: bool = True, eye=DEFAULT_EYE_M, target=DEFAULT_TARGET_M) -> Camera:

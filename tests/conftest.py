@@ -18,6 +18,9 @@ import pytest  # noqa: E402
 from helpers.paths import TESTS  # noqa: E402
 from helpers.toy import TOY_PIPELINE, TOY_STAGES, toy_env  # noqa: E402
 
+#: tests/fixtures holds packages that tests install (a plugin's own tests run inside it, once it is installed)
+collect_ignore = ["fixtures"]
+
 
 def _stages_in_process(monkeypatch, specs: str):
     """Register the test stages ``specs`` (EVENTCAP_STAGES syntax, modules in tests/) for one test."""

@@ -101,6 +101,24 @@ def test_a_per_batch_stage_reads_its_neighbours_batches(toy_cfg, tmp_path):
     assert again.ok and again.nodes["near"].cached == 4 and again.nodes["near"].computed == 0
 
 
+def test_an_all_batches_input_reads_a_whole_output_as_a_sequence_of_one(toy_cfg, tmp_path):
+    """toy_sum reads every batch of scale.chunk, or the whole signal: one item, its batches [None]."""
+    cfg = toy_cfg()
+    cfg["pipeline"]["nodes"]["total"]["inputs"] = {"chunks": "signal.series"}
+    runner = Runner(cfg)
+    r = runner.run(tmp_path / "r")
+    signal = runner.load_output(r, "signal.series")[None]
+    total = runner.load_output(r, "total.metrics")[None].values
+    assert r.ok and total["n_batches"] == 1
+    assert total["sum"] == pytest.approx(float(np.sum(signal.values)), rel=1e-12)
+    from eventcap.core.runner import BatchSequence, InputRefSpec, _cache_at
+
+    key = r.nodes["signal"].keys[0]
+    seq = BatchSequence(_cache_at(str(runner.cache.root)), InputRefSpec("toy_signal", "series", (key,), True,
+                                                                        whole=True), type(signal))
+    assert len(seq) == 1 and seq.batches == [None] and seq[0].equals(signal)
+
+
 def test_a_per_batch_stage_sees_only_the_selected_batches(toy_cfg):
     cfg = _with_neighbours(toy_cfg())
     cfg["batches"] = "1:3"

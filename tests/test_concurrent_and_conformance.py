@@ -77,3 +77,12 @@ import pytest  # noqa: E402
 @pytest.fixture(autouse=True)
 def _toy_registered(toy):
     yield
+
+
+def test_the_suite_asks_for_a_sensitive_setting_while_the_stage_has_one():
+    class NoSensitive(_ToyConformance):
+        stage_name = "toy_sum"
+
+    with pytest.raises(AssertionError, match=r"set sensitive = \(setting, another value\) on NoSensitive: stage "
+                                             r"'toy_sum' has settings that change its result: power"):
+        NoSensitive().test_cache_key_sensitive()

@@ -83,7 +83,7 @@ def test_a_default_folder_is_always_fresh(tmp_path):
 
 def test_a_live_runs_folder_is_refused_and_left_alone(tmp_path):
     same = ["hydra.run.dir=runs/same", f"cache_dir={tmp_path / 'cache'}"]
-    a = subprocess.Popen(TOY + same + ["stages.scale.factor=5", "stages.smooth.sleep_s=2"], cwd=tmp_path,
+    a = subprocess.Popen(TOY + same + ["stages.scale.factor=5", "stages.smooth.sleep_s=2.0"], cwd=tmp_path,
                          env=toy_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         _wait_for(lambda: f"pid {a.pid} " in (tmp_path / "runs" / "same" / LOCK_NAME).read_text()

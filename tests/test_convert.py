@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import zarr
 
-import eventcap.artifacts.base as base
+import eventcap.artifact as base
 from eventcap.artifacts import ArtifactError
-from eventcap.artifacts.base import ArrayAppender
+from eventcap.artifact import ArrayAppender
 from eventcap.artifacts.recording import Recording
 from eventcap.apps.cli import main
 from eventcap.events import EVENT_DTYPE

@@ -226,6 +226,7 @@ class _NoConfig:
 @dataclass
 class _OffsetConfig:
     offset_m: float = param(0.0, help="shift of the root along x, metres")
+    wobble_rad: float = param(0.0, help="amplitude of a 7 ms sine added to every joint angle, radians")
 
 
 def run_test_source(inputs, config, ctx):
@@ -238,10 +239,21 @@ def run_test_solve(inputs, config, ctx):
     t = np.arange(b.t0_us, b.t1_us + 1, 1_000, dtype=np.int64)
     S = rec.ground_truth.poses[np.searchsorted(rec.ground_truth.t_us, t)].copy()
     S[:, 30] += config.offset_m
+    S[:, :27] += config.wobble_rad * np.sin(2 * np.pi * t / 7_000)[:, None]
     return {"poses": PoseSequence(t_us=t, poses=S, status="Solve_Succeeded")}
 
 
+def run_test_join(inputs, config, ctx):
+    seq = inputs["poses"]
+    assert seq.batches[0] is not None  # a per-batch upstream: its batches are named
+    t, S, _ = join_batches([seq[i] for i in range(len(seq))])
+    return {"motion": PoseSequence(t_us=t, poses=S, status="joined")}
+
+
 RUNNER_SPECS = [
+    StageSpec(name="eval_test_join", kind="fuse", version=1, description="every batch's poses as one motion",
+              config=_NoConfig, inputs={"poses": Port(PoseSequence, all_batches=True)},
+              outputs={"motion": Port(PoseSequence)}, run="test_evaluate:run_test_join"),
     StageSpec(name="eval_test_source", kind="source", version=1, description="the tiny recording of test_evaluate",
               config=_NoConfig, inputs={}, outputs={"recording": Port(Recording), "batches": Port(BatchPlan)},
               run="test_evaluate:run_test_source"),
@@ -270,3 +282,36 @@ def test_runner_hands_all_batches_and_collects_metrics(tmp_path, monkeypatch):
     assert result.ok
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())["evaluate.metrics"]
     assert m["AE_mm"] == pytest.approx(50.0, abs=1e-9) and m["n_batches"] == 3 and m["n_shared_frames"] == 2
+
+
+def test_a_whole_recording_motion_is_measured_as_its_batches(tmp_path, monkeypatch):
+    """evaluate reads a whole-recording node's poses (a post-processing node's): the same motion handed as one
+    PoseSequence or cut into its batches gives the same metrics, the peak speeds per intensity-frame interval."""
+    import json
+
+    from eventcap.core.runner import Runner, reset_process_caches
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent))
+    monkeypatch.setenv("EVENTCAP_STAGES", f"{STAGES},test_evaluate:RUNNER_SPECS")
+    reset_process_caches()
+    nodes = {"source": {},
+             "solve": {"inputs": {"recording": "source.recording", "batches": "source.batches"}},
+             "join": {"inputs": {"poses": "solve.poses"}},
+             "whole": {"config": "stages.evaluate", "inputs": {"recording": "source.recording", "poses": "join.motion"}},
+             "batches": {"config": "stages.evaluate",
+                         "inputs": {"recording": "source.recording", "poses": "solve.poses"}}}
+    cfg = {"pipeline": {"nodes": nodes},
+           "stages": {"source": {"stage": "eval_test_source"},
+                      "solve": {"stage": "eval_test_solve", "offset_m": 0.02, "wobble_rad": 0.05},
+                      "join": {"stage": "eval_test_join"}, "evaluate": {"stage": "evaluate", "every": 3, "align": "none"}},
+           "cache_dir": str(tmp_path / "cache")}
+    result = Runner(cfg).run(tmp_path / "run")
+    assert result.ok
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    whole, cut = m["whole.metrics"], m["batches.metrics"]
+    assert whole["n_batches"] == 1 and cut["n_batches"] == 3 and whole["n_frames"] == cut["n_frames"] > 30
+    assert whole["AE_mm"] > 20.0 and whole["MPJVE_mm_s"] > 100.0 and whole["n_peak_pairs"] > 0
+    for key in ("AE_mm", "STD_mm", "AE_raw_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err", "depth_mm"):
+        assert whole[key] == pytest.approx(cut[key], rel=1e-12), key
+    assert whole["peak_speed_errors"] == cut["peak_speed_errors"]  # per intensity-frame interval: the batches
+    assert len(whole["peak_speed_errors"]) == 3

@@ -90,3 +90,88 @@ def test_the_runner_reset_clears_them_all():
     cache.get("k", lambda: 1)
     reset_process_caches()
     assert len(cache) == 0
+
+
+#: every process cache of the solves (module: names)
+SOLVE_CACHES = {"eventcap.energy.kernels": {"energy.kernels"},
+                "eventcap_solve._impl": {"eventcap_solve.problems"},
+                "eventcap_refine._impl": {"eventcap_refine.problems"},
+                "eventcap_spline._impl": {"eventcap_spline.solvers", "eventcap_spline.capture_templates",
+                                          "eventcap_spline.capture_floors"},
+                "eventcap_spline.solve": {"eventcap_spline.frame_fits"}}
+
+
+def test_the_solves_caches_are_process_caches_and_the_reset_empties_them():
+    import importlib
+
+    from eventcap.core.runner import reset_process_caches
+
+    by_name = {}
+    for module, names in SOLVE_CACHES.items():
+        importlib.import_module(module)
+        found = {c.name: c for c in process_caches() if c.name in names}
+        assert set(found) == names, f"{module}: {sorted(names - set(found))} not a ProcessCache"
+        by_name.update(found)
+    for name, cache in by_name.items():
+        cache.get(("test", name), lambda: 1)
+    reset_process_caches()
+    assert {n: len(c) for n, c in by_name.items()} == dict.fromkeys(by_name, 0)
+    assert all(c.maxsize is not None for c in by_name.values()), "every cache of the solves is bounded"
+
+
+def _module_dict_caches(path) -> list[str]:
+    """Module-level names bound to an empty dict, list or set that a function of the module fills or empties."""
+    import ast
+
+    tree = ast.parse(path.read_text())
+    empty = set()
+    for node in tree.body:
+        target, value = (node.target, node.value) if isinstance(node, ast.AnnAssign) else (
+            (node.targets[0], node.value) if isinstance(node, ast.Assign) and len(node.targets) == 1 else (None, None))
+        if isinstance(target, ast.Name) and (
+                isinstance(value, (ast.Dict, ast.List, ast.Set)) and not getattr(value, "keys", getattr(value, "elts", [1]))
+                or isinstance(value, ast.Call) and isinstance(value.func, ast.Name)
+                and value.func.id in ("dict", "list", "set", "OrderedDict") and not value.args):
+            empty.add(target.id)
+    found = set()
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for node in ast.walk(fn):
+            if isinstance(node, ast.Subscript) and isinstance(node.ctx, ast.Store) and isinstance(node.value, ast.Name):
+                name = node.value.id
+            elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and isinstance(
+                    node.func.value, ast.Name) and node.func.attr in ("clear", "setdefault", "update", "append", "pop",
+                                                                       "add", "popitem"):
+                name = node.func.value.id
+            else:
+                continue
+            if name in empty:
+                found.add(name)
+    return sorted(found)
+
+
+#: module-level containers filled at run time that are state, not memos (nothing to rebuild them from)
+NOT_CACHES = {
+    "eventcap/energy/factor.py: FACTORS",  # the factor classes, registered as each class is defined
+    "eventcap/core/rundir.py: _HELD",  # the run folders this process holds locked (their open lock files)
+    "eventcap/apps/cli.py: _RUN_FAILURES",  # the jobs of this command that failed (its exit code)
+}
+
+
+def test_no_module_level_dict_serves_as_a_cache():
+    from helpers.paths import ROOT
+
+    found = {f"{p.relative_to(ROOT)}: {name}" for base in ("eventcap", "plugins")
+             for p in sorted((ROOT / base).rglob("*.py")) for name in _module_dict_caches(p)}
+    assert NOT_CACHES <= found, f"no longer module-level state, remove from NOT_CACHES: {sorted(NOT_CACHES - found)}"
+    bad = sorted(found - NOT_CACHES)
+    assert not bad, ("module-level containers filled at run time: make each an eventcap.memo.ProcessCache (bounded, "
+                     "keyed by value, emptied by clear_process_caches):\n" + "\n".join(bad))
+
+
+def test_the_scan_finds_a_bare_dict_cache(tmp_path):
+    src = tmp_path / "m.py"
+    src.write_text("_C: dict = {}\nTABLE = {'a': 1}\n_L = []\n\ndef get(k):\n    if k not in _C:\n        _C[k] = k\n"
+                   "    _L.append(k)\n    return TABLE[k]\n")
+    assert _module_dict_caches(src) == ["_C", "_L"]

@@ -19,7 +19,7 @@ import zarr
 
 
 from eventcap.artifacts import ArtifactError
-from eventcap.artifacts.base import read_array
+from eventcap.artifact import read_array
 from eventcap.apps.cli import main
 from helpers.paths import TESTS
 from helpers.toy import toy_env

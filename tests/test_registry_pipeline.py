@@ -111,9 +111,9 @@ def test_per_batch_into_whole_needs_all_batches(toy_cfg):
     ok = build_pipeline(cfg, load_registry())  # per-batch -> per-batch is fine
     assert ok[-1].spec.per_batch
     cfg = toy_cfg()
-    cfg["pipeline"]["nodes"]["total"]["inputs"] = {"chunks": "signal.series"}
-    ps = problems(cfg)
-    assert any("declared all_batches" in p and "signal.series is whole-recording" in p for p in ps)
+    cfg["pipeline"]["nodes"]["total"]["inputs"] = {"chunks": "signal.series"}  # all_batches reads a whole output too
+    nodes = {n.name: n for n in build_pipeline(cfg, load_registry())}
+    assert nodes["total"].inputs["chunks"].node == "signal" and not nodes["total"].spec.per_batch
 
 
 def test_cycle_is_named(toy_cfg):
@@ -154,3 +154,24 @@ def test_every_tracker_drops_into_the_shipped_pipelines(pipeline, track):
     node = {n.name: n for n in build_pipeline(cfg, load_registry())}["track"]
     assert node.spec.name == track
     assert "detections" in node.inputs
+
+
+def test_a_packages_config_folder_is_found_through_its_entry_point(tmp_path, monkeypatch, caplog):
+    from importlib.metadata import EntryPoint
+
+    import eventcap.core.registry as registry
+
+    (tmp_path / "myplug" / "conf" / "pipeline").mkdir(parents=True)
+    for init in ("myplug/__init__.py", "myplug/conf/__init__.py", "myplug/flat.py"):
+        (tmp_path / init).write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    eps = [EntryPoint("b_good", "myplug.conf", registry.CONFIG_GROUP),
+           EntryPoint("a_missing", "myplug_nowhere.conf", registry.CONFIG_GROUP),
+           EntryPoint("c_module", "myplug.flat", registry.CONFIG_GROUP)]
+    monkeypatch.setattr(registry, "entry_points", lambda group: eps if group == registry.CONFIG_GROUP else [])
+    with caplog.at_level("WARNING"):
+        found = registry.plugin_config_dirs()
+    assert found == [("b_good", tmp_path / "myplug" / "conf")]
+    assert ("entry point a_missing = myplug_nowhere.conf (group eventcap.configs): ModuleNotFoundError: No module "
+            "named 'myplug_nowhere'; expected a package whose folder holds config groups") in caplog.text
+    assert "entry point c_module = myplug.flat (group eventcap.configs): a module, not a package" in caplog.text

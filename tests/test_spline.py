@@ -644,11 +644,11 @@ def test_the_stage_measures_the_detectors_widths_and_the_floor_once_per_capture_
     detector puts them on the joints: within 10% of the template's), in the stats and the log; the floor terms: the
     floor's height over the capture in the log, near the feet of the actor standing on y = 0 (the soles' landmarks
     are a few centimetres above the mesh's soles)."""
-    from eventcap_spline import _impl
+    from eventcap.memo import clear_process_caches
 
     inputs = stage_inputs()
     b = inputs["batches"].batch(1)
-    _impl._FLOORS.clear()
+    clear_process_caches()  # the capture's template and floor are measured once per process
     with caplog.at_level("INFO"):
         out, ctx = run_stage(inputs, b, landmarks="widths", icp_rounds=1,
                               **{"terms.floor.gain": 1.0, "terms.slide.gain": 1.0})

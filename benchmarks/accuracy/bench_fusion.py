@@ -172,7 +172,7 @@ def main() -> None:
     for motion in args.motions.split(","):
         for i, track in enumerate(trackers or ["eklt"]):
             rec, det, sliced = load(motion, track, args)
-            problem = problem_for(rec.template, rec.camera, sliced[0].t_us.size, BatchSolveConfig(mode="odometry"))
+            problem, _ = problem_for(rec.template, rec.camera, sliced[0].t_us.size, BatchSolveConfig(mode="odometry"))
             fits = frame_fits(problem, det, sliced)
             if i == 0:
                 ideal[motion] = ideal_row(rec, sliced, fits)

@@ -133,8 +133,8 @@ class GcvCurve:
     def choose_reml(self, Y: np.ndarray, decades: tuple[float, float] = (-4.0, 10.0),
                     per_decade: int = 20) -> GcvChoice:
         """The lam maximising the restricted likelihood (REML) on the same grid as :meth:`choose`. With few fits
-        GCV often picks near-interpolation (measured: 10 of 11 degrees of freedom on dance_spin's 0.4 s, MPJVE
-        1768 mm/s), REML does not (2.2, MPJVE 366 mm/s) and agrees with GCV where GCV is sound."""
+        GCV often picks near-interpolation, REML does not, and agrees with GCV where GCV is sound (docs/results/
+        implementation.md)."""
         return self._choose(Y, "reml", decades, per_decade)
 
     def choose_by(self, Y: np.ndarray, criterion: str) -> GcvChoice:

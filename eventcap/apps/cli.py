@@ -643,8 +643,7 @@ def _human(n: int) -> str:
 
 def _pin_threads() -> None:
     """One BLAS/OpenMP thread per process unless the user says otherwise: the heavy work is parallel over batches
-    (processes), and oversubscribed BLAS threads made small per-frame products 5-10x slower here (a dense Cholesky took 1.4 s instead of 49 ms with two
-    threads fighting on a busy 2-core machine)."""
+    (processes), and BLAS threads fighting over a few cores make small per-frame products many times slower."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
 

@@ -28,6 +28,16 @@ def _options(loader, group: str, chosen: str | None) -> str:
     return " | ".join(f"*{o}" if o == chosen else o for o in opts)
 
 
+def _config_file(loader, group: str, name: str) -> str:
+    """Where config ``group/name`` comes from: the project's conf/..., or an installed package's file."""
+    for source in loader.get_sources():
+        if source.is_config(f"{group}/{name}"):
+            if source.provider == "main":
+                return f"conf/{group}/{name}.yaml"
+            return f"{source.path}/{group}/{name}.yaml, from {source.provider}"
+    return f"conf/{group}/{name}.yaml"
+
+
 def _top_level_settings(config_yaml: Path) -> list[tuple[str, str, str]]:
     """(key, value, comment) of conf/config.yaml's top-level settings (not its defaults list, stages or hydra)."""
     rows = []
@@ -68,8 +78,10 @@ def run_help(overrides: list[str], cdir: str | Path) -> str:
         for group, what in USER_GROUPS:
             out += _wrap(f"{group:<11} {what}: {_options(loader, group, choices.get(group))}", 2, 12)
         pipeline = choices.get("pipeline") or "?"
-        out += ["", f"Pipeline {pipeline} (conf/pipeline/{pipeline}.yaml): its nodes in the order they run, the stage "
-                    f"each runs,", "where its settings live (KEY.<setting>=VALUE) and the group that picks its stage:"]
+        out += [""] + textwrap.wrap(f"Pipeline {pipeline} ({_config_file(loader, 'pipeline', pipeline)}): its nodes "
+                                    "in the order they run, the stage each runs, where its settings live "
+                                    "(KEY.<setting>=VALUE) and the group that picks its stage:", WIDTH,
+                                    break_on_hyphens=False, break_long_words=False)
         rows = []
         for node in nodes:
             group = node.config_path.replace(".", "/")

@@ -15,7 +15,7 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.events import EVENT_DTYPE
 
-from .base import Artifact, ArtifactError, array, attr
+from eventcap.artifact import Artifact, ArtifactError, array, attr
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,7 +57,7 @@ class FrameStack(Artifact):
     """Intensity frames (APS) as linear intensity in [0, 1] (8-bit sources / 255, 16-bit / 65535), with
     exposure-centre times and exposure durations (0 = unknown: the file did not record it)."""
 
-    schema_version: ClassVar[int] = 2  # v1 stored 8-bit images
+    schema_version: ClassVar[int] = 2
     images: np.ndarray = array("float32", ("n", "height", "width"), units="linear intensity [0,1]")
     t_us: np.ndarray = array("int64", ("n",), units="us", doc="exposure centre")
     exposure_us: np.ndarray = array("int64", ("n",), units="us")

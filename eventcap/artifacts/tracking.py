@@ -7,7 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .base import Artifact, ArtifactError, array, attr
+from eventcap.artifact import Artifact, ArtifactError, array, attr
 
 
 @dataclass(frozen=True, eq=False)

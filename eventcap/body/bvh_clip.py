@@ -165,8 +165,8 @@ def resample(clip: BvhClip, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: Length units a BVH file may use, metres per unit. "cmu" is the unit of the CMU database and its BVH conversions:
-#: the ASF files declare ``length 0.45``, i.e. 1 unit = 1/0.45 inch = 0.05644 m; measured on the shipped clips, a
-#: leg (hip to ankle) is 13.6-14.5 units, 0.77-0.82 m in that unit, a standing subject's hips 16-18 units high.
+#: the ASF files declare ``length 0.45``, i.e. 1 unit = 1/0.45 inch = 0.05644 m: in the shipped clips a leg (hip to
+#: ankle) is 13.6-14.5 units, 0.77-0.82 m in that unit, a standing subject's hips 16-18 units high.
 UNITS_M: dict[str, float] = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "inch": 0.0254, "cmu": 0.0254 / 0.45}
 #: Typical adult leg length, hip joint to ankle, that unit inference compares with (metres).
 _TYPICAL_LEG_M = 0.82

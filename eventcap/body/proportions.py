@@ -6,10 +6,10 @@ over a capture tell the rest:
 - **the measured segments** (:data:`SEGMENTS`): upper arms, forearms, thighs and shins (each side) and the shoulder
   and hip widths, between landmarks that sit on joints (BODY_25 points on SMPL joints);
 - **a seen length per image** (:func:`seen_segments`): the segment along the direction the 3D detection gives it,
-  its ends on the two 2D points' rays (:func:`seen_length`, perspective included), its middle at the depth of the
-  person's pelvis plus the 3D detection's depth offset of that middle. Only images where the segment lies mostly
-  across the line of sight count (its share across >= :data:`MIN_ACROSS`): along the line of sight the 2D points
-  say little about the length;
+  its ends on the two 2D points' rays (:func:`eventcap.camera.seen_length`, perspective included), its middle at the
+  depth of the person's pelvis plus the 3D detection's depth offset of that middle. Only images where the segment
+  lies mostly across the line of sight count (its share across >= :data:`MIN_ACROSS`): along the line of sight the
+  2D points say little about the length;
 - **the depth of the pelvis** per image: from the floor when the camera's height above it is known (a world from
   the camera's extrinsics: the floor is y = 0): the sole point of the supporting foot (the lower one in the 3D
   detection) lies on the floor, so its ray meets the floor at its depth (:func:`floor_depths`). Otherwise it is
@@ -17,7 +17,7 @@ over a capture tell the rest:
   height);
 - **a detector's own definitions** (:data:`DETECTOR_DEFINITIONS`): a detector puts some points elsewhere than the
   template's joints (BlazePose: hips and shoulders nearer together); its seen lengths are divided by the share
-  measured on the tuning captures before they are compared with a body's;
+  found on the tuning captures before they are compared with a body's;
 - **the fit** (:func:`fit_body`): ANNY's phenotypes (the stature, ``sex`` and ``muscle``; ``build`` moves no joint
   by more than 2 mm and is left as it is) that best explain the seen lengths, robustly (soft-L1 on the relative
   length error), with weak priors towards ANNY's mean body, within ANNY's ranges. What the user stated is not fitted.
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, PARENTS
-from eventcap.energy.landmarks import seen_length
+from eventcap.camera import seen_length
 
 #: The measured segments: name -> (joint a, joint b); each joint carries a BODY_25 landmark on it.
 SEGMENTS: dict[str, tuple[str, str]] = {
@@ -48,8 +48,8 @@ GIRDLES = ("shoulders", "hips")
 MIN_ACROSS = 0.7
 #: A segment with fewer images than this is not measured.
 MIN_IMAGES = 3
-#: Where a detector puts its points against the template's joints: seen length / true length per segment,
-#: measured on the open benchmark's tuning captures (seeds 0-19; docs/results/body.md). A detector
+#: Where a detector puts its points against the template's joints: seen length / true length per segment, on the
+#: open benchmark's tuning captures (seeds 0-19; docs/results/body.md). A detector
 #: not listed is taken to put them on the joints (the simulated detector does).
 DETECTOR_DEFINITIONS: dict[str, dict[str, float]] = {
     # BlazePose GHUM (full): the medians over the 10 whole-body tuning captures with frames, left and right averaged
@@ -59,8 +59,8 @@ DETECTOR_DEFINITIONS: dict[str, dict[str, float]] = {
                   "hips": 0.870},
 }
 #: The floor tells the person's depth only when the camera looks down on it steeply enough: the camera's height
-#: over the person's distance at least this (a ray's depth error per pixel grows as distance / height). On the
-#: tuning captures every camera below it put the person 10-25 % too far (too tall), every one above it within 7 %.
+#: over the person's distance at least this (a ray's depth error per pixel grows as distance / height; chosen on the
+#: tuning captures: docs/results/implementation.md).
 MIN_FLOOR_ELEVATION = 0.3
 #: The sole points of each foot (heels and big toes), BODY_25 landmarks.
 _SOLES = {"l": ("l_heel", "l_big_toe"), "r": ("r_heel", "r_big_toe")}
@@ -272,8 +272,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
             scale_from = f"template default (the supporting foot's sole seen on the floor in {int(ok.sum())} images)"
             break
         # the model at `height` is seen at depth z; the person at the floor's depth is k times as tall
-        k = float(np.median(fz[ok] / x[len(pheno):][ok]))  # (a lower quantile, against feet off the floor, did
-        # no better on the tuning captures)
+        k = float(np.median(fz[ok] / x[len(pheno):][ok]))
         height = float(np.clip(height * k, *STATURE_RANGE_M))
         floor_images = int(ok.sum())
         scale_from = "floor"

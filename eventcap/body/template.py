@@ -13,7 +13,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from eventcap.artifacts.base import Artifact, array, attr
+from eventcap.artifact import Artifact, array, attr
 from eventcap.body.skeleton import NUM_JOINTS, NUM_LANDMARKS, check_rest_joints
 
 #: Tolerance on |sum of a vertex's skinning weights - 1|; within it rows are renormalised exactly.

@@ -183,12 +183,6 @@ def _wire_input(name: str, spec: StageSpec, port: str, src: Any, raw_nodes: Mapp
             f"whole recording and its port is not declared all_batches=True"
         )
         return None
-    if want.all_batches and not up_spec.per_batch:
-        problems.append(
-            f"node {name!r}: input {port!r} is declared all_batches, so it must come from a per-batch node; "
-            f"{src} is whole-recording"
-        )
-        return None
     return InputRef(up, up_port)
 
 

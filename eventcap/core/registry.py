@@ -6,6 +6,12 @@ callable returning either. The spec module must be light: it declares, it does n
 ``EVENTCAP_STAGES`` (entries separated by ``,``) adds stages without installing a package: each entry
 is ``module:attribute`` or ``/path/to/file.py:attribute``. Stages from it override installed ones of the same name
 (with a warning), so a developer can try a changed stage.
+
+A package's Hydra configs (its pipelines, its stages' variants) are found the same way: the ``eventcap.configs``
+entry-point group names a package whose folder is laid out as the project's ``conf/`` (``pipeline/<name>.yaml``,
+``stages/<node>/<variant>.yaml``); :func:`plugin_config_dirs` lists them and the Hydra plugin
+``hydra_plugins/eventcap_stage_configs`` puts each on Hydra's search path, after the project's own ``conf/`` (whose
+configs win over a plugin's of the same name). Finding them imports the package's parents only, not its stages.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ log = logging.getLogger(__name__)
 
 ENTRY_POINT_GROUP = "eventcap.stages"
 ENV_VAR = "EVENTCAP_STAGES"
+CONFIG_GROUP = "eventcap.configs"
 
 
 class UnknownStageError(KeyError):
@@ -142,3 +149,25 @@ def load_registry(strict: bool = False) -> Registry:
     for p in problems:
         log.warning("%s", p)
     return Registry(specs.values(), problems)
+
+
+def plugin_config_dirs() -> list[tuple[str, Path]]:
+    """(provider, folder) of every ``eventcap.configs`` entry point (module doc), by entry-point name: the folder of
+    the package its value names (``my_pkg.conf``). One that names no package, or a file, is reported as a warning
+    and left out; the others still count."""
+    out = []
+    for ep in sorted(entry_points(group=CONFIG_GROUP), key=lambda e: e.name):
+        origin = f"entry point {ep.name} = {ep.value} (group {CONFIG_GROUP})" + (f" [{ep.dist.name}]" if ep.dist else "")
+        try:
+            spec = importlib.util.find_spec(ep.value)
+        except (ImportError, ValueError) as exc:
+            spec, why = None, f"{type(exc).__name__}: {exc}"
+        else:
+            why = "no such package"
+        folders = list(spec.submodule_search_locations or []) if spec is not None else []
+        if not folders:
+            log.warning("%s: %s; expected a package whose folder holds config groups (pipeline/, stages/<node>/)",
+                        origin, why if spec is None else "a module, not a package")
+            continue
+        out.append((ep.dist.name if ep.dist else ep.name, Path(folders[0])))
+    return out

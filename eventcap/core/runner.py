@@ -35,8 +35,8 @@ from eventcap.core.stage import StageContext, StageSpec
 
 log = logging.getLogger("eventcap.core.runner")
 
-#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines costs 10-30x (a dense
-#: Cholesky took 1.4 s instead of 49 ms with two threads fighting on a busy 2-core machine).
+#: Threads per worker for BLAS/OpenMP; pinned because oversubscription on small machines makes small products many
+#: times slower (docs/results/implementation.md).
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
@@ -45,13 +45,15 @@ THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUM
 # ---------------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class InputRefSpec:
-    """Where a task reads one input: a single entry, or all batches of a per-batch upstream node."""
+    """Where a task reads one input: a single entry, or all batches of a per-batch upstream node (``all_batches``;
+    with ``whole``, the one entry of a whole-recording upstream node, read as a sequence of one)."""
 
     stage: str
     port: str
     keys: tuple[str, ...]
     all_batches: bool = False
     plan: tuple[tuple[int, int, int, int], ...] = ()  # (index, t0_us, t1_us, frame0) per key when all_batches
+    whole: bool = False
 
 
 @dataclass(frozen=True)
@@ -83,11 +85,12 @@ class TaskResult:
 
 
 class BatchSequence(Sequence):
-    """All batches of a per-batch output, loaded one at a time from the cache (the driver never holds them all)."""
+    """All batches of a per-batch output, loaded one at a time from the cache (the driver never holds them all);
+    ``batches`` names them. A whole-recording output is a sequence of one, its ``batches`` ``[None]``."""
 
     def __init__(self, cache: Cache, ref: InputRefSpec, cls: type[Artifact]):
         self._cache, self._ref, self._cls = cache, ref, cls
-        self.batches = [Batch(*row) for row in ref.plan]
+        self.batches: list[Batch | None] = [None] if ref.whole else [Batch(*row) for row in ref.plan]
 
     def __len__(self) -> int:
         return len(self._ref.keys)
@@ -112,7 +115,7 @@ def artifact_nbytes(a: Artifact) -> int:
 #: Artifacts this process loaded or committed, by (cache root, stage, key, port): a node's outputs are read by the
 #: nodes after it without reading them back. Bounded by count and by their arrays' bytes; the bytes bound is well
 #: above a long capture's recording: a recording evicted by smaller entries would be read again by every task that
-#: needs it (a 20 s capture read its recording 265 times with a 256 MB bound, and the process grew to 3.1 GB).
+#: needs it (docs/results/implementation.md).
 _ARTIFACTS = ProcessCache("runner.inputs", maxsize=32, max_bytes=2 << 30, weigh=artifact_nbytes)
 
 
@@ -619,7 +622,8 @@ class Runner:
                 if self.selection is not None:
                     keydoc[port] = {"node_key": node_keys[ref.node], "batches": [b.index for b in sel]}
             else:
-                refs[port] = InputRefSpec(up.spec.name, ref.port, (node_keys[ref.node],))
+                every = node.spec.inputs[port].all_batches  # a whole output read as a sequence of one
+                refs[port] = InputRefSpec(up.spec.name, ref.port, (node_keys[ref.node],), every, whole=every)
                 keydoc[port] = node_keys[ref.node]
         return refs, keydoc
 

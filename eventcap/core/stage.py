@@ -45,10 +45,12 @@ from eventcap.params import (  # noqa: F401 (the public plugin API: eventcap.cor
 class Port:
     """A typed input or output of a stage.
 
-    ``all_batches=True`` on an input means: all batches of a per-batch upstream output, delivered as a lazy
-    sequence (see runner.BatchSequence). A whole-recording stage needs it to read a per-batch output; a per-batch
-    stage may ask for it to see its neighbours' batches too (each of its batches then depends on all of them, and a
-    failed upstream batch skips every one of its batches).
+    ``all_batches=True`` on an input means: the whole recording's worth of an upstream output, delivered as a lazy
+    sequence (see runner.BatchSequence): every batch of a per-batch output, or the one artifact of a
+    whole-recording output (a sequence of one, its ``batches`` ``[None]``), so that a stage such as ``evaluate``
+    reads either. A whole-recording stage needs it to read a per-batch output; a per-batch stage may ask for it to
+    see its neighbours' batches too (each of its batches then depends on all of them, and a failed upstream batch
+    skips every one of its batches).
     """
 
     type: type[Artifact]

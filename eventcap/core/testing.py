@@ -1,16 +1,27 @@
 """Conformance tests every stage inherits (ours and third parties'), in the manner of Hydra's launcher test suite.
 
+    import numpy as np
+    from eventcap.artifacts import PoseSequence
     from eventcap.core.testing import StageConformance
 
-    class TestMyStage(StageConformance):
-        stage_name = "my_stage"
-        sensitive = ("threshold", 0.3)          # a result-affecting field and another value for it
+    class TestPostSmooth(StageConformance):
+        stage_name = "post_smooth"              # the stage, by its registered name (required)
+        sensitive = ("sigma_ms", 20.0)          # a result-affecting setting and another value for it (required
+                                                # while the stage has such settings: the key must change with it)
 
-        def make_inputs(self):                  # a tiny, seeded input for every declared input port
-            return {"recording": tiny_recording(seed=0)}
+        def make_inputs(self):                  # a tiny, seeded input for every input port (required)
+            t = np.arange(0, 41_000, 1_000, dtype=np.int64)
+            poses = np.random.default_rng(0).normal(0.0, 0.1, (t.size, 33))
+            return {"poses": [PoseSequence(t_us=t, poses=poses)]}   # an all_batches port: a list of batches
 
-The suite checks discovery through the registry, config round trip and rejection of unknown keys, cache-key
-stability and sensitivity, the output schema (declared types, zarr round trip) and determinism.
+Optional: ``config_overrides`` (settings every test runs with, e.g. a file the stage needs), ``insensitive`` (a
+setting declared ``affects_result=False`` and another value: the key must not change). A per-batch stage runs on
+batch 0 of the first ``BatchPlan`` among its inputs. Helpers for tests of what the stage computes:
+``run_once(**changes)`` (on ``make_inputs()``), ``run_on(inputs, **changes)``, ``config(**changes)``, ``spec()``.
+
+The suite checks discovery through the registry, config round trip and rejection of unknown keys, renamed keys,
+cache-key stability and sensitivity, the output schema (declared types, zarr round trip) and determinism (two runs
+on the same input give equal outputs). Add tests of what the stage computes beside it.
 """
 
 from __future__ import annotations
@@ -26,7 +37,8 @@ from eventcap.core.stage import StageContext, StageSpec
 
 
 class StageConformance:
-    """Subclass in a pytest module; set ``stage_name`` and implement ``make_inputs``."""
+    """Subclass in a pytest module (its name starting with ``Test``); set ``stage_name`` and ``sensitive`` and
+    implement ``make_inputs`` (module doc)."""
 
     stage_name: ClassVar[str] = ""
     config_overrides: ClassVar[dict[str, Any]] = {}
@@ -52,8 +64,12 @@ class StageConformance:
         return plans[0].batch(0) if plans else Batch(0, 0, 40_000, 0)
 
     def run_once(self, **changes: Any) -> dict[str, Artifact]:
+        """The stage's outputs on :meth:`make_inputs`, with the class's config and these changes."""
+        return self.run_on(self.make_inputs(), **changes)
+
+    def run_on(self, inputs: dict[str, Any], **changes: Any) -> dict[str, Artifact]:
+        """The stage's outputs on these inputs (for tests of what it computes), with the config and changes."""
         spec = self.spec()
-        inputs = self.make_inputs()
         ctx = StageContext(node=f"conformance_{spec.name}", stage=spec.name, batch=self.batch(inputs))
         return dict(spec.load_run()(inputs, self.config(**changes), ctx))
 
@@ -105,6 +121,9 @@ class StageConformance:
 
     def test_cache_key_sensitive(self):
         if self.sensitive is None:
+            fields = self.spec().result_fields()
+            assert not fields, (f"set sensitive = (setting, another value) on {type(self).__name__}: stage "
+                                f"{self.stage_name!r} has settings that change its result: {', '.join(fields)}")
             return
         name, value = self.sensitive
         assert name in self.spec().result_fields()

@@ -24,12 +24,11 @@ is built once per batch and serves every ICP iteration (the events do not change
 
 Noise (not in the paper). A DAVIS fires background-activity events everywhere (the synthetic sensor: 0.2 Hz per
 pixel, ~350 in a 40 ms batch at 240×180), so ~65% of the 9×9 patches of a silhouette that does not move contain one,
-and Eq. 13 makes it a target: measured on a nearly static synthetic batch (746 events, 97% noise), an exact start
-was pulled 2.4 mm off (AE; 15 mm with λ_stab = 0.5). With ``support_us`` > 0 the index keeps only events that have
-another event in their 3×3 pixel neighbourhood within ±support_us — the usual background-activity filter: moving
-edges fire neighbouring pixels within milliseconds, isolated noise does not (at 0.2 Hz per pixel, one of the 9
-pixels fires within ±5 ms by chance with probability ~2%). The same batch then moved 0.27 mm; on fast motion the
-filter changed nothing measurable. The stage's default is 5 ms; 0 searches all events (the paper).
+and Eq. 13 makes it a target that pulls an exact start off (docs/results/implementation.md). With ``support_us`` > 0
+the index keeps only events that have another event in their 3×3 pixel neighbourhood within ±support_us — the usual
+background-activity filter: moving edges fire neighbouring pixels within milliseconds, isolated noise does not (at
+0.2 Hz per pixel, one of the 9 pixels fires within ±5 ms by chance with probability ~2%). The stage's default is
+5 ms; 0 searches all events (the paper).
 """
 
 from __future__ import annotations

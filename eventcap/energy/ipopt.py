@@ -44,8 +44,7 @@ class IpoptSettings:
 
     Batch solves start from good estimates (interpolation, previous ICP round): a monotone barrier starting at a
     tiny ``mu_init`` keeps IPOPT from first pushing the many joint angles that sit on their limits into the
-    interior (measured on synthetic batches: 8-10 iterations per solve instead of 20-28 with the adaptive
-    default). Detection fits start from a crude guess and use IPOPT's adaptive barrier.
+    interior (fewer iterations than the adaptive default: docs/results/implementation.md). Detection fits start from a crude guess and use IPOPT's adaptive barrier.
     """
 
     max_iter: int  # iteration limit per solve; reaching it is a failure (the stage's config states it)

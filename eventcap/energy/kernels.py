@@ -12,6 +12,7 @@ import numpy as np
 from eventcap.body.kinematics import global_transforms
 from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS
 from eventcap.camera import Camera
+from eventcap.memo import ProcessCache
 
 _NP = NUM_POSE_PARAMS
 
@@ -143,20 +144,13 @@ class SkinningKernels:
 
 #: Built skinning kernels by (rest joints, frames): the factors of one problem (E_cor, E_temp, E_sil, E_stab at the
 #: same frames) share them, and their memo of the last poses.
-_KERNELS: dict = {}
+_KERNELS = ProcessCache("energy.kernels", maxsize=64)
 
 
 def shared_kernels(rest_joints: np.ndarray, n_frames: int) -> SkinningKernels:
     """The skinning kernels of n_frames frames for these rest joints, built once per process (keyed by value)."""
     key = (np.asarray(rest_joints, dtype=np.float64).tobytes(), int(n_frames))
-    if key not in _KERNELS:
-        _KERNELS[key] = SkinningKernels(rest_joints, int(n_frames))
-    return _KERNELS[key]
-
-
-def clear_kernels() -> None:
-    """Forget the built kernels (they are rebuilt on demand)."""
-    _KERNELS.clear()
+    return _KERNELS.get(key, lambda: SkinningKernels(rest_joints, int(n_frames)))[0]
 
 
 def premultiplied_weights(rest_points: np.ndarray, weights: np.ndarray) -> np.ndarray:

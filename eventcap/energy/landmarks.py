@@ -1,24 +1,22 @@
 """Where the detector puts the hips and shoulders on this person (not in the paper): their widths, from the data.
 
-A 2D detector's points are its own definition, not the template's joints: BlazePose puts the hips ~15% and the
-shoulders ~11% nearer together in the image than the ANNY actor's hip and shoulder joints (measured on
-karate_kick, seeds 2 and 3, against the truth: 0.85 and 0.89 of the true projected widths). Fitted to the
-template's joints, narrower hips can only be a pelvis turned away from the camera (cos 32° = 0.85): ~9 cm of depth
-error at the hips, and through them at the legs and the torso.
+A 2D detector's points are its own definition, not the template's joints: BlazePose puts the hips and the
+shoulders nearer together in the image than the ANNY actor's hip and shoulder joints (docs/results/
+implementation.md). Fitted to the template's joints, narrower hips can only be a pelvis turned away from the camera:
+depth error at the hips, and through them at the legs and the torso.
 
 Each pair's (left, right) scale is measured per capture, without ground truth: for every intensity frame whose two
 points have confident 2D and 3D detections, the length the 2D points show along the direction the 3D detection
-gives them (:func:`seen_length`: the segment along that direction whose ends lie on the two points' rays, its
-middle at the depth of the frame's per-frame fit; the 3D detector's direction, not its metric length, which is
-~7 cm off), against the template's width. The scale is the median over the frames where the pair lies mostly
+gives them (:func:`eventcap.camera.seen_length`: the segment along that direction whose ends lie on the two points'
+rays, its middle at the depth of the frame's per-frame fit; the 3D detector's direction, not its metric length),
+against the template's width. The scale is the median over the frames where the pair lies mostly
 across the line of sight (that share of the direction >= 0.7, where the ratio is well conditioned), clipped to
 [0.6, 1.2]; too few frames (fewer than 5) keep the template's. The solve's template then has the pair's landmarks
 moved towards the pair's middle by its scale, attached to the pair's parent joint (the pelvis, the collars), so
 that they move with the body, not with the limbs.
 
-The limbs' lengths cannot be measured so: BlazePose's shins are 6-7% shorter in 2D than the actor's (0.93-0.94 of
-the true projected lengths), but its 3D shins tilt along the line of sight by as much, so their direction explains
-the short 2D points (measured 1.02-1.03 on the same captures; tried and left out).
+The limbs' lengths cannot be measured so: BlazePose's shins are shorter in 2D than the actor's, but its 3D shins
+tilt along the line of sight by as much, so their direction explains the short 2D points.
 """
 
 from __future__ import annotations
@@ -29,6 +27,7 @@ import numpy as np
 
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, PARENTS
+from eventcap.camera import seen_length
 
 #: The left-right pairs whose width a detector defines its own way.
 PAIRS = (("l_hip", "r_hip"), ("l_shoulder", "r_shoulder"))
@@ -43,24 +42,6 @@ class LandmarkWidths:
 
     scale: dict  #: pair name ("l_hip-r_hip") -> scale
     frames: dict  #: pair name -> frames used (0: the template's width kept)
-
-
-def seen_length(n_a: np.ndarray, n_b: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """(K,) the length ℓ of segments seen at the normalised image points n_a, n_b (K, 2), lying along the
-    directions v (K, 3, camera axes), with their middles at depth z (K,): the points z_a (n_a, 1) and z_b (n_b, 1)
-    with z_a (n_a, 1) - z_b (n_b, 1) = ℓ v / ‖v‖ (least squares, exact for consistent data; perspective included:
-    an off-axis segment along the line of sight still projects shorter than its image-plane part)."""
-    ra = np.concatenate([n_a, np.ones((len(n_a), 1))], axis=1)
-    rb = np.concatenate([n_b, np.ones((len(n_b), 1))], axis=1)
-    u = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
-    A = np.stack([ra, -u], axis=2)  # (K, 3, 2): [r_a, -u] (z_a, ℓ) = r_b with z_b = 1
-    AtA = np.einsum("kij,kil->kjl", A, A)
-    Atb = np.einsum("kij,ki->kj", A, rb)
-    det = AtA[:, 0, 0] * AtA[:, 1, 1] - AtA[:, 0, 1] * AtA[:, 1, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        za = (AtA[:, 1, 1] * Atb[:, 0] - AtA[:, 0, 1] * Atb[:, 1]) / det
-        ell = (AtA[:, 0, 0] * Atb[:, 1] - AtA[:, 1, 0] * Atb[:, 0]) / det
-        return ell * z / (0.5 * (za + 1.0))
 
 
 def measure_widths(template, camera, fits: np.ndarray, det) -> LandmarkWidths:
@@ -109,4 +90,4 @@ def with_widths(template, widths: LandmarkWidths):
     return replace(template, name=f"{template.name}[widths {tag}]", landmark_joint=lj, landmark_offset=lo)
 
 
-__all__ = ["PAIRS", "seen_length", "LandmarkWidths", "measure_widths", "with_widths"]
+__all__ = ["PAIRS", "LandmarkWidths", "measure_widths", "with_widths"]

@@ -17,21 +17,19 @@ How it is measured, per time bin k (the spline's knot intervals) and joint j:
 - the stillness is s = exp(-max(0, activity - background - 2σ) / rate_hz) in [0, 1], σ the standard deviation of
   the background's density in one box over one bin (Poisson): a noisy sensor's fluctuations are not motion;
 - with a hold, a joint is only as still as in its least still bin nearby: a limb that the estimate misplaces by a
-  few pixels is silent in its band only in moments (measured on fast_wave at 10 fps, ± 20 ms: MPJVE 148 -> 138 mm/s,
-  median peak-speed error 82% -> 76%);
+  few pixels is silent in its band only in moments;
 - with a sweep, a bin's events are counted around the bones wherever the estimate puts them in the bins nearby,
   the most active place counting: between two intensity frames the estimate has a fast limb on its path but not
   on time, and its place at the moment can be silent while the limb's events are a few bins' places away
-  (measured on the full suite at 10 fps, ± 50 ms: AE 27.3 -> 27.0 mm, MPJVE 251 -> 248 mm/s, median peak-speed
-  error 20% -> 18%; at 25 fps a wash).
+  (what the hold and the sweep changed: docs/results/implementation.md).
 
 The term (in the spline solve) is λ_still Σ_k Σ_j s_j(k) ∫_bin k ‖d/dt π(x_j(S(t)))‖² dt: the image velocity (px/s)
 of every joint the events call still, linearised at the solve's start (d/dt π(x_j) = J_j(S) S'(t) with the Jacobian
 J_j held fixed through one solve, a Gauss-Newton form). It constrains what the events see, a joint's image motion,
 whatever combination of pose parameters makes it: a root rotation that shakes still legs is penalised, a shoulder
 twist that swings the forearm and not the upper arm is not. Motion along the line of sight makes no events and is
-left alone: a 3D velocity (tried) also stills limbs swinging towards the camera, which broke the spins and kicks
-(dance_spin at 10 fps: AE 31.2 -> 39.9 mm). A body passing in front of a resting one makes events there: the resting
+left alone: a 3D velocity (tried) also stills limbs swinging towards the camera, which broke the spins and kicks.
+A body passing in front of a resting one makes events there: the resting
 one is then not called still, which only loses the help, never forces a moving part to rest. A moving part whose
 outline and texture cross no pixels looks still; the term is soft.
 """

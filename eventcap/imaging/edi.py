@@ -23,8 +23,8 @@ recording (several frames jointly, so the result does not flicker from frame to 
 minimises the disagreement of consecutive EDI results: the sharp image of frame k, carried forward by the events
 to frame k+1 (``L_k + c·E``), must equal the sharp image of frame k+1. Why not a sharpness prior: on our synthetic scenes the total variation of the EDI image
 grows monotonically with c (a blurred ramp has the same TV as a sharp step, while event quantisation adds texture
-in proportion to c), and TV with an event-edge agreement term (the EDI authors' energy) put its minimum anywhere
-from 0.05 to 0.2 for a true c of 0.2 (measured; see benchmarks/accuracy/bench_edi.py). The consistency energy's minimum
+in proportion to c), and TV with an event-edge agreement term (the EDI authors' energy) put its minimum far from
+the true c (docs/results/implementation.md). The consistency energy's minimum
 is the contrast that best explains the data; where the sensor lost events (refractory period at fast,
 high-contrast edges) that is the *effective* threshold, larger than the nominal one.
 """
@@ -352,8 +352,8 @@ def estimate_contrast(
     from t_k to t_{k+1}. A pixel is informative when ``|E_k| >= min_events`` (single events carry little on c,
     and excluding them keeps background noise from pulling c down) and at most ``max_opposite_fraction`` of its
     events in the pair have the minority polarity: a pixel that went up and down many times has a net count
-    dominated by the mismatch of its ON and OFF thresholds, not by c (measured on a texture at 1000 px/s: with
-    them, even the exact log images gave c = 0.16 for a true 0.2; without, 0.20). The search evaluates an
+    dominated by the mismatch of its ON and OFF thresholds, not by c (with them, even the exact log images give too
+    small a c: docs/results/implementation.md). The search evaluates an
     ``n_grid`` grid over ``c_range`` and refines the best bracket by golden-section search to ``tol``.
 
     images: (K, H, W) uint8 or float linear, K >= 2; t_us: (K,) increasing exposure centres; exposure_us: (K,)

@@ -3,7 +3,7 @@
 The project's format is the zarr v3 group :meth:`Recording.to_zarr` writes (``eventcap simulate`` writes one,
 ``source=recording`` reads one). :func:`convert_recording` writes the same group without ever holding the events
 in memory: they come from :func:`eventcap.io.iter_event_chunks` and are appended chunk by chunk to the event
-columns (:class:`eventcap.artifacts.base.ArrayAppender`, which keeps ``to_zarr``'s chunk layout), checked chunk by
+columns (:class:`eventcap.artifact.ArrayAppender`, which keeps ``to_zarr``'s chunk layout), checked chunk by
 chunk for the :class:`EventStream` invariants (sorted, inside the sensor, polarity ±1). Frames are small and are
 written whole. The result reads back with ``Recording.from_zarr`` equal to :func:`recording_from_raw` applied to
 :func:`eventcap.io.read_recording` of the same file and options.
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eventcap.artifacts.base import ArrayAppender, ArtifactError
+from eventcap.artifact import ArrayAppender, ArtifactError
 from eventcap.artifacts.recording import EventStream, FrameStack, Recording
 from eventcap.camera import Camera, read_rpg_calibration
 from eventcap.events import EVENT_DTYPE

@@ -88,9 +88,8 @@ class SensorConfig:
     # the default nominal value, so it only bites for unusually wide spreads.
     threshold_min: float = 0.05
     # Refractory period in µs. Real DVS pixels are held in reset for tens of µs to ~1 ms depending on the bias;
-    # 100 µs caps a pixel at 10 kHz. Events are lost only where L changes by more than C per 100 µs: measured on
-    # a box-filtered 0.1|0.9 edge, 3 % are dropped at 300 px/s and 40 % at 1000 px/s (the log change bunches at
-    # the dark end). 0 gives the ideal stream.
+    # 100 µs caps a pixel at 10 kHz. Events are lost only where L changes by more than C per 100 µs (the log
+    # change of a moving edge bunches at its dark end; docs/results/implementation.md). 0 gives the ideal stream.
     refractory_us: int = 100
     # Background-activity noise per pixel, Hz (Poisson, random polarity); DAVIS sensors indoors: ~0.1-1 Hz.
     noise_rate_hz: float = 0.2

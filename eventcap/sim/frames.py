@@ -7,8 +7,8 @@ the trapezoid rule over the render samples of the event simulator. The exposure 
 samples, and inside an exposure the step is at most ``T / min_samples_per_exposure``. Why that is dense enough:
 the adaptive sampling already bounds every pixel's log change between samples by a fraction of C (0.1 by default,
 ~10 % intensity change) or, for fast sharp edges, the step by ``min_step_us`` (200 µs: 0.2 px at 1000 px/s, 2 % of
-a 10 ms exposure), so a moving edge blurs into a smooth ramp, not a row of ghost copies (measured: a bar at
-2000 px/s is within 9e-4 of the exact exposure average). The minimum count only matters for slowly changing scenes
+a 10 ms exposure), so a moving edge blurs into a smooth ramp, not a row of ghost copies (docs/results/
+implementation.md). The minimum count only matters for slowly changing scenes
 whose adaptive step would otherwise span the whole exposure.
 
 Sensor readout (documented model, not a calibrated one): the average intensity is taken as a fraction of the

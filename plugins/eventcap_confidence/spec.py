@@ -42,7 +42,7 @@ class ConfidenceConfig:
 
 
 CONFIDENCE = StageSpec(
-    name="confidence", kind="analyse", version=2,  # 2: the uncertainty in mm, the confidence derived from it
+    name="confidence", kind="analyse", version=2,
     description="uncertainty (mm) per frame and joint of the estimated motion: the solve's own σ (its Laplace "
                 "approximation, calibrated) inflated where the detections, the events and the estimate disagree, "
                 "and for joints out of view; the confidence in [0, 1] derived from it (no ground truth; below 0.5: "

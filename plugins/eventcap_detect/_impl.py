@@ -94,8 +94,8 @@ def person_up(joints: np.ndarray, conf3: np.ndarray, ok: np.ndarray, R: np.ndarr
 UP_MIN_IMAGES = 5
 UP_MAX_SPREAD_DEG = 20.0
 UP_MAX_TILT_DEG = 60.0
-#: A vertical within this angle of the assumed level world's y keeps it: that close, the measurement's own error (3
-#: degrees on a level camera, 3-9 on one pitched 25 degrees: benchmarks/accuracy/bench_upright.py) is as large as the tilt.
+#: A vertical within this angle of the assumed level world's y keeps it: that close, the measurement's own error
+#: (docs/results/implementation.md) is as large as the tilt.
 UP_MIN_TILT_DEG = 5.0
 
 

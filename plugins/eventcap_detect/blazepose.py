@@ -142,8 +142,8 @@ def _interpreter(path: Path):
 def to_rgb8(image: np.ndarray, gamma: float = 1.0) -> np.ndarray:
     """A grey image (linear intensity in [0, 1]) as the 8-bit RGB the networks were trained on.
 
-    ``gamma`` 1 passes the linear intensity (what the networks measured best on our captures); 2.2 would
-    gamma-encode it like a consumer camera."""
+    ``gamma`` 1 passes the linear intensity (the default: docs/results/settings.md); 2.2 would gamma-encode it
+    like a consumer camera."""
     im = np.clip(np.asarray(image, dtype=np.float32), 0.0, 1.0)
     if gamma != 1.0:
         im = im ** (1.0 / gamma)

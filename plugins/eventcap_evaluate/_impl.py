@@ -4,7 +4,10 @@ Joining (:func:`eventcap.analysis.motion.join_batches`). The solve stage gives o
 batches share their boundary tracking frame (the intensity frame between them). Frames are ordered by time and every
 time appears once: with ``join=later`` a shared frame keeps the later batch's pose (the batch that starts there),
 with ``join=mean`` the average of the batches' poses (root rotation angles averaged modulo 2π). Batches missing from
-the sequence (a run on a selection of batches) leave gaps; gaps are not evaluated.
+the sequence (a run on a selection of batches) leave gaps; gaps are not evaluated. A whole-recording node's poses
+(one PoseSequence: the runner hands it as a sequence of one whose ``batches`` are ``[None]``, e.g. the stitch node's
+motion or a post-processing plugin's) are measured the same way, their batches the spans between consecutive
+intensity frames (:func:`frame_intervals`).
 
 Measures (Table 1), in millimetres:
 
@@ -30,8 +33,9 @@ pelvis; the pelvis itself left out: 23 joints) at every tracking frame:
   (x(t + h) - x(t - h)) / 2h with h the nearest multiple of the tracking step to half the window
   (``velocity_window_ms`` in the metrics is the window actually used), at every frame with both neighbours;
 - ``accel_err_m_s2``: mean per-joint acceleration error, (x(t + h) - 2x(t) + x(t - h)) / h², same frames;
-- ``peak_speed_err``: for each batch (the span of one input PoseSequence) and each end effector
-  (``end_effectors``: feet, wrists, hands), the relative error of its peak speed in the batch,
+- ``peak_speed_err``: for each batch (the span of one input PoseSequence; in a whole-recording motion, the span
+  between two intensity frames) and each end effector (``end_effectors``: feet, wrists, hands), the relative error
+  of its peak speed in the batch,
   |max pred - max true| / max true; the median over the (batch, end effector) pairs whose true peak exceeds
   ``peak_min_speed_mps`` (0.5 m/s: a joint that hardly moves has no peak to get right) (a fraction: 0.15 = 15%), and
   per end effector in ``peak_speed_err_per_joint``, and every pair in ``peak_speed_errors`` (batches x end
@@ -234,6 +238,19 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
     return values, errors
 
 
+def frame_intervals(rec: Recording, t_us: np.ndarray) -> np.ndarray:
+    """(B, 2) the spans between consecutive intensity frames (their clock, for a recording without frames) within
+    the motion's times t_us: the batches of a whole-recording motion."""
+    if rec.frames is not None:
+        ft = rec.frames.t_us
+    else:
+        gt = rec.ground_truth
+        ft = gt.frame_t_us if gt is not None and gt.frame_t_us is not None else np.zeros(0, np.int64)
+    ft = np.asarray(ft, dtype=np.int64)
+    ft = ft[(ft >= t_us[0]) & (ft <= t_us[-1])] if t_us.size else ft[:0]
+    return np.stack([ft[:-1], ft[1:]], axis=1) if ft.size > 1 else np.zeros((0, 2), np.int64)
+
+
 def detail_values(t_us: np.ndarray, pred: np.ndarray, true: np.ndarray, window_ms: float,
                   end_effectors: tuple[str, ...], intervals_us: np.ndarray | None, frame_t_us: np.ndarray,
                   peak_min_speed_mps: float = 0.5, fast_speed_mps: float = 3.0) -> dict[str, Any]:
@@ -296,7 +313,10 @@ def run(inputs: dict[str, Any], config, ctx: StageContext) -> dict[str, Any]:
     parts = [seq[i] for i in range(len(seq))]  # each batch loaded once (a runner BatchSequence reads the cache)
     t_us, poses, shared = join_batches(parts, config.join)
     ctx.report(1, 2)
-    spans = np.array([[p.t_us[0], p.t_us[-1]] for p in parts if len(p.t_us) > 1], dtype=np.int64).reshape(-1, 2)
+    if None in getattr(seq, "batches", ()):  # a whole-recording motion: its batches are the frames' intervals
+        spans = frame_intervals(rec, t_us)
+    else:
+        spans = np.array([[p.t_us[0], p.t_us[-1]] for p in parts if len(p.t_us) > 1], dtype=np.int64).reshape(-1, 2)
     values, errors = evaluate_motion(rec, t_us, poses, config.every, config.align, config.velocity_window_ms,
                                      tuple(config.end_effectors), spans, config.peak_min_speed_mps,
                                      config.fast_speed_mps)

@@ -6,10 +6,10 @@ import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.core.stage import StageFailed
+from eventcap.memo import ProcessCache
 
 #: Built problems of this process, keyed by value (template, camera, frames, config): built once per run.
-_PROBLEMS: dict = {}
-_PROBLEMS_MAX = 16
+_PROBLEMS = ProcessCache("eventcap_refine.problems", maxsize=16)
 
 
 def problem_for(template, camera, t_us: np.ndarray, config):
@@ -22,22 +22,14 @@ def problem_for(template, camera, t_us: np.ndarray, config):
 
     sizes = tuple((k, t.size) for k, t in sample_times(config.terms, refine_window(t_us, None, None, template)).items())
     key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), int(t_us.size), sizes, repr(config))
-    prob = _PROBLEMS.get(key)
-    if prob is not None:
-        return prob, False
-    try:
-        prob = RefineProblem(template, camera, t_us.size, config, t_us)
-    except EnergyError as exc:  # e.g. min above max: the whole problem is infeasible
-        raise StageFailed(f"stages.refine: {exc}", status=exc.status) from exc
-    if len(_PROBLEMS) >= _PROBLEMS_MAX:
-        _PROBLEMS.clear()
-    _PROBLEMS[key] = prob
-    return prob, True
 
+    def build():
+        try:
+            return RefineProblem(template, camera, t_us.size, config, t_us)
+        except EnergyError as exc:  # e.g. min above max: the whole problem is infeasible
+            raise StageFailed(f"stages.refine: {exc}", status=exc.status) from exc
 
-def clear_problems() -> None:
-    """Forget this process's built problems."""
-    _PROBLEMS.clear()
+    return _PROBLEMS.get(key, build)
 
 
 def run_refine(inputs, config, ctx):

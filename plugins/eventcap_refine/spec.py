@@ -42,8 +42,7 @@ REFINE_RENAMED = {
 
 
 SILHOUETTE = StageSpec(
-    name="silhouette", kind="refine", version=3,  # 2: its terms are factors (sums in another order); 3: nested
-    # settings
+    name="silhouette", kind="refine", version=3,
     description="event-based pose refinement per tracking frame: silhouette boundary to closest event ICP, "
                 "point-to-line E_sil + E_stab, joint limits (Sec. 3.3, CasADi + IPOPT)",
     config=SilhouetteRefineConfig,

@@ -15,10 +15,8 @@ penalty matrix, :func:`penalty_matrix`), and
 summed over the columns c that share one lam (a group of parameters: all angles, the root translation, or each
 parameter alone). With few fits GCV is noisy and tends to undersmooth; pooling many columns steadies it. It is minimised over a grid of log lam (20 points per decade). Never
 from ground truth. The other criterion is the restricted (marginal) likelihood (REML, e.g. Wood 2011,
-J. R. Stat. Soc. B 73: GCV is prone to undersmoothing when data are few), see :meth:`GcvCurve.reml`: on 0.4 s
-captures at 25 fps it did not interpolate where GCV did, but on the 2 s suite (6 motions x 2 seeds) GCV measured
-better at both rates (AE 29.9 against 37.4 mm at 25 fps, 40.4 against 59.4 at 10 fps, where REML flattened
-jumping_jack to 143 mm), so GCV is the stage's default. The residual variance
+J. R. Stat. Soc. B 73: GCV is prone to undersmoothing when data are few), see :meth:`GcvCurve.reml`. GCV is the
+stage's default (the comparison: docs/results/settings.md, smooth). The residual variance
 estimate sum |(I - H) y|^2 / (n - tr H) per column tells the fits' noise.
 """
 
@@ -31,8 +29,8 @@ from eventcap.analysis.smoothing import MIN_KNOTS, GcvChoice, GcvCurve, check_cr
 
 #: The parameter groups sharing one smoothing parameter with ``pool=group`` (skeleton layout S = [theta (27), root
 #: rotation (3), root translation (3)]): all angles (joint angles and root rotation, radians) and the root
-#: translation (metres). The root rotation alone is too few columns: on 11 fits of karate_kick its GCV chose
-#: interpolation (10 of 11 degrees of freedom) and the root-relative MPJVE went from 292 to 2905 mm/s.
+#: translation (metres). The root rotation alone is too few columns: its GCV can choose interpolation
+#: (docs/results/implementation.md).
 GROUPS: dict[str, slice] = {"angles": slice(0, 30), "root_translation": slice(30, 33)}
 ROOT_ROTATION = slice(27, 30)
 POOLS = ("group", "parameter")

@@ -6,34 +6,27 @@ import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.core.stage import StageFailed
+from eventcap.memo import ProcessCache
 
 #: Built problems of this process, keyed by value (template, camera, frames, config): built once per run.
-_PROBLEMS: dict = {}
-_PROBLEMS_MAX = 16
+_PROBLEMS = ProcessCache("eventcap_solve.problems", maxsize=16)
 
 
 def problem_for(template, camera, frames: int, config):
-    """The BatchProblem for this template, camera, batch length and config, built once per process."""
+    """The BatchProblem for this template, camera, batch length and config, built once per process. Returns
+    (problem, built_now)."""
     from eventcap.energy.errors import EnergyError
 
     from .batch import BatchProblem
 
-    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), int(frames), repr(config))
-    prob = _PROBLEMS.get(key)
-    if prob is None:
+    def build():
         try:
-            prob = BatchProblem(template, camera, frames, config)
+            return BatchProblem(template, camera, frames, config)
         except EnergyError as exc:  # e.g. min above max: the whole problem is infeasible
             raise StageFailed(f"stages.solve: {exc}", status=exc.status) from exc
-        if len(_PROBLEMS) >= _PROBLEMS_MAX:
-            _PROBLEMS.clear()
-        _PROBLEMS[key] = prob
-    return prob
 
-
-def clear_problems() -> None:
-    """Forget this process's built problems."""
-    _PROBLEMS.clear()
+    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), int(frames), repr(config))
+    return _PROBLEMS.get(key, build)
 
 
 def run_batch(inputs, config, ctx):
@@ -59,9 +52,8 @@ def run_batch(inputs, config, ctx):
         hint = (" — mode 'all' fits detections at every tracking frame: with the simulated detector set "
                 "stages.detect.at=tracking") if config.mode == "all" else ""
         raise StageFailed(f"{where}: {exc}{hint}", status="missing_detections") from exc
-    n_built = len(_PROBLEMS)
-    problem = problem_for(rec.template, rec.camera, t_us.size, config)
-    if len(_PROBLEMS) > n_built:
+    problem, built = problem_for(rec.template, rec.camera, t_us.size, config)
+    if built:
         ctx.log.info("built the batch NLP for %d tracking frames in %.2f s (once per process)", t_us.size,
                      problem.build_seconds)
         ctx.stats["build_s"] = problem.build_seconds

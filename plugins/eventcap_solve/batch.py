@@ -13,24 +13,21 @@ Energies (sums, as in the paper):
   π(v_{i,h}(S_i)) = p_{i,h} whatever S_i is, and the residual is evaluated as
   (π(v(S_j)) - π(v(S_i))) - (p_{j,h} - p_{i,h}) with v the point found at the current S_i (a rest point with
   blended skinning weights, posed by LBS): it couples S_i and S_j. Holding the point's frame-i side fixed instead
-  (the literal reading with v frozen) anchors every frame to the estimate the points were found on: measured on
-  synthetic fast motion, batch solves then stayed at the linear interpolation (error 9.7 mm → 9.7 mm), while the
-  coupled form integrates the tracks' motion between the detections (→ 5.0 mm). The frozen form is kept as the
+  (the literal reading with v frozen) anchors every frame to the estimate the points were found on: batch solves
+  then stay at the linear interpolation, while the coupled form integrates the tracks' motion between the
+  detections (docs/results/implementation.md). The frozen form is kept as the
   ``per_frame`` baseline, where it is exactly what is wanted.
 - E_2D (Eq. 6): Σ_f Σ_l c_{f,l} ‖π(L_l(S_f)) - P2D_{f,l}‖² over the BODY_25 landmarks (joints and the four face
   landmarks the paper adds, plus nose and feet), at frames 0 and N, weighted by the detector's confidence c.
   With ``robust_px`` > 0 (the stage's ``robust_2d_px``, default 2 px) each landmark's squared error e² is replaced
   by the Cauchy loss σ² log(1 + e²/σ²), σ = robust_px: quadratic for errors below σ, logarithmic for outliers and
-  left/right flips, which a CNN makes (not in the paper). Measured on the default simulated detector (2 px noise,
-  2% outliers, 2% flips), speed-2 motions, per-frame fits: mean error 70.5 / 69.4 / 50.5 mm (plain least squares,
-  jumping_jack / dance_spin / karate_kick; single flipped frames reach 300 mm) → 40.8 / 36.8 / 36.7 mm.
+  left/right flips, which a CNN makes (not in the paper; what it changed: docs/results/implementation.md).
 - E_3D (Eq. 7): Σ_f Σ_l c_{f,l} ‖J_l(S_f) - (P3D_{f,l} + t'_f)‖² over the 24 joints at frames 0 and N; P3D is
   root-relative, t'_f an auxiliary translation per detection frame (the paper writes one t'; the root moves
   within a batch, so each detection frame gets its own).
 - E_temp (Eq. 8): Σ_i Σ_l φ_{i,l} ‖J_l(S_i) - J_l(S_{i+1})‖², φ from :func:`.correspondences.temporal_indicator`:
   1 for joints whose body part has no correspondence — the paper's "non-moving body parts". With sparse tracks a
-  part can lack correspondences and still move; holding it still then contradicts the detections (measured with
-  exact detections and boundary=free: end-frame error 0.1 → 5 mm). So φ is also 0 for joints whose two end fits
+  part can lack correspondences and still move; holding it still then contradicts the detections. So φ is also 0 for joints whose two end fits
   lie more than ``still_m`` (3 cm) apart; ``still_m=0`` is the literal indicator.
 - E_damp (not in the paper): Σ_f ‖S_f - S_f^start‖² with λ_damp = 1e-3, a proximal pull towards the solve's start
   (rad and m alike). Without it the joint angles nothing observes in a frame (a straight arm's twist, parts
@@ -49,8 +46,7 @@ How it is computed. Every term is a factor of :mod:`eventcap.energy` (E_2D and E
 detection frames; E_cor and E_temp: :class:`eventcap.energy.cor.EventCorrespondences` / ``TemporalStability``,
 numpy with exact derivatives), summed over one pose per tracking frame by
 :class:`eventcap.energy.problem.FactorProblem` (E_damp is its proximal term). E_cor has thousands of points, each
-blended from 24 joint transforms: a symbolic SX Hessian of it takes minutes to build and gigabytes of memory
-(measured: 29 s build and 95 ms per Hessian with 20 points per frame; killed at 200). So E_cor and E_temp are
+blended from 24 joint transforms: a symbolic SX Hessian of it takes minutes to build and gigabytes of memory. So E_cor and E_temp are
 evaluated by numpy, exactly (value, gradient and exact Hessian, checked against finite differences in the tests):
 per frame, the 24 skinning transforms G(S) (96×3), their Jacobian and the contraction of their second derivatives
 come from small CasADi functions (called through zero-copy buffers); per point, posed position = WX·G and Jacobian
@@ -61,8 +57,7 @@ built into the NLP.
 Initialisation (paper): S_0 and S_N are fitted to E_2D + E_3D (a one-frame problem, built once as well). The fit
 starts from a closed-form guess (T-pose with the root rotation from a Kabsch fit of the detected 3D torso, the
 pelvis from a linear fit of the 2D rays) and first fits E_3D alone, then both: from a T-pose the projection term
-has poor local minima (limbs swung to the wrong side; measured 50-150 mm errors with exact detections, 0.3 mm
-staged). S_1..S_{N-1} are interpolated linearly in time, after unwrapping S_N's root angles to the nearest
+has poor local minima (limbs swung to the wrong side, even with exact detections). S_1..S_{N-1} are interpolated linearly in time, after unwrapping S_N's root angles to the nearest
 2π-equivalent of S_0's. Then correspondence search and solve alternate (``icp_rounds``, as in ICP), each solve
 warm-started from the previous estimate.
 
@@ -73,8 +68,8 @@ parallel, cached per batch). ``free`` lets the solve move them (the batches then
 
 Correspondences near silhouette or self-occlusion edges of the current estimate (``edge_margin_px``, 1 px) are
 left out: there a feature is on an occluding contour, not on one surface point, and the estimate's edge is off by
-its own error. Measured: with EKLT tracks on fast synthetic motion, 0 → 1 → 2 px margin gave 5.2 → 4.0 → 3.2 mm;
-with exact tracks on a 240×180 image, where limbs are a few pixels wide, 3.8 → 5.1 → 8.5 mm. 1 px is the default.
+its own error; on a small image, where limbs are a few pixels wide, a wide margin leaves too little. 1 px is the
+default (docs/results/implementation.md).
 
 Modes (baselines of the paper's evaluation, from the same code):
 

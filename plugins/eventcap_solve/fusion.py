@@ -16,10 +16,7 @@ average that error instead. Two stages do it, after a solve in mode ``odometry``
 - ``place`` (per batch) puts each batch's event trajectory onto the graph: anchored at X_k, with the mismatch at
   frame N spread linearly, so batch k ends exactly where batch k+1 starts.
 
-Measured with ``benchmarks/accuracy/bench_fusion.py`` (6 synthetic motions × 2 s, speed 1, AE against linear's 33.5 mm):
--32% with perfect relative motion, -21% with odometry from exact tracks, -11% from EKLT (estimated rho), where
-the paper's batch solve is at +8% on the same captures. The estimate needs many batches: on the 4-batch captures
-of ``eventcap benchmark benchmark=quick`` it gave rho = 10 on one motion and a worse result than linear there.
+The estimate of rho needs many batches (the fusion against linear: docs/results/implementation.md).
 """
 
 from __future__ import annotations
@@ -55,8 +52,8 @@ def innovation_rho(fits: np.ndarray, steps: np.ndarray) -> float:
 
     The innovation r_k = fits_{k+1} - fits_k - steps_k = e_{k+1} - e_k - o_k mixes the fits' errors e and the
     odometry's errors o. If both are independent over k, Var(r) = 2 var(e) + var(o) and Cov(r_k, r_{k+1}) =
-    -var(e); rho = var(e) / var(o), pooled over the joint angles (the root's parameters have other units).
-    Estimated per parameter instead, it measured worse: with ~50 batches the small variances are too noisy.
+    -var(e); rho = var(e) / var(o), pooled over the joint angles (the root's parameters have other units; per
+    parameter, the small variances of a few dozen batches are too noisy).
     Needs at least 3 steps (ValueError otherwise)."""
     r = (np.diff(fits, axis=0) - steps)[:, THETA_SLICE]
     if r.shape[0] < 3:
@@ -111,8 +108,8 @@ def run_fuse(inputs, config, ctx):
     X = pose_graph(fits, steps, rho, w)
     ctx.log.info("fuse: %d batches, rho %.3g (%s)", K, rho, how)
     if config.rho <= 0 and K - 1 < FEW_STEPS:
-        ctx.log.warning("fuse: rho estimated from only %d steps is unreliable (measured: on 4-batch captures the "
-                        "fusion can be worse than linear); set stages.fuse.rho (1-2 measured best with EKLT)", K - 1)
+        ctx.log.warning("fuse: rho estimated from only %d steps is unreliable (on short captures the fusion can "
+                        "be worse than linear); set stages.fuse.rho", K - 1)
     ctx.stats.update({"rho": rho, "rho_estimated": config.rho <= 0})
     return {"anchors": PoseSequence(t_us=np.asarray(t_frames, dtype=np.int64), poses=X, status="fused",
                                     iterations=0, energies={"rho": rho})}

@@ -63,8 +63,7 @@ BATCH_RENAMED = {
 
 
 BATCH = StageSpec(
-    name="batch", kind="solve", version=3,  # 2: its terms are factors (sums in another order); 3: nested settings,
-    # energies named by the terms' groups
+    name="batch", kind="solve", version=3,
     description="hybrid batch optimisation of all 1 kHz poses of a batch: event correspondences, 2D/3D detections, "
                 "temporal term, joint limits (Sec. 3.2, CasADi + IPOPT)",
     config=BatchSolveConfig,

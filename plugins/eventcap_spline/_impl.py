@@ -10,10 +10,13 @@ import numpy as np
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.analysis.motion import tracking_times_us
 from eventcap.core.stage import StageFailed
+from eventcap.memo import ProcessCache
 
 #: Built solvers of this process, keyed by value (template, camera, window layout, config): built once per run.
-_SOLVERS: dict = {}
-_SOLVERS_MAX = 16
+_SOLVERS = ProcessCache("eventcap_spline.solvers", maxsize=16)
+#: What a process measured over a capture, by capture and settings: the solve's template, the floor.
+_TEMPLATES = ProcessCache("eventcap_spline.capture_templates", maxsize=8)
+_FLOORS = ProcessCache("eventcap_spline.capture_floors", maxsize=8)
 
 
 def window_of(n_batches: int, k: int, half: int) -> tuple[int, int]:
@@ -174,8 +177,8 @@ def capture_template(rec, config, layout, plan, detections, where: str, ctx):
     key = ("widths", rec.template.geometry_digest(), repr(config), frames.tobytes(),
            *(np.ascontiguousarray(a).tobytes() for a in (det.keypoints_2d, det.confidence_2d, det.joints_3d,
                                                           det.confidence_3d)))
-    if key not in _FLOORS:
-        _bound_captures()
+
+    def measure():
         plain = fit_solver_for(rec.template, rec.camera, config)
         fits, keep = [], []
         for d in range(det.n):
@@ -186,15 +189,15 @@ def capture_template(rec, config, layout, plan, detections, where: str, ctx):
                 continue
         widths = measure_widths(rec.template, rec.camera, np.asarray(fits), det.rows(keep)) if keep else None
         if widths is None:
-            _FLOORS[key] = rec.template
-        else:
-            _FLOORS[key] = with_widths(rec.template, widths)
-            ctx.log.info("%s: where the detector puts the joints, over the capture (stages.solve.landmarks=%s): %s",
-                         where, config.landmarks,
-                         "; ".join(f"{k} {v:.3f} of the template's ({widths.frames[k]} frames)"
-                                   for k, v in widths.scale.items()))
-            ctx.stats["landmark_widths"] = dict(widths.scale)
-    return _FLOORS[key]
+            return rec.template
+        ctx.log.info("%s: where the detector puts the joints, over the capture (stages.solve.landmarks=%s): %s",
+                     where, config.landmarks,
+                     "; ".join(f"{k} {v:.3f} of the template's ({widths.frames[k]} frames)"
+                               for k, v in widths.scale.items()))
+        ctx.stats["landmark_widths"] = dict(widths.scale)
+        return with_widths(rec.template, widths)
+
+    return _TEMPLATES.get(key, measure)[0]
 
 
 def capture_floor_of(solver, plan, detections, where: str, log) -> float | None:
@@ -210,24 +213,18 @@ def capture_floor_of(solver, plan, detections, where: str, log) -> float | None:
         det = select_detections(detections, frames)
     except ValueError as exc:
         raise StageFailed(f"{where}: the floor: {exc}", status="missing_detections") from exc
-    key = (id(solver), frames.tobytes(), *(np.ascontiguousarray(a).tobytes() for a in (
-        det.keypoints_2d, det.confidence_2d, det.joints_3d, det.confidence_3d)))
-    if key not in _FLOORS:
-        _bound_captures()
-        _FLOORS[key] = capture_floor(solver, det)[0]
-        h = _FLOORS[key]
+    # the floor depends on the per-frame fits: the solver's template, camera and config, not its window layout
+    key = (solver.template.geometry_digest(), repr(sorted(solver.camera.to_dict().items())), repr(solver.config),
+           frames.tobytes(), *(np.ascontiguousarray(a).tobytes() for a in (
+               det.keypoints_2d, det.confidence_2d, det.joints_3d, det.confidence_3d)))
+
+    def measure():
+        h = capture_floor(solver, det)[0]
         log.info("%s: the floor over the capture: y = %s (median lowest sole point of the fits at %d intensity "
                  "frames)", where, "unknown" if h is None else f"{h:.3f} m", frames.size)
-    return _FLOORS[key]
+        return h
 
-
-#: What a process measured over a capture (the solve's template, the floor), by capture and settings.
-_FLOORS: dict = {}
-
-
-def _bound_captures() -> None:
-    if len(_FLOORS) >= 8:
-        _FLOORS.clear()
+    return _FLOORS.get(key, measure)[0]
 
 
 def solver_for(template, camera, layout, config):
@@ -236,18 +233,14 @@ def solver_for(template, camera, layout, config):
 
     from .solve import SplineSolver
 
-    key = (template.geometry_digest(), repr(sorted(camera.to_dict().items())), layout, repr(config))
-    solver = _SOLVERS.get(key)
-    built = solver is None
-    if built:
+    def build():
         try:
-            solver = SplineSolver(template, camera, layout, config)
+            return SplineSolver(template, camera, layout, config)
         except EnergyError as exc:
             raise StageFailed(f"stages.solve: {exc}", status=exc.status) from exc
-        if len(_SOLVERS) >= _SOLVERS_MAX:
-            _SOLVERS.clear()
-        _SOLVERS[key] = solver
-    return solver, built
+
+    return _SOLVERS.get((template.geometry_digest(), repr(sorted(camera.to_dict().items())), layout, repr(config)),
+                        build)
 
 
 def fit_solver_for(template, camera, config):
@@ -256,25 +249,14 @@ def fit_solver_for(template, camera, config):
 
     from .solve import FitSolver
 
-    key = ("fits", template.geometry_digest(), repr(sorted(camera.to_dict().items())), repr(config))
-    if key not in _SOLVERS:
+    def build():
         try:
-            solver = FitSolver(template, camera, config)
+            return FitSolver(template, camera, config)
         except EnergyError as exc:
             raise StageFailed(f"stages.solve: {exc}", status=exc.status) from exc
-        if len(_SOLVERS) >= _SOLVERS_MAX:
-            _SOLVERS.clear()
-        _SOLVERS[key] = solver
-    return _SOLVERS[key]
 
-
-def clear_solvers() -> None:
-    """Forget this process's built solvers and per-frame fits."""
-    from .solve import clear_fits
-
-    _SOLVERS.clear()
-    _FLOORS.clear()
-    clear_fits()
+    return _SOLVERS.get(("fits", template.geometry_digest(), repr(sorted(camera.to_dict().items())), repr(config)),
+                        build)[0]
 
 
 def check_config(config) -> None:

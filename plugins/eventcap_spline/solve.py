@@ -49,16 +49,11 @@ from eventcap.energy.silence import Silence, measure_stillness
 from eventcap.energy.spline import UniformCubicBSpline
 from eventcap.energy.terms import factors_from_config
 from eventcap.energy.window import Estimate, WindowInputs, detection_curvature
+from eventcap.memo import ProcessCache
 
 _NP = NUM_POSE_PARAMS
 #: Per-frame fits of this process, by (fitter, detections of the frame): each frame is in several windows.
-_FITS: dict = {}
-_FITS_MAX = 512
-
-
-def clear_fits() -> None:
-    """Forget this process's per-frame fits."""
-    _FITS.clear()
+_FITS = ProcessCache("eventcap_spline.frame_fits", maxsize=512)
 
 
 @dataclass(frozen=True)
@@ -123,12 +118,8 @@ def frame_fit(solver: SplineSolver | FitSolver, det: FrameDetections, d: int):
     weights = solver.fit_weights
     key = (solver.template.geometry_digest(), repr(sorted(solver.camera.to_dict().items())), solver.lower.tobytes(),
            solver.upper.tobytes(), solver.settings, weights.key(), *(v.tobytes() for v in weights.values(det, d)))
-    if key in _FITS:
-        return _FITS[key], 0
-    if len(_FITS) > _FITS_MAX:
-        _FITS.clear()
-    _FITS[key] = solver.fitter.fit(det, d, weights, FIT_DAMP)
-    return _FITS[key], 1
+    fit, built = _FITS.get(key, lambda: solver.fitter.fit(det, d, weights, FIT_DAMP))
+    return fit, int(built)
 
 
 def observed_frames(det: FrameDetections) -> np.ndarray:
@@ -342,5 +333,5 @@ def _result(solver, spline, inputs, x, fits, solves, seconds, n_fits, changes) -
                         covariance=covariance)
 
 
-__all__ = ["FitSolver", "NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "clear_fits", "fit_window",
+__all__ = ["FitSolver", "NothingObserved", "SplineSolver", "WindowResult", "capture_floor", "fit_window",
            "frame_fit", "frame_fits", "observed_frames", "solve_window", "window_context", "window_stillness"]

@@ -112,9 +112,7 @@ class SplineSolveConfig:
                                                        "floor (the floor and slide terms)")
     terms: SplineTerms = group(SplineTerms, help="the terms of the energy: each one's noise, gain (0: off) and "
                                                  "settings")
-    ipopt: IpoptConfig = group(IpoptConfig, barrier="adaptive", help="IPOPT's options for every solve of a window "
-                                                                      "(adaptive barrier: a chunk's long window "
-                                                                      "needs 37 iterations instead of 64)")
+    ipopt: IpoptConfig = group(IpoptConfig, barrier="adaptive", help="IPOPT's options for every solve of a window")
 
 
 #: Settings that moved when the config was nested, and the weights that became noise models: {old key: new key};
@@ -198,8 +196,7 @@ class StitchConfig:
 
 
 STITCH = StageSpec(
-    name="stitch", kind="fuse", version=4,  # 3: windows advancing by several batches; windows that only touch;
-    # 4: the windows' σ blended
+    name="stitch", kind="fuse", version=4,
     description="the spline solve's overlapping windows blended into one motion over the whole recording, each "
                 "window weighted by a C² bump over its span (no seam where batches meet; not in the paper)",
     config=StitchConfig,
@@ -215,7 +212,7 @@ class CutConfig:
 
 
 CUT = StageSpec(
-    name="cut", kind="fuse", version=2,  # 2: with the motion's σ
+    name="cut", kind="fuse", version=2,
     description="a batch's frames of the stitched whole-recording motion",
     config=CutConfig,
     inputs={"motion": Port(PoseSequence, "the stitch stage's motion"), "batches": Port(BatchPlan)},

@@ -2,8 +2,8 @@
 
 Each batch's task solves a window of several batches (:mod:`.solve`) and returns the window's whole curve.
 Neighbouring windows overlap but disagree slightly (each sees its own batch's events and different detections at
-its far ends). Keeping only each batch's own interval leaves a jump where two batches meet: measured on the default
-capture, a speed spike of up to 1 m/s at every batch boundary, the largest part of the velocity error.
+its far ends). Keeping only each batch's own interval leaves a jump where two batches meet: a speed spike at every
+batch boundary, the largest part of the velocity error (docs/results/implementation.md).
 
 ``stitch`` (whole recording) blends the windows instead: at every tracking frame t,
 

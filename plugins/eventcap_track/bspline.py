@@ -18,9 +18,9 @@ the track's observed span ``[first sample, last sample]`` at most ``knot_spacing
 (n_i: samples merged at one time, c_j: the 2D control points, h: knot spacing in s). The first term trusts
 samples to their noise ``sigma_px``; the second is a prior on acceleration (the second difference of uniform
 cubic B-spline coefficients is ``h²·s''``), which smooths noise and bridges gaps between samples without the
-oscillation of an interpolating spline. Why not FITPACK's ``splprep(s=...)``: measured here, an underestimated
-noise level (s too small for 0.2 px noise on dense samples) made it return a spline reaching 1e12 px, and its
-knot choice let the fit wander 1.6 px between samples on noise-free data; this penalised fit is a fixed linear
+oscillation of an interpolating spline. Why not FITPACK's ``splprep(s=...)``: an underestimated noise level made it
+return a spline that blows up, and its knot choice let the fit wander between samples on noise-free data
+(docs/results/implementation.md); this penalised fit is a fixed linear
 least-squares problem, solved for all tracks of a batch at once (one banded Cholesky), and cannot blow up.
 A track with one sample is a constant; with two distinct times a straight line (the prior's null space).
 Guards for extreme input (none bites on batch-length tracks sampled every few ms): at most 4 knot intervals per

@@ -494,7 +494,7 @@ def _build_event_frame(ring, ring_pos, nb, ev_tau, ev_x, ev_y, ev_p, ox, oy, hei
 
 # The warp model is a compile-time constant of the kernels below: each takes ``mode`` (0 translation, 1 rotation,
 # 2 affine) and calls ``numba.literally(mode)``, so numba compiles one specialisation per model, with the parameter
-# count M a constant that unrolls the normal-equation loops (2x faster than a runtime M, measured). Parameters
+# count M a constant that unrolls the normal-equation loops (faster than a runtime M). Parameters
 # p = [cx, cy, warp..., phi]: M = 3 (translation), 4 (+ rotation angle), 7 (+ 4 affine entries). Every kernel is
 # a module-level function, so numba's disk cache serves later processes. (Closures over the mode, built per
 # process, missed that cache: its key pickles the jitted functions a closure captures, which differ per process,
@@ -868,7 +868,7 @@ def _track_kernel(ev_tau, ev_x, ev_y, ev_p, der, feats, settings, mode):
 
 
 # One entry point per warp model, each calling the kernel with its model as a literal constant: called from Python
-# with a plain int, the literal kernel would go through numba's compiler on every call (tens of ms, measured).
+# with a plain int, the literal kernel would go through numba's compiler on every call.
 @numba.njit(cache=True)
 def _track_translation(ev_tau, ev_x, ev_y, ev_p, der, feats, settings):
     return _track_kernel(ev_tau, ev_x, ev_y, ev_p, der, feats, settings, 0)
@@ -1117,14 +1117,11 @@ def relocate(
     converges to a correlation >= ``min_correlation`` within ``max_shift_px`` of the guess.
 
     Why: starting the backward tracker there makes forward and backward tracks follow the *same* texture point.
-    Corners detected independently on the end image differ from the forward points by 0.1-1.5 px under rotation
-    or deformation (measured on the simulated scenes), and a stitched track would switch points at mid-batch.
+    Corners detected independently on the end image differ from the forward points by a fraction of a pixel or more
+    under rotation or deformation, and a stitched track would switch points at mid-batch.
 
-    The patch must lie on the moving object. Measured (benchmarks/accuracy/bench_track_actor.py, speed 2, 6 motions; paired
-    stitched vs forward tracks of the same corners inside the actor): radius 12 px, whose patch is mostly static
-    background around a ~10 px limb, made stitching *worse* (p90 0.58 -> 0.67 px); 6 px made it better
-    (0.58 -> 0.41 px). On the large textured planes of benchmarks/accuracy/bench_tracking.py, 12 px is slightly better
-    (translate_500 p90 0.78 vs 0.99 px; affine and disc equal).
+    The patch must lie on the moving object: a patch that is mostly static background around a thin limb makes
+    stitching worse (the radii tried: docs/results/implementation.md).
     """
     a = _check_log_image("log_image_0", log_image_0).astype(np.float32)
     b = _check_log_image("log_image_1", log_image_1).astype(np.float32)

@@ -66,7 +66,7 @@ class SliceConfig:
 
 
 BSPLINE = StageSpec(
-    name="bspline", kind="slice", version=2,  # 2: the batch end and one grid for the recording (tracking_times_us)
+    name="bspline", kind="slice", version=2,
     description="smoothing B-spline per track, sampled at every tracking frame (1 ms)",
     config=SliceConfig, inputs={"tracks": Port(Tracks), "batches": Port(BatchPlan)},
     outputs={"sliced": Port(SlicedTracks)}, per_batch=True,

@@ -1,4 +1,7 @@
-"""Typed artifacts: frozen dataclasses with declared arrays (dtype, dims, units), validated, stored as zarr v3 groups.
+"""The artifact contract: frozen dataclasses with declared arrays (dtype, dims, units), validated, stored as zarr v3
+groups. The types themselves are in :mod:`eventcap.artifacts` (with the library's own, :class:`eventcap.camera.Camera`
+and :class:`eventcap.body.template.Template`, which derive from :class:`Artifact` here: this module sits below them
+and imports nothing of eventcap but :mod:`eventcap.memo`).
 
 An artifact type is declared once::
 
@@ -80,7 +83,7 @@ def _dtype_str(dt: np.dtype) -> str:
 
 
 #: the resolved type hints of each artifact class
-_TYPE_HINTS = ProcessCache("artifacts.type_hints")
+_TYPE_HINTS = ProcessCache("artifact.type_hints")
 
 
 def _hints(cls) -> dict[str, Any]:
