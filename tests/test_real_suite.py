@@ -86,10 +86,10 @@ def test_the_real_preset_lists_every_recording_with_its_licence_and_how_to_fetch
 
 def test_format_real_says_motion_or_refusal_per_recording():
     runs = [{"motion_name": "walk", "person": "whole body", "has_motion": True, "ok": True, "observed_share": 0.61,
-             "plausibility": [], "outline_share": 0.42, "outline_frames": 12, "reproj_median_px": 3.2,
+             "plausibility": [], "outline_share": 0.42, "outline_share_10ms": 0.7, "outline_frames": 12, "reproj_median_px": 3.2,
              "reproj_p90_px": 7.9},
             {"motion_name": "lab", "person": "none", "has_motion": False, "error": "detect: no person in 3 of 3"}]
     text = format_real(runs)
-    assert "| walk " in text and "motion" in text and "61%" in text and "42% (12 moments)" in text
+    assert "| walk " in text and "motion" in text and "61%" in text and "42%; 70% (12 moments)" in text
     assert "3.2 (p90 7.9)" in text and "refused: detect: no person in 3 of 3" in text
     assert text.splitlines()[-1] == "1 of 2 recordings gave a motion, 1 of them with no plausibility finding"

@@ -45,10 +45,11 @@ def outline_mask(camera, template, pose: np.ndarray) -> np.ndarray:
 
 def outline_event_share(camera, template, t_us: np.ndarray, poses: np.ndarray, events: np.ndarray,
                         tol_px: float = 2.0, window_us: int = 1000, every_us: int = 20000,
-                        min_events: int = 20) -> OutlineShare:
+                        min_events: int = 1) -> OutlineShare:
     """The share of outline pixels within ``tol_px`` of an event within ``window_us`` around their moment, sampled
     every ``every_us`` over the estimated frames (finite poses) of ``t_us`` (T,), ``poses`` (T, 33). Moments with
-    fewer than ``min_events`` events in the window (nobody moved) are left out: a still person fires nothing."""
+    fewer than ``min_events`` events in the window (nobody moved) are left out: a still person fires nothing. A
+    sparse sensor bounds the share: an outline of n pixels needs n events in the window to be all covered."""
     from scipy import ndimage
 
     t = np.asarray(t_us, np.int64)
