@@ -283,7 +283,8 @@ def _blazepose_images(rec, latent, config):
 
 
 def _event_alternatives(rec, times, config, log):
-    """For images reconstructed from the events (``FrameStack.origin == 'events'``) detected at them: the images of
+    """For images reconstructed from the events (``FrameStack.origin == 'events'``) detected at them (at=frames, or
+    at=latent where the latent images are those reconstructions): the images of
     each moment the detector tries (config.event_images, :mod:`eventcap.imaging.event_images`); None otherwise."""
     from eventcap.imaging.event_images import event_image, parse_kind
 
@@ -294,7 +295,8 @@ def _event_alternatives(rec, times, config, log):
         except ValueError as exc:
             raise ValueError(f"stages.detect.event_images: {exc}") from None
     frames = rec.frames
-    if not kinds or config.at != "frames" or frames is None or frames.origin != "events":
+    # at=latent on an event-only pipeline: its latent images are the same reconstructions
+    if not kinds or config.at not in ("frames", "latent") or frames is None or frames.origin != "events":
         return None
     if kinds == ["reconstruction"]:
         return None
