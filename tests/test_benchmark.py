@@ -194,7 +194,7 @@ def test_bad_benchmark_configs_are_refused():
     with pytest.raises(ValueError, match=r"methods\[1\]: name 'wo_batch' repeats"):
         parse_methods([{"name": "w/o_batch"}, {"name": "wo_batch"}])  # the same folder name
     with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, ladder, "
-                                         r"ladder25, ladder25_check, ladder_check, open, open_check, quick"):
+                                         r"ladder25, ladder25_check, ladder_check, open, open_check, quick, real\)"):
         compose_benchmark(CONF, "nope", [])
     from eventcap.apps.benchmark import main
 

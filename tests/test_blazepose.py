@@ -334,7 +334,44 @@ def test_no_person_anywhere_fails_the_stage_with_the_reason():
     blank = FrameStack(images=np.zeros_like(rec.frames.images), t_us=rec.frames.t_us,
                        exposure_us=rec.frames.exposure_us, height=rec.height, width=rec.width)
     empty = Recording(events=rec.events, camera=rec.camera, frames=blank, name="blank")
-    with pytest.raises(StageFailed, match=r"^blazepose \(full, at frames\): no person in 3 of 3 images; is there a "
-                                          r"person in view") as info:
+    with pytest.raises(StageFailed, match=r"^blazepose \(full, at frames\): no person in 3 of 3 images; the network "
+                                          r"saw no person in its images: look at the recording in `eventcap "
+                                          r"preview FILE`") as info:
         detect(empty)
     assert info.value.status == "no_person"
+
+
+def test_events_roi_on_a_sparse_sensor_takes_clustered_pixels_that_fired_once():
+    """A DVS128 walking recording: 200 events of a 20 x 40 px body, no pixel twice; noise of 100 isolated events."""
+    rng = np.random.default_rng(1)
+    px = rng.permutation(20 * 40)[:200]
+    body = make_events(np.sort(rng.integers(0, 10_000, 200)), 50 + px % 20, 40 + px // 20, np.ones(200))
+    roi = bp.events_roi(body, 5_000, 10_000, 128, 128)
+    assert roi is not None and abs(roi.cx - 59.5) < 2 and abs(roi.cy - 59.5) < 3
+    noise_px = rng.permutation(128 * 128)[:100]
+    noise = make_events(np.sort(rng.integers(0, 10_000, 100)), noise_px % 128, noise_px // 128, np.ones(100))
+    assert bp.events_roi(noise, 5_000, 10_000, 128, 128) is None
+
+
+def test_detect_sequence_keeps_the_alternative_the_network_scores_best():
+    """Of the images of one moment, the pose with the highest flag is kept and found_by names its image."""
+    from types import SimpleNamespace
+
+    class Net:  # scores an image by its mean: the landmark model's flag, no person detector
+        presence_threshold = 0.5
+
+        def detect_person(self, rgb):
+            return None
+
+        def landmarks(self, rgb, roi):
+            flag = float(rgb.mean()) / 255.0
+            xy = np.tile([[roi.cx, roi.cy]], (35, 1))
+            return SimpleNamespace(flag=flag, roi=roi, next_roi=lambda: roi, xy=xy)
+
+    images = [np.full((20, 20), 0.3), np.full((20, 20), 0.3)]
+    alts = lambda i, im: [("dim", im), ("bright", np.full((20, 20), 0.9)), ("mid", np.full((20, 20), 0.7))]
+    seq = bp.detect_sequence(Net(), images, np.array([0, 40_000]), alternatives=alts)
+    assert [round(p.flag, 2) for p in seq.poses] == [0.9, 0.9]
+    assert seq.found_by == ["image@bright", "tracked@bright"]
+    plain = bp.detect_sequence(Net(), images, np.array([0, 40_000]))
+    assert plain.poses == [None, None] and plain.found_by == ["", ""]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eventcap.body.skeleton import LANDMARK_INDEX
+from eventcap.body.skeleton import LANDMARK_INDEX, LANDMARK_NAMES
 from eventcap.events import make_events
 from eventcap.core.stage import StageFailed
 
@@ -103,7 +103,9 @@ def test_a_partial_view_gives_a_partial_detection(tmp_path):
     assert (d.confidence_2d[~inside] == 0).all() and (d.keypoints_2d[~inside] == 0).all()
 
 
-def test_a_small_body_under_a_big_head_is_rejected_by_scale(tmp_path, caplog):
+def test_a_small_body_under_a_big_head_is_a_close_up(tmp_path, caplog):
+    """Issue 53: a head and shoulders with a small body drawn under them is a person partly out of view, not a
+    rejection: the head, shoulders and arms are kept, the lower body drawn under them is marked unobserved."""
     rec = posed_recording("jumping_jack", N)
     kp = truth_2d(rec).copy()
     neck = kp[:, LANDMARK_INDEX["neck"]][:, None]
@@ -111,18 +113,40 @@ def test_a_small_body_under_a_big_head_is_rejected_by_scale(tmp_path, caplog):
     kp[:, SHOULDERS] = (kp[:, SHOULDERS] - neck) * 2.0 + neck
     rec = with_events(rec, box_events(rec, body_boxes(kp)))
     caplog.set_level(logging.INFO)
-    d = run_file(tmp_path, rec, kp, min_found=0)
-    assert d.image_status == ("scale",) * N
-    assert not d.in_view.any() and (d.confidence_2d == 0).all() and (d.confidence_3d == 0).all()
-    assert "image 0 (t = 0.005 s) rejected by check scale: the head" in caplog.text
-    assert "a person in 0 of 10 images (rejected: scale 10)" in caplog.text
-    # only the region check: the events fit the body, nothing rejected
+    d = run_file(tmp_path, rec, kp)
+    inside = checks.inside_image(kp, rec.width, rec.height)
+    assert d.image_status == (checks.CLOSE_UP,) * N
+    upper = np.zeros(len(LANDMARK_NAMES), bool)
+    upper[list(checks.UPPER_BODY)] = True
+    assert np.array_equal(d.in_view, inside & upper[None]) and d.in_view[:, HEAD].all()
+    assert not d.in_view[:, LEGS].any() and not d.in_view[:, LANDMARK_INDEX["mid_hip"]].any()
+    assert (d.confidence_2d[:, ~upper] == 0).all() and (d.confidence_2d[d.in_view] > 0).all()
+    assert (d.confidence_3d[:, list(checks.LOWER_JOINTS)] == 0).all()
+    assert "image 0 (t = 0.005 s) a close-up: the head 0.78 x the torso wide" in caplog.text
+    assert "a person in 10 of 10 images (10 of them close-ups: the head and shoulders kept, the lower body " \
+           "unobserved)" in caplog.text
+    # only the region check: the events fit the body, a whole body kept
     assert run_file(tmp_path, rec, kp, checks=["region"]).image_status == ("ok",) * N
-    # the default min_found stops the stage, naming the counts
-    with pytest.raises(StageFailed, match=r"no person in 0 of 10 images, 10 rejected \(scale 10\); is there a "
-                                          r"person in view") as info:
+
+
+def test_a_refusal_names_the_check_that_rejected_and_its_setting(tmp_path):
+    """The hint of a refusal points where the cause is: a person found and rejected by a check names the check and
+    the setting that changes it, not 'is there a person in view'."""
+    rec = posed_recording("jumping_jack", N)
+    kp = truth_2d(rec).copy()
+    # a body drawn inside a face: the events fire over a region three times its size (check region)
+    box = body_boxes(kp)
+    big = [(max(0, x0 - 2 * (x1 - x0)), y0, min(rec.width - 1, x1 + 2 * (x1 - x0)), y1) for x0, y0, x1, y1 in box]
+    rec = with_events(rec, box_events(rec, big))
+    with pytest.raises(StageFailed) as info:
         run_file(tmp_path, rec, kp)
+    msg = str(info.value)
+    assert "rejected (region" in msg and "check region rejected (first: a whole body" in msg
+    assert "stages.detect.region_ratio" in msg and "is there a person in view" not in msg
     assert info.value.status == "no_person"
+    # nobody found at all: the hint points at the images and at preview
+    hint = checks.refusal_hint(["no_person"] * 5 + ["ok"], [""] * 6, event_images=True)
+    assert "stages.detect.event_images" in hint and "eventcap preview FILE" in hint
 
 
 def test_a_whole_body_inside_a_much_larger_moving_region_is_rejected(tmp_path):
@@ -155,7 +179,11 @@ def test_landmarks_outside_the_image_and_too_few_detections(tmp_path):
         run_file(tmp_path, rec, np.nan_to_num(kp), conf)
     assert str(info.value) == ("detections_file det.npz: no person in 3 of 10 images, 3 rejected (outside 3): a "
                                "person in 4: 40% of the images, fewer than 50% (stages.detect.min_found=0.5): too "
-                               "few to solve anything; is there a person in view (eventcap preview FILE)?")
+                               "few to solve anything; the detector found a person in 3 images that check outside "
+                               "rejected (first: 1 landmarks in the image (at least 3)): look at them in `eventcap "
+                               "preview FILE --t SECONDS`; if a person shows there, the check is wrong for this "
+                               "recording: stages.detect.min_in_view (or stages.detect.checks without outside) "
+                               "changes it")
     assert info.value.status == "too_few_detections"
 
 
@@ -221,8 +249,8 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
                  "template.target_faces=2000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     log = (run_dir / "eventcap.log").read_text()
     assert code == 1
-    assert ("detect (blazepose v4): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
-            "images; is there a person in view (eventcap preview FILE)?") in log
+    assert ("detect (blazepose v5): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
+            "images; the network saw no person in its images: look at the recording in `eventcap preview FILE`") in log
     assert ("run incomplete: detect failed (no_person); skipped because of it: 8 nodes (body, track, slice, solve, "
             "stitch, cut, confidence, evaluate); the first error is above (detect)") in log
     assert "world frame: y up, the camera at the origin looking along -z, assumed level until the detect stage measures" in log

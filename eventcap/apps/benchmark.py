@@ -215,7 +215,10 @@ class Benchmark:
                 raise ValueError(f"only: expected names of methods ({', '.join(known)}), got {only!r}")
             self.methods = [m for m in self.methods if m.name in only]
         self.out = Path(c["out"])
-        self.draws, self.purpose, self.groups = None, None, {}
+        self.draws, self.purpose, self.groups, self.real = None, None, {}, {}
+        if c.get("recordings") is not None:
+            self._real_suite()
+            return
         if c.get("draws") is not None:
             self._generated_suite()
             return
@@ -257,6 +260,24 @@ class Benchmark:
                                               cap.values(), cap.describe(), body, values,
                                               tuple(self.detector_overrides(None, values))))
         self.motions = list(dict.fromkeys(cap.motion for cap in self.captures))
+
+    def _real_suite(self) -> None:
+        """Public recordings of people (eventcap/apps/real_suite.py): one capture per recording, no ground truth."""
+        from eventcap.apps.real_suite import parse_recordings
+
+        root = self.config_dir.parent
+        recs = parse_recordings(self.cfg["recordings"], Path(str(self.cfg.get("data_dir") or "runs/real-data")), root)
+        select = self.cfg.get("select")
+        if select:
+            select = [select] if isinstance(select, str) else [str(x) for x in select]
+            unknown = [x for x in select if x not in {r.name for r in recs}]
+            if unknown:
+                raise ValueError(f"select: no recording {unknown[0]!r}; known: {', '.join(r.name for r in recs)}")
+            recs = [r for r in recs if r.name in select]
+        self.real = {r.name: r for r in recs}
+        self.seeds, self.motions = [0], [r.name for r in recs]
+        self.captures = [SuiteCapture(r.name, 0, r.name, ("source=recording", f"source.path={r.path}", *r.overrides),
+                                      description=r.shows) for r in recs]
 
     def sequence_values(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """What a capture's overrides are filled with: the suite's ``sequence_values`` (e.g. the frame rate), what
@@ -364,9 +385,21 @@ class Benchmark:
                                "frames_camera": cap.frames}
         t0 = time.perf_counter()
         failures: list[str] = []
+        real = self.real.get(cap.label)
         if own is None:
             got, failures = None, [f"refused: the row {method.name} has no variant for event-only cameras "
                                    "(its events_only overrides)"]
+        elif real is not None and not real.path.is_file():
+            got, failures = None, [f"not on disk: {real.path} ({real.fetch or 'see docs/results/real.md'})"]
+        elif real is not None:
+            from eventcap.apps.real_suite import compose_recording_run
+
+            try:
+                data, yaml_text = compose_recording_run(self.config_dir, ov)
+                run_dir.mkdir(parents=True, exist_ok=True)
+                got = run_job(data, run_dir, yaml_text, failures)
+            except Exception as exc:  # noqa: BLE001 - a bad recording fails its run, not the benchmark
+                got, failures = None, [f"{type(exc).__name__}: {exc}"]
         else:
             try:
                 data, yaml_text = self._compose_row(ov, tuple(own))
@@ -374,8 +407,16 @@ class Benchmark:
                 got = run_job(data, run_dir, yaml_text, failures)
             except Exception as exc:  # noqa: BLE001 - a bad method config fails its runs, not the benchmark
                 got, failures = None, [f"{type(exc).__name__}: {exc}"]
+        if real is not None:
+            from eventcap.apps.real_suite import real_figures
+
+            rec.update(motion_name=cap.label, person=real.person, sensor=real.sensor, licence=real.licence)
+            rec.update(real_figures(got[0], got[1], run_dir) if got is not None else real_figures(None, None, run_dir))
         if got is None:
             rec["error"] = _short_reason("; ".join(failures) or "refused", run_dir)
+        elif real is not None:
+            rec.update(collect_run(*got, self.cfg["metrics"], self.cfg["errors"], method.data))
+            rec["error"] = _short_reason(_first_failure(got[1]) or "; ".join(failures), run_dir) or None
         else:
             rec.update(collect_run(*got, self.cfg["metrics"], self.cfg["errors"], method.data))
             if self.cfg.get("speed_figure", True) and cap.seed == self.seeds[0]:
@@ -407,6 +448,14 @@ class Benchmark:
             mine = set(own)
             return compose_run(self.config_dir, [o for o in overrides if o in mine
                                                  or not o.startswith(("stages/detect=", "stages.detect."))])
+
+
+def _first_failure(result) -> str:
+    """The first failure of a run, as its node logged it (the cause of a refusal)."""
+    for name, rep in result.nodes.items():
+        for f in rep.failed:
+            return f"{name}: {f.get('error') or f.get('status') or 'failed'}"
+    return ""
 
 
 def _short_reason(text: str, run_dir: Path) -> str:
@@ -1007,7 +1056,13 @@ def main(argv: Sequence[str], config_dir: Path) -> int:
     seq = (f"{len(bench.motions)} motion(s) x {len(bench.seeds)} seed(s) x {cfg['duration_s']} s; AE after "
            f"Procrustes, every 10th tracking frame")
     print()
-    if bench.draws:
+    if bench.real:
+        from eventcap.apps.real_suite import format_real
+
+        text = format_real(results["runs"])
+        (bench.out / "report.txt").write_text(text + "\n")
+        print(text)
+    elif bench.draws:
         print(format_generated(results))
     else:
         print(format_tables(results["table"], bench.motions, seq, results.get("per_capture")))

@@ -63,9 +63,13 @@ class FrameStack(Artifact):
     exposure_us: np.ndarray = array("int64", ("n",), units="us")
     height: int = attr(units="px")
     width: int = attr(units="px")
+    origin: str = attr(default="", doc="'' the camera's own frames | 'events': images reconstructed from the events "
+                                       "(an event-only camera; a detector may then make other images from them)")
 
     def validate(self) -> None:
         super().validate()
+        if self.origin not in ("", "events"):
+            raise ArtifactError(f"FrameStack.origin: expected '' or 'events', got {self.origin!r}")
         if self.t_us.size > 1 and np.any(np.diff(self.t_us) <= 0):
             i = int(np.argmax(np.diff(self.t_us) <= 0)) + 1
             raise ArtifactError(f"FrameStack.t_us: frame times must increase; frame {i} is at {self.t_us[i]} us")

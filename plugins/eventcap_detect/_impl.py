@@ -162,16 +162,24 @@ def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what
     settings = view_settings(config)
     n = int(t_us.size)
     in_view = np.asarray(in_view, bool) & (conf > 0) & found[:, None]
-    status, why = checks.check_images(kp, in_view, found, t_us, rec.events.events, rec.width, rec.height, settings)
-    for i, (st, w) in enumerate(zip(status, why)):
-        if st not in ("ok", "no_person"):
+    status, why_rejected = checks.check_images(kp, in_view, found, t_us, rec.events.events, rec.width, rec.height,
+                                               settings)
+    for i, (st, w) in enumerate(zip(status, why_rejected)):
+        if st == checks.CLOSE_UP:
+            ctx.log.info("%s: image %d (t = %.3f s) a close-up: %s; its lower body marked unobserved", what, i,
+                         t_us[i] / 1e6, w)
+        elif st not in ("ok", "no_person"):
             ctx.log.info("%s: image %d (t = %.3f s) rejected by check %s: %s", what, i, t_us[i] / 1e6, st, w)
-    ok = np.array([st == "ok" for st in status], bool)
-    rejected = np.array([st not in ("ok", "no_person") for st in status], bool)
+    ok = np.array([st in checks.ACCEPTED for st in status], bool)
+    close = np.array([st == checks.CLOSE_UP for st in status], bool)
+    rejected = np.array([st not in (*checks.ACCEPTED, "no_person") for st in status], bool)
     in_view &= ok[:, None]
+    lower = np.setdiff1d(np.arange(in_view.shape[1]), checks.UPPER_BODY)
+    in_view[np.ix_(close, lower)] = False  # a close-up: the body it drew under the head and shoulders is not seen
     conf[~in_view] = 0.0
     kp[~in_view & ~rejected[:, None]] = 0.0  # a rejected image keeps the detector's positions, to look at
     conf3[~ok] = 0.0
+    conf3[np.ix_(close, checks.LOWER_JOINTS)] = 0.0
     if joint_views is not None:
         conf3[~joint_views] = 0.0
     summary = checks.found_message(status, what)
@@ -185,8 +193,9 @@ def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what
         if b - a + 1 >= 10:  # a stretch worth solving on its own: say how to cut it out
             why += (f"; the longest stretch with a person is images {a}-{b}: source.t_start_s={t_us[a] / 1e6:.2f} "
                     f"source.t_end_s={t_us[b] / 1e6:.2f} keeps it")
-        raise StageFailed(f"{checks.found_message(status, what, enough=False)}{why}; is there a person in view "
-                          f"(eventcap preview FILE)?", status="too_few_detections" if ok.any() else "no_person")
+        hint = checks.refusal_hint(status, why_rejected, rec.frames is not None and rec.frames.origin == "events")
+        raise StageFailed(f"{checks.found_message(status, what, enough=False)}{why}; {hint}",
+                          status="too_few_detections" if ok.any() else "no_person")
     level = ctx.log.warning if ok.sum() < n else ctx.log.info
     level("%s; the longest run without one: %d images; %.1f%% of the accepted landmarks in view", summary, gap,
           100.0 * in_view[ok].mean() if ok.any() else 0.0)
@@ -321,6 +330,34 @@ def _blazepose_images(rec, latent, config):
     return times, images()
 
 
+def _event_alternatives(rec, times, config, log):
+    """For images reconstructed from the events (``FrameStack.origin == 'events'``) detected at them (at=frames, or
+    at=latent where the latent images are those reconstructions): the images of
+    each moment the detector tries (config.event_images, :mod:`eventcap.imaging.event_images`); None otherwise."""
+    from eventcap.imaging.event_images import event_image, parse_kind
+
+    kinds = list(config.event_images or ())
+    for k in kinds:
+        try:
+            parse_kind(k)
+        except ValueError as exc:
+            raise ValueError(f"stages.detect.event_images: {exc}") from None
+    frames = rec.frames
+    # at=latent on an event-only pipeline: its latent images are the same reconstructions
+    if not kinds or config.at not in ("frames", "latent") or frames is None or frames.origin != "events":
+        return None
+    if kinds == ["reconstruction"]:
+        return None
+    events, h, w = rec.events.events, rec.height, rec.width
+    log.info("blazepose: the images were reconstructed from the events: trying %s at each, keeping the one the "
+             "network scores best (stages.detect.event_images)", " | ".join(kinds))
+
+    def alternatives(i, image):
+        return [(k, event_image(k, events, int(times[i]), h, w, reconstruction=image)) for k in kinds]
+
+    return alternatives
+
+
 def run_blazepose(inputs, config, ctx):
     from eventcap.body.skeleton import JOINT_NAMES, LANDMARK_NAMES
 
@@ -331,10 +368,11 @@ def run_blazepose(inputs, config, ctx):
     if config.at not in ("frames", "latent", "tracking"):
         raise ValueError(f"stages.detect.at: expected frames | latent | tracking, got {config.at!r}")
     times, images = _blazepose_images(rec, latent, config)
+    alternatives = _event_alternatives(rec, times, config, ctx.log)
     net = bp.BlazePose(config.model, config.detector_threshold, config.presence_threshold)
     seq = bp.detect_sequence(net, images, times, track=config.track, find=config.find, events=rec.events.events,
                              events_window_us=config.events_window_us, gamma=config.gamma,
-                             log=ctx.log.warning)
+                             log=ctx.log.warning, alternatives=alternatives)
     n = times.size
     w2 = bp.mapping_matrix(bp.LANDMARK_FROM_BLAZEPOSE, LANDMARK_NAMES)
     w3 = bp.mapping_matrix(bp.JOINT_FROM_BLAZEPOSE, JOINT_NAMES)
@@ -357,13 +395,20 @@ def run_blazepose(inputs, config, ctx):
         joint_views[i] = bp.mapped(w3, pose.world, seen.astype(float))[1] > 0
     in_view &= inside_image(kp, rec.width, rec.height, config.border_px)
     found = np.array([p is not None for p in seq.poses], bool)
-    how = {k: seq.found_by.count(k) for k in ("tracked", "detector", "events", "image")}
+    origins = [h.partition("@")[0] for h in seq.found_by]
+    how = {k: origins.count(k) for k in ("tracked", "detector", "events", "last box", "image")}
+    if alternatives is not None and found.any():
+        kinds = [h.partition("@")[2] for h, f in zip(seq.found_by, found) if f]
+        ctx.stats["best_image"] = {k: kinds.count(k) for k in sorted(set(kinds))}
+        ctx.log.info("blazepose: the image it scored best, per image with a person: %s",
+                     ", ".join(f"{k} {c}" for k, c in sorted(ctx.stats["best_image"].items(), key=lambda x: -x[1])))
     ms = 1000 * seq.seconds / max(n, 1)
     ctx.stats.update({"found": int(found.sum()), "found_by": how, "tracking_losses": len(seq.losses),
                       "ms_per_image": ms})
     ctx.log.info("blazepose (%s, at %s): person found in %d of %d images (tracked %d, detector %d, events %d, "
-                 "whole image %d), %d tracking losses, %.1f ms per image", config.model, config.at, found.sum(), n,
-                 how["tracked"], how["detector"], how["events"], how["image"], len(seq.losses), ms)
+                 "last box %d, whole image %d), %d tracking losses, %.1f ms per image", config.model, config.at,
+                 found.sum(), n, how["tracked"], how["detector"], how["events"], how["last box"], how["image"],
+                 len(seq.losses), ms)
     view = finish(rec, times, kp, conf, joints, conf3, in_view, found, config, ctx,
                   f"blazepose ({config.model}, at {config.at})", joint_views=joint_views)
     detector = (f"blazepose: BlazePose GHUM 3D {config.model} (MediaPipe Pose, TFLite) on {config.at} images, "

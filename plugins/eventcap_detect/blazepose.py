@@ -310,8 +310,9 @@ def mapped(w: np.ndarray, points: np.ndarray, confidence: np.ndarray) -> tuple[n
 def events_roi(events: np.ndarray, t_us: int, window_us: int, width: int, height: int,
                min_pixels: int = 40) -> Roi | None:
     """An upright ROI around the moving actor, from the events within ``window_us`` around ``t_us``: the box
-    holding the 2nd-98th percentiles of the pixels that fired at least twice (isolated noise events do not),
-    grown to the landmark model's framing. None when too few pixels fired (nothing moves)."""
+    holding the 2nd-98th percentiles of the pixels that fired at least twice (isolated noise events do not) or, on a
+    sparse sensor where too few did, of the pixels that fired beside two others, grown to the landmark model's
+    framing. None when too few pixels fired (nothing moves)."""
     t = events["t"]
     a, b = np.searchsorted(t, [t_us - window_us // 2, t_us + window_us // 2])
     ev = events[a:b]
@@ -319,6 +320,13 @@ def events_roi(events: np.ndarray, t_us: int, window_us: int, width: int, height
         return None
     counts = np.bincount(ev["y"].astype(np.int64) * width + ev["x"], minlength=width * height)
     active = np.flatnonzero(counts >= 2)
+    if active.size < min_pixels:  # a sparse sensor (a DVS128): the pixels that fired next to others that fired
+        from scipy import ndimage
+
+        fired = (counts >= 1).reshape(height, width)
+        near = ndimage.uniform_filter(fired.astype(np.float32), size=3, mode="constant") * 9.0
+        clustered = np.flatnonzero((fired & (near >= 3.0 - 1e-3)).ravel())  # itself and two of its 8 neighbours
+        active = clustered if clustered.size >= min_pixels else active
     if active.size < min_pixels:
         return None
     ys, xs = np.divmod(active, width)
@@ -341,13 +349,18 @@ class SequenceResult:
 
 def detect_sequence(net: BlazePose, images, times_us: np.ndarray, *, track: bool = True, find: str = "detector",
                     events: np.ndarray | None = None, events_window_us: int = 20000, gamma: float = 1.0,
-                    log=None) -> SequenceResult:
+                    log=None, alternatives=None) -> SequenceResult:
     """Run the landmark model over a time-ordered sequence of grey images (linear intensity in [0, 1]).
 
     With ``track``, each image's ROI comes from the previous pose's auxiliary points while its pose flag stays at
     or above ``net.presence_threshold``; otherwise (and on the first image) the person is found again: by the
     person detector (``find='detector'``, falling back to the events when the detector sees nobody), or from the
-    events alone (``find='events'``); last, the landmark model looks at the whole image."""
+    events alone (``find='events'``); then the box where the person was last seen (followed through a short loss);
+    last, the landmark model looks at the whole image.
+
+    ``alternatives(i, image)``: other images of the same moment to try, as (name, image) pairs (images made from the
+    events, :mod:`eventcap.imaging.event_images`); the pose the network scores best (its pose flag) over them is
+    kept, and ``found_by`` says which image gave it (``"tracked@counts:25"``)."""
     import time
 
     if find not in ("detector", "events"):
@@ -355,47 +368,63 @@ def detect_sequence(net: BlazePose, images, times_us: np.ndarray, *, track: bool
     if find == "events" and events is None:
         raise ValueError("find='events' needs the recording's events")
     poses, found_by, losses = [], [], []
-    prev = None
+    prev, last_roi = None, None
     t0 = time.perf_counter()
     for i, image in enumerate(images):
-        rgb = to_rgb8(image, gamma)
-        h, w = rgb.shape[:2]
-        pose, how = None, ""
-        if track and prev is not None:
-            roi = prev.next_roi()
-            if roi.overlaps(w, h):
-                cand = net.landmarks(rgb, roi)
-                if cand.flag >= net.presence_threshold:
-                    pose, how = cand, "tracked"
-                else:
-                    losses.append((i, cand.flag))
-            else:
-                losses.append((i, 0.0))
-        if pose is None:
-            rois = []
-            if find == "detector":
-                found = net.detect_person(rgb)
-                if found is not None:
-                    rois.append((found[0], "detector"))
-            if events is not None:
-                roi = events_roi(events, int(times_us[i]), events_window_us, w, h)
-                if roi is not None:
-                    rois.append((roi, "events"))
-            # last: the whole image as one crop (a small actor that barely moves is missed by both above; the
-            # landmark model still finds it there, and its own framing then zooms in)
-            rois.append((Roi(w / 2, h / 2, float(max(w, h)), 0.0), "image"))
-            for roi, origin in rois:
-                cand = net.landmarks(rgb, roi)
-                if cand.flag >= net.presence_threshold:
-                    # one more pass on the crop the model itself frames (a found box is coarser than a tracked one)
-                    again = net.landmarks(rgb, cand.next_roi()) if cand.next_roi().overlaps(w, h) else cand
-                    pose, how = (again if again.flag >= net.presence_threshold else cand), origin
-                    break
-        if log is not None and pose is None and prev is not None:
+        candidates = [("", image)] if alternatives is None else list(alternatives(i, image))
+        best, best_how, lost_flag = None, "", None
+        for name, img in candidates:
+            pose, how, flag = _pose_in(net, to_rgb8(img, gamma), prev if track else None, last_roi, find, events,
+                                       int(times_us[i]), events_window_us)
+            if flag is not None:
+                lost_flag = flag if lost_flag is None else max(lost_flag, flag)
+            if pose is not None and (best is None or pose.flag > best.flag):
+                best, best_how = pose, (f"{how}@{name}" if name else how)
+        if track and prev is not None and (best is None or not best_how.startswith("tracked")):
+            losses.append((i, 0.0 if lost_flag is None else lost_flag))
+        if log is not None and best is None and prev is not None:
             log(f"lost the person at image {i} (t = {int(times_us[i])} us)")
-        if log is not None and pose is not None and prev is None and i > 0:
-            log(f"found the person again at image {i} (t = {int(times_us[i])} us) by the {how}")
-        poses.append(pose)
-        found_by.append(how)
-        prev = pose
+        if log is not None and best is not None and prev is None and i > 0:
+            log(f"found the person again at image {i} (t = {int(times_us[i])} us) by the {best_how}")
+        poses.append(best)
+        found_by.append(best_how)
+        prev = best
+        if best is not None:
+            last_roi = best.roi
     return SequenceResult(poses, found_by, losses, time.perf_counter() - t0)
+
+
+def _pose_in(net: BlazePose, rgb: np.ndarray, prev, last_roi, find: str, events, t_us: int, window_us: int):
+    """One image's pose: (pose or None, how it was found, the tracked crop's flag when tracking lost it)."""
+    h, w = rgb.shape[:2]
+    lost = None
+    if prev is not None:
+        roi = prev.next_roi()
+        if roi.overlaps(w, h):
+            cand = net.landmarks(rgb, roi)
+            if cand.flag >= net.presence_threshold:
+                return cand, "tracked", None
+            lost = cand.flag
+        else:
+            lost = 0.0
+    rois = []
+    if find == "detector":
+        found = net.detect_person(rgb)
+        if found is not None:
+            rois.append((found[0], "detector"))
+    if events is not None:
+        roi = events_roi(events, t_us, window_us, w, h)
+        if roi is not None:
+            rois.append((roi, "events"))
+    if last_roi is not None and last_roi.overlaps(w, h):
+        rois.append((last_roi, "last box"))  # the person's box followed through a short loss
+    # last: the whole image as one crop (a small actor that barely moves is missed by both above; the landmark
+    # model still finds it there, and its own framing then zooms in)
+    rois.append((Roi(w / 2, h / 2, float(max(w, h)), 0.0), "image"))
+    for roi, origin in rois:
+        cand = net.landmarks(rgb, roi)
+        if cand.flag >= net.presence_threshold:
+            # one more pass on the crop the model itself frames (a found box is coarser than a tracked one)
+            again = net.landmarks(rgb, cand.next_roi()) if cand.next_roi().overlaps(w, h) else cand
+            return (again if again.flag >= net.presence_threshold else cand), origin, lost
+    return None, "", lost

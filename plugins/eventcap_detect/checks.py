@@ -19,7 +19,9 @@ Every detector's landmarks (the skeleton's BODY_25 order) go through the same th
    - ``scale``: a whole body whose height disagrees with the scale of its own head and shoulders: ear-to-ear
      width over ``head_ratio`` or shoulder width over ``shoulder_ratio`` x the torso's length (neck to mid-hip).
      The head and shoulders of a close-up with a small body folded under them give 0.4-2 and 0.9-8; whole bodies
-     of the synthetic captures at most 0.28 and 0.74 (benchmarks/accuracy/bench_view_checks.py).
+     of the synthetic captures at most 0.28 and 0.74 (benchmarks/accuracy/bench_view_checks.py). Such a detection
+     is not rejected: it is a person partly out of view (status ``close_up``), its head, shoulders and arms kept
+     (:data:`UPPER_BODY`) and the lower body it drew marked unobserved.
 
    Checks that need what a detection lacks (no torso, no events near it) do not judge it. They assume a static
    camera, as the method does: a moving camera makes the whole image fire.
@@ -36,9 +38,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from eventcap.body.skeleton import LANDMARK_INDEX
+from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX
 
 CHECKS = ("outside", "parts", "region", "scale")
+#: The status of a detection the scale check keeps as a close-up: its head, shoulders and arms are observations, the
+#: lower body it drew under them is not (:data:`UPPER_BODY`).
+CLOSE_UP = "close_up"
+#: The joints (SMPL order) of the lower body, whose 3D detections a close-up does not observe.
+LOWER_JOINTS = tuple(JOINT_INDEX[n] for n in ("pelvis", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle",
+                                              "l_foot", "r_foot"))
+#: The landmarks a close-up keeps (head, neck, shoulders, elbows, wrists): what a head-and-shoulders view shows.
+UPPER_BODY = tuple(LANDMARK_INDEX[n] for n in ("nose", "neck", "r_shoulder", "r_elbow", "r_wrist", "l_shoulder",
+                                               "l_elbow", "l_wrist", "r_eye", "l_eye", "r_ear", "l_ear"))
 #: How far a body's silhouette reaches beyond its landmarks' box, as a share of the box's longer side (the top of the
 #: head above the eyes; the soles below the ankles)
 _BEYOND_LANDMARKS = 0.2
@@ -167,11 +178,13 @@ def check_detection(kp: np.ndarray, in_view: np.ndarray, active: np.ndarray | No
     torso = _length(kp, _NECK, _MID_HIP)
     if "scale" in settings.checks and torso > 0:
         if in_view[list(_EARS)].all() and _length(kp, *_EARS) > settings.head_ratio * torso:
-            return "scale", (f"the head {_length(kp, *_EARS) / torso:.2f} x the torso wide (at most "
-                             f"{settings.head_ratio:g}): a small body under a close-up's head")
+            return CLOSE_UP, (f"the head {_length(kp, *_EARS) / torso:.2f} x the torso wide (at most "
+                              f"{settings.head_ratio:g}): a close-up's head and shoulders, the body drawn under "
+                              f"them not seen")
         if in_view[list(_SHOULDERS)].all() and _length(kp, *_SHOULDERS) > settings.shoulder_ratio * torso:
-            return "scale", (f"the shoulders {_length(kp, *_SHOULDERS) / torso:.2f} x the torso wide (at most "
-                             f"{settings.shoulder_ratio:g}): a small body under a close-up's shoulders")
+            return CLOSE_UP, (f"the shoulders {_length(kp, *_SHOULDERS) / torso:.2f} x the torso wide (at most "
+                              f"{settings.shoulder_ratio:g}): a close-up's head and shoulders, the body drawn "
+                              f"under them not seen")
     if "region" in settings.checks and active is not None:
         region = moving_region(active, box, cell)
         if region is not None:
@@ -220,27 +233,58 @@ def check_images(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, t_us: n
     return status, why
 
 
+#: The statuses of an accepted detection: a whole or partial view as detected, or a close-up kept as its upper body.
+ACCEPTED = ("ok", CLOSE_UP)
+#: What changes each check (the setting a refusal names).
+CHECK_SETTINGS = {"outside": "stages.detect.min_in_view", "parts": "stages.detect.checks",
+                  "region": "stages.detect.region_ratio / stages.detect.edge_ratio",
+                  "scale": "stages.detect.head_ratio / stages.detect.shoulder_ratio"}
+
+
 def found_message(status: list[str], what: str, enough: bool = True) -> str:
     """What the detect stage says about its images: ``a person in 197 of 202 images (rejected: region 3, scale 2)``,
     or when there are not ``enough``, the cause first: ``no person in 199 of 202 images: a person in 3``."""
     n = len(status)
     counts = Counter(status)
-    ok = counts.pop("ok", 0)
+    close = counts.pop(CLOSE_UP, 0)
+    ok = counts.pop("ok", 0) + close
     none = counts.pop("no_person", 0)
     rejected = ", ".join(f"{k} {c}" for c, k in sorted(((c, k) for k, c in counts.items()), reverse=True))
     n_rej = sum(counts.values())
+    close_note = f"{close} of them close-ups: the head and shoulders kept, the lower body unobserved" if close else ""
     if not enough:
         return (f"{what}: no person in {none} of {n} images" + (f", {n_rej} rejected ({rejected})" if n_rej else "")
-                + (f": a person in {ok}" if ok else ""))
-    extra = "; ".join(([f"rejected: {rejected}"] if n_rej else []) + ([f"no person in {none}"] if none else []))
+                + (f": a person in {ok}" if ok else "") + (f" ({close_note})" if close else ""))
+    extra = "; ".join(([close_note] if close else []) + ([f"rejected: {rejected}"] if n_rej else [])
+                      + ([f"no person in {none}"] if none else []))
     return f"{what}: a person in {ok} of {n} images" + (f" ({extra})" if extra else "")
+
+
+def refusal_hint(status: list[str], why: list[str], event_images: bool) -> str:
+    """What to look at and which setting would change a refusal for too few detections: the checks when they
+    rejected more images than the detector missed (naming the most frequent check, its first reason and its
+    setting), else the detector's images."""
+    counts = Counter(s for s in status if s not in (*ACCEPTED, "no_person"))
+    missed = status.count("no_person")
+    if counts and sum(counts.values()) >= missed:
+        check, c = counts.most_common(1)[0]
+        first = next(w for s, w in zip(status, why) if s == check)
+        return (f"the detector found a person in {c} images that check {check} rejected (first: {first}): look at "
+                f"them in `eventcap preview FILE --t SECONDS`; if a person shows there, the check is wrong for this "
+                f"recording: {CHECK_SETTINGS.get(check, 'stages.detect.checks')} (or stages.detect.checks without "
+                f"{check}) changes it")
+    images = ("the images made from the events (stages.detect.event_images) showed the network no person: "
+              if event_images else "the network saw no person in its images: ")
+    return (images + "look at the recording in `eventcap preview FILE` (a person in view there means the images "
+            "were too poor for it; none means there is nobody to capture); stages.detect.min_found solves the "
+            "images it found")
 
 
 def longest_gap(status: list[str]) -> int:
     """The longest run of consecutive images without an accepted detection."""
     best = run = 0
     for s in status:
-        run = 0 if s == "ok" else run + 1
+        run = 0 if s in ACCEPTED else run + 1
         best = max(best, run)
     return best
 
@@ -250,7 +294,7 @@ def longest_stretch(status: list[str]) -> tuple[int, int]:
     when there is none."""
     best, start, gap = (0, -1), None, 0
     for i, s in enumerate([*status, "end", "end"]):
-        if s == "ok":
+        if s in ACCEPTED:
             start, gap = (i if start is None else start), 0
             last = i
             if last - start > best[1] - best[0]:

@@ -118,10 +118,17 @@ class BlazePoseConfig(ViewChecksConfig):
                                    "brightens the dark tones, below 1 darkens them")
     landmark_presence: float = param(0.5, help="a landmark is in view when the network's presence output (that "
                                                "it lies in the image) is at least this, and it lies in the image")
+    event_images: list[str] = param(default_factory=lambda: ["reconstruction", "counts:25", "counts:50",
+                                                             "surface:25", "surface:50"],
+                                    help="when its images were reconstructed from the events (an event-only "
+                                         "camera): the images of each moment it tries, keeping the one the network "
+                                         "scores best: reconstruction (the high-pass image) | counts:MS (events per "
+                                         "pixel over the last MS ms, 1-500) | surface:MS (a time surface over MS "
+                                         "ms); [] = the reconstruction alone")
 
 
 BLAZEPOSE = StageSpec(
-    name="blazepose", kind="detect", version=9,
+    name="blazepose", kind="detect", version=10,
     description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints, "
                 "with its noise model measured on tuning captures (models/blazepose_noise.json)",
     config=BlazePoseConfig,
@@ -141,7 +148,7 @@ SIMULATED = StageSpec(
 )
 
 FILE = StageSpec(
-    name="detections_file", kind="detect", version=5,
+    name="detections_file", kind="detect", version=6,
     description="2D/3D detections produced elsewhere (OpenPose JSON, npz, csv), aligned with the frames; their "
                 "noise as the settings state it",
     config=DetectionsFileConfig, inputs={"recording": Port(Recording)},

@@ -35,7 +35,7 @@ def run_reconstruct(inputs, config, ctx):
     exposure = int(config.exposure_us)
     frames = FrameStack(images=to_intensity(logs, config.eps), t_us=times, exposure_us=np.full(times.size, exposure,
                                                                                                 np.int64),
-                        height=rec.height, width=rec.width)
+                        height=rec.height, width=rec.width, origin="events")
     gt = rec.ground_truth
     if gt is not None and gt.frame_t_us is None and rec.frames is not None:
         # The ground truth's frame poses / sharp images belong to the frames replaced here: keep their times.
