@@ -164,8 +164,7 @@ class CorNoise(NoiseConfig):
     """E_cor weighted by the event tracks' noise."""
 
     sigma_px: float = param(1.0, gt=0, help="noise of a track's displacement between the two frames of a "
-                                            "correspondence, per image axis, px (measured on the tuning seeds: "
-                                            "docs/results/events-add.md)")
+                                            "correspondence, per image axis, px")
     loss_scale: float = param(3.0, ge=0, help="Cauchy scale in sigmas: from the second ICP round on, each "
                                               "correspondence weighs 1 / (1 + (e/(scale σ))²) by its residual e at "
                                               "the previous round's solution (0: least squares)")

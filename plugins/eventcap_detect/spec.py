@@ -86,8 +86,7 @@ class DetectionsFileConfig(ViewChecksConfig):
                           choices=("world", "camera"))
     unit_3d: str = param("m", help="unit of the 3D joints in the files: m | mm", choices=("m", "mm"))
     sigma_px: float = param(1.0, gt=0, help="the detector's 2D noise per image axis from image to image, px (the "
-                                            "default: BlazePose's on sharp images of a person about 100-200 px "
-                                            "tall, docs/results/events-add.md)")
+                                            "default: a detector of BlazePose's class on sharp images)")
     bias_px: float = param(2.0, ge=0, help="the spread per image axis of a landmark's offset that stays over the "
                                            "capture, px (where the detector puts a hip or a shoulder)")
     sigma_3d_mm: float = param(25.0, gt=0, help="the detector's noise of each root-relative 3D joint per axis from "
@@ -130,7 +129,7 @@ class BlazePoseConfig(ViewChecksConfig):
 BLAZEPOSE = StageSpec(
     name="blazepose", kind="detect", version=10,
     description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints, "
-                "with its noise model measured on tuning captures (models/blazepose_noise.json)",
+                "with its noise model (models/blazepose_noise.json)",
     config=BlazePoseConfig,
     inputs={"recording": Port(Recording),
             "latent": Port(LatentFrames, optional=True, doc="EDI latent images (at=latent | tracking)")},

@@ -27,7 +27,7 @@ class ReconstructConfig:
 
 
 RECONSTRUCT = StageSpec(
-    name="reconstruct", kind="sharpen", version=2,  # 2: its frames say they come from events
+    name="reconstruct", kind="sharpen", version=2,
     description="images from events alone (per-pixel high-pass filter, Scheerlinck et al. 2018) at every batch "
                 "boundary: latent log images for the tracker and a recording whose frames they are, for the detector",
     config=ReconstructConfig, inputs={"recording": Port(Recording), "batches": Port(BatchPlan)},

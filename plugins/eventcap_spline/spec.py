@@ -51,8 +51,8 @@ class SplineTerms:
     joints_3d: Joints3DNoise = group(Joints3DNoise, help="E_3D: the detected root-relative 3D joints, weighted by the "
                                                          "detector's noise")
     cor: CorNoise = group(CorNoise, sigma_px=6.3, loss_scale=0.0,
-                          help="E_cor: the event tracks' correspondences on the mesh (an effective noise: the "
-                               "association's error at a solve's estimate, not the tracks' own)")
+                          help="E_cor: the event tracks' correspondences on the mesh (an effective noise, the "
+                               "association's error at a solve's estimate included)")
     sil: SilNoise = group(SilNoise, sigma_px=44.5, loss_scale=0.0225,
                           help="E_sil (paper Sec. 3.3): the silhouette boundary against its closest events at the "
                                "solved batches' frames (an effective noise; Huber beyond 1 px)")
