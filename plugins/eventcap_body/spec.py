@@ -17,12 +17,12 @@ class ProportionsConfig:
     scale_from_floor: bool = param(True, help="estimate an unstated stature from the floor and the camera's height "
                                               "(a world from the camera's extrinsics, its floor y = 0); false: the "
                                               "template's default stature")
-    prior_sigma: float = param(0.1, gt=0, help="spread of the phenotypes' prior around ANNY's mean body (0), in "
-                                               "ANNY's units (-1 .. 1)")
+    stature_sd_m: float = param(0.092, gt=0, help="SD of the prior of an unstated stature around the template's, "
+                                                 "metres (default: adults' spread, eventcap/body/proportions.py)")
 
 
 PROPORTIONS = StageSpec(
-    name="proportions", kind="body", version=1,
+    name="proportions", kind="body", version=2,  # 2: a Bayesian update with standard errors
     description="the person's body: limb lengths and girdle widths seen over the capture, ANNY's phenotypes and "
                 "stature fitted to them where the template does not state them (not in the paper)",
     config=ProportionsConfig,
