@@ -108,7 +108,7 @@ class DetectorSpread:
 #: Per detector (by the start of its name), measured on the tuning captures (docs/results/body.md): the SD over
 #: captures of the error each capture's images share.
 DETECTOR_SPREAD: dict[str, DetectorSpread] = {
-    "simulated": DetectorSpread(segment=0.05, floor=0.02),
+    "simulated": DetectorSpread(segment=0.13, floor=0.02),
     "blazepose": DetectorSpread(segment=0.08, floor=0.04),
 }
 #: A detector not listed: the largest spreads of those measured.
@@ -331,8 +331,16 @@ class Moved:
 
     @property
     def share(self) -> float:
-        """How far the evidence weighs: 1 - σ_post² / σ_prior² (0: the prior alone, 1: the evidence alone)."""
+        """How far all the evidence weighs on it: 1 - σ_post² / σ_prior² (0: the prior alone, 1: the evidence alone);
+        a segment's includes what the stature's evidence and the other segments' tell."""
         return float(max(0.0, 1.0 - (self.posterior_sd / self.prior_sd) ** 2)) if self.prior_sd > 0 else 0.0
+
+    @property
+    def weight(self) -> float:
+        """How far its own evidence weighs against the prior, alone: σ_prior² / (σ_prior² + SE²) (0: not seen)."""
+        if self.seen_se is None or self.prior_sd <= 0:
+            return 0.0
+        return float(self.prior_sd ** 2 / (self.prior_sd ** 2 + self.seen_se ** 2))
 
 
 @dataclass(frozen=True)

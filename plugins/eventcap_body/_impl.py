@@ -118,9 +118,8 @@ def _why_kept(m) -> str:
     """Why a quantity did not move (its evidence weighs little against the prior), or '' when it moved."""
     if m.seen is None:
         return "not seen across the line of sight in 3 images: it follows the rest of the body"
-    if m.share < 0.1:
-        return (f"its evidence weighs {100 * m.share:.0f} % against the prior (seen {100 * m.seen:.1f} "
-                f"+- {100 * m.seen_se:.1f} cm in {m.images} images, {m.effective:.0f} effective)")
+    if m.weight < 0.25:
+        return f"its evidence weighs {100 * m.weight:.0f} % against the prior"
     return ""
 
 
@@ -144,14 +143,14 @@ def _log(ctx, template, est: BodyEstimate, start: dict, stated: set, floor_known
     for n in SEGMENTS:
         m = est.segments[n]
         text = (f"{n} {100 * m.template:.1f} -> {100 * m.posterior:.1f} +- {100 * m.posterior_sd:.1f}"
-                + (f" [seen {100 * m.seen:.1f} +- {100 * m.seen_se:.1f} in {m.images} images; weighs "
-                   f"{100 * m.share:.0f} %]" if m.seen is not None else ""))
+                + (f" [seen {100 * m.seen:.1f} +- {100 * m.seen_se:.1f} in {m.images} images; prior +- "
+                   f"{100 * m.prior_sd:.1f}: weighs {100 * m.weight:.0f} %]" if m.seen is not None else ""))
         why = _why_kept(m)
         (kept if why or abs(m.posterior - m.template) < 0.002 else moved).append(text + (f" ({why})" if why else ""))
     ctx.log.info(
         "body: segment lengths (cm), template -> posterior +- SD, from %d segments seen across the line of sight in "
-        "%d images (spread of an image %.1f %%, lag-1 correlation %.2f, %d of %d outliers)%s; moved: %s; kept: %s",
-        len(used), est.images, 100 * est.noise.get("sigma", float("nan")), est.noise.get("rho", 0.0),
+        "%d images (their noise %.2f x the model's, lag-1 correlation %.2f, %d of %d outliers)%s; moved: %s; "
+        "kept: %s", len(used), est.images, est.noise.get("sigma", float("nan")), est.noise.get("rho", 0.0),
         est.noise.get("outliers", 0), est.noise.get("observations", 0),
         f"; the detector's definitions ({det_name}) removed" if det_name else
         f"; the detector ({detector.split(':')[0].split(' ')[0] or 'unnamed'}) taken to put its points on the joints",
@@ -175,4 +174,5 @@ def _log(ctx, template, est: BodyEstimate, start: dict, stated: set, floor_known
         "segments_cm": {n: {"posterior": round(100 * m.posterior, 2), "sd": round(100 * m.posterior_sd, 2),
                             "seen": None if m.seen is None else round(100 * m.seen, 2),
                             "seen_se": None if m.seen_se is None else round(100 * m.seen_se, 2),
-                            "share": round(m.share, 3)} for n, m in est.segments.items()}}
+                            "weight": round(m.weight, 3), "share": round(m.share, 3)}
+                        for n, m in est.segments.items()}}
