@@ -23,6 +23,9 @@ from eventcap.body.anny import anny_rest_joints, anny_template
 from eventcap.body.kinematics import joint_positions, landmark_positions
 from eventcap.body.motions import motion_poses
 from eventcap.body.proportions import (
+    DETECTOR_DEFINITIONS,
+    DETECTOR_SPREAD,
+    KINDS,
     SEGMENTS,
     STATURE_SD_M,
     DetectorSpread,
@@ -42,7 +45,7 @@ from eventcap.events import EVENT_DTYPE
 ACTOR = dict(height_m=1.62, build=0.3, muscle=0.4, sex=-0.7)
 START = dict(height_m=1.75, build=0.0, muscle=0.0, sex=0.0)
 #: What exact projections share within a capture: next to nothing.
-EXACT = DetectorSpread(segment=0.01, floor=0.005)
+EXACT = DetectorSpread(segment={k: 0.01 for k in KINDS}, floor=0.005)
 TEMPLATE = anny_template()
 FEET = foot_geometry(TEMPLATE.rest_joints, TEMPLATE.rest_landmarks)
 
@@ -132,14 +135,15 @@ def test_a_quarter_second_of_a_noisy_detector_moves_the_template_less_than_its_e
     evidence weighs less than on 100, and the posterior stays within 2 SD of the truth. What the detector shares
     within a capture (its fixed 3D offsets) bounds what more images can add: the SD narrows only a little."""
     cam = camera(1.0, 3.0, size=(240, 180), f=199.0)  # the default capture's geometry
-    spread = DetectorSpread(segment=0.13, floor=0.02)  # what the simulated detector shares (its 4 cm joint offsets)
+    spread, defs = DETECTOR_SPREAD["simulated"], DETECTOR_DEFINITIONS["simulated"]  # its errors, as simulated here
     out = {}
     for n_img in (7, 100):
         t = np.arange(n_img) / 25.0
         S = motion_poses("karate_kick", t, seed=0, template=TEMPLATE)
         det = detections(TEMPLATE, S, cam, t, noise=np.random.default_rng(3))
         est = fit_body(seen_segments(cam, *args(det)), START, ("height_m", "sex", "muscle"),
-                       floor_z=floor_depths(cam, *args(det), FEET), camera_height_m=1.0, spread=spread)
+                       floor_z=floor_depths(cam, *args(det), FEET), camera_height_m=1.0, spread=spread,
+                       definitions=defs)
         out[n_img] = est
         assert abs(est.height_m - 1.75) < 2 * est.sd("height_m")
     short, long_ = out[7], out[100]

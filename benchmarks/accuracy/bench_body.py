@@ -16,8 +16,11 @@ The first argument is a benchmark preset (conf/benchmark/<preset>.yaml), the res
   for what each segment's images alone say (its seen length +- its SE).
 
 Then, pooled: the shares within 2 SD, and the spread over captures of what each capture's images share (``--spread``:
-each measured segment's mean log error of its seen length at the fitted depths, the floor's median log error of
-the pelvis depth; the SDs ``DETECTOR_SPREAD`` states). Never run on the check seeds to choose anything.
+each measured segment's weighted mean log error of its seen length at the true depths, the floor's median log error
+of the pelvis depth: the means and SDs per kind that ``DETECTOR_DEFINITIONS`` and ``DETECTOR_SPREAD`` state).
+``--draws N``: for the simulated detector, whose fixed 3D offsets are drawn from its seed alone (every capture of a
+seed shares them), the same spread over N more seeds of the detector on each capture (its errors drawn again, the
+capture as it is). Never run on the check seeds to choose anything.
 """
 
 from __future__ import annotations
@@ -57,7 +60,7 @@ def prepare(bench, cap, body: str = "told"):
     if not det:
         return None
     rec = runner.load_output(result, "source.recording")[None]
-    return rec, det[None], runner.load_output(result, "template.template")[None], data["stages"]["body"]
+    return rec, det[None], runner.load_output(result, "template.template")[None], data["stages"]
 
 
 def body_config(stages_body: dict):
@@ -85,11 +88,23 @@ def truth_segments(gt) -> dict:
     return segment_lengths(rest_skeleton_from_motion(gt.poses[::step], gt.joints[::step]))
 
 
-def spread_sample(rec, det, template, stats) -> dict:
+def redetect(rec, stages_detect: dict, seed: int):
+    """The capture's simulated detections with the detector's errors drawn from another seed."""
+    from eventcap.core.config import build_config
+    from eventcap.core.registry import load_registry
+    from eventcap.core.stage import StageContext
+
+    spec = load_registry().get(stages_detect["stage"])
+    keys = {k: v for k, v in stages_detect.items() if k != "stage"}
+    cfg = build_config(spec, {**keys, "seed": seed}, "stages.detect")
+    return spec.load_run()({"recording": rec}, cfg, StageContext(node="detect", stage=spec.name))["detections"]
+
+
+def spread_sample(rec, det, template, stats=None) -> dict:
     """What this capture's images share, against the truth: per measured segment the mean log error of its seen
     length at the true pelvis depths (the detector's definitions removed), and the floor's median log error of
     the pelvis depth."""
-    from eventcap.body.proportions import SEGMENTS, floor_depths, foot_geometry, seen_segments
+    from eventcap.body.proportions import SEGMENTS, floor_depths, foot_geometry, image_noise, seen_segments
     from eventcap.worldframe import upright
     from eventcap_body._impl import detector_definitions
 
@@ -105,8 +120,8 @@ def spread_sample(rec, det, template, stats) -> dict:
     for n in SEGMENTS:
         if len(seen.image[n]) >= 3:
             L = seen.unit[n] * (z_true[seen.image[n]] + seen.offset[n]) / defs.get(n, 1.0)
-            r = np.log(L / truth[n])
-            out["segments"][n] = float(np.median(r))
+            w = 1.0 / image_noise(seen.pixels[n], seen.across[n]) ** 2
+            out["segments"][n] = float(np.sum(w * np.log(L / truth[n])) / w.sum())
     if rec.world == "":
         fz = floor_depths(cam, *args, foot_geometry(template.rest_joints, template.rest_landmarks))
         ok = np.isfinite(fz) & (fz > 0)
@@ -122,6 +137,8 @@ def main(argv=None) -> int:
     ap.add_argument("--body", default="told", choices=("told", "exact"))
     ap.add_argument("--json", default="")
     ap.add_argument("--spread", action="store_true", help="print what each capture's images share (calibration)")
+    ap.add_argument("--draws", type=int, default=0, help="with --spread: draw the simulated detector's errors again "
+                                                         "from this many more seeds per capture")
     a = ap.parse_args(argv)
     logging.getLogger("eventcap").setLevel(logging.WARNING)
     from eventcap.body.proportions import SEGMENTS, segment_lengths
@@ -135,8 +152,8 @@ def main(argv=None) -> int:
         if got is None:
             print(f"{cap.label}: refused at detect")
             continue
-        rec, det, tpl, stages_body = got
-        body, stats = estimate(rec, det, tpl, body_config(stages_body))
+        rec, det, tpl, stages = got
+        body, stats = estimate(rec, det, tpl, body_config(stages["body"]))
         truth = truth_segments(rec.ground_truth)
         H_true = float((cap.drawn or {}).get("actor_height_m") or np.ptp(tpl.vertices[:, 1]))
         before, after = segment_lengths(tpl.rest_joints), segment_lengths(body.rest_joints)
@@ -154,7 +171,9 @@ def main(argv=None) -> int:
                "z_seen": z_seen, "sex": stats.get("sex"), "sex_sd": (stats.get("sd") or {}).get("sex"),
                "noise": stats.get("noise"), "scale_from": stats.get("scale_from") or stats.get("why")}
         if a.spread:
-            row["spread"] = spread_sample(rec, det, tpl, stats)
+            row["spread"] = [spread_sample(rec, det, tpl)]
+            for k in range(a.draws):
+                row["spread"].append(spread_sample(rec, redetect(rec, stages["detect"], 1000 + k), tpl))
         rows.append(row)
         zH = (row["H"] - H_true) / row["H_sd"] if row["H_sd"] else float("nan")
         print(f"{cap.label:28s} {row['detector']:9s} told {row['told']:7s} stature {H_true:.3f}: "
@@ -177,17 +196,21 @@ def main(argv=None) -> int:
                   f"{np.median([r['err_cm'] for r in sub]):.2f} cm, mean {np.mean([r['err_template_cm'] for r in sub]):.2f}"
                   f" -> {np.mean([r['err_cm'] for r in sub]):.2f} ({len(sub)} captures)")
     if a.spread:
+        from eventcap.body.proportions import KIND_OF, KINDS
+
         per = {}
         for r in rows:
-            for n, v in r["spread"]["segments"].items():
-                per.setdefault(n, []).append(v)
+            for sample in r["spread"]:
+                for n, v in sample["segments"].items():
+                    per.setdefault(KIND_OF[n], []).append(v)
         allv = np.concatenate([np.array(v) for v in per.values()])
-        print("spread: per segment SD over captures of the mean log error of the seen length (at the true depths): "
-              + ", ".join(f"{n} {np.std(v):.3f} (bias {np.mean(v):+.3f}, n {len(v)})" for n, v in per.items()))
+        print("spread: per kind, the mean and SD over captures (and draws) of a capture's mean log error of the seen "
+              "length at the true depths: " + ", ".join(f"{k} {np.mean(per[k]):+.3f} +- {np.std(per[k]):.3f} "
+                                                        f"(n {len(per[k])})" for k in KINDS if k in per))
         print(f"spread: all segments RMS {np.sqrt(np.mean(allv ** 2)):.3f}, SD {np.std(allv):.3f}, mean {np.mean(allv):+.3f}")
-        fl = np.array([r["spread"]["floor"] for r in rows if r["spread"]["floor"] is not None])
+        fl = np.array([s_["floor"] for r in rows for s_ in r["spread"] if s_["floor"] is not None])
         if fl.size:
-            print(f"spread: floor's pelvis depth, RMS log error {np.sqrt(np.mean(fl ** 2)):.3f} (mean {fl.mean():+.3f}, "
+            print(f"spread: floor's pelvis depth, log error {fl.mean():+.3f} +- {fl.std():.3f} (RMS {np.sqrt(np.mean(fl ** 2)):.3f}, "
                   f"n {fl.size})")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1, default=float))

@@ -40,7 +40,8 @@ at a given stature, the logs of the six segment kinds' lengths ~ N(the template'
 acromion-radiale length; forearm: radiale-stylion length; thigh: trochanterion height - lateral femoral epicondyle
 height; shin: lateral femoral epicondyle height - lateral malleolus height; shoulders: biacromial breadth; hips:
 bicristal breadth). A template's body is ANNY's (stature, sex, muscle; ``build`` moves no joint by more than 2 mm
-and is left as it is), so the prior of the proportions is that density over ANNY's shapes.
+and is left as it is), so the prior of the proportions is that density over ANNY's shapes, with each phenotype
+within :data:`PHENOTYPE_SD` of the template's (ANNY's own range).
 
 **The posterior**: the most probable stature, sex and muscle given both (robust Gauss-Newton), their covariance from
 its Hessian with the images' depths and the detector's errors marginalised (a Schur complement), each segment's
@@ -83,36 +84,49 @@ NOISE_PX = 2.8
 NOISE_TAN = 0.22
 #: An observation this many of its standard deviations from the fit is an outlier (a flipped side, a wrong point).
 OUTLIER_SIGMAS = 4.0
-#: Where a detector puts its points against the template's joints: seen length / true length per segment,
-#: measured on the open benchmark's tuning captures (seeds 0-19; docs/results/body.md). A detector
-#: not listed is taken to put them on the joints (the simulated detector does).
+#: What a detector's seen lengths come out as against the true ones, seen / true per segment: where it puts its points
+#: against the template's joints (BlazePose: hips and shoulders nearer together), and how much its 3D directions'
+#: errors shorten the seen length (a direction off by an angle projects the segment shorter). Measured on the tuning
+#: captures (docs/results/body.md); a detector not listed is taken to give the true lengths.
 DETECTOR_DEFINITIONS: dict[str, dict[str, float]] = {
-    # BlazePose GHUM (full): the medians over the 10 whole-body tuning captures with frames, left and right averaged
-    # (per capture they spread by about +-8 %)
+    # BlazePose GHUM (full): the medians over the 10 whole-body tuning captures with frames of the open benchmark,
+    # left and right averaged (per capture they spread by about +-8 %)
     "blazepose": {"l_upper_arm": 0.944, "r_upper_arm": 0.944, "l_forearm": 0.989, "r_forearm": 0.989,
                   "l_thigh": 0.936, "r_thigh": 0.936, "l_shin": 0.938, "r_shin": 0.938, "shoulders": 0.876,
                   "hips": 0.870},
+    # the simulated detector (its points on the joints, its 3D joints off by a fixed 4 cm per axis): exp of the mean
+    # log error per kind over the suite's tuning captures (seeds 0-1 of karate_kick, boxing_combo, javelin_throw, 1 s)
+    # and 7 draws of the detector's errors each
+    "simulated": {"l_upper_arm": 0.957, "r_upper_arm": 0.957, "l_forearm": 0.869, "r_forearm": 0.869,
+                  "l_thigh": 1.005, "r_thigh": 1.005, "l_shin": 0.995, "r_shin": 0.995, "shoulders": 1.034,
+                  "hips": 1.023},
 }
 
 
 @dataclass(frozen=True)
 class DetectorSpread:
-    """What a detector's errors share within one capture, which more images do not average out: ``segment`` the
-    SD of the log of a segment's seen length (its mean over the capture's images against the truth), ``floor`` the
-    SD of the log of the person's depth from the floor (its median over the images against the truth)."""
+    """What a detector's errors share within one capture, which more images do not average out: ``segment`` per
+    kind (:data:`KINDS`) the SD over captures of the log of a segment's seen length (its mean over the capture's
+    images against the truth, the definitions removed), ``floor`` the SD of the log of the person's depth from the
+    floor (its median over the images against the truth)."""
 
-    segment: float
+    segment: dict
     floor: float
 
+    def of(self, name: str) -> float:
+        """The spread of a segment (by its kind)."""
+        return float(self.segment[KIND_OF[name]])
 
-#: Per detector (by the start of its name), measured on the tuning captures (docs/results/body.md): the SD over
-#: captures of the error each capture's images share.
+
+#: Per detector (by the start of its name), measured on the tuning captures (docs/results/body.md).
 DETECTOR_SPREAD: dict[str, DetectorSpread] = {
-    "simulated": DetectorSpread(segment=0.13, floor=0.02),
-    "blazepose": DetectorSpread(segment=0.08, floor=0.04),
+    # the same captures and draws as its definitions
+    "simulated": DetectorSpread(segment={"upper_arm": 0.19, "forearm": 0.16, "thigh": 0.04, "shin": 0.04,
+                                         "shoulders": 0.12, "hips": 0.05}, floor=0.013),
+    "blazepose": DetectorSpread(segment={k: 0.08 for k in KINDS}, floor=0.04),
 }
-#: A detector not listed: the largest spreads of those measured.
-UNKNOWN_SPREAD = DetectorSpread(segment=max(s.segment for s in DETECTOR_SPREAD.values()),
+#: A detector not listed: the largest spreads of those measured, per kind.
+UNKNOWN_SPREAD = DetectorSpread(segment={k: max(s.segment[k] for s in DETECTOR_SPREAD.values()) for k in KINDS},
                                 floor=max(s.floor for s in DETECTOR_SPREAD.values()))
 
 
@@ -312,6 +326,9 @@ def floor_depths(camera, keypoints_2d: np.ndarray, confidence_2d: np.ndarray, jo
 FITTED_PHENOTYPES = ("sex", "muscle")
 #: The statures a fit may reach (m): adults, within ANNY's range.
 STATURE_RANGE_M = (1.40, 2.10)
+#: ANNY's phenotypes range over [-1, 1] (a uniform there has an SD of 0.58): a prior of this SD around the template's
+#: keeps a phenotype the segments cannot tell where it is (muscle moves no measured segment above 0, but the mesh).
+PHENOTYPE_SD = 0.5
 
 
 @dataclass(frozen=True)
@@ -463,6 +480,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     off = np.concatenate([seen.offset[n] for n in names])
     g = image_noise(np.concatenate([seen.pixels[n] for n in names]), np.concatenate([seen.across[n] for n in names]))
     ln_c = np.log([definitions.get(n, 1.0) for n in names])
+    sd_beta = np.array([spread.of(n) for n in names])
     fz = fz_all[images] if use_floor else np.full(N, np.nan)
     fimg = np.flatnonzero(np.isfinite(fz) & (fz > 0))
     kind_idx = {k: [i for i, n in enumerate(SEGMENTS) if KIND_OF[n] == k] for k in KINDS}
@@ -506,12 +524,14 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
         if pheno:
             ref = log_lengths({**p, **{q: params[q] for q in pheno}})  # the template's proportions at this stature
             r.append(W_prop @ (kinds(ll) - kinds(ref)))
-        r.append(beta / spread.segment)
+            r.append(np.array([(p[q] - params[q]) / PHENOTYPE_SD for q in pheno]))
+        r.append(beta / sd_beta)
         return np.concatenate(r)
 
     def sparsity(keep, flat=False):
         m = int(keep.sum())
-        A = lil_matrix((m + (len(fimg) + 2 if use_floor else 0) + (len(KINDS) if pheno else 0) + S, P), dtype=int)
+        A = lil_matrix((m + (len(fimg) + 2 if use_floor else 0) + (len(KINDS) + len(pheno) if pheno else 0) + S, P),
+                       dtype=int)
         ki = np.flatnonzero(keep)
         for rr, o in enumerate(ki):
             A[rr, :T] = 1
@@ -529,7 +549,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
             A[rr, o_phi] = 1
             rr += 1
         if pheno:
-            for _ in KINDS:
+            for _ in range(len(KINDS) + len(pheno)):
                 A[rr, :T] = 1
                 rr += 1
         for k in range(S):
@@ -643,7 +663,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
             w = 1.0 / (sig_obs[m] ** 2)
             mean = float((w * v).sum() / w.sum())
             n_eff = float(m.sum()) * (1.0 - rho) / (1.0 + rho)
-            se = float(np.sqrt(1.0 / w.sum() + spread.segment ** 2))
+            se = float(np.sqrt(1.0 / w.sum() + spread.of(n) ** 2))
             measured[n] = float(np.exp(mean))
             moved.update(seen=float(np.exp(mean)), seen_se=float(np.exp(mean) * se), images=int(m.sum()),
                          effective=n_eff)
