@@ -272,3 +272,29 @@ class TestProportionsConformance(StageConformance):
         S = motion_poses("jumping_jack", t, seed=1, template=body)
         cam = camera(1.6)
         return {"recording": recording(cam), "detections": detections(body, S, cam, t), "template": anny_template()}
+
+
+def test_the_body_is_one_per_capture_from_all_its_images_in_every_pipeline():
+    """Issue 54, item 4: over a chunked long capture the body node runs once, whole, on every image's detections
+    (the detect node is whole too), before the chunks' solves read it: a resume finds it cached like any whole node."""
+    from pathlib import Path
+
+    import yaml
+
+    from eventcap.core.registry import load_registry
+
+    spec = load_registry().get("proportions")
+    assert not spec.per_batch and not spec.plan
+    root = Path(__file__).resolve().parents[1] / "conf" / "pipeline"
+    with_body = 0
+    for f in sorted(root.glob("*.yaml")):
+        nodes = ((yaml.safe_load(f.read_text()) or {}).get("pipeline") or {}).get("nodes") or {}
+        if "body" not in nodes:
+            continue
+        with_body += 1
+        assert nodes["body"]["inputs"]["detections"] == "detect.detections", f.name
+        assert not load_registry().get("simulated").per_batch
+        for name, node in nodes.items():  # every solve reads the body's recording, none the source's
+            if name in ("solve", "fits", "odometry") and "recording" in node.get("inputs", {}):
+                assert node["inputs"]["recording"] == "body.recording", (f.name, name)
+    assert with_body >= 9

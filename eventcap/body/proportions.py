@@ -431,7 +431,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     muscle, sex)`` gives a body's rest joints (default: :func:`eventcap.body.anny.anny_rest_joints`); the prior:
     ``stature_sd_m`` and ``proportion_cov`` (:data:`KINDS`' log lengths at a given stature)."""
     from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
+    from scipy.sparse import coo_matrix
 
     if rest_joints is None:
         from eventcap.body.anny import anny_rest_joints as rest_joints
@@ -529,33 +529,38 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
         return np.concatenate(r)
 
     def sparsity(keep, flat=False):
-        m = int(keep.sum())
-        A = lil_matrix((m + (len(fimg) + 2 if use_floor else 0) + (len(KINDS) + len(pheno) if pheno else 0) + S, P),
-                       dtype=int)
+        """Which parameters each residual of :func:`residuals` depends on (rows in its order)."""
+        rows, cols = [], []
+
+        def add(r, c):
+            rows.append(np.asarray(r, dtype=np.int64).ravel())
+            cols.append(np.asarray(c, dtype=np.int64).ravel())
+
         ki = np.flatnonzero(keep)
-        for rr, o in enumerate(ki):
-            A[rr, :T] = 1
-            A[rr, o_beta + seg[o]] = 1
-            A[rr, o_z + img[o]] = 1
+        m = ki.size
+        r_obs = np.arange(m)
+        add(np.repeat(r_obs, T), np.tile(np.arange(T), m))  # the body
+        add(r_obs, o_beta + seg[ki])  # the detector's error on the segment
+        add(r_obs, o_z + img[ki])  # the image's depth
         rr = m
         if use_floor:
-            for i in fimg:
-                A[rr, o_z + i] = 1
-                A[rr, o_phi] = 1
-                rr += 1
+            r_f = rr + np.arange(len(fimg))
+            add(r_f, o_z + fimg)
+            add(r_f, np.full(len(fimg), o_phi))
+            rr += len(fimg)
             if not flat:
-                A[rr, :T] = 1  # the stature's prior
+                add(np.full(T, rr), np.arange(T))  # the stature's prior
                 rr += 1
-            A[rr, o_phi] = 1
+            add([rr], [o_phi])
             rr += 1
         if pheno:
-            for _ in range(len(KINDS) + len(pheno)):
-                A[rr, :T] = 1
-                rr += 1
-        for k in range(S):
-            A[rr, o_beta + k] = 1
-            rr += 1
-        return A[:rr]
+            k = len(KINDS) + len(pheno)
+            add(np.repeat(rr + np.arange(k), T), np.tile(np.arange(T), k))
+            rr += k
+        add(rr + np.arange(S), o_beta + np.arange(S))
+        rr += S
+        return coo_matrix((np.ones(sum(r.size for r in rows), dtype=int), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(rr, P)).tocsr()
 
     # ---------------------------------------------------------------- start: the template at the seen depths
     ll0 = log_lengths(params)
