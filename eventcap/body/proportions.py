@@ -125,6 +125,11 @@ DETECTOR_SPREAD: dict[str, DetectorSpread] = {
                                          "shoulders": 0.12, "hips": 0.05}, floor=0.013),
     "blazepose": DetectorSpread(segment={k: 0.08 for k in KINDS}, floor=0.04),
 }
+#: The time over which a capture's poses change enough to err a segment differently (s): see :func:`span_factor`.
+POSE_TIME_S = 1.0
+#: Images spanning less than this (s) move nothing: too few poses to tell the body from its detector's errors, and
+#: shorter than the spreads were measured on (a quarter second of 7 images: the template stays).
+MIN_SPAN_S = 0.75
 #: A detector not listed: the largest spreads of those measured, per kind.
 UNKNOWN_SPREAD = DetectorSpread(segment={k: max(s.segment[k] for s in DETECTOR_SPREAD.values()) for k in KINDS},
                                 floor=max(s.floor for s in DETECTOR_SPREAD.values()))
@@ -379,6 +384,7 @@ class BodyEstimate:
     segments: dict = field(default_factory=dict)  #: segment -> Moved
     stature: Moved | None = None  #: the stature's update (None: not estimated)
     noise: dict = field(default_factory=dict)  #: the images' spread: sigma, rho, outliers, sigma_floor
+    why: str = ""  #: why nothing was estimated (estimated empty)
 
     def params(self) -> dict:
         return {"height_m": self.height_m, "build": self.build, "muscle": self.muscle, "sex": self.sex}
@@ -416,10 +422,18 @@ def _lag1(r: np.ndarray, seg: np.ndarray, img: np.ndarray) -> float:
     return float((a * b).sum() / den) if den > 0 else 0.0
 
 
+def span_factor(span_s: float) -> float:
+    """How a detector's per-capture spread (measured on 1 s captures) scales with the time its images span: part of it
+    follows the pose (a fixed 3D offset errs a segment by how it lies), which more poses average out, part stays:
+    sqrt((1 + POSE_TIME_S / span) / (1 + POSE_TIME_S)), 1.58 x on a quarter second, 0.74 x on 10 s."""
+    span = max(float(span_s), 0.04)
+    return float(np.sqrt((1.0 + POSE_TIME_S / span) / (1.0 + POSE_TIME_S)))
+
+
 def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray | None = None,
              definitions: dict | None = None, spread: DetectorSpread | None = None, rest_joints=None,
              camera_height_m: float | None = None, stature_sd_m: float = STATURE_SD_M,
-             proportion_cov: np.ndarray = PROPORTION_COV) -> BodyEstimate:
+             proportion_cov: np.ndarray = PROPORTION_COV, t_us: np.ndarray | None = None) -> BodyEstimate:
     """The body's posterior given the seen segments (module doc).
 
     start: the template's height_m, build, muscle, sex (the prior's centre; kept where not free); free: which of
@@ -429,7 +443,8 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     why); definitions: segment -> the detector's seen/true length share (1 where absent); spread: what the
     detector's errors share within a capture (default :data:`UNKNOWN_SPREAD`); ``rest_joints(height_m, build,
     muscle, sex)`` gives a body's rest joints (default: :func:`eventcap.body.anny.anny_rest_joints`); the prior:
-    ``stature_sd_m`` and ``proportion_cov`` (:data:`KINDS`' log lengths at a given stature)."""
+    ``stature_sd_m`` and ``proportion_cov`` (:data:`KINDS`' log lengths at a given stature); ``t_us`` the images'
+    times (the span they cover scales the detector's spread, :func:`span_factor`; None: 1 s)."""
     from scipy.optimize import least_squares
     from scipy.sparse import coo_matrix
 
@@ -469,7 +484,17 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     theta = (["height_m"] if use_floor else []) + pheno
     if not names or not theta:
         return BodyEstimate(**params, estimated=(), scale_from=scale_from, images=len(images), seen=counts,
-                            measured_m={})
+                            measured_m={}, why="too few segments seen across the line of sight (each needs "
+                                               f"{MIN_IMAGES} images): " + ", ".join(f"{n} {k}" for n, k in counts.items()))
+    span_s = 1.0
+    if t_us is not None and len(images) > 1:
+        times = np.asarray(t_us, dtype=np.float64)[images]
+        span_s = float(np.ptp(times) + np.median(np.diff(times))) / 1e6
+    if span_s < MIN_SPAN_S:
+        return BodyEstimate(**params, estimated=(), scale_from=scale_from, images=len(images), seen=counts,
+                            measured_m={}, why=f"the images with segments span {span_s:.2f} s: too few poses to tell "
+                                               f"the body from its detector's errors (it moves on >= {MIN_SPAN_S} s)",
+                            noise={"span_s": span_s})
 
     # ---------------------------------------------------------------- the observations
     col = {f: i for i, f in enumerate(images)}
@@ -480,7 +505,9 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     off = np.concatenate([seen.offset[n] for n in names])
     g = image_noise(np.concatenate([seen.pixels[n] for n in names]), np.concatenate([seen.across[n] for n in names]))
     ln_c = np.log([definitions.get(n, 1.0) for n in names])
-    sd_beta = np.array([spread.of(n) for n in names])
+    k_span = span_factor(span_s)
+    sd_beta = np.array([spread.of(n) for n in names]) * k_span
+    sd_phi = spread.floor * k_span
     fz = fz_all[images] if use_floor else np.full(N, np.nan)
     fimg = np.flatnonzero(np.isfinite(fz) & (fz > 0))
     kind_idx = {k: [i for i, n in enumerate(SEGMENTS) if KIND_OF[n] == k] for k in KINDS}
@@ -520,7 +547,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
             r.append((lz[fimg] - np.log(fz[fimg]) - x[o_phi]) / sig_floor)
             if not flat_stature:
                 r.append(np.array([(np.log(p["height_m"]) - ln_H0) / sd_lnH]))
-            r.append(np.array([x[o_phi] / spread.floor]))
+            r.append(np.array([x[o_phi] / sd_phi]))
         if pheno:
             ref = log_lengths({**p, **{q: params[q] for q in pheno}})  # the template's proportions at this stature
             r.append(W_prop @ (kinds(ll) - kinds(ref)))
@@ -668,7 +695,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
             w = 1.0 / (sig_obs[m] ** 2)
             mean = float((w * v).sum() / w.sum())
             n_eff = float(m.sum()) * (1.0 - rho) / (1.0 + rho)
-            se = float(np.sqrt(1.0 / w.sum() + spread.of(n) ** 2))
+            se = float(np.sqrt(1.0 / w.sum() + (spread.of(n) * k_span) ** 2))
             measured[n] = float(np.exp(mean))
             moved.update(seen=float(np.exp(mean)), seen_se=float(np.exp(mean) * se), images=int(m.sum()),
                          effective=n_eff)
@@ -686,7 +713,7 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
                         seen_se=float(np.sqrt(max(Sa[0, 0], 0.0))), images=floor_images,
                         effective=floor_images * (1.0 - rho_f) / (1.0 + rho_f))
         scale_from = "floor"
-    noise = {"sigma": sigma, "rho": rho, "outliers": int((~keep).sum()), "observations": int(seg.size),
+    noise = {"span_s": span_s, "span_factor": k_span, "sigma": sigma, "rho": rho, "outliers": int((~keep).sum()), "observations": int(seg.size),
              "sigma_floor": sig_f if use_floor else None, "rho_floor": rho_f if use_floor else None,
              "floor_outliers": int(len(fimg_all) - len(fimg)) if use_floor else 0}
     params.update(p)

@@ -81,12 +81,12 @@ def run_proportions(inputs, config, ctx):
             return template.rest_joints * (height_m / h0)
     camera_height = float(cam.center[1]) if floor_z is not None else None
     est = fit_body(seen, start, tuple(free), floor_z=floor_z, definitions=definitions, spread=spread,
-                   rest_joints=rest_joints, camera_height_m=camera_height, stature_sd_m=config.stature_sd_m)
-    if "height_m" in free and "height_m" not in est.estimated:
+                   rest_joints=rest_joints, camera_height_m=camera_height, stature_sd_m=config.stature_sd_m,
+                   t_us=det.t_us)
+    if "height_m" in free and "height_m" not in est.estimated and est.scale_from != "template default":
         ctx.log.info("body: the stature stays the template's (%.3f m): %s", start["height_m"], est.scale_from)
     if not est.estimated:
-        return keep(f"too few segments seen across the line of sight (each needs 3 images): "
-                    f"{_counts(est)}")
+        return keep(est.why or f"nothing to estimate: {est.scale_from}")
     spread_joints = rest_spread(est, rest_joints)
     body = _body(template, est, anny, anny_template, spread_joints)
     _log(ctx, template, est, start, stated, floor_known, det_name, det.detector, anny, spread_name)
@@ -108,10 +108,6 @@ def _body(template, est: BodyEstimate, anny: bool, anny_template, spread_joints:
     return dataclasses.replace(template, name=f"{template.name} [estimated {tag}]", rest_joints=template.rest_joints * k,
                                vertices=template.vertices * k, landmark_offset=template.landmark_offset * k,
                                rest_spread=spread)
-
-
-def _counts(est: BodyEstimate) -> str:
-    return ", ".join(f"{n} {k}" for n, k in est.seen.items())
 
 
 def _why_kept(m) -> str:
@@ -155,8 +151,9 @@ def _log(ctx, template, est: BodyEstimate, start: dict, stated: set, floor_known
         f"; the detector's definitions ({det_name}) removed" if det_name else
         f"; the detector ({detector.split(':')[0].split(' ')[0] or 'unnamed'}) taken to put its points on the joints",
         "; ".join(moved) or "none", "; ".join(kept) or "none")
-    ctx.log.info("body: what the detector shares within a capture: %s; stated: %s%s",
+    ctx.log.info("body: what the detector shares within a capture: %s, x%.2f for images spanning %.2f s; stated: %s%s",
                  f"the {spread_name} detector's" if spread_name else "an unknown detector's (the largest measured)",
+                 est.noise.get("span_factor", 1.0), est.noise.get("span_s", 0.0),
                  ", ".join(sorted(stated)) if stated else "nothing",
                  "" if anny else " (not an ANNY template: its stature only)")
     if not floor_known and "height_m" not in stated:

@@ -22,7 +22,7 @@ class ProportionsConfig:
 
 
 PROPORTIONS = StageSpec(
-    name="proportions", kind="body", version=3,  # 3: a Bayesian update with standard errors (2: its development)
+    name="proportions", kind="body", version=4,  # 4: a Bayesian update with standard errors (2-3: its development)
     description="the person's body: limb lengths and girdle widths seen over the capture, ANNY's phenotypes and "
                 "stature fitted to them where the template does not state them (not in the paper)",
     config=ProportionsConfig,
