@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-NODES = ("template", "source", "detect", "reconstruct")
+NODES = ("template", "source", "sharpen", "detect", "reconstruct")
 
 
 def captures(preset: str, overrides: list[str]):
