@@ -116,17 +116,24 @@ def spread_sample(rec, det, template, stats=None) -> dict:
     args = (det.keypoints_2d, det.confidence_2d, det.joints_3d, det.confidence_3d)
     seen = seen_segments(cam, *args)
     defs, _ = detector_definitions(det.detector)
-    out = {"segments": {}, "floor": None}
+    out = {"segments": {}, "noise": {}, "floor": None, "floor_noise": None}
     for n in SEGMENTS:
         if len(seen.image[n]) >= 3:
             L = seen.unit[n] * (z_true[seen.image[n]] + seen.offset[n]) / defs.get(n, 1.0)
-            w = 1.0 / image_noise(seen.pixels[n], seen.across[n]) ** 2
-            out["segments"][n] = float(np.sum(w * np.log(L / truth[n])) / w.sum())
+            g = image_noise(seen.pixels[n], seen.across[n])
+            w = 1.0 / g ** 2
+            r = np.log(L / truth[n])
+            mean = float(np.sum(w * r) / w.sum())
+            scale = 1.4826 * float(np.median(np.abs((r - mean) / g)))  # the images' noise, as the fit reads it
+            out["segments"][n] = mean
+            out["noise"][n] = scale ** 2 / float(w.sum())  # what of the mean's error the images' noise explains
     if rec.world == "":
         fz = floor_depths(cam, *args, foot_geometry(template.rest_joints, template.rest_landmarks))
         ok = np.isfinite(fz) & (fz > 0)
         if ok.sum() >= 3:
-            out["floor"] = float(np.median(np.log(fz[ok] / z_true[ok])))
+            r = np.log(fz[ok] / z_true[ok])
+            out["floor"] = float(np.median(r))
+            out["floor_noise"] = (1.4826 * float(np.median(np.abs(r - np.median(r))))) ** 2 / int(ok.sum())
     return out
 
 
@@ -198,20 +205,25 @@ def main(argv=None) -> int:
     if a.spread:
         from eventcap.body.proportions import KIND_OF, KINDS
 
-        per = {}
+        per, noise = {}, {}
         for r in rows:
             for sample in r["spread"]:
                 for n, v in sample["segments"].items():
                     per.setdefault(KIND_OF[n], []).append(v)
+                    noise.setdefault(KIND_OF[n], []).append(sample["noise"][n])
         allv = np.concatenate([np.array(v) for v in per.values()])
         print("spread: per kind, the mean and SD over captures (and draws) of a capture's mean log error of the seen "
-              "length at the true depths: " + ", ".join(f"{k} {np.mean(per[k]):+.3f} +- {np.std(per[k]):.3f} "
-                                                        f"(n {len(per[k])})" for k in KINDS if k in per))
+              "length at the true depths, and the SD left when the images' own noise is taken out (what DETECTOR_SPREAD "
+              "states): " + ", ".join(
+                  f"{k} {np.mean(per[k]):+.3f} +- {np.std(per[k]):.3f} -> "
+                  f"{np.sqrt(max(np.var(per[k]) - np.mean(noise[k]), 0.0)):.3f} (n {len(per[k])})"
+                  for k in KINDS if k in per))
         print(f"spread: all segments RMS {np.sqrt(np.mean(allv ** 2)):.3f}, SD {np.std(allv):.3f}, mean {np.mean(allv):+.3f}")
         fl = np.array([s_["floor"] for r in rows for s_ in r["spread"] if s_["floor"] is not None])
+        fn = np.array([s_["floor_noise"] for r in rows for s_ in r["spread"] if s_["floor"] is not None])
         if fl.size:
-            print(f"spread: floor's pelvis depth, log error {fl.mean():+.3f} +- {fl.std():.3f} (RMS {np.sqrt(np.mean(fl ** 2)):.3f}, "
-                  f"n {fl.size})")
+            print(f"spread: floor's pelvis depth, log error {fl.mean():+.3f} +- {fl.std():.3f} -> "
+                  f"{np.sqrt(max(np.var(fl) - np.mean(fn), 0.0)):.3f} without the images' noise (n {fl.size})")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1, default=float))
     return 0
