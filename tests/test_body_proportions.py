@@ -119,9 +119,11 @@ def test_exact_detections_give_the_actors_body_within_its_standard_errors(actor)
     est = fit_body(seen, START, ("height_m", "sex", "muscle"), floor_z=fz, camera_height_m=1.6, spread=EXACT)
     assert est.scale_from == "floor" and est.estimated == ("height_m", "sex", "muscle")
     sd = est.sd("height_m")
-    assert 0.005 < sd < 0.03 and abs(est.height_m - 1.62) < 2 * sd, (est.height_m, sd)  # measured 1.641 +- 0.014
+    assert 0.005 < sd < 0.03 and abs(est.height_m - 1.62) < 2 * sd, (est.height_m, sd)  # measured 1.636 +- 0.010
     st = est.stature
-    assert st.template == 1.75 and st.prior_sd == STATURE_SD_M and st.share > 0.9 and st.images == 25
+    # the jumps put the floor's point behind the feet: those images are left out of the floor's evidence
+    assert st.template == 1.75 and st.prior_sd == STATURE_SD_M and st.share > 0.9 and 15 <= st.images < 25
+    assert est.noise["off_floor"] == 25 - st.images
     assert abs(st.seen - 1.62) < 2 * st.seen_se  # the floor alone, without the stature's prior
     before, after = err_cm(anny_rest_joints(**START)), err_cm(anny_rest_joints(**est.params()))
     assert before > 3.0 and after < 0.7, (before, after)  # measured 3.05 -> 0.56
