@@ -644,8 +644,9 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
         # that depth counts too, which keeps it on the safe side
         seg_z = np.log(np.maximum(np.exp(ln_c + log_lengths(p)[obs_idx] + x[o_beta:o_phi])[seg] / unit - off, 0.05))
         w_z = keep / (sigma * g) ** 2
-        lz_seg = np.array([np.sum(w_z[img == i] * seg_z[img == i]) / max(np.sum(w_z[img == i]), 1e-12)
-                           if np.any(w_z[img == i] > 0) else np.nan for i in range(N)])
+        w_sum = np.bincount(img, weights=w_z, minlength=N)
+        lz_seg = np.where(w_sum > 0, np.bincount(img, weights=w_z * seg_z, minlength=N) / np.maximum(w_sum, 1e-12),
+                          np.nan)
         d = np.log(fz[fimg]) + x[o_phi] - lz_seg[fimg]
         # a foot off the floor (a jump, a kick) puts the floor's point behind it: the floor then says too far, never
         # too near. So the floor's spread is read below its middle (median - 16th percentile: one SD of a normal)
@@ -655,7 +656,6 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
         sig_f = max(float(m - np.percentile(d[ok], 16)), 0.005)
         fkeep = ok & (d <= m + OFF_FLOOR_SIGMAS * sig_f) & (d >= m - OUTLIER_SIGMAS * sig_f)
         dd = np.where(ok, d - m, 0.0)
-        fres = lz[fimg] - np.log(fz[fimg]) - x[o_phi]
         rho_f = float(np.clip(_lag1(dd[fkeep], np.zeros(int(fkeep.sum()), int), fimg[fkeep]), 0.0, 0.9))
         fimg_all = fimg
         fimg = fimg[fkeep]
