@@ -143,6 +143,8 @@ def main(argv=None) -> int:
     ap.add_argument("overrides", nargs="*")
     ap.add_argument("--body", default="told", choices=("told", "exact"))
     ap.add_argument("--json", default="")
+    ap.add_argument("--plot", default="", help="a PNG: per capture the true stature, the template's, the posterior "
+                                               "+- 2 SD and the floor alone +- 2 SE")
     ap.add_argument("--spread", action="store_true", help="print what each capture's images share (calibration)")
     ap.add_argument("--draws", type=int, default=0, help="with --spread: draw the simulated detector's errors again "
                                                          "from this many more seeds per capture")
@@ -226,7 +228,42 @@ def main(argv=None) -> int:
                   f"{np.sqrt(max(np.var(fl) - np.mean(fn), 0.0)):.3f} without the images' noise (n {fl.size})")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1, default=float))
+    if a.plot:
+        plot_statures(Path(a.plot), rows, f"{a.preset} {' '.join(a.overrides)}")
     return 0
+
+
+def plot_statures(path: Path, rows: list, title: str) -> None:
+    """Per capture: the truth (black), the template's (grey), the posterior +- 2 SD (blue) and what the floor alone
+    says +- 2 SE (orange), in cm against the truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(rows) + 2), 4.2))
+    x = np.arange(len(rows))
+    ax.axhline(0.0, color="k", lw=1, label="truth")
+    ax.scatter(x, [100 * (r["H_template"] - r["H_true"]) for r in rows], color="0.5", marker="_", s=200,
+               label="template (as told)")
+    for i, r in enumerate(rows):
+        if r["H_sd"]:
+            ax.errorbar(i - 0.12, 100 * (r["H"] - r["H_true"]), yerr=200 * r["H_sd"], color="tab:blue", fmt="o",
+                        capsize=3)
+        else:  # not estimated: the body's stature as told or the template's
+            ax.plot(i - 0.12, 100 * (r["H"] - r["H_true"]), "o", color="tab:blue", mfc="none")
+        if r["H_floor"]:
+            ax.errorbar(i + 0.12, 100 * (r["H_floor"] - r["H_true"]), yerr=200 * r["H_floor_se"], color="tab:orange",
+                        fmt="s", capsize=3, ms=4)
+    ax.errorbar([], [], yerr=[], color="tab:blue", fmt="o", capsize=3, label="posterior +- 2 SD (open: kept)")
+    ax.errorbar([], [], yerr=[], color="tab:orange", fmt="s", capsize=3, ms=4, label="floor alone +- 2 SE")
+    ax.set_xticks(x, [r["capture"] for r in rows], rotation=60, ha="right", fontsize=7)
+    ax.set_ylabel("stature - truth (cm)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
