@@ -26,6 +26,7 @@ from eventcap.body.proportions import (
     DETECTOR_DEFINITIONS,
     DETECTOR_SPREAD,
     KINDS,
+    PHENOTYPE_SD,
     SEGMENTS,
     STATURE_SD_M,
     DetectorSpread,
@@ -149,6 +150,9 @@ def test_a_quarter_second_moves_nothing_and_longer_captures_move_as_far_as_their
                               definitions=defs, t_us=det.t_us)
     short = out[7]
     assert short.estimated == () and short.params() == START and "span 0.28 s: too few poses" in short.why
+    # nothing seen narrows the prior: the body stays as uncertain as people are
+    assert short.uncertain == ("height_m", "sex", "muscle") and short.sd("height_m") == pytest.approx(STATURE_SD_M)
+    assert 0.2 < short.sd("sex") < PHENOTYPE_SD
     for n_img in (25, 100):
         est = out[n_img]
         assert est.estimated == ("height_m", "sex", "muscle")
@@ -163,6 +167,7 @@ def test_a_low_camera_keeps_the_stature_and_a_stated_height_fits_the_proportions
     est = fit_body(seen_segments(low, *args(det)), START, ("height_m", "sex", "muscle"),
                    floor_z=floor_depths(low, *args(det), FEET), camera_height_m=0.6, spread=EXACT)
     assert est.height_m == 1.75 and "height_m" not in est.estimated and est.stature is None
+    assert est.sd("height_m") == pytest.approx(STATURE_SD_M)  # kept, with the prior's spread
     assert est.scale_from.startswith("template default (the camera 0.60 m high") and "too low" in est.scale_from
     cam = camera(1.6)
     det = detections(body, S, cam, t)
@@ -236,6 +241,9 @@ def test_the_stage_says_what_moved_by_how_much_on_what_evidence_and_why_the_rest
     level = run_stage(unsaid, recording(cam, world="assumed_level"), det, caplog)["template"]
     assert float(np.ptp(level.vertices[:, 1])) == pytest.approx(1.75, abs=1e-6)
     assert "the stature is the template's (1.750 m)" in caplog.text
+    # its stature kept, with the prior's spread in its rest joints (the head's height varies by the stature's SD)
+    head = float(np.sqrt(np.sum(level.rest_spread[:, 15, 1] ** 2)))
+    assert head == pytest.approx(STATURE_SD_M * level.rest_joints[15, 1] / 1.75, rel=0.05)
 
 
 def test_a_segment_not_seen_says_why_it_did_not_move(actor, caplog):

@@ -389,7 +389,8 @@ class BodyEstimate:
     seen: dict  #: segment -> images it was seen in across the line of sight
     measured_m: dict  #: segment -> its seen length (the evidence's estimate, definitions removed), m
     floor_images: int = 0  #: images whose pelvis depth the floor gave (scale_from "floor")
-    cov: np.ndarray | None = None  #: posterior covariance of ``estimated`` (height_m in m, the phenotypes in units)
+    cov: np.ndarray | None = None  #: covariance of ``uncertain`` (height_m in m, the phenotypes in units)
+    uncertain: tuple = ()  #: the parameters not stated, in ``cov``'s order (those not estimated: their prior's)
     segments: dict = field(default_factory=dict)  #: segment -> Moved
     stature: Moved | None = None  #: the stature's update (None: not estimated)
     noise: dict = field(default_factory=dict)  #: the images' spread: sigma, rho, outliers, sigma_floor
@@ -399,10 +400,10 @@ class BodyEstimate:
         return {"height_m": self.height_m, "build": self.build, "muscle": self.muscle, "sex": self.sex}
 
     def sd(self, name: str) -> float:
-        """The posterior SD of an estimated parameter (0 for one not estimated)."""
-        if self.cov is None or name not in self.estimated:
+        """The SD of a parameter not stated (the posterior's, or the prior's where not estimated); 0 when stated."""
+        if self.cov is None or name not in self.uncertain:
             return 0.0
-        k = self.estimated.index(name)
+        k = self.uncertain.index(name)
         return float(np.sqrt(max(self.cov[k, k], 0.0)))
 
 
@@ -437,6 +438,34 @@ def span_factor(span_s: float) -> float:
     sqrt((1 + POSE_TIME_S / span) / (1 + POSE_TIME_S)), 1.58 x on a quarter second, 0.74 x on 10 s."""
     span = max(float(span_s), 0.04)
     return float(np.sqrt((1.0 + POSE_TIME_S / span) / (1.0 + POSE_TIME_S)))
+
+
+def prior_cov(start: dict, free: tuple, rest_joints, stature_sd_m: float = STATURE_SD_M,
+              proportion_cov: np.ndarray = PROPORTION_COV) -> tuple[tuple, np.ndarray]:
+    """The prior's covariance of the free parameters around the template's (``free`` among height_m, sex, muscle):
+    the stature's SD ``stature_sd_m``; the phenotypes' from the prior of the proportions at that stature
+    (``proportion_cov`` of :data:`KINDS`' log lengths) and :data:`PHENOTYPE_SD`, at the template (their inverse
+    Hessian). (names, cov); the stature and the phenotypes are taken independent."""
+    names = tuple(q for q in ("height_m", "sex", "muscle") if q in free)
+    cov = np.zeros((len(names), len(names)))
+    pheno = [q for q in names if q != "height_m"]
+    if "height_m" in names:
+        cov[0, 0] = stature_sd_m ** 2
+    if pheno:
+        def kinds_of(p):
+            L = segment_lengths(rest_joints(p["height_m"], p["build"], p["muscle"], p["sex"]))
+            ll = np.log([L[n] for n in SEGMENTS])
+            return np.array([np.mean([ll[i] for i, n in enumerate(SEGMENTS) if KIND_OF[n] == k]) for k in KINDS])
+
+        J = np.zeros((len(KINDS), len(pheno)))
+        for j, q in enumerate(pheno):
+            up, dn = dict(start), dict(start)
+            up[q], dn[q] = min(start[q] + 1e-3, 1.0), max(start[q] - 1e-3, -1.0)
+            J[:, j] = (kinds_of(up) - kinds_of(dn)) / (up[q] - dn[q])
+        H = J.T @ np.linalg.solve(np.asarray(proportion_cov, dtype=np.float64), J) + np.eye(len(pheno)) / PHENOTYPE_SD ** 2
+        k = [names.index(q) for q in pheno]
+        cov[np.ix_(k, k)] = np.linalg.inv(H)
+    return names, cov
 
 
 def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray | None = None,
@@ -491,17 +520,20 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
             fz_all = None
     use_floor = fz_all is not None
     theta = (["height_m"] if use_floor else []) + pheno
+    unc, cov0 = prior_cov(params, tuple(free), rest_joints, stature_sd_m, proportion_cov)
     if not names or not theta:
         return BodyEstimate(**params, estimated=(), scale_from=scale_from, images=len(images), seen=counts,
-                            measured_m={}, why="too few segments seen across the line of sight (each needs "
-                                               f"{MIN_IMAGES} images): " + ", ".join(f"{n} {k}" for n, k in counts.items()))
+                            measured_m={}, cov=cov0, uncertain=unc,
+                            why="too few segments seen across the line of sight (each needs "
+                                f"{MIN_IMAGES} images): " + ", ".join(f"{n} {k}" for n, k in counts.items()))
     span_s = 1.0
     if t_us is not None and len(images) > 1:
         times = np.asarray(t_us, dtype=np.float64)[images]
         span_s = float(np.ptp(times) + np.median(np.diff(times))) / 1e6
     if span_s < MIN_SPAN_S:
         return BodyEstimate(**params, estimated=(), scale_from=scale_from, images=len(images), seen=counts,
-                            measured_m={}, why=f"the images with segments span {span_s:.2f} s: too few poses to tell "
+                            measured_m={}, cov=cov0, uncertain=unc,
+                            why=f"the images with segments span {span_s:.2f} s: too few poses to tell "
                                                f"the body from its detector's errors (it moves on >= {MIN_SPAN_S} s)",
                             noise={"span_s": span_s})
 
@@ -682,17 +714,22 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
 
     Sg = covariance(sol)
     # in the parameters' own units: height_m in m
-    cov = Sg[:T, :T]
+    # the covariance of every parameter not stated: the posterior's where estimated, the prior's where not (an unstated
+    # stature the floor cannot tell keeps its prior's spread)
+    cov = cov0.copy()
+    it = [unc.index(q) for q in theta]
+    cov[np.ix_(it, it)] = Sg[:T, :T]
     p = body_of(x[:T])
     ll = log_lengths(p)
 
-    # the gradient of each segment's log length with respect to θ (central differences)
+    # the gradient of each segment's log length with respect to the parameters not stated (central differences)
     def grad_ll(p: dict) -> np.ndarray:
-        G = np.zeros((len(seg_all), T))
-        for j, q in enumerate(theta):
+        G = np.zeros((len(seg_all), len(unc)))
+        for j, q in enumerate(unc):
             h = 1e-4 if q == "height_m" else 1e-3
-            up = {**p, q: min(p[q] + h, hi[j])}
-            dn = {**p, q: max(p[q] - h, lo[j])}
+            lo_q, hi_q = STATURE_RANGE_M if q == "height_m" else (-1.0, 1.0)
+            up = {**p, q: min(p[q] + h, hi_q)}
+            dn = {**p, q: max(p[q] - h, lo_q)}
             G[:, j] = (log_lengths(up) - log_lengths(dn)) / (up[q] - dn[q])
         return G
 
@@ -703,9 +740,9 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     res = (np.log(unit * np.maximum(np.exp(lz)[img] + off, 0.05)) - ln_c[seg])  # the seen log lengths
     measured, segments = {}, {}
     kind_pos = {k: i for i, k in enumerate(KINDS)}
-    var_lnH_prior = sd_lnH ** 2 if use_floor else 0.0
+    var_lnH_prior = sd_lnH ** 2 if "height_m" in unc else 0.0
     for j, n in enumerate(seg_all):
-        gH = G0[j, theta.index("height_m")] * params["height_m"] if use_floor else 0.0  # d ln L / d ln H
+        gH = G0[j, unc.index("height_m")] * params["height_m"] if "height_m" in unc else 0.0  # d ln L / d ln H
         prior_sd = float(np.exp(ll0[j]) * np.sqrt(PROPORTION_COV[kind_pos[KIND_OF[n]], kind_pos[KIND_OF[n]]]
                                                    * (1.0 if pheno else 0.0) + gH ** 2 * var_lnH_prior))
         post_sd = float(np.exp(ll[j]) * np.sqrt(max(G[j] @ cov @ G[j], 0.0)))
@@ -732,28 +769,30 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
         Sa = covariance(alone)
         H_alone = float(alone.x[0])
         stature = Moved(template=params["height_m"], prior_sd=stature_sd_m, posterior=float(x[0]),
-                        posterior_sd=float(np.sqrt(max(cov[0, 0], 0.0))), seen=H_alone,
+                        posterior_sd=float(np.sqrt(max(Sg[0, 0], 0.0))), seen=H_alone,
                         seen_se=float(np.sqrt(max(Sa[0, 0], 0.0))), images=floor_images,
                         effective=floor_images * (1.0 - rho_f) / (1.0 + rho_f))
         scale_from = "floor"
-    noise = {"span_s": span_s, "span_factor": k_span, "sigma": sigma, "rho": rho, "outliers": int((~keep).sum()), "observations": int(seg.size),
+    noise = {"span_s": span_s, "span_factor": k_span, "sigma": sigma, "rho": rho, "outliers": int((~keep).sum()),
+             "observations": int(seg.size),
              "sigma_floor": sig_f if use_floor else None, "rho_floor": rho_f if use_floor else None,
              "off_floor": int(len(fimg_all) - len(fimg)) if use_floor else 0}
     params.update(p)
     return BodyEstimate(**{k: float(v) for k, v in params.items()}, estimated=tuple(theta), scale_from=scale_from,
                         images=N, seen=counts, measured_m=measured, floor_images=floor_images, cov=cov,
-                        segments=segments, stature=stature, noise=noise)
+                        uncertain=unc, segments=segments, stature=stature, noise=noise)
 
 
 def rest_spread(est: BodyEstimate, rest_joints) -> np.ndarray:
-    """(K, 24, 3) m: K independent one-sigma deviations of the estimated body's rest joints (the posterior
-    covariance of its parameters carried through ``rest_joints(height_m, build, muscle, sex)`` by central
-    differences): the rest joints lie at rest + Σ_k ε_k D_k, ε_k ~ N(0, 1). K = 0 when nothing was estimated."""
-    if est.cov is None or not est.estimated:
+    """(K, 24, 3) m: K independent one-sigma deviations of the body's rest joints (the covariance of the parameters
+    not stated, ``est.uncertain``: the posterior's, or the prior's where nothing was estimated, carried through
+    ``rest_joints(height_m, build, muscle, sex)`` by central differences): the rest joints lie at rest + Σ_k ε_k
+    D_k, ε_k ~ N(0, 1). K = 0 when everything is stated."""
+    if est.cov is None or not est.uncertain:
         return np.zeros((0, 24, 3))
     p = est.params()
-    Jac = np.zeros((24 * 3, len(est.estimated)))
-    for j, q in enumerate(est.estimated):
+    Jac = np.zeros((24 * 3, len(est.uncertain)))
+    for j, q in enumerate(est.uncertain):
         h = 1e-4 if q == "height_m" else 1e-3
         up, dn = dict(p), dict(p)
         if q == "height_m":

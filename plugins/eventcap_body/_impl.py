@@ -32,15 +32,23 @@ def detector_definitions(detector: str) -> tuple[dict, str]:
 
 
 def run_proportions(inputs, config, ctx):
-    from eventcap.body.anny import anny_phenotypes, anny_template, is_anny
+    from eventcap.body.anny import anny_phenotypes, anny_rest_joints, anny_template, is_anny
 
     rec, det, template = inputs["recording"], inputs["detections"], inputs["template"]
     stated = set(template.stated)
 
-    def keep(why: str):
+    def keep(why: str, est: BodyEstimate | None = None):
+        """The template's body; when something of it is not stated, with the prior's spread (nothing was seen
+        to narrow it)."""
+        body = template
+        if est is not None and est.uncertain:
+            spread_joints = rest_spread(est, rest_joints)
+            body = dataclasses.replace(template, rest_spread=spread_joints if spread_joints.shape[0] else None)
+            why += ("; its uncertainty the prior's: " + ", ".join(
+                f"{q} +- {est.sd(q):.3f}" + (" m" if q == "height_m" else "") for q in est.uncertain))
         ctx.log.info("body: the template as given (%s): %s", why, template.name)
-        ctx.stats["body"] = {"estimated": [], "why": why}
-        return {"recording": dataclasses.replace(rec, template=template), "template": template}
+        ctx.stats["body"] = {"estimated": [], "why": why, "uncertain": list(est.uncertain) if est else []}
+        return {"recording": dataclasses.replace(rec, template=body), "template": body}
 
     if not config.estimate:
         return keep("stages.body.estimate=false")
@@ -49,28 +57,11 @@ def run_proportions(inputs, config, ctx):
     anny = is_anny(template)
     free = ([p for p in ("height_m", "sex", "muscle") if p not in stated] if anny
             else [] if "height_m" in stated else ["height_m"])
-    floor_known = rec.world == "" and config.scale_from_floor
-    if not floor_known and "height_m" in free:
-        free.remove("height_m")
     if not free:
-        return keep(f"it states {', '.join(sorted(stated)) or 'nothing'}"
-                    + ("" if anny else "; proportions are estimated for ANNY templates only")
-                    + ("" if floor_known or "height_m" in stated else
-                       "; the stature needs the floor and the camera's height: a world from the camera's extrinsics"))
-    seen_rec = upright(rec, det)
-    cam = seen_rec.camera
-    accepted = det.confidence_2d.max(axis=1) > 0
-    if not accepted.any():
-        return keep("no image with a detection")
-    args = (det.keypoints_2d, det.confidence_2d, det.joints_3d, det.confidence_3d)
-    seen = seen_segments(cam, *args)
-    feet = foot_geometry(template.rest_joints, template.rest_landmarks)
-    floor_z = floor_depths(cam, *args, feet) if "height_m" in free else None
-    definitions, det_name = detector_definitions(det.detector)
-    spread, spread_name = detector_spread(det.detector)
+        return keep(f"it states {', '.join(sorted(stated))}"
+                    + ("" if anny else "; proportions are estimated for ANNY templates only"))
+    floor_known = rec.world == "" and config.scale_from_floor
     if anny:
-        from eventcap.body.anny import anny_rest_joints
-
         start = anny_phenotypes(template)
         rest_joints = anny_rest_joints
     else:
@@ -79,17 +70,30 @@ def run_proportions(inputs, config, ctx):
 
         def rest_joints(height_m, build, muscle, sex):
             return template.rest_joints * (height_m / h0)
+    seen_rec = upright(rec, det)
+    cam = seen_rec.camera
+    args = (det.keypoints_2d, det.confidence_2d, det.joints_3d, det.confidence_3d)
+    seen = seen_segments(cam, *args)
+    feet = foot_geometry(template.rest_joints, template.rest_landmarks)
+    floor_z = floor_depths(cam, *args, feet) if "height_m" in free and floor_known else None
+    definitions, det_name = detector_definitions(det.detector)
+    spread, spread_name = detector_spread(det.detector)
     camera_height = float(cam.center[1]) if floor_z is not None else None
     est = fit_body(seen, start, tuple(free), floor_z=floor_z, definitions=definitions, spread=spread,
                    rest_joints=rest_joints, camera_height_m=camera_height, stature_sd_m=config.stature_sd_m,
                    t_us=det.t_us)
-    if "height_m" in free and "height_m" not in est.estimated and est.scale_from != "template default":
-        ctx.log.info("body: the stature stays the template's (%.3f m): %s", start["height_m"], est.scale_from)
+    if "height_m" in free and "height_m" not in est.estimated and est.estimated:
+        ctx.log.info("body: the stature stays the template's (%.3f m +- %.3f, the prior's): %s", start["height_m"],
+                     est.sd("height_m"), est.scale_from)
+    if not floor_known and "height_m" in free:
+        ctx.log.info("body: the stature is the template's (%.3f m): without the floor and the camera's height (a "
+                     "world from the camera's extrinsics) one camera cannot tell it; give template.height_m",
+                     start["height_m"])
     if not est.estimated:
-        return keep(est.why or f"nothing to estimate: {est.scale_from}")
+        return keep(est.why or f"nothing to estimate: {est.scale_from}", est)
     spread_joints = rest_spread(est, rest_joints)
     body = _body(template, est, anny, anny_template, spread_joints)
-    _log(ctx, template, est, start, stated, floor_known, det_name, det.detector, anny, spread_name)
+    _log(ctx, template, est, start, stated, det_name, det.detector, anny, spread_name)
     return {"recording": dataclasses.replace(rec, template=body), "template": body}
 
 
@@ -119,8 +123,8 @@ def _why_kept(m) -> str:
     return ""
 
 
-def _log(ctx, template, est: BodyEstimate, start: dict, stated: set, floor_known: bool, det_name: str,
-         detector: str, anny: bool, spread_name: str) -> None:
+def _log(ctx, template, est: BodyEstimate, start: dict, stated: set, det_name: str, detector: str, anny: bool,
+         spread_name: str) -> None:
     st = est.stature
     if st is not None:
         delta = st.posterior - st.template
@@ -156,13 +160,9 @@ def _log(ctx, template, est: BodyEstimate, start: dict, stated: set, floor_known
                  est.noise.get("span_factor", 1.0), est.noise.get("span_s", 0.0),
                  ", ".join(sorted(stated)) if stated else "nothing",
                  "" if anny else " (not an ANNY template: its stature only)")
-    if not floor_known and "height_m" not in stated:
-        ctx.log.info("body: the stature is the template's (%.3f m): without the floor and the camera's height (a "
-                     "world from the camera's extrinsics) one camera cannot tell it; give template.height_m",
-                     float(np.ptp(template.vertices[:, 1])))
     ctx.stats["body"] = {
         "estimated": list(est.estimated), **{k: round(v, 4) for k, v in est.params().items()},
-        "sd": {p: round(est.sd(p), 4) for p in est.estimated}, "scale_from": est.scale_from, "images": est.images,
+        "sd": {p: round(est.sd(p), 4) for p in est.uncertain}, "scale_from": est.scale_from, "images": est.images,
         "floor_images": est.floor_images, "seen": est.seen, "noise": {k: (round(v, 4) if isinstance(v, float) else v)
                                                                       for k, v in est.noise.items()},
         "stature": None if st is None else {"template": st.template, "posterior": round(st.posterior, 4),
