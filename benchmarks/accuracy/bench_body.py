@@ -259,7 +259,9 @@ def plot_statures(path: Path, rows: list, title: str) -> None:
     ax.errorbar([], [], yerr=[], color="tab:orange", fmt="s", capsize=3, ms=4, label="floor alone +- 2 SE")
     ax.set_xticks(x, [r["capture"] for r in rows], rotation=60, ha="right", fontsize=7)
     ax.set_ylabel("stature - truth (cm)")
-    ax.set_title(title, fontsize=9)
+    import textwrap
+
+    ax.set_title("\n".join(textwrap.wrap(title, 90)), fontsize=8)
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
