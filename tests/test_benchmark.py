@@ -27,9 +27,11 @@ TESTS = Path(__file__).resolve().parent
 CONF = TESTS.parent / "conf"
 
 
-def fake_run(method, motion, seed, err, raw_every=4, data=2.0, solve_s=1.0, mpjve=None, peaks=None):
+def fake_run(method, motion, seed, err, raw_every=4, data=2.0, solve_s=1.0, mpjve=None, peaks=None, true=None,
+             signed=None):
     """A run record with per-frame errors ``err`` (mm) on every-n-th frames; every ``raw_every``-th is also raw;
-    optionally its MPJVE (mm/s) and peak-speed errors per (batch, end effector)."""
+    optionally its MPJVE (mm/s), peak-speed errors per (batch, end effector), and their true peaks (m/s) and signed
+    errors."""
     err = np.asarray(err, dtype=float)
     n = err.size
     raw = np.arange(n) % raw_every == 0
@@ -40,12 +42,15 @@ def fake_run(method, motion, seed, err, raw_every=4, data=2.0, solve_s=1.0, mpjv
             "image_plane_mm": None if mpjve is None else 0.5 * float(err.mean()),
             "frames": {"t_us": (10_000 * np.arange(n)).tolist(), "err_mm": err.tolist(),
                        "sampled": [True] * n, "raw": raw.tolist()},
-            "s_per_batch": {"track": 0.5, "solve": solve_s}, "stats": {"solve": {"solve_s": solve_s, "iterations": 20}}}
+            "s_per_batch": {"track": 0.5, "solve": solve_s}, "stats": {"solve": {"solve_s": solve_s, "iterations": 20}},
+            "peak_speed_true_mps": true, "peak_speed_signed": signed}
 
 
 def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
-    runs = [fake_run("A", "kick", 0, [10, 20, 30, 40], mpjve=300.0, peaks=[[0.1, None], [0.5, 0.2]]),
-            fake_run("A", "kick", 1, [20, 20, 20, 20], data=4.0, mpjve=500.0, peaks=[[0.3, 0.9]]),
+    runs = [fake_run("A", "kick", 0, [10, 20, 30, 40], mpjve=300.0, peaks=[[0.1, None], [0.5, 0.2]],
+                     true=[[4.0, None], [1.0, 6.5]], signed=[[-0.2, None], [0.1, -0.5]]),
+            fake_run("A", "kick", 1, [20, 20, 20, 20], data=4.0, mpjve=500.0, peaks=[[0.3, 0.9]],
+                     true=[[3.5, 2.0]], signed=[[0.3, -0.9]]),
             fake_run("A", "wave", 0, [50, 50, 50, 50], solve_s=3.0, mpjve=1000.0, peaks=[[2.0, None]]),
             fake_run("B", "kick", 0, [100, 100, 100, 100], data=1.0),
             {"motion": "wave", "seed": 0, "method": "B", "ok": False, "error": "solve batch 0", "frames": None}]
@@ -64,6 +69,13 @@ def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
     assert a["peak_speed_err"] == pytest.approx(0.4)  # median of 0.1, 0.5, 0.2, 0.3, 0.9, 2.0
     assert a["per_motion"]["kick"]["peak_speed_err"] == pytest.approx(0.3)  # of 0.1, 0.5, 0.2, 0.3, 0.9
     assert a["per_motion"]["wave"]["AE_rootrel_mm"] == pytest.approx(100.0)
+    # the fast peaks: the pooled pairs whose true peak reaches 3 m/s (4.0, 6.5, 3.5: |-0.2|, |-0.5|, |0.3|)
+    assert a["peak_speed_err_fast"] == pytest.approx(0.3) and a["n_fast_pairs"] == 3
+    by_bin = a["peak_speed_signed_by_bin"]
+    assert by_bin["0.5-1.5"] == {"median": pytest.approx(0.1), "n": 1}
+    assert by_bin["1.5-3"] == {"median": pytest.approx(-0.9), "n": 1}
+    assert by_bin["3-6"] == {"median": pytest.approx(0.05), "n": 2} and by_bin["6+"]["median"] == pytest.approx(-0.5)
+    assert b["peak_speed_err_fast"] is None and b["n_fast_pairs"] == 0
     assert b["MPJVE_mm_s"] is None and b["peak_speed_err"] is None
     assert (b["runs"], b["evaluated"], b["incomplete"]) == (2, 1, 1)
     assert b["per_motion"]["wave"]["AE_mm"] is None and b["AE_mm"] == 100
@@ -72,14 +84,14 @@ def test_aggregation_of_a_fake_results_set_by_hand(tmp_path):
     assert lines[0] == "Table 1 (fake)"
     assert lines[1].split() == ["method", "AE.all", "(mm)", "AE.raw", "(mm)", "AE.nonRaw", "(mm)", "AE.rootrel",
                                 "(mm)", "depth", "(mm)", "image", "plane", "(mm)", "MPJVE", "(mm/s)", "Acc.err", "(m/s²)", "peak", "speed", "err", "(runs)",
-                                "Size.sec", "(MB/s)", "runs"]
+                                "fast", "peak", "(pairs)", "Size.sec", "(MB/s)", "runs"]
     # (runs): the median of the runs' own peak_speed_err (fake runs carry none: n/a)
     # depth and image plane: the means of the runs' (1.5 and 0.5 x their AE here)
     assert lines[3].split() == ["A", "31.7", "±", "14.6", "26.7", "±", "17.0", "33.3", "±", "13.3", "63.3", "47.5",
                                 "15.8", "600",
-                                "n/a", "40%", "n/a", "2.67", "3/3"]
+                                "n/a", "40%", "n/a", "30%", "(3)", "2.67", "3/3"]
     assert lines[4].split() == ["B", "100.0", "±", "0.0", "100.0", "±", "0.0", "100.0", "±", "0.0", "n/a", "n/a",
-                                "n/a", "n/a", "n/a", "n/a", "n/a", "1.00", "1/2"]
+                                "n/a", "n/a", "n/a", "n/a", "n/a", "n/a", "(0)", "1.00", "1/2"]
     detail = text.split("Per motion: AE of root-relative joints")[1].splitlines()
     assert detail[3].split() == ["A", "45.0", "/", "400", "/", "30%", "100.0", "/", "1000", "/", "200%"]
     per_motion = text.split("AE per motion")[1].splitlines()
@@ -102,29 +114,33 @@ def test_the_first_method_against_the_others_capture_by_capture():
     """per_capture counts, per measure, the captures where the first method is lower, names those where it is not
     (ties included), leaves out captures one of the two did not measure, and the report prints both; the peak-speed
     error of the runs is also summarised as the median of their own medians."""
-    def run(method, motion, seed, ae, rr, mpjve, peak):
+    def run(method, motion, seed, ae, rr, mpjve, peak, fast=None):
         frames = {"t_us": [0], "err_mm": [ae], "sampled": [True], "raw": [True]}
         return {"motion": motion, "seed": seed, "method": method, "ok": True, "frames": frames, "AE_mm": ae,
-                "AE_rootrel_mm": rr, "depth_mm": 0.8 * rr, "MPJVE_mm_s": mpjve, "peak_speed_err": peak}
+                "AE_rootrel_mm": rr, "depth_mm": 0.8 * rr, "MPJVE_mm_s": mpjve, "peak_speed_err": peak,
+                "peak_speed_err_fast": fast}
 
-    runs = [run("default", "kick", 0, 20.0, 30.0, 180.0, 0.10), run("smooth", "kick", 0, 25.0, 35.0, 300.0, 0.40),
-            run("default", "kick", 1, 22.0, 31.0, 320.0, 0.15), run("smooth", "kick", 1, 21.0, 36.0, 310.0, 0.15),
+    runs = [run("default", "kick", 0, 20.0, 30.0, 180.0, 0.10, 0.05),
+            run("smooth", "kick", 0, 25.0, 35.0, 300.0, 0.40, 0.2),
+            run("default", "kick", 1, 22.0, 31.0, 320.0, 0.15, 0.3), run("smooth", "kick", 1, 21.0, 36.0, 310.0, 0.15, 0.1),
             run("default", "wave", 0, 19.0, 28.0, 100.0, None), run("smooth", "wave", 0, 30.0, 40.0, 190.0, 0.80),
             {"motion": "wave", "seed": 1, "method": "smooth", "ok": False, "frames": None}]
     cmp_ = per_capture(runs, ["default", "smooth"])
     got = cmp_["against"]["smooth"]
     assert cmp_["reference"] == "default"
     assert [(got[k]["lower"], got[k]["of"]) for k in ("AE_mm", "AE_rootrel_mm", "depth_mm", "MPJVE_mm_s",
-                                                      "peak_speed_err")] == [(2, 3), (3, 3), (3, 3), (2, 3), (1, 2)]
+                                                      "peak_speed_err", "peak_speed_err_fast")] == [
+        (2, 3), (3, 3), (3, 3), (2, 3), (1, 2), (1, 2)]
     assert got["AE_mm"]["not_lower"] == [{"motion": "kick", "seed": 1, "default": 22.0, "smooth": 21.0}]
     assert got["peak_speed_err"]["not_lower"] == [{"motion": "kick", "seed": 1, "default": 0.15, "smooth": 0.15}]
     text = format_tables(aggregate(runs, ["default", "smooth"], ["kick", "wave"]), ["kick", "wave"], "", cmp_)
     part = text.split("Per capture: where default is lower than each method")[1].splitlines()
-    assert part[1].split() == ["method", "AE", "AE.rootrel", "depth", "MPJVE", "peak"]
-    assert part[3].split() == ["smooth", "2/3", "3/3", "3/3", "2/3", "1/2"]
+    assert part[1].split() == ["method", "AE", "AE.rootrel", "depth", "MPJVE", "peak", "fast", "peak"]
+    assert part[3].split() == ["smooth", "2/3", "3/3", "3/3", "2/3", "1/2", "1/2"]
     assert part[4:] == ["  default not lower than smooth: kick seed 1 AE 22.0 against 21.0",
                         "  default not lower than smooth: kick seed 1 MPJVE 320 against 310",
-                        "  default not lower than smooth: kick seed 1 peak 15% against 15%"]
+                        "  default not lower than smooth: kick seed 1 peak 15% against 15%",
+                        "  default not lower than smooth: kick seed 1 fast peak 30% against 10%"]
     table = aggregate(runs, ["default", "smooth"], ["kick", "wave"])
     assert table[0]["peak_speed_err_runs"] == pytest.approx(0.125) and table[1]["peak_speed_err_runs"] == 0.4
     assert per_capture(runs, ["default"]) == {"reference": "default", "against": {}}
@@ -177,14 +193,38 @@ def test_bad_benchmark_configs_are_refused():
         parse_methods([{"name": "x", "data": "MBps"}])
     with pytest.raises(ValueError, match=r"methods\[1\]: name 'wo_batch' repeats"):
         parse_methods([{"name": "w/o_batch"}, {"name": "wo_batch"}])  # the same folder name
-    with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, open, "
-                                         r"open_check, quick\)"):
+    with pytest.raises(ValueError, match=r"benchmark=nope: no conf/benchmark/nope.yaml \(presets: default, ladder, "
+                                         r"ladder25, ladder25_check, ladder_check, open, open_check, quick"):
         compose_benchmark(CONF, "nope", [])
     from eventcap.apps.benchmark import main
 
     with pytest.raises(ValueError, match=r"(?s)Could not override 'motion'.*not benchmark keys are overrides of every "
                                          r"run; the benchmark keys: cache_dir, detector, detectors, duration_s"):
         main(["benchmark=quick", "motion=[a]"], CONF)  # a typo of motions: refused before anything runs
+
+
+def test_the_ladder_rows_bring_their_own_detector_and_the_frame_rate():
+    """The oracle ladder's rows name their detector (a rung): a row's run drops the benchmark's detector overrides
+    for its own, filled with the capture's values; the suite's sequence_values fill the frame rate; a row naming a
+    detector the benchmark does not define is refused before anything runs."""
+    bench = Benchmark(compose_benchmark(CONF, "ladder", ["motions=[karate_kick]", "seeds=[1]"]), CONF, [])
+    cap = bench.captures[0]
+    assert "source.fps=10" in cap.overrides and "source.exposure_us=30000" in cap.overrides
+    assert cap.detector == ("stages/detect=simulated", "stages.detect.seed=1")
+    rows = {m.name: bench.row_overrides(cap, m) for m in bench.methods}
+    a = rows["a default"]
+    assert "stages.detect.sigma_px=0" in a and "stages.detect.seed=1" not in a and a.count("stages/detect=simulated") == 1
+    assert "stages.detect.seed=1" in rows["d default"]
+    assert "stages/detect=blazepose" in rows["e linear"] and "stages/detect=simulated" not in rows["e linear"]
+    assert rows["e linear"][-1] == "stages.detect.at=frames" and "stages.body.estimate=false" in rows["e linear"]
+    # rows differing only by their detector are not twins
+    active, left_out = Benchmark(compose_benchmark(CONF, "ladder", ['only=["a default","d default","e default"]']),
+                                 CONF, []).active_methods()
+    assert [m.name for m in active] == ["a default", "d default", "e default"] and left_out == {}
+    check = Benchmark(compose_benchmark(CONF, "ladder25_check", []), CONF, [])
+    assert check.seeds == [2, 3] and "source.fps=25" in check.captures[0].overrides
+    with pytest.raises(ValueError, match=r"methods \(x\)\.detector: expected one of \['blazepose', 'oracle', "):
+        Benchmark(compose_benchmark(CONF, "ladder", ["methods=[{name: x, detector: perfect}]"]), CONF, [])
 
 
 def test_split_overrides():

@@ -138,6 +138,34 @@ def test_peak_speed_errors_direct_and_threshold():
     assert e[0, 0] == 0.5 and np.isnan(e[0, 1])
 
 
+def test_fast_peaks_and_signed_error_by_true_speed():
+    """detail_values keeps the fast moments apart: the same wrist swing as above at two amplitudes, one batch's true
+    peak under 3 m/s and one over; peak_speed_err_fast is the error of the fast one alone, and the signed error per
+    true-speed bin says which way each is wrong (negative: too slow)."""
+    from eventcap_evaluate._impl import detail_values
+
+    w = 2 * np.pi * 10.0
+    true, pred = still_body(T_US.size), still_body(T_US.size)
+    amp_true = np.where(t_s <= 0.1, 0.02, 0.08)  # true peaks about 1.26 and 5.0 m/s
+    true[:, 20, 0] += amp_true * np.sin(w * t_s)
+    pred[:, 20, 0] += np.where(t_s <= 0.1, 1.25, 0.6) * amp_true * np.sin(w * t_s)
+    iv = np.array([[0, 90_000], [110_000, 200_000]])
+    v = detail_values(T_US, pred, true, 10.0, END_EFFECTORS, iv, np.zeros(0, np.int64), 0.5, 3.0)
+    assert v["n_peak_pairs"] == 2 and v["n_fast_pairs"] == 1
+    assert v["peak_speed_err_fast"] == pytest.approx(0.4, abs=1e-9)
+    assert v["peak_speed_err"] == pytest.approx(np.median([0.25, 0.4]), abs=1e-9)
+    by_bin = v["peak_speed_signed_by_bin"]
+    assert by_bin["0.5-1.5"]["median"] == pytest.approx(0.25, abs=1e-9) and by_bin["0.5-1.5"]["n"] == 1
+    assert by_bin["3-6"]["median"] == pytest.approx(-0.4, abs=1e-9) and by_bin["3-6"]["n"] == 1
+    assert by_bin["1.5-3"] == {"median": None, "n": 0} and by_bin["6+"]["n"] == 0
+    wrist = END_EFFECTORS.index("l_wrist")
+    assert v["peak_speed_true_mps"][1][wrist] == pytest.approx(0.08 * np.sin(w * 0.005) / 0.005, rel=1e-4)
+    assert v["peak_speed_signed"][1][wrist] == pytest.approx(-0.4, abs=1e-5)
+    # nothing reaches 10 m/s: no fast pair, no figure
+    v = detail_values(T_US, pred, true, 10.0, END_EFFECTORS, iv, np.zeros(0, np.int64), 0.5, 10.0)
+    assert v["n_fast_pairs"] == 0 and v["peak_speed_err_fast"] is None
+
+
 def test_truth_at_and_root_relative():
     gt_t = np.array([0, 1000, 2000], np.int64)
     J = np.arange(3 * 2 * 3, dtype=np.float64).reshape(3, 2, 3)

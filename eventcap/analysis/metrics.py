@@ -192,24 +192,58 @@ def central_derivative(x: np.ndarray, t_us: np.ndarray, window_us: float, order:
     return out, valid
 
 
-def peak_speed_errors(t_us: np.ndarray, speed_pred: np.ndarray, speed_true: np.ndarray, valid: np.ndarray,
-                      intervals_us: np.ndarray, min_true_mps: float = 0.0) -> np.ndarray:
-    """Relative error of the peak speed of each joint in each interval (a batch): (B, E) of
-    |max pred - max true| / max true over the valid frames with t0 <= t <= t1; NaN where an interval has no valid
-    frame or the true peak is at or below ``min_true_mps``.
+def peak_speeds(t_us: np.ndarray, speed_pred: np.ndarray, speed_true: np.ndarray, valid: np.ndarray,
+                intervals_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The peak speed of each joint in each interval (a batch: the span between two intensity frames), estimated and
+    true: two (B, E) arrays (m/s) of the maxima over the valid frames with t0 <= t <= t1; NaN where an interval has
+    no valid frame.
 
     speed_pred, speed_true: (T, E) m/s; valid (T,); intervals_us (B, 2)."""
     t = np.asarray(t_us, dtype=np.int64)
     iv = np.asarray(intervals_us, dtype=np.int64).reshape(-1, 2)
     sp, st = np.asarray(speed_pred, dtype=np.float64), np.asarray(speed_true, dtype=np.float64)
-    out = np.full((iv.shape[0], sp.shape[1]), np.nan)
+    pred, true = np.full((iv.shape[0], sp.shape[1]), np.nan), np.full((iv.shape[0], sp.shape[1]), np.nan)
     for b, (t0, t1) in enumerate(iv):
         m = valid & (t >= t0) & (t <= t1)
-        if not m.any():
-            continue
-        pp, pt = sp[m].max(axis=0), st[m].max(axis=0)
-        ok = pt > max(min_true_mps, 0.0)
-        out[b, ok] = np.abs(pp[ok] - pt[ok]) / pt[ok]
+        if m.any():
+            pred[b], true[b] = sp[m].max(axis=0), st[m].max(axis=0)
+    return pred, true
+
+
+def peak_speed_errors(t_us: np.ndarray, speed_pred: np.ndarray, speed_true: np.ndarray, valid: np.ndarray,
+                      intervals_us: np.ndarray, min_true_mps: float = 0.0, signed: bool = False) -> np.ndarray:
+    """Relative error of the peak speed of each joint in each interval (a batch) (:func:`peak_speeds`): (B, E) of
+    |max pred - max true| / max true (``signed``: without the absolute value, negative where the estimate is
+    slower); NaN where an interval has no valid frame or the true peak is at or below ``min_true_mps``."""
+    pp, pt = peak_speeds(t_us, speed_pred, speed_true, valid, intervals_us)
+    out = np.full(pp.shape, np.nan)
+    ok = np.isfinite(pt) & (np.nan_to_num(pt) > max(min_true_mps, 0.0))
+    d = (pp[ok] - pt[ok]) / pt[ok]
+    out[ok] = d if signed else np.abs(d)
+    return out
+
+
+#: The true-speed bins (m/s) the signed peak-speed error is reported by: where the fast moments are lost.
+SPEED_BINS_MPS: tuple[float, ...] = (0.5, 1.5, 3.0, 6.0)
+
+
+def speed_bin_label(lo: float, hi: float) -> str:
+    """``'0.5-1.5'``, ``'6+'``: a bin of :data:`SPEED_BINS_MPS` as the metrics name it."""
+    return f"{lo:g}+" if not np.isfinite(hi) else f"{lo:g}-{hi:g}"
+
+
+def signed_by_speed(true_mps: np.ndarray, signed: np.ndarray,
+                    bins: tuple[float, ...] = SPEED_BINS_MPS) -> dict[str, dict[str, float | int | None]]:
+    """The median signed relative peak-speed error (negative: too slow) of the (interval, end effector) pairs whose
+    true peak falls in each bin (edges ``bins``, the last open-ended), with their count: {label: {median, n}}."""
+    t = np.asarray(true_mps, dtype=np.float64).ravel()
+    e = np.asarray(signed, dtype=np.float64).ravel()
+    ok = np.isfinite(t) & np.isfinite(e)
+    edges = (*bins, np.inf)
+    out: dict[str, dict[str, float | int | None]] = {}
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = ok & (t >= lo) & (t < hi)
+        out[speed_bin_label(lo, hi)] = {"median": float(np.median(e[m])) if m.any() else None, "n": int(m.sum())}
     return out
 
 
@@ -225,7 +259,8 @@ def motion_detail(t_us: np.ndarray, pred_joints: np.ndarray, true_joints: np.nda
     - ``MPJVE_mm_s``: mean over frames and joints of |v_pred - v_true| (mm/s);
     - ``accel_err_m_s2``: mean over frames and joints of |a_pred - a_true| (m/s²);
     - ``peak_speed_err``: median over (interval, end effector) of the relative error of the peak speed in each
-      interval (:func:`peak_speed_errors`; a fraction, 0.15 = 15%), and ``peak_speed_errors`` (B, E) itself;
+      interval (:func:`peak_speed_errors`; a fraction, 0.15 = 15%), and ``peak_speed_errors`` (B, E) itself, with
+      the peaks ``peak_speed_true`` and ``peak_speed_pred`` (B, E) m/s (:func:`peak_speeds`);
     - ``window_ms``: the window actually used; ``n_velocity_frames``;
     - ``speed_pred`` / ``speed_true`` (T, E) m/s of the end effectors (NaN where no derivative) and ``valid``.
     """
@@ -250,8 +285,10 @@ def motion_detail(t_us: np.ndarray, pred_joints: np.ndarray, true_joints: np.nda
     st = np.linalg.norm(vt[:, ee], axis=-1)
     out.update(speed_pred=sp, speed_true=st, valid=valid)
     if ee and intervals_us is not None and valid.any():
+        pp, pt = peak_speeds(t_us, sp, st, valid, intervals_us)
         errs = peak_speed_errors(t_us, sp, st, valid, intervals_us, min_true_mps)
         out["peak_speed_errors"] = errs
+        out["peak_speed_true"], out["peak_speed_pred"] = pt, pp
         fin = errs[np.isfinite(errs)]
         out["peak_speed_err"] = float(np.median(fin)) if fin.size else None
     return out

@@ -46,8 +46,10 @@ log = logging.getLogger("eventcap.apps.benchmark")
 DATA_FIELDS = ("total_MBps", "events_MBps", "frames_MBps", "highspeed_MBps")
 #: The evaluate stage's motion-detail measures a run record keeps (root-relative joints; see eventcap.analysis.metrics).
 DETAIL_FIELDS = ("AE_rootrel_mm", "depth_mm", "image_plane_mm", "MPJVE_mm_s", "accel_err_m_s2", "peak_speed_err",
-                 "velocity_window_ms", "body_error_mm", "stated_body_error_mm")
-_METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires", "body"}
+                 "peak_speed_err_fast", "n_fast_pairs", "velocity_window_ms", "body_error_mm", "stated_body_error_mm")
+#: The fast moments: (batch, end effector) pairs whose true peak reaches this (m/s; the evaluate stage's default).
+FAST_SPEED_MPS = 3.0
+_METHOD_KEYS = {"name", "description", "overrides", "events_only", "data", "requires", "body", "detector"}
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,8 @@ class Method:
     events_only: tuple[str, ...] | None = None
     #: what the row's runs are told about a drawn person (the benchmark's ``body_overrides``): told | exact
     body: str = "told"
+    #: the row's own detector (a name of the benchmark's ``detectors``) instead of the benchmark's ``detector``
+    detector: str | None = None
 
     def overrides_for(self, frames: bool) -> tuple[str, ...] | None:
         """The row's overrides on a capture with (or without) intensity frames; None: not defined there."""
@@ -113,7 +117,8 @@ def parse_methods(items: Sequence[Mapping[str, Any]]) -> list[Method]:
         meth = Method(name=str(m["name"]), overrides=tuple(str(o) for o in m.get("overrides") or ()), data=data,
                       requires=tuple(str(r) for r in m.get("requires") or ()),
                       description=str(m.get("description") or ""),
-                      events_only=None if events_only is None else tuple(str(o) for o in events_only), body=body)
+                      events_only=None if events_only is None else tuple(str(o) for o in events_only), body=body,
+                      detector=None if m.get("detector") is None else str(m["detector"]))
         if any(meth.slug == o.slug for o in out):
             raise ValueError(f"methods[{i}]: name {meth.name!r} repeats an earlier method")
         out.append(meth)
@@ -181,6 +186,10 @@ class SuiteCapture:
     description: str = ""
     #: what a row is told about the drawn person, by the row's ``body`` (told | exact); empty: no person drawn
     body: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    #: the values its overrides are filled with ({motion}, {seed}, ...): a row's own detector is filled with them
+    values: dict[str, Any] = field(default_factory=dict)
+    #: the overrides of the benchmark's detector among ``overrides`` (a row with a detector of its own drops them)
+    detector: tuple[str, ...] = ()
 
 
 @dataclass
@@ -192,6 +201,11 @@ class Benchmark:
     def __post_init__(self) -> None:
         c = self.cfg
         self.methods = parse_methods(c.get("methods"))
+        detectors = c.get("detectors") or {}
+        for m in self.methods:
+            if m.detector is not None and m.detector not in detectors:
+                raise ValueError(f"methods ({m.name}).detector: expected one of {sorted(detectors)} (benchmark key "
+                                 f"detectors), got {m.detector!r}")
         only = c.get("only")
         if only is not None:
             only = [only] if isinstance(only, str) else [str(o) for o in only]
@@ -209,7 +223,9 @@ class Benchmark:
         self.seeds = [int(s) for s in c["seeds"]]
         if not self.motions or not self.seeds:
             raise ValueError("motions and seeds: the benchmark needs at least one of each")
-        self.captures = [SuiteCapture(mo, s, f"{mo}-s{s}", tuple(self.sequence_overrides(mo, s)))
+        self.captures = [SuiteCapture(mo, s, f"{mo}-s{s}", tuple(self.sequence_overrides(mo, s)),
+                                      values=self.sequence_values(mo, s),
+                                      detector=tuple(self.detector_overrides(None, self.sequence_values(mo, s))))
                          for mo in self.motions for s in self.seeds]
 
     def _generated_suite(self) -> None:
@@ -236,18 +252,34 @@ class Benchmark:
                 told = c.get("body_overrides") or {}
                 body = {kind: tuple(fill_overrides(told.get(kind) or (), cap.values(), f"body_overrides.{kind}"))
                         for kind in BODY_KINDS}
+            values = self.sequence_values(cap.motion, seed, cap.values())
             self.captures.append(SuiteCapture(cap.motion, seed, cap.label, tuple(ov), cap.frames, cap.group,
-                                              cap.values(), cap.describe(), body))
+                                              cap.values(), cap.describe(), body, values,
+                                              tuple(self.detector_overrides(None, values))))
         self.motions = list(dict.fromkeys(cap.motion for cap in self.captures))
 
-    def sequence_overrides(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> list[str]:
-        values = {**(drawn or {}), "motion": motion, "seed": seed, "duration_s": self.cfg["duration_s"]}
+    def sequence_values(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """What a capture's overrides are filled with: the suite's ``sequence_values`` (e.g. the frame rate), what
+        was drawn, its motion, seed and duration."""
+        return {**(self.cfg.get("sequence_values") or {}), **(drawn or {}), "motion": motion, "seed": seed,
+                "duration_s": self.cfg["duration_s"]}
+
+    def detector_overrides(self, name: str | None, values: Mapping[str, Any]) -> list[str]:
+        """The overrides of detector ``name`` of the benchmark's ``detectors`` (None: the benchmark's ``detector``),
+        filled with a capture's values."""
         detectors = self.cfg.get("detectors") or {}
-        detector = self.cfg.get("detector")
+        detector = self.cfg.get("detector") if name is None else name
         if detector is not None and detector not in detectors:
-            raise ValueError(f"detector: expected one of {sorted(detectors)} (benchmark key detectors), got {detector!r}")
+            where = "detector" if name is None else f"the row's detector {name!r}"
+            raise ValueError(f"{where}: expected one of {sorted(detectors)} (benchmark key detectors), got "
+                             f"{detector!r}")
         chosen = detectors.get(detector) or () if detector is not None else ()
-        return fill_overrides([*(self.cfg.get("sequence_overrides") or ()), *chosen], values, "sequence_overrides")
+        return fill_overrides(chosen, values, f"detectors.{detector}")
+
+    def sequence_overrides(self, motion: str, seed: int, drawn: Mapping[str, Any] | None = None) -> list[str]:
+        values = self.sequence_values(motion, seed, drawn)
+        return [*fill_overrides(self.cfg.get("sequence_overrides") or (), values, "sequence_overrides"),
+                *self.detector_overrides(None, values)]
 
     def base_overrides(self) -> list[str]:
         return [f"cache_dir={self.cfg['cache_dir']}", *map(str, self.cfg.get("overrides") or ()), *self.run_overrides]
@@ -265,8 +297,10 @@ class Benchmark:
             composed = {}
             for frames in kinds:
                 own = m.overrides_for(frames)
+                cap = next(c for c in self.captures if c.frames == frames)
+                mine = [] if m.detector is None else self.detector_overrides(m.detector, cap.values)
                 composed[frames] = None if own is None else \
-                    compose_run(self.config_dir, [*self.base_overrides(), *own])[0]
+                    compose_run(self.config_dir, [*self.base_overrides(), *mine, *own])[0]
             nodes = set()
             for data in composed.values():
                 nodes |= set(((data or {}).get("pipeline") or {}).get("nodes") or {})
@@ -324,7 +358,7 @@ class Benchmark:
 
         run_dir = self.out / "runs" / cap.label / method.slug
         own = method.overrides_for(cap.frames)
-        ov = [*cap.overrides, *self.base_overrides(), *(own or ()), *cap.body.get(method.body, ())]
+        ov = self.row_overrides(cap, method)
         rec: dict[str, Any] = {"motion": cap.motion, "seed": cap.seed, "method": method.name, "run_dir": str(run_dir),
                                "overrides": ov, "ok": False, "error": None, "capture": cap.label, "group": cap.group,
                                "frames_camera": cap.frames}
@@ -352,6 +386,15 @@ class Benchmark:
         rec["wall_s"] = time.perf_counter() - t0
         return rec
 
+
+    def row_overrides(self, cap: SuiteCapture, method: Method) -> list[str]:
+        """The overrides of one row's run on one capture: the capture's (with the row's own detector instead of the
+        benchmark's, when it names one), every run's, the row's own, what the row is told about the person."""
+        made = list(cap.overrides)
+        if method.detector is not None:
+            made = [o for o in made if o not in cap.detector] + self.detector_overrides(method.detector, cap.values)
+        return [*made, *self.base_overrides(), *(method.overrides_for(cap.frames) or ()),
+                *cap.body.get(method.body, ())]
 
     def _compose_row(self, overrides: list[str], own: tuple[str, ...] = ()):
         """The run's config; the benchmark's detector choice (detectors.<detector>) is left out of a pipeline without
@@ -408,7 +451,8 @@ def collect_run(runner, result, metrics_out: str, errors_out: str, data_field: s
     rec.update({"AE_mm": m.get("AE_mm"), "STD_mm": m.get("STD_mm"), "AE_raw_mm": m.get("AE_raw_mm"),
                 "AE_nonRaw_mm": m.get("AE_nonRaw_mm"), "data_MBps": dr.get(data_field), "data_field": data_field})
     rec.update({k: m.get(k) for k in DETAIL_FIELDS})
-    rec["peak_speed_errors"] = m.get("peak_speed_errors")
+    for k in ("peak_speed_errors", "peak_speed_signed", "peak_speed_true_mps"):
+        rec[k] = m.get(k)
     rec["frames"] = None
     node = errors_out.partition(".")[0]
     if node in runner.by_name:
@@ -503,11 +547,28 @@ def _mean_of(records: Sequence[Mapping[str, Any]], key: str) -> float | None:
     return float(np.mean(vals)) if vals else None
 
 
+def _pairs(records: Sequence[Mapping[str, Any]]) -> tuple[np.ndarray, np.ndarray]:
+    """Every (batch, end effector) pair of the runs that kept them: true peak speeds (m/s) and signed relative
+    errors, pooled."""
+    t, e = [], []
+    for r in records:
+        for tr, er in zip(r.get("peak_speed_true_mps") or [], r.get("peak_speed_signed") or []):
+            for a, b in zip(tr, er):
+                if a is not None and b is not None:
+                    t.append(a)
+                    e.append(b)
+    return np.asarray(t, dtype=np.float64), np.asarray(e, dtype=np.float64)
+
+
 def detail_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Motion detail over runs: AE of root-relative joints, MPJVE and acceleration error as the mean over the runs
     (runs of one suite have the same length), the peak-speed error as the median over the pooled (batch, end
     effector) pairs of all runs (a fraction), and as the median of the runs' own medians (``peak_speed_err_runs``:
-    each capture counts once, however many fast moments it has)."""
+    each capture counts once, however many fast moments it has); the fast-peak error (``peak_speed_err_fast``) over
+    the pooled pairs whose true peak reaches :data:`FAST_SPEED_MPS` (``n_fast_pairs`` of them), and the signed
+    error per true-speed bin (``peak_speed_signed_by_bin``)."""
+    from eventcap.analysis.metrics import signed_by_speed
+
     out: dict[str, Any] = {k: _mean_of(records, k) for k in ("AE_rootrel_mm", "depth_mm", "image_plane_mm",
                                                              "MPJVE_mm_s", "accel_err_m_s2")}
     vals = [r["peak_speed_err"] for r in records if r.get("peak_speed_err") is not None]
@@ -515,12 +576,17 @@ def detail_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     pairs = [v for r in records for row in (r.get("peak_speed_errors") or []) for v in row if v is not None]
     # records from before the pairs were kept: the median of the runs' own medians
     out["peak_speed_err"] = float(np.median(pairs)) if pairs else out["peak_speed_err_runs"]
+    true, signed = _pairs(records)
+    fast = true >= FAST_SPEED_MPS
+    out["n_fast_pairs"] = int(fast.sum())
+    out["peak_speed_err_fast"] = float(np.median(np.abs(signed[fast]))) if fast.any() else None
+    out["peak_speed_signed_by_bin"] = signed_by_speed(true, signed) if true.size else {}
     return out
 
 
 #: The measures compared capture by capture (:func:`per_capture`): lower is better for each.
 CAPTURE_MEASURES = (("AE_mm", "AE"), ("AE_rootrel_mm", "AE.rootrel"), ("depth_mm", "depth"), ("MPJVE_mm_s", "MPJVE"),
-                    ("peak_speed_err", "peak"))
+                    ("peak_speed_err", "peak"), ("peak_speed_err_fast", "fast peak"))
 
 
 def per_capture(records: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> dict[str, Any]:
@@ -634,7 +700,7 @@ def format_per_capture(comparison: Mapping[str, Any]) -> str:
     rows = [[name, *(f"{res[k]['lower']}/{res[k]['of']}" for k, _ in CAPTURE_MEASURES)] for name, res in against.items()]
     lines = [f"Per capture: where {ref} is lower than each method (captures, of those both measured)",
              _grid(head, rows)]
-    fmt = {"peak_speed_err": _pct, "MPJVE_mm_s": lambda v: _num(v, 0)}
+    fmt = {"peak_speed_err": _pct, "peak_speed_err_fast": _pct, "MPJVE_mm_s": lambda v: _num(v, 0)}
     for name, res in against.items():
         for key, label in CAPTURE_MEASURES:
             f = fmt.get(key, _num)
@@ -656,15 +722,16 @@ def format_tables(table: Sequence[Mapping[str, Any]], motions: Sequence[str], no
     parts = []
     head = ["method", "AE.all (mm)", "AE.raw (mm)", "AE.nonRaw (mm)", "AE.rootrel (mm)", "depth (mm)",
             "image plane (mm)", "MPJVE (mm/s)",
-            "Acc.err (m/s²)", "peak speed err", "(runs)", "Size.sec (MB/s)", "runs"]
+            "Acc.err (m/s²)", "peak speed err", "(runs)", "fast peak (pairs)", "Size.sec (MB/s)", "runs"]
     rows = [[r["method"], _pm(r["AE_mm"], r["AE_STD_mm"]), _pm(r["AE_raw_mm"], r["AE_raw_STD_mm"]),
              _pm(r["AE_nonRaw_mm"], r["AE_nonRaw_STD_mm"]), _num(r.get("AE_rootrel_mm")), _num(r.get("depth_mm")),
              _num(r.get("image_plane_mm")), _num(r.get("MPJVE_mm_s"), 0),
              _num(r.get("accel_err_m_s2"), 1), _pct(r.get("peak_speed_err")), _pct(r.get("peak_speed_err_runs")),
+             f"{_pct(r.get('peak_speed_err_fast'))} ({r.get('n_fast_pairs') or 0})",
              _num(r["data_MBps"], 2), f"{r['evaluated']}/{r['runs']}"] for r in table]
     parts.append("Table 1" + (f" ({note})" if note else "") + "\n" + _grid(head, rows)
                  + "\n(peak speed err: the median over every run's (batch, end effector) pairs; (runs): the median of "
-                   "the runs' own medians)")
+                   f"the runs' own medians; fast peak: over the pairs whose true peak reaches {FAST_SPEED_MPS:g} m/s)")
     if motions:
         parts.extend(_per_motion_tables(table, motions))
     if times:

@@ -35,7 +35,12 @@ pelvis; the pelvis itself left out: 23 joints) at every tracking frame:
   |max pred - max true| / max true; the median over the (batch, end effector) pairs whose true peak exceeds
   ``peak_min_speed_mps`` (0.5 m/s: a joint that hardly moves has no peak to get right) (a fraction: 0.15 = 15%), and
   per end effector in ``peak_speed_err_per_joint``, and every pair in ``peak_speed_errors`` (batches x end
-  effectors; null where the true peak is below the threshold).
+  effectors; null where the true peak is below the threshold);
+- ``peak_speed_err_fast``: the same median over the pairs whose true peak reaches ``fast_speed_mps`` (3 m/s): the
+  fast moments between two intensity frames, what an event camera is bought for (``n_fast_pairs`` of them);
+- ``peak_speed_signed_by_bin``: per bin of the true peak (0.5-1.5, 1.5-3, 3-6, 6+ m/s) the median signed relative
+  error (negative: the estimate is too slow there) and the pairs' count; ``peak_speed_true_mps`` and
+  ``peak_speed_signed`` (batches x end effectors) keep every pair so that runs can be pooled.
 
 The truth at a tracking frame is the ground truth's joints at that time (exact on its 1 kHz grid, linearly
 interpolated between its samples otherwise); frames outside the ground truth's time span are not evaluated.
@@ -60,7 +65,16 @@ from eventcap.artifacts.recording import GroundTruth, Recording
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import JOINT_INDEX, JOINT_NAMES
 from eventcap.events import EVENT_DTYPE
-from eventcap.analysis.metrics import END_EFFECTORS, depth_split, motion_detail, procrustes_align, root_relative, truth_at
+from eventcap.analysis.metrics import (
+    END_EFFECTORS,
+    SPEED_BINS_MPS,
+    depth_split,
+    motion_detail,
+    procrustes_align,
+    root_relative,
+    signed_by_speed,
+    truth_at,
+)
 from eventcap.analysis.motion import JOIN_RULES, join_batches  # noqa: F401 (join_batches: part of this module's API)
 from eventcap.core.stage import StageContext, StageFailed
 
@@ -151,7 +165,7 @@ def body_errors(gt: GroundTruth, body, stated=None) -> dict[str, Any]:
 def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: int = 10,
                     align: str = "procrustes", velocity_window_ms: float = 10.0,
                     end_effectors: tuple[str, ...] = END_EFFECTORS, intervals_us: np.ndarray | None = None,
-                    peak_min_speed_mps: float = 0.5) -> tuple[dict[str, Any], JointErrors]:
+                    peak_min_speed_mps: float = 0.5, fast_speed_mps: float = 3.0) -> tuple[dict[str, Any], JointErrors]:
     """Table 1 measures of a joined motion against the recording's ground truth (see the module docstring)."""
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
         raise ValueError(f"stages.evaluate.every: expected an int >= 1, got {every!r}")
@@ -216,13 +230,13 @@ def evaluate_motion(rec: Recording, t_us: np.ndarray, poses: np.ndarray, every: 
         "data_rate": data_rate(rec, int(t_us[0]), int(t_us[-1]), step),
     }
     values.update(detail_values(t_us[inside], pred_all, truth, velocity_window_ms, end_effectors, intervals_us,
-                                frame_t, peak_min_speed_mps))
+                                frame_t, peak_min_speed_mps, fast_speed_mps))
     return values, errors
 
 
 def detail_values(t_us: np.ndarray, pred: np.ndarray, true: np.ndarray, window_ms: float,
                   end_effectors: tuple[str, ...], intervals_us: np.ndarray | None, frame_t_us: np.ndarray,
-                  peak_min_speed_mps: float = 0.5) -> dict[str, Any]:
+                  peak_min_speed_mps: float = 0.5, fast_speed_mps: float = 3.0) -> dict[str, Any]:
     """The motion-detail metrics (module docstring) of joints (T, 24, 3) at t_us; batches are ``intervals_us``
     (B, 2), else the spans between consecutive intensity frames."""
     if intervals_us is None:
@@ -230,9 +244,10 @@ def detail_values(t_us: np.ndarray, pred: np.ndarray, true: np.ndarray, window_m
         intervals_us = np.stack([ft[:-1], ft[1:]], axis=1) if ft.size > 1 else np.zeros((0, 2), np.int64)
     ee = tuple(JOINT_INDEX[n] for n in end_effectors)
     out: dict[str, Any] = {"MPJVE_mm_s": None, "accel_err_m_s2": None, "peak_speed_err": None,
-                           "peak_speed_err_per_joint": {}, "velocity_window_ms": None, "n_velocity_frames": 0,
-                           "end_effectors": list(end_effectors), "peak_min_speed_mps": peak_min_speed_mps,
-                           "n_peak_pairs": 0}
+                           "peak_speed_err_fast": None, "peak_speed_err_per_joint": {}, "velocity_window_ms": None,
+                           "n_velocity_frames": 0, "end_effectors": list(end_effectors),
+                           "peak_min_speed_mps": peak_min_speed_mps, "fast_speed_mps": fast_speed_mps,
+                           "n_peak_pairs": 0, "n_fast_pairs": 0}
     if t_us.size < 3:
         return out
     d = motion_detail(t_us, pred, true, window_ms * 1000.0, intervals_us, ee, peak_min_speed_mps)
@@ -244,12 +259,19 @@ def detail_values(t_us: np.ndarray, pred: np.ndarray, true: np.ndarray, window_m
             fin = errs[:, j][np.isfinite(errs[:, j])]
             out["peak_speed_err_per_joint"][name] = float(np.median(fin)) if fin.size else None
         out["n_peak_pairs"] = int(np.isfinite(errs).sum())
+        pt, pp = d["peak_speed_true"], d["peak_speed_pred"]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            signed = np.where(np.isfinite(errs), (pp - pt) / pt, np.nan)
+        fast = np.isfinite(signed) & (np.nan_to_num(pt) >= fast_speed_mps)
+        out["n_fast_pairs"] = int(fast.sum())
+        out["peak_speed_err_fast"] = float(np.median(np.abs(signed[fast]))) if fast.any() else None
+        out["peak_speed_signed_by_bin"] = signed_by_speed(pt, signed, SPEED_BINS_MPS)
         # every (batch, end effector) pair, so that results of many runs can be pooled (null: no true motion)
-        out["peak_speed_errors"] = [[round(float(v), 5) if np.isfinite(v) else None for v in row] for row in errs]
+        rows = lambda a: [[round(float(v), 5) if np.isfinite(v) else None for v in row] for row in a]  # noqa: E731
+        out["peak_speed_errors"] = rows(errs)
+        out["peak_speed_signed"] = rows(signed)
+        out["peak_speed_true_mps"] = rows(np.where(np.isfinite(errs), pt, np.nan))
     return out
-
-
-
 
 
 def run(inputs: dict[str, Any], config, ctx: StageContext) -> dict[str, Any]:
@@ -276,7 +298,8 @@ def run(inputs: dict[str, Any], config, ctx: StageContext) -> dict[str, Any]:
     ctx.report(1, 2)
     spans = np.array([[p.t_us[0], p.t_us[-1]] for p in parts if len(p.t_us) > 1], dtype=np.int64).reshape(-1, 2)
     values, errors = evaluate_motion(rec, t_us, poses, config.every, config.align, config.velocity_window_ms,
-                                     tuple(config.end_effectors), spans, config.peak_min_speed_mps)
+                                     tuple(config.end_effectors), spans, config.peak_min_speed_mps,
+                                     config.fast_speed_mps)
     statuses: dict[str, int] = {}
     for p in parts:
         if p.status:

@@ -27,14 +27,16 @@ class EvaluateConfig:
     peak_min_speed_mps: float = param(0.5, ge=0, help="a (batch, end effector) pair counts in the peak-speed error only "
                                                 "if its true peak speed exceeds this, m/s: a relative error of a "
                                                 "joint that does not move is not defined")
+    fast_speed_mps: float = param(3.0, gt=0, help="peak_speed_err_fast: the peak-speed error over the (batch, end "
+                                                  "effector) pairs whose true peak reaches this, m/s (the fast "
+                                                  "moments between two intensity frames)")
 
 
 EVALUATE = StageSpec(
-    name="evaluate", kind="evaluate", version=5,  # 3: gaps not evaluated, coverage; 4: depth and image-plane split;
-    # 5: the body's segment lengths against the truth
+    name="evaluate", kind="evaluate", version=6,
     description="mean per-joint 3D error (AE, Procrustes-aligned) and its STD on every 10th frame, AE.raw / "
                 "AE.nonRaw, per-joint errors, data rate (MB/s) against 1000 fps frames; velocity error (MPJVE), acceleration "
-                "error and end-effector peak speed per batch, root-relative; the root-relative error split along the "
+                "error and end-effector peak speed per batch, root-relative (all, the fast ones, signed by true speed); the root-relative error split along the "
                 "camera's line of sight (depth) and the image plane; the body's limb lengths and girdle widths against "
                 "the truth (and the stated template's, when wired)",
     config=EvaluateConfig,
