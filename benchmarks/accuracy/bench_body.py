@@ -26,6 +26,7 @@ capture as it is). Never run on the check seeds to choose anything.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -50,9 +51,8 @@ def prepare(bench, cap, body: str = "told"):
     from eventcap.core.runner import Runner
 
     row = next(m for m in bench.methods if m.name == "default")
-    own = row.overrides_for(cap.frames)
-    ov = [*cap.overrides, *bench.base_overrides(), *(own or ()), *cap.body.get(body, ())]
-    data, _ = bench._compose_row(ov, tuple(own or ()))
+    row = dataclasses.replace(row, body=body)
+    data, _ = bench._compose_row(bench.row_overrides(cap, row), tuple(row.overrides_for(cap.frames) or ()))
     data["pipeline"]["nodes"] = {k: v for k, v in data["pipeline"]["nodes"].items() if k in NODES}
     runner = Runner(data)
     result = runner.run(None)
