@@ -3,13 +3,15 @@ detector shares within a capture (issue 54). Runs only the nodes the body needs 
 reconstruct for an event-only camera), through the normal runner and cache; the body stage's own run function.
 
     python benchmarks/accuracy/bench_body.py default detector=simulated duration_s=1.0 "seeds=[0,1]"
-    python benchmarks/accuracy/bench_body.py open "seeds=[0,2,4]" [--body told|exact] [--json out.json]
+    python benchmarks/accuracy/bench_body.py open "seeds=[0,2,4]" [--body told|exact|nothing] [--json out.json]
 
 The first argument is a benchmark preset (conf/benchmark/<preset>.yaml), the rest its overrides (as
-``eventcap benchmark``). Each capture is told what the ``default`` row is told (``--body``). Per capture:
+``eventcap benchmark``). Each capture is told what the ``default`` row is told (``--body``; ``nothing``: not even
+a height). Per capture:
 
-- ``stature``: the truth (the drawn person's, else the template's), the template's, the posterior +- its SD, and
-  what the floor alone says +- its SE (the same fit without the stature's prior); ``z``: (posterior - truth) / SD;
+- ``stature``: the truth (the drawn person's, else the template's), the template's, the posterior +- its SD (an
+  unstated stature kept: the template's +- the prior's SD), and what the floor alone says +- its SE (the same fit
+  without the stature's prior); ``z``: (posterior - truth) / SD;
 - ``segments cm``: the median over the 10 limbs and girdles of |length - truth|, the template's -> the body's
   (evaluate's ``stated_body_error_mm`` and ``body_error_mm``, in cm);
 - ``in 2 SD``: the share of the 10 segments whose posterior lies within 2 SD of the truth; ``seen in 2 SE``: the same
@@ -141,7 +143,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("preset")
     ap.add_argument("overrides", nargs="*")
-    ap.add_argument("--body", default="told", choices=("told", "exact"))
+    ap.add_argument("--body", default="told", choices=("told", "exact", "nothing"),
+                    help="what each capture is told: as its default row (told), its exact body, or nothing")
     ap.add_argument("--json", default="")
     ap.add_argument("--plot", default="", help="a PNG: per capture the true stature, the template's, the posterior "
                                                "+- 2 SD and the floor alone +- 2 SE")
@@ -175,7 +178,7 @@ def main(argv=None) -> int:
         row = {"capture": cap.label, "detector": det.detector.split(":")[0], "group": cap.group,
                "told": "height" if "height_m" in tpl.stated else "nothing", "H_true": H_true,
                "H_template": float(np.ptp(tpl.vertices[:, 1])), "H": float(np.ptp(body.vertices[:, 1])),
-               "H_sd": (st or {}).get("sd"), "H_floor": (st or {}).get("floor"), "H_floor_se": (st or {}).get("floor_se"),
+               "H_sd": (st or {}).get("sd") or (stats.get("sd") or {}).get("height_m"), "H_floor": (st or {}).get("floor"), "H_floor_se": (st or {}).get("floor_se"),
                "share": (st or {}).get("share"), "err_template_cm": err0, "err_cm": err1, "z_post": z_post,
                "z_seen": z_seen, "sex": stats.get("sex"), "sex_sd": (stats.get("sd") or {}).get("sex"),
                "noise": stats.get("noise"), "scale_from": stats.get("scale_from") or stats.get("why")}
@@ -229,7 +232,7 @@ def main(argv=None) -> int:
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1, default=float))
     if a.plot:
-        plot_statures(Path(a.plot), rows, f"{a.preset} {' '.join(a.overrides)}")
+        plot_statures(Path(a.plot), rows, f"{a.preset} {' '.join(a.overrides)} (told: {a.body})")
     return 0
 
 
