@@ -18,13 +18,17 @@ from helpers.poses import detect, posed_recording
 from helpers.spline_scene import EXACT, BatchSeq
 
 
-def inputs(arm_rad: float = 0.0, sigma_mm: float | None = 20.0):
+def inputs(arm_rad: float = 0.0, sigma_mm: float | None = 20.0, rest_spread=None):
     """3 batches of a jumping jack with exact detections at its 4 intensity frames (no events), and the true motion
     per batch with the right shoulder turned by arm_rad, each frame with a solve's σ of sigma_mm (None: none)."""
     from eventcap.body.skeleton import DOF_INDEX
 
+    import dataclasses
+
     rec = posed_recording("jumping_jack", n_frames=4, speed=1.0, with_template=True)
     det = detect("simulated", rec, **EXACT)
+    if rest_spread is not None:  # a body estimated from the detections, known to within its posterior
+        rec = dataclasses.replace(rec, template=dataclasses.replace(rec.template, rest_spread=rest_spread))
     plan = BatchPlan.between_frames(rec.frames.t_us)
     gt, poses = rec.ground_truth, []
     for k in range(len(plan)):
@@ -37,9 +41,9 @@ def inputs(arm_rad: float = 0.0, sigma_mm: float | None = 20.0):
     return {"recording": rec, "detections": det, "poses": BatchSeq(poses, plan.batches())}
 
 
-def confidence(arm_rad: float = 0.0, sigma_mm: float | None = 20.0, **config):
+def confidence(arm_rad: float = 0.0, sigma_mm: float | None = 20.0, rest_spread=None, **config):
     spec = load_registry().get("confidence")
-    return spec.load_run()(inputs(arm_rad, sigma_mm), build_config(spec, config, "stages.confidence"),
+    return spec.load_run()(inputs(arm_rad, sigma_mm, rest_spread), build_config(spec, config, "stages.confidence"),
                            StageContext(node="confidence", stage="confidence"))["confidence"]
 
 
@@ -85,3 +89,22 @@ def test_settings_that_cannot_work_are_refused_by_name():
 
     with pytest.raises(StageFailed, match=r"stages.confidence.unseen_mm: expected at least trusted_mm \(100 mm"):
         confidence(unseen_mm=50.0, trusted_mm=100.0)
+
+
+def test_a_body_estimated_from_the_detections_adds_its_own_uncertainty():
+    """The template carries its posterior (rest_spread): a 3 % uncertain scale adds, as a variance, 3 % of each
+    posed joint's distance from the joints' mean (what the rigid alignment leaves); stages.confidence.body=0 leaves
+    it out."""
+    from eventcap.body.kinematics import joint_positions
+
+    rec = posed_recording("jumping_jack", n_frames=4, speed=1.0, with_template=True)
+    rest = rec.template.rest_joints
+    spread = (0.03 * (rest - rest.mean(axis=0)))[None]
+    exact, body = confidence(**WEIGHTS), confidence(rest_spread=spread, **WEIGHTS)
+    extra = np.sqrt(np.maximum(body.uncertainty_mm.astype(float) ** 2 - exact.uncertainty_mm.astype(float) ** 2, 0))
+    gt = rec.ground_truth
+    J = joint_positions(gt.poses[np.searchsorted(gt.t_us, body.t_us)], rest)
+    want = 30.0 * np.linalg.norm(J - J.mean(axis=1, keepdims=True), axis=-1)  # 3 % of the distance, mm
+    assert want.max() > 10.0 and np.allclose(extra, want, atol=0.5)
+    off = confidence(rest_spread=spread, **WEIGHTS, body=0.0)
+    assert np.allclose(off.uncertainty_mm, exact.uncertainty_mm)

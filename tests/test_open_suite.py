@@ -328,6 +328,10 @@ def test_the_body_is_drawn_per_seed_and_each_row_is_told_what_a_user_types(open_
     assert [o.split("=")[0] for o in c100.body["exact"]] == ["template.height_m", "template.build", "template.muscle",
                                                             "template.sex", "template.seed"]
     assert f"source.actor.height_m={c100.drawn['actor_height_m']}" in c100.overrides
+    # rows differing only by what they are told about the person are not twins: none is left out
+    active, left_out = Benchmark(compose_benchmark(CONF, "open", ["seeds=[0]", "only=[default,exact_body]"]), CONF,
+                                 []).active_methods()
+    assert [m.name for m in active] == ["default", "exact_body"] and left_out == {}
     # without draws.body every capture films the template, as before
     plain = Benchmark(compose_benchmark(CONF, "open_check", ["seeds=[100]", "draws.body=null"]), CONF, [])
     assert not any(o.startswith("source.actor") for o in plain.captures[0].overrides) and plain.captures[0].body == {}

@@ -143,3 +143,39 @@ def test_the_solves_sigma_is_joined_over_batches_as_the_poses_are():
     assert got[:, 0].tolist()[:3] == [10.0, 10.0, 30.0]  # the shared frame: the later batch's, as join_batches
     assert np.isnan(got[3:]).all()
     assert joined_sigma([c], t[3:]) is None
+
+
+def test_the_bodys_uncertainty_is_its_rest_spread_carried_to_the_posed_joints_less_the_alignment():
+    """A body estimated from the detections (Template.rest_spread): a spread that only moves the whole skeleton
+    adds nothing (the rigid alignment takes it away); a 1 % uniform scale adds 1 % of each joint's distance from
+    the joints' mean, posed; the parts add as variances; an exact body adds nothing."""
+    import dataclasses
+
+    from eventcap.analysis.uncertainty import body_mm
+    from eventcap.body.anny import anny_template
+    from eventcap.body.kinematics import joint_positions
+    from eventcap.body.motions import motion_poses
+
+    tpl = anny_template()
+    P = motion_poses("karate_kick", np.arange(5) / 25.0, seed=0, template=tpl)
+    P[2] = np.nan  # a gap
+    assert body_mm(tpl, P) is None
+    move = np.broadcast_to(np.array([0.01, 0.02, -0.01]), (24, 3))
+    assert np.nanmax(body_mm(dataclasses.replace(tpl, rest_spread=move[None]), P)) < 1e-6
+    grow = 0.01 * (tpl.rest_joints - tpl.rest_joints[0])
+    got = body_mm(dataclasses.replace(tpl, rest_spread=grow[None]), P)
+    assert np.isnan(got[2]).all()
+    ok = np.array([0, 1, 3, 4])
+    J = joint_positions(P[ok], tpl)
+    want = 10.0 * np.linalg.norm(J - J.mean(axis=1, keepdims=True), axis=-1)  # 1 % of the distance, mm
+    assert np.allclose(got[ok], want, rtol=1e-6)
+    both = body_mm(dataclasses.replace(tpl, rest_spread=np.stack([grow, grow])), P)
+    assert np.allclose(both[ok], np.sqrt(2) * want)
+    m = UncertaintyModel(scale=1.0, detection_2d=0.0, detection_3d=0.0, events=0.0, unseen_mm=300.0, floor_mm=0.0,
+                         fallback_mm=80.0, body=1.0)
+    sig = np.full((5, NUM_JOINTS), 30.0)
+    z = np.zeros((5, NUM_JOINTS))
+    est = np.isfinite(P).all(axis=1)
+    u = joint_uncertainty(m, sig, z, z, z, est, got)
+    assert np.allclose(u[ok], np.hypot(30.0, want))
+    assert np.allclose(joint_uncertainty(dataclasses.replace(m, body=0.0), sig, z, z, z, est, got)[ok], 30.0)

@@ -17,6 +17,11 @@ one every figure of this module measures): the true 3D distance lies within 2 u 
      solve puts it (1 - the event support of :mod:`eventcap.analysis.confidence`, growing away from the frames as
      4τ(1 - τ)), times the joint's image displacement carried to its depth;
 
+   - the body: a body estimated from the detections (the body stage) is known only to within its posterior
+     (``Template.rest_spread``: independent one-sigma deviations of its rest joints); each carried to the posed
+     joints at every frame, less their mean (what the rigid alignment takes away), added as variances
+     (:func:`body_mm`), times the ``body`` weight;
+
 3. **Out of view**: a joint outside the image has at least ``unseen_mm``: nobody saw it. Its place is only known to
    within its uncertainty, so a joint counts as in view only when the ball of its body's depth around it, and of
    ``view_margin`` times its uncertainty, projects inside every edge (:func:`eventcap.analysis.confidence.joints_in_view`):
@@ -229,6 +234,32 @@ def event_gap_mm(template, camera: Camera, t_us: np.ndarray, poses: np.ndarray, 
     return out
 
 
+def body_mm(template, poses: np.ndarray) -> np.ndarray | None:
+    """(T, 24) mm: how far each posed joint may lie from where the template's body puts it, given how uncertain the
+    body is (``template.rest_spread`` (K, 24, 3): K independent one-sigma deviations of the rest joints): per frame
+    (poses (T, 33)) the root-norm over K of each deviation carried through the pose (joint positions are linear in
+    the rest joints at given angles), less its mean over the joints (the rigid alignment's translation). None when
+    the body is exact (no spread); NaN where a frame has no estimate."""
+    spread = getattr(template, "rest_spread", None)
+    if spread is None or np.asarray(spread).shape[0] == 0:
+        return None
+    P = np.asarray(poses, dtype=np.float64)
+    est = np.isfinite(P).all(axis=1)
+    out = np.full((P.shape[0], NUM_JOINTS), np.nan)
+    if not est.any():
+        return out
+    Pe = P[est]
+    rest = np.asarray(template.rest_joints, dtype=np.float64)
+    base = joint_positions(Pe, rest)
+    var = np.zeros(base.shape[:2])
+    for D in np.asarray(spread, dtype=np.float64):
+        d = joint_positions(Pe, rest + D) - base
+        d = d - d.mean(axis=1, keepdims=True)
+        var += np.sum(d * d, axis=-1)
+    out[est] = np.sqrt(var) * 1000.0
+    return out
+
+
 def joined_sigma(parts, t_us: np.ndarray) -> np.ndarray | None:
     """(T, 24) the per-batch pose sequences' ``sigma_mm`` at the joined motion's times t_us (a time two batches hold:
     the later batch's, as :func:`eventcap.analysis.motion.join_batches` with ``later``); NaN where a batch has none;
@@ -248,7 +279,8 @@ def joined_sigma(parts, t_us: np.ndarray) -> np.ndarray | None:
 class UncertaintyModel:
     """How the uncertainty is made (module doc): ``scale`` of the solve's σ_L; the weights of the detections' 2D and
     3D residuals and of the events' missing support; ``unseen_mm`` the least uncertainty of a joint out of view;
-    ``floor_mm`` the least of any joint; ``fallback_mm`` σ_L's stand-in where the solve gives none."""
+    ``floor_mm`` the least of any joint; ``fallback_mm`` σ_L's stand-in where the solve gives none; ``body`` the
+    weight of the body's own uncertainty (:func:`body_mm`)."""
 
     scale: float
     detection_2d: float
@@ -257,18 +289,22 @@ class UncertaintyModel:
     unseen_mm: float
     floor_mm: float
     fallback_mm: float
+    body: float = 1.0
 
 
 def joint_uncertainty(model: UncertaintyModel, sigma_mm: np.ndarray | None, r2_mm: np.ndarray, r3_mm: np.ndarray,
-                      event_gap_mm: np.ndarray, estimated: np.ndarray) -> np.ndarray:
+                      event_gap_mm: np.ndarray, estimated: np.ndarray, body_mm: np.ndarray | None = None) -> np.ndarray:
     """(T, 24) the uncertainty (mm; module doc, 1-2) from σ_L (T, 24; None or NaN: ``fallback_mm``), the detections'
     residuals at the frames interpolated in time (T, 24, mm; NaN: none), the events' missing support carried to mm
-    (T, 24) and whether each frame has an estimate (T,): NaN where not. Out of view: :func:`out_of_view`."""
+    (T, 24), whether each frame has an estimate (T,): NaN where not, and the body's own uncertainty (T, 24, mm;
+    None: an exact body). Out of view: :func:`out_of_view`."""
     T = np.asarray(estimated).shape[0]
     sig = np.full((T, NUM_JOINTS), np.nan) if sigma_mm is None else np.asarray(sigma_mm, dtype=np.float64)
     var = np.where(np.isfinite(sig), model.scale * sig, model.fallback_mm) ** 2
     var = var + (model.detection_2d * np.nan_to_num(r2_mm)) ** 2 + (model.detection_3d * np.nan_to_num(r3_mm)) ** 2
     var = var + (model.events * np.nan_to_num(event_gap_mm)) ** 2 + model.floor_mm ** 2
+    if body_mm is not None:
+        var = var + (model.body * np.nan_to_num(np.asarray(body_mm, dtype=np.float64))) ** 2
     return np.where(np.asarray(estimated, dtype=bool)[:, None], np.sqrt(var), np.nan)
 
 
@@ -286,6 +322,6 @@ def confidence_of(u_mm: np.ndarray, trusted_mm: float) -> np.ndarray:
     return np.where(np.isfinite(u), 1.0 / (1.0 + (np.nan_to_num(u) / trusted_mm) ** 2), 0.0)
 
 
-__all__ = ["UncertaintyModel", "at_times", "between_frames", "confidence_of", "coverage", "detection_residuals",
+__all__ = ["UncertaintyModel", "at_times", "between_frames", "body_mm", "confidence_of", "coverage", "detection_residuals",
            "event_gap_mm", "fill_from_neighbours", "joined_sigma", "joint_uncertainty", "out_of_view", "sparsification",
            "spearman"]

@@ -308,8 +308,9 @@ class Benchmark:
     def active_methods(self) -> tuple[list[Method], dict[str, str]]:
         """Methods whose required nodes their own pipeline has (composed with the common overrides and the method's
         own), and why others not. A row whose runs would be those of an earlier row (the same composed config on
-        every kind of capture of the suite, e.g. ``pipeline=spline`` while the default is the spline) is left out
-        too, naming that row: it would only print its twin's figures again. The common overrides are composed once
+        every kind of capture of the suite, e.g. ``pipeline=spline`` while the default is the spline; its own detector
+        and what it is told about a drawn person included) is left out too, naming that row: it would only print its
+        twin's figures again. The common overrides are composed once
         first: a bad one stops here."""
         compose_run(self.config_dir, self.base_overrides())
         kinds = sorted({cap.frames for cap in self.captures}, reverse=True)  # with frames first
@@ -321,7 +322,7 @@ class Benchmark:
                 cap = next(c for c in self.captures if c.frames == frames)
                 mine = [] if m.detector is None else self.detector_overrides(m.detector, cap.values)
                 composed[frames] = None if own is None else \
-                    compose_run(self.config_dir, [*self.base_overrides(), *mine, *own])[0]
+                    compose_run(self.config_dir, [*self.base_overrides(), *mine, *own, *cap.body.get(m.body, ())])[0]
             nodes = set()
             for data in composed.values():
                 nodes |= set(((data or {}).get("pipeline") or {}).get("nodes") or {})

@@ -39,6 +39,8 @@ class Template(Artifact):
         vertex_albedo: (V,) float32 in [0, 1], grey-level reflectance (texture / clothing pattern).
         landmark_joint: (L,) int64, joint each landmark of skeleton.LANDMARK_NAMES follows, L = 25.
         landmark_offset: (L, 3) float64, landmark position minus its joint's position, rest space, metres.
+        rest_spread: (K, 24, 3) float64 or None, how uncertain the rest joints are (a body estimated from the
+            detections, eventcap.body.proportions.rest_spread): K independent one-sigma deviations, metres.
     """
 
     schema_version: ClassVar[int] = 1
@@ -53,6 +55,9 @@ class Template(Artifact):
     stated: tuple = attr(default=(), doc="what of this body the user stated: the template keys given (height_m, "
                                          "build, muscle, sex), or 'shape' for a whole body (a scan, a model file); "
                                          "the body stage keeps what is stated and estimates the rest")
+    rest_spread: np.ndarray = array("float64", ("k", NUM_JOINTS, 3), units="m", optional=True,
+                                    doc="K independent one-sigma deviations of the rest joints (the body stage's "
+                                        "posterior: rest + sum of eps_k x these, eps_k ~ N(0, 1)); None: exact")
 
     def __post_init__(self) -> None:
         where = f"Template {self.name!r}"
@@ -118,6 +123,11 @@ class Template(Artifact):
         lo = np.asarray(self.landmark_offset, dtype=np.float64)
         if lo.shape != (NUM_LANDMARKS, 3) or not np.all(np.isfinite(lo)):
             raise ValueError(f"{where}: landmark_offset must be finite with shape ({NUM_LANDMARKS}, 3), got {lo.shape}")
+        if self.rest_spread is not None:
+            sp = np.asarray(self.rest_spread, dtype=np.float64)
+            if sp.ndim != 3 or sp.shape[1:] != (NUM_JOINTS, 3) or not np.all(np.isfinite(sp)):
+                raise ValueError(f"{where}: rest_spread must be finite with shape (K, {NUM_JOINTS}, 3), got {sp.shape}")
+            object.__setattr__(self, "rest_spread", _readonly(sp))
 
         for field, value in (
             ("rest_joints", rest),

@@ -17,19 +17,21 @@ class ProportionsConfig:
     scale_from_floor: bool = param(True, help="estimate an unstated stature from the floor and the camera's height "
                                               "(a world from the camera's extrinsics, its floor y = 0); false: the "
                                               "template's default stature")
-    prior_sigma: float = param(0.1, gt=0, help="spread of the phenotypes' prior around ANNY's mean body (0), in "
-                                               "ANNY's units (-1 .. 1)")
+    stature_sd_m: float = param(0.092, gt=0, help="SD of the prior of an unstated stature around the template's, "
+                                                 "metres (default: adults' spread, eventcap/body/proportions.py)")
 
 
 PROPORTIONS = StageSpec(
-    name="proportions", kind="body", version=1,
-    description="the person's body: limb lengths and girdle widths seen over the capture, ANNY's phenotypes and "
-                "stature fitted to them where the template does not state them (not in the paper)",
+    name="proportions", kind="body", version=7,  # 7: a Bayesian update with standard errors (2-6: its development)
+    description="the person's body: the stature, limb lengths and girdle widths seen over the capture, each with a "
+                "standard error, moved from the template's as far as the evidence weighs against a prior of human "
+                "proportions (a Bayesian update of ANNY's stature and phenotypes where the template does not state "
+                "them; its posterior as the template's rest_spread; not in the paper)",
     config=ProportionsConfig,
     inputs={"recording": Port(Recording, "the recording the solves read (its camera; its template is replaced)"),
             "detections": Port(Detections, "2D landmarks and 3D joints at the intensity frames"),
             "template": Port(Template, "the template as the user gave it (what it states is kept)")},
     outputs={"recording": Port(Recording, doc="the same recording carrying the person's body as its template"),
-             "template": Port(Template, doc="the person's body")},
+             "template": Port(Template, doc="the person's body, with its uncertainty (rest_spread) when estimated")},
     run="eventcap_body._impl:run_proportions",
 )

@@ -10,6 +10,7 @@ from eventcap.analysis.motion import join_batches
 from eventcap.analysis.uncertainty import (
     UncertaintyModel,
     at_times,
+    body_mm,
     confidence_of,
     detection_residuals,
     event_gap_mm,
@@ -56,14 +57,14 @@ def model_of(config) -> UncertaintyModel:
     return UncertaintyModel(scale=float(config.scale), detection_2d=float(config.detection_2d),
                             detection_3d=float(config.detection_3d), events=float(config.events),
                             unseen_mm=float(config.unseen_mm), floor_mm=float(config.floor_mm),
-                            fallback_mm=float(config.fallback_mm))
+                            fallback_mm=float(config.fallback_mm), body=float(config.body))
 
 
 def motion_cues(rec, det, parts, config) -> dict:
     """What the uncertainty is made of at every frame of the joined per-batch poses (eventcap.analysis.uncertainty):
     ``t_us`` (T,), ``estimated`` (T,), ``sigma`` (T, 24) the solve's σ (None: the poses carry none), the detections'
-    residuals ``r2``, ``r3`` (T, 24) mm interpolated between the frames, the events' ``gap`` (T, 24) mm, ``in_view``
-    (T, 24)."""
+    residuals ``r2``, ``r3`` (T, 24) mm interpolated between the frames, the events' ``gap`` (T, 24) mm, the body's
+    own uncertainty ``body`` (T, 24) mm (None: an exact body)."""
     tpl, cam = rec.template, rec.camera
     t_us, poses, _ = join_batches(parts, "later")
     est = np.isfinite(poses).all(axis=1)
@@ -76,7 +77,7 @@ def motion_cues(rec, det, parts, config) -> dict:
     ev = event_support(rec, tpl, t_us, poses, config) if est.any() else np.zeros((t_us.size, 24))
     return {"t_us": t_us, "estimated": est, "sigma": joined_sigma(parts, t_us), "r2": at_times(t_us, t_det, r2),
             "r3": at_times(t_us, t_det, r3), "gap": event_gap_mm(tpl, cam, t_us, poses, t_det[hit], ev),
-            "events": ev, "poses": poses}
+            "events": ev, "poses": poses, "body": body_mm(tpl, poses)}
 
 
 def motion_uncertainty(rec, cues: dict, config) -> tuple[np.ndarray, np.ndarray]:
@@ -84,7 +85,8 @@ def motion_uncertainty(rec, cues: dict, config) -> tuple[np.ndarray, np.ndarray]
     joint is in view with ``view_margin`` times its uncertainty around it, and one out of view is raised to
     ``unseen_mm``."""
     model = model_of(config)
-    u = joint_uncertainty(model, cues["sigma"], cues["r2"], cues["r3"], cues["gap"], cues["estimated"])
+    u = joint_uncertainty(model, cues["sigma"], cues["r2"], cues["r3"], cues["gap"], cues["estimated"],
+                          cues.get("body"))
     seen = joints_in_view(rec.template, rec.camera, cues["poses"],
                           float(config.view_margin) * np.nan_to_num(u) / 1000.0)
     return out_of_view(u, seen, model.unseen_mm), seen

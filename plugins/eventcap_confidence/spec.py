@@ -23,6 +23,9 @@ class ConfidenceConfig:
     events: float = param(0.0, ge=0, help="weight of the joint's image displacement the events leave unconfirmed "
                                           "between two intensity frames (mm at its depth) in the uncertainty (added "
                                           "as a variance; dimensionless)")
+    body: float = param(1.0, ge=0, help="weight of the body's own uncertainty (a body estimated from the detections: "
+                                        "its rest joints' posterior spread carried to each posed joint, mm) in the "
+                                        "uncertainty (added as a variance; dimensionless; 0: left out)")
     floor_mm: float = param(0.0, ge=0, help="the least uncertainty of any joint, mm (added as a variance)")
     fallback_mm: float = param(100.0, gt=0, help="the uncertainty that stands for the solve's σ where the solve "
                                                  "gives none (a solve without a Laplace approximation), mm")
@@ -42,7 +45,7 @@ class ConfidenceConfig:
 
 
 CONFIDENCE = StageSpec(
-    name="confidence", kind="analyse", version=2,
+    name="confidence", kind="analyse", version=3,
     description="uncertainty (mm) per frame and joint of the estimated motion: the solve's own σ (its Laplace "
                 "approximation, calibrated) inflated where the detections, the events and the estimate disagree, "
                 "and for joints out of view; the confidence in [0, 1] derived from it (no ground truth; below 0.5: "
