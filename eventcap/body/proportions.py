@@ -23,11 +23,11 @@ a capture tell the rest, as far as they can:
   template's joints (BlazePose: hips and shoulders nearer together); its seen lengths are divided by them;
 - **what a detector shares within a capture** (:data:`DETECTOR_SPREAD`): the error of a segment's seen length that
   more images of the same capture do not average out (a learned detector's bias for this person and view), and
-  that of the depth from the floor (the 3D detection's ankle offset); measured on the tuning captures.
+  that of the depth from the floor (the 3D detection's ankle offset); taken from the tuning captures.
 
 **The model** (:func:`fit_body`), in logs: every seen length = the body's segment x the detector's definition x
 exp(β_s, the detector's error on this segment in this capture) x exp(noise of the image); the pelvis depth of
-every image is free, or, with the floor, measured with its own noise and a per-capture error φ. The images' noise
+every image is free, or, with the floor, observed with its own noise and a per-capture error φ. The images' noise
 is the spread of what was seen: the robust spread (MAD) of the residuals, shaped per observation by its length in
 pixels and how far across the line of sight it lies (:func:`image_noise`), and inflated by the images' correlation in time (consecutive images err alike: the
 lag-1 correlation of the residuals ρ gives the effective number of images, n (1 - ρ) / (1 + ρ)). Observations more
@@ -124,7 +124,7 @@ class DetectorSpread:
         return float(self.segment[KIND_OF[name]])
 
 
-#: Per detector (by the start of its name), measured on the tuning captures (docs/results/body.md).
+#: Per detector (by the start of its name), taken from the tuning captures (docs/results/body.md).
 DETECTOR_SPREAD: dict[str, DetectorSpread] = {
     # the same captures and draws as its definitions (a 1 s capture; span_factor scales them)
     "simulated": DetectorSpread(segment={"upper_arm": 0.13, "forearm": 0.23, "thigh": 0.027, "shin": 0.024,

@@ -22,7 +22,7 @@ class ProportionsConfig:
 
 
 PROPORTIONS = StageSpec(
-    name="proportions", kind="body", version=7,  # 7: a Bayesian update with standard errors (2-6: its development)
+    name="proportions", kind="body", version=7,
     description="the person's body: the stature, limb lengths and girdle widths seen over the capture, each with a "
                 "standard error, moved from the template's as far as the evidence weighs against a prior of human "
                 "proportions (a Bayesian update of ANNY's stature and phenotypes where the template does not state "
