@@ -16,7 +16,7 @@ from eventcap.energy.kernels import CasadiSkinning, SkinningKernels
 
 @pytest.fixture(scope="module")
 def rest():
-    from tests.helpers.poses import small_template
+    from helpers.poses import small_template
 
     return small_template().rest_joints
 
@@ -107,3 +107,26 @@ def test_wrong_shapes_are_refused(rest):
         k.transforms(np.zeros((5, 33)))
     with pytest.raises(ValueError, match=r"rest joints: expected shape \(24, 3\), got \(23, 3\)"):
         SkinningKernels(np.zeros((23, 3)), 4)
+
+
+def test_a_missing_numba_falls_back_and_says_so(rest, monkeypatch, caplog):
+    """Without numba the kernels module cannot be imported: the CasADi graphs stand in, and the log names why."""
+    import sys
+
+    import eventcap.energy
+
+    monkeypatch.setattr(kernels, "_COMPILED", [])
+    monkeypatch.setitem(sys.modules, "numba", None)  # `import numba` raises ImportError
+    monkeypatch.delitem(sys.modules, "eventcap.energy._skin_kernels", raising=False)
+    monkeypatch.delattr(eventcap.energy, "_skin_kernels", raising=False)
+    S = _poses(3, 7)
+    with caplog.at_level(logging.WARNING, logger="eventcap.energy.kernels"):
+        k = SkinningKernels(rest, 3)
+    assert "cannot run here (ModuleNotFoundError: import of numba halted" in caplog.text
+    assert "is numba installed?" in caplog.text
+    assert isinstance(k._fallback, CasadiSkinning)
+    caplog.clear()
+    SkinningKernels(rest, 3)  # said once, not per window
+    assert "cannot run here" not in caplog.text
+    ref = CasadiSkinning(rest, 3)
+    np.testing.assert_array_equal(k.transforms_jac(S)[1], ref.transforms_jac(S)[1])

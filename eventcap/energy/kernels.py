@@ -207,12 +207,14 @@ def _compiled():
 
             G, dG, H = np.empty((1, 4 * NUM_JOINTS, 3)), np.empty((1, 4 * NUM_JOINTS, 3, _NP)), np.empty((1, _NP, _NP))
             S, rest = np.zeros((1, _NP)), np.zeros((NUM_JOINTS, 3))
+            k.skin_transforms(S, rest, *k.tables()[:4], G)
             k.skin_jacobian(S, rest, *k.tables()[:5], G, dG)
             k.skin_contracted_hessian(S, np.zeros_like(G), rest, *k.tables(), H)
             _COMPILED.append(k)
-        except Exception as exc:  # noqa: BLE001 - numba's errors, a missing LLVM: fall back, and say so
-            _log.warning("the compiled skinning kernels cannot run here (%s: %s): the CasADi graphs stand in for "
-                         "them (slower; same results)", type(exc).__name__, exc)
+        except Exception as exc:  # noqa: BLE001 - numba missing, its errors, a missing LLVM: fall back, say so
+            hint = " (is numba installed? it is a dependency of eventcap)" if isinstance(exc, ImportError) else ""
+            _log.warning("the compiled skinning kernels cannot run here (%s: %s)%s: the CasADi graphs stand in for "
+                         "them (slower; same results)", type(exc).__name__, exc, hint)
             _COMPILED.append(None)
     return _COMPILED[0]
 
