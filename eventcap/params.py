@@ -1,7 +1,7 @@
 """Declaring settings: a config field with its help, unit, range and whether it affects a result, and groups of them.
 
 A stage's config is a dataclass whose every field is declared with :func:`param` (a setting) or :func:`group` (a
-nested dataclass of settings, e.g. one energy term's weight and settings: ``stages.solve.terms.prior.weight``).
+nested dataclass of settings, e.g. one energy term's weight and settings: ``stages.solve.terms.cor.sigma_px``).
 The framework checks every value against its declaration before anything runs (:func:`check_value`), and the
 domain library declares the settings of its own pieces (an energy term, the IPOPT options) the same way, so a
 setting is stated once, wherever it is used. A leaf module: it imports nothing of eventcap.

@@ -18,7 +18,7 @@ import pytest
 from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS, pose_bounds
 from eventcap.core.stage import group, param
 from eventcap.energy.errors import EnergyError
-from eventcap.energy.factor import FACTORS, Factor, FactorConfig, Linearization
+from eventcap.energy.factor import FACTORS, Factor, FactorConfig, Linearization, NoiseConfig
 from eventcap.energy.floor import sole_points
 from eventcap.energy.ipopt import IpoptSettings
 from eventcap.energy.prior import ContextSmoothing
@@ -37,11 +37,14 @@ SETTINGS = IpoptSettings(max_iter=100, tol=1e-6, mumps_pivot_order=0)
 
 
 def only(terms_cls, term: str, **changes):
-    """A solve's terms group with every weight 0 but ``term``'s (1), and its settings changed."""
+    """A solve's terms group with every weight (or a noise model's gain) 0 but ``term``'s (1), and its settings
+    changed (``weight`` names the gain of a noise-modelled term)."""
     kw = {}
     for f in dataclasses.fields(terms_cls):
         cfg = f.default_factory()
-        extra = {"weight": 1.0, **changes} if f.name == term else {"weight": 0.0}
+        key = "gain" if isinstance(cfg, NoiseConfig) else "weight"
+        mine = {(key if k == "weight" else k): v for k, v in changes.items()}
+        extra = {key: 1.0, **mine} if f.name == term else {key: 0.0}
         kw[f.name] = dataclasses.replace(cfg, **extra)
     return terms_cls(**kw)
 
@@ -232,10 +235,10 @@ def test_a_factor_owns_its_data_and_relinearises_at_the_estimate():
     estimate; a round without association leaves the tracks' and the silhouette's data empty. Each factor reports
     its own counts."""
     rec, spl, C, inputs = window_data()
-    terms = SplineTerms()  # the defaults: every term but the bones on
+    terms = SplineTerms()  # the defaults: every term but the context pull and the bones on
     factors = _factors(terms, inputs, rec)
     names = [f.name for f in factors]
-    assert names == ["landmarks_2d", "joints_3d", "cor", "sil", "still", "prior", "context", "floor", "slide"]
+    assert names == ["landmarks_2d", "joints_3d", "cor", "sil", "still", "prior", "floor", "slide"]
     for f in factors:
         f.collect(inputs)
     est = Estimate(inputs.start, 0, inputs, rec.template, rec.camera)
@@ -351,10 +354,10 @@ def test_a_new_term_is_one_class_and_one_config_entry():
     n_seg = int((t_det[-1] - t_det[0]) // H_US)
     spl = UniformCubicBSpline(int(t_det[0]), H_US, n_seg)
     res = {}
-    for lam in (0.0, 1e3):
+    for lam in (0.0, 1e6):  # the detections are exact (their noise the terms' floor): the toy must outweigh them
         cfg = ToySolveConfig(icp_rounds=1)
         cfg.terms.toy.weight = lam
-        cfg.terms.sil.weight = cfg.terms.still.weight = cfg.terms.context.weight = 0.0
+        cfg.terms.sil.gain = cfg.terms.still.gain = cfg.terms.context.gain = 0.0
         inputs = scene_inputs(spl, xy, valid)
         inputs.detections = det
         times = sample_times(cfg.terms, inputs)
@@ -366,9 +369,9 @@ def test_a_new_term_is_one_class_and_one_config_entry():
         assert ("toy" in [f.name for f in solver.factors]) == (lam > 0)
         res[lam] = solve_window(solver, spl, inputs)
         assert res[lam].solves[-1].status == "Solve_Succeeded"
-    assert res[1e3].energies["toy"] > 0 and res[1e3].energies["n_toy"] == t_det.size
+    assert res[1e6].energies["toy"] > 0 and res[1e6].energies["n_toy"] == t_det.size
     assert "toy" not in res[0.0].energies
-    held = np.abs(spl.evaluate(res[1e3].control, t_det)[:, :27]).mean()
+    held = np.abs(spl.evaluate(res[1e6].control, t_det)[:, :27]).mean()
     free = np.abs(spl.evaluate(res[0.0].control, t_det)[:, :27]).mean()
     assert held < 0.2 * free, (held, free)
 
@@ -379,8 +382,8 @@ def test_a_factor_name_is_taken_once_and_bad_weights_and_missing_data_are_named(
                                     "linearize": lambda self, S, a, o: None})
     rec, spl, C, inputs = window_data()
     terms = SplineTerms()
-    terms.prior.weight = float("nan")
-    with pytest.raises(EnergyError, match=r"terms.prior.weight: expected a finite weight >= 0, got nan"):
+    terms.prior.gain = float("nan")
+    with pytest.raises(EnergyError, match=r"terms.prior.gain: expected a finite number >= 0, got nan"):
         _factors(terms, inputs, rec)
     f = _factors(only(SplineTerms, "landmarks_2d"), inputs, rec)[0]
     with pytest.raises(EnergyError, match="E_2D: the window has no detections"):
@@ -399,6 +402,6 @@ def test_a_factor_name_is_taken_once_and_bad_weights_and_missing_data_are_named(
     class Swapped:
         prior: FactorConfig = group(FACTORS["cor"].Config, help="E_cor's settings under the prior's name")
 
-    with pytest.raises(EnergyError, match=r"terms.prior: expected the settings PriorConfig of factor MotionPrior, "
+    with pytest.raises(EnergyError, match=r"terms.prior: expected the settings PriorNoise of factor MotionPrior, "
                                           r"got CorConfig"):
         term_configs(Swapped())

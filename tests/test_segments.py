@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eventcap.body.segments import SEGMENTS, dof_inertia, inertia_prior_gain, joint_inertia
+from eventcap.body.segments import SEGMENTS, dof_inertia, joint_inertia
 from eventcap.body.skeleton import DEFAULT_REST_JOINTS, DOF_INDEX, JOINT_INDEX, PARENTS
 
 J = JOINT_INDEX
@@ -41,35 +41,3 @@ def test_inertia_grows_towards_the_root_is_symmetric_and_scales_with_size_square
     assert joint_inertia(1.2 * x) == pytest.approx(1.44 * I, rel=1e-9)
     D = dof_inertia(x)
     assert D.shape == (30,) and np.all(D[27:] == I[0])
-
-
-def test_prior_gains_keep_the_mean_strength_and_weaken_the_light_parts():
-    x = np.asarray(DEFAULT_REST_JOINTS)
-    assert np.all(inertia_prior_gain(x, 0) == 1.0)
-    g = inertia_prior_gain(x, 1.0)
-    assert g.shape == (33,) and np.all(g[30:] == 1.0)  # the root's translation is not a rotation
-    assert np.exp(np.log(g[:30]).mean()) == pytest.approx(1.0, rel=1e-12)
-    assert g[DOF_INDEX["r_elbow_flex"]] == pytest.approx(0.13, abs=0.01)
-    assert g[27] == pytest.approx(29.5, abs=0.5)  # the root's rotations turn the whole body
-    assert inertia_prior_gain(x, 0.5) == pytest.approx(np.sqrt(g), rel=1e-12)
-    assert inertia_prior_gain(1.3 * x, 1.0) == pytest.approx(g, rel=1e-9)  # only the proportions count
-    held = inertia_prior_gain(x, 1.0, cap=1.0)  # lighter than the mean: held less; heavier: as before
-    assert np.all(held == np.minimum(g, 1.0)) and held[DOF_INDEX["spine_twist"]] == 1.0 and held[27] == 1.0
-    assert held[DOF_INDEX["l_ankle_flex"]] == pytest.approx(0.01, abs=0.005)
-    floored = inertia_prior_gain(x, 1.0, cap=1.0, floor=0.05)  # nothing held less than 1/20 of the trunk
-    assert np.all(floored == np.clip(g, 0.05, 1.0)) and floored[DOF_INDEX["l_ankle_flex"]] == 0.05
-    assert floored[DOF_INDEX["r_elbow_flex"]] == held[DOF_INDEX["r_elbow_flex"]]  # above the floor: unchanged
-
-
-def test_bad_exponent_and_degenerate_joints_are_refused():
-    with pytest.raises(ValueError, match=r"inertia exponent: expected a number >= 0, got -1"):
-        inertia_prior_gain(DEFAULT_REST_JOINTS, -1)
-    with pytest.raises(ValueError, match=r"inertia exponent: expected a number >= 0, got nan"):
-        inertia_prior_gain(DEFAULT_REST_JOINTS, float("nan"))
-    with pytest.raises(ValueError, match=r"inertia cap: expected a number >= 1, got 0.5"):
-        inertia_prior_gain(DEFAULT_REST_JOINTS, 1.0, cap=0.5)
-    with pytest.raises(ValueError, match=r"inertia floor: expected a number in \[0, 1\], got 1.5"):
-        inertia_prior_gain(DEFAULT_REST_JOINTS, 1.0, floor=1.5)
-    flat = np.zeros((24, 3))
-    with pytest.raises(ValueError):
-        inertia_prior_gain(flat, 1.0)

@@ -143,7 +143,7 @@ def test_what_the_issue_found_is_refused_with_the_key(registry):
         with pytest.raises(PipelineError) as err:
             build_pipeline(with_value(data, key, value, f), registry)
         assert message in err.value.problems[0]
-    for key, value in (("stages.solve.terms.sil.weight", 0), ("stages.solve.terms.prior.inertia_cap", math.inf),
+    for key, value in (("stages.solve.terms.sil.gain", 0), ("stages.solve.terms.prior.q_max_ratio", 1e6),
                        ("source.camera_height_m", 2.5), ("source.duration_s", 3600)):
         f = next(f for k, f in numeric_keys(data, registry) if k == key)
         build_pipeline(with_value(data, key, value, f), registry)  # legal: 0 turns a term off

@@ -141,6 +141,18 @@ class GcvCurve:
         """The lam that ``criterion`` (reml | gcv, :data:`CRITERIA`) chooses for the columns of Y."""
         return self.choose_reml(Y) if check_criterion(criterion) == "reml" else self.choose(Y)
 
+    def power(self, Y: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        """(C,): the process power q_c = sigma_c² / lam_c of each column c of Y (n, C) at its smoothing lam_c (s³):
+        its noise variance sigma_c² the restricted likelihood's estimate at that lam (the mean over the penalised
+        components of z_i² lam d_i / (1 + lam d_i), the components' variance being sigma² (1 + lam d_i) / (lam d_i) =
+        sigma² + q / d_i). Where the samples are noise-free, lam -> 0 and q tends to their own roughness, the mean of
+        z_i² d_i: a finite power either way."""
+        n = self.x.size
+        z2 = (self.U.T @ np.asarray(Y, dtype=np.float64).reshape(n, -1)) ** 2  # (n, C)
+        pen = self.d > 1e-9 * self.d.max()
+        ld = np.asarray(lam, dtype=np.float64)[None, :] * self.d[pen][:, None]  # (m, C)
+        return np.mean(z2[pen] * self.d[pen][:, None] / (1.0 + ld), axis=0)
+
     def choose_each(self, Y: np.ndarray, criterion: str) -> np.ndarray:
         """(C,): the lam ``criterion`` chooses for each column of Y (n, C) on its own, as :meth:`choose_by` would
         column by column, in one pass over the grid."""

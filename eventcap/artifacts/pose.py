@@ -20,10 +20,19 @@ class Detections(Artifact):
     supports. ``image_status`` says per image why it holds a detection or not: ``ok``, ``no_person`` (the
     detector found nobody) or the name of the check that rejected it (``outside``, ``region``, ``scale``: see
     ``plugins/eventcap_detect/checks.py``); a rejected image has no observation at all (confidence 0 everywhere), its
-    positions kept as the detector gave them, to look at. Schema v1 had neither:
-    its caches are refused and recomputed."""
+    positions kept as the detector gave them, to look at.
 
-    schema_version: ClassVar[int] = 3
+    The detector's noise model (GTSAM's word), in two parts: ``sigma_2d_px`` each landmark's noise per image axis in
+    each image, independent from image to image (white), and ``bias_2d_px`` the spread of its offset that stays the
+    same over a capture (a detector's own idea of where a hip is, a lean it keeps); ``sigma_3d_m`` and ``bias_3d_m``
+    the same for each root-relative joint, per axis of the camera (x right, y down, z along the line of sight: a
+    monocular network knows depth least); ``outlier_share`` the share of landmarks it places anywhere (outliers,
+    left/right flips), and ``noise_model`` where the figures come from (what the simulated detector simulates, what
+    BlazePose measured on tuning captures, what a file states or the documented default). The solve weighs each
+    observation by it: n images of one point tell its white noise n times over, its offset once. Schemas before v4
+    had none: their caches are refused and recomputed."""
+
+    schema_version: ClassVar[int] = 4
     t_us: np.ndarray = array("int64", ("n",), units="us", doc="time of the intensity frame")
     keypoints_2d: np.ndarray = array("float32", ("n", "l", 2), units="px")
     confidence_2d: np.ndarray = array("float32", ("n", "l"))
@@ -37,6 +46,19 @@ class Detections(Artifact):
                                                "not stated")
     person_up: tuple = attr(default=(), doc="the person's mean vertical over the accepted detections, camera axes "
                                             "(x right, y down, z forward), unit; empty: not measured")
+    sigma_2d_px: np.ndarray = array("float32", ("n", "l"), units="px", optional=True,
+                                    doc="each landmark's noise per image axis in each image (the noise model)")
+    sigma_3d_m: np.ndarray = array("float32", ("n", 24, 3), units="m", optional=True,
+                                   doc="each root-relative 3D joint's noise along each camera axis (x, y, z) in each "
+                                       "image (the noise model)")
+    bias_2d_px: np.ndarray = array("float32", ("l",), units="px", optional=True,
+                                   doc="each landmark's offset that stays over the capture, its spread per axis")
+    bias_3d_m: np.ndarray = array("float32", (24, 3), units="m", optional=True,
+                                  doc="each root-relative joint's offset that stays over the capture, its spread along "
+                                      "each camera axis")
+    outlier_share: float = attr(default=0.0, doc="share of the landmarks the detector places anywhere (outliers and "
+                                                 "left/right flips)")
+    noise_model: str = attr(default="", doc="where the noise model comes from; empty: not stated")
     world_R: np.ndarray = array("float64", (3, 3), optional=True,
                                 doc="the world->camera rotation the detect stage set from the person's vertical "
                                     "(a recording without extrinsics, Recording.world 'assumed_level'): joints_3d "
@@ -57,6 +79,13 @@ class Detections(Artifact):
             raise ArtifactError("Detections.world_R: expected a rotation matrix (R R^T = I)")
         if self.person_up and len(self.person_up) != 3:
             raise ArtifactError(f"Detections.person_up: expected 3 numbers or none, got {self.person_up!r}")
+        for name in ("sigma_2d_px", "sigma_3d_m", "bias_2d_px", "bias_3d_m"):
+            s = getattr(self, name)
+            if s is not None and s.size and not np.all(np.isnan(s) | (s >= 0)):
+                raise ArtifactError(f"Detections.{name}: expected noise figures >= 0 (NaN: unknown), got "
+                                    f"{np.nanmin(s)}")
+        if not 0.0 <= float(self.outlier_share) <= 1.0:
+            raise ArtifactError(f"Detections.outlier_share: expected a share in [0, 1], got {self.outlier_share}")
         if self.in_view is not None and self.in_view.size and (self.confidence_2d[~self.in_view] > 0).any():
             i, j = np.argwhere(~self.in_view & (self.confidence_2d > 0))[0]
             raise ArtifactError(f"Detections: landmark {j} of image {i} is not in view but has confidence "

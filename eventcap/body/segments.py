@@ -19,11 +19,8 @@ import numpy as np
 from eventcap.body.skeleton import (
     DOF_JOINT,
     JOINT_INDEX,
-    NUM_DOFS,
     NUM_JOINTS,
-    NUM_POSE_PARAMS,
     PARENTS,
-    ROOT_ROTATION_SLICE,
     check_rest_joints,
 )
 
@@ -88,34 +85,4 @@ def dof_inertia(rest_joints: np.ndarray) -> np.ndarray:
     return np.concatenate([I[DOF_JOINT], np.full(3, I[0])])
 
 
-def inertia_prior_gain(rest_joints: np.ndarray, exponent: float, cap: float = np.inf,
-                       floor: float = 0.0) -> np.ndarray:
-    """(33,) a motion prior's gain per pose parameter: (I_p / Ī)^exponent clipped to [floor, cap] for the 30
-    rotations (I_p of :func:`dof_inertia`, Ī their geometric mean), 1 for the root's translation. exponent 0: every
-    gain 1; cap 1: parts lighter than the mean are held less, none more (the spline solve's default); cap inf: the
-    gains' geometric mean is 1 (with floor 0). floor > 0: no rotation is held less than that (the ankles turn so
-    little mass that they would be held ~500 times less than the trunk, and the feet jitter with the detections)."""
-    def number(v) -> bool:
-        return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-    if not (number(exponent) and exponent >= 0):  # NaN fails the comparison
-        raise ValueError(f"inertia exponent: expected a number >= 0, got {exponent!r}")
-    if not np.isfinite(exponent):
-        raise ValueError(f"inertia exponent: expected a finite number >= 0, got {exponent!r}")
-    if not (number(cap) and cap >= 1):
-        raise ValueError(f"inertia cap: expected a number >= 1, got {cap!r}")
-    if not (number(floor) and 0 <= floor <= 1):
-        raise ValueError(f"inertia floor: expected a number in [0, 1], got {floor!r}")
-    g = np.ones(NUM_POSE_PARAMS)
-    if exponent == 0:
-        return g
-    I = dof_inertia(rest_joints)
-    if not np.all(I > 0):
-        raise ValueError("inertia_prior_gain: a pose parameter turns no mass (degenerate rest joints)")
-    logs = np.log(I)
-    rot = np.r_[0:NUM_DOFS, ROOT_ROTATION_SLICE.start:ROOT_ROTATION_SLICE.stop]
-    g[rot] = np.clip(np.exp(exponent * (logs - logs.mean())), float(floor), float(cap))
-    return g
-
-
-__all__ = ["SEGMENTS", "dof_inertia", "inertia_prior_gain", "joint_inertia"]
+__all__ = ["SEGMENTS", "dof_inertia", "joint_inertia"]

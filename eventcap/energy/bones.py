@@ -32,7 +32,7 @@ from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, NUM_POSE_PARAMS
 
 from .errors import EnergyError
 from .factor import Factor, Linearization
-from .settings import BonesConfig
+from .settings import BonesNoise
 
 _NP = NUM_POSE_PARAMS
 #: Joint pairs at a distance the template fixes, both ends seen by the 2D detector (landmarks on the joints):
@@ -75,7 +75,8 @@ class BoneDepth(Factor):
     detections and the current estimate's depths at each round. Exact Hessian (CasADi)."""
 
     name = "bones"
-    Config = BonesConfig
+    Config = None
+    Noise = BonesNoise
 
     def __init__(self, config, template, camera, n):
         from .detections import _MappedTerm
@@ -127,4 +128,4 @@ class BoneDepth(Factor):
         return Linearization(w * float(e.sum()), None if g is None else w * g, None if H is None else w * H)
 
 
-__all__ = ["BONES", "BoneDepth", "BonesConfig", "depth_extent_targets"]
+__all__ = ["BONES", "BoneDepth", "BonesNoise", "depth_extent_targets"]

@@ -24,7 +24,8 @@ from eventcap.body.kinematics import joint_positions
 from .correspondences import Correspondences, correspondence_change_px, temporal_indicator
 from .errors import EnergyError
 from .factor import Factor, Linearization
-from .settings import CorConfig, TempConfig
+from .loss import irls_weight
+from .settings import CorConfig, CorNoise, TempConfig
 from .kernels import premultiplied_weights, project_derivatives, shared_kernels
 
 _NP = NUM_POSE_PARAMS
@@ -89,7 +90,19 @@ class EventCorrespondences(Factor):
 
     name = "cor"
     Config = CorConfig
+    Noise = CorNoise
     couples_neighbours = True
+
+    @classmethod
+    def noise_precision(cls, config, camera) -> float:
+        # residuals are focal-normalised: σ_px / f of them
+        return 0.5 * camera.fx * camera.fy / float(config.sigma_px) ** 2
+
+    def robust_px(self) -> float:
+        """The Cauchy scale of the correspondences' reweighting, px (0: least squares)."""
+        if self.noisy:
+            return float(self.config.loss_scale) * float(self.config.sigma_px)
+        return float(self.config.robust_px)
 
     def __init__(self, config, template, camera: Camera, n: int):
         super().__init__(config, template, camera, n)
@@ -111,11 +124,11 @@ class EventCorrespondences(Factor):
     def relinearize(self, estimate) -> None:
         corr = estimate.correspondences()
         weight = None
-        robust = float(self.config.robust_px)
+        robust = self.robust_px()
         if robust > 0 and estimate.round > 0 and corr.n:  # weights by the residuals at the last solution
             self.set_correspondences(corr, relative=True)
             e2 = np.sum(self.residuals_px(estimate.poses(self.t_us)) ** 2, axis=1)
-            weight = 1.0 / (1.0 + e2 / robust ** 2)
+            weight = irls_weight(e2 / robust ** 2, "cauchy")
         self.set_correspondences(corr, estimate.coupled, weight)
 
     def association_change(self, estimate) -> float | None:

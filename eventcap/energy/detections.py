@@ -25,7 +25,8 @@ from eventcap.camera import Camera
 
 from .errors import EnergyError, SolveFailed
 from .factor import Factor, Linearization
-from .settings import Joints3DConfig, Landmarks2DConfig
+from .loss import L2_SCALE2, rho_expression
+from .settings import Joints3DConfig, Joints3DNoise, Landmarks2DConfig, Landmarks2DNoise
 from .ipopt import IpoptSettings, SolveStats, run_ipopt
 from .kernels import Buffered
 
@@ -45,24 +46,40 @@ class FrameDetections:
 
     keypoints_2d (D, 25, 2) pixels; confidence_2d (D, 25) in [0, 1]; joints_3d (D, 24, 3) metres relative to the
     pelvis; confidence_3d (D, 24) in [0, 1]. Confidence 0 = not detected (the value is then ignored, NaN allowed).
+    The detector's noise model, when it states one: sigma_2d_px (D, 25) each landmark's white noise per image axis
+    (px), sigma_3d_m (D, 24, 3) each joint's along each camera axis (m); bias_2d_px (25,) and bias_3d_m (24, 3) the
+    spread of the offsets that stay over a capture.
     """
 
     keypoints_2d: np.ndarray
     confidence_2d: np.ndarray
     joints_3d: np.ndarray
     confidence_3d: np.ndarray
+    sigma_2d_px: np.ndarray | None = None
+    sigma_3d_m: np.ndarray | None = None
+    bias_2d_px: np.ndarray | None = None
+    bias_3d_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         kp = np.asarray(self.keypoints_2d, dtype=np.float64)
         D = kp.shape[0] if kp.ndim == 3 else -1
         shapes = {"keypoints_2d": (D, NUM_LANDMARKS, 2), "confidence_2d": (D, NUM_LANDMARKS),
-                  "joints_3d": (D, NUM_JOINTS, 3), "confidence_3d": (D, NUM_JOINTS)}
+                  "joints_3d": (D, NUM_JOINTS, 3), "confidence_3d": (D, NUM_JOINTS),
+                  "sigma_2d_px": (D, NUM_LANDMARKS), "sigma_3d_m": (D, NUM_JOINTS, 3)}
         for name, shape in shapes.items():
+            if getattr(self, name) is None and name.startswith("sigma"):
+                continue
             a = np.asarray(getattr(self, name), dtype=np.float64)
             if a.shape != shape or D < 1:
                 raise ValueError(f"FrameDetections.{name}: expected shape {shape} (D frames, BODY_25 landmarks, "
                                  f"SMPL joints), got {a.shape}")
             object.__setattr__(self, name, a)
+        for name, shape in (("bias_2d_px", (NUM_LANDMARKS,)), ("bias_3d_m", (NUM_JOINTS, 3))):
+            if getattr(self, name) is not None:
+                a = np.asarray(getattr(self, name), dtype=np.float64)
+                if a.shape != shape:
+                    raise ValueError(f"FrameDetections.{name}: expected shape {shape}, got {a.shape}")
+                object.__setattr__(self, name, a)
 
     @property
     def n(self) -> int:
@@ -70,8 +87,14 @@ class FrameDetections:
 
     def rows(self, idx) -> FrameDetections:
         idx = np.atleast_1d(np.asarray(idx))
+        pick = lambda a: None if a is None else a[idx]  # noqa: E731
         return FrameDetections(self.keypoints_2d[idx], self.confidence_2d[idx], self.joints_3d[idx],
-                               self.confidence_3d[idx])
+                               self.confidence_3d[idx], pick(self.sigma_2d_px), pick(self.sigma_3d_m),
+                               self.bias_2d_px, self.bias_3d_m)
+
+    def observed_counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """(25,), (24,): in how many of these frames each landmark and each joint is observed (confidence > 0)."""
+        return (self.confidence_2d > 0).sum(axis=0), (self.confidence_3d > 0).sum(axis=0)
 
     def problems(self) -> list[str]:
         """What makes these detections unusable (non-finite values where confidence > 0, bad confidences)."""
@@ -89,7 +112,8 @@ class FrameDetections:
 
 
 def select_detections(detections, times_us) -> FrameDetections:
-    """Rows of a Detections artifact at the given times (exact match), as FrameDetections; ValueError if missing."""
+    """Rows of a Detections artifact at the given times (exact match), as FrameDetections (with the detector's noise
+    model where it states one); ValueError if missing."""
     t = np.asarray(detections.t_us, dtype=np.int64)
     want = np.asarray(times_us, dtype=np.int64).ravel()
     idx = np.searchsorted(t, want)
@@ -98,8 +122,18 @@ def select_detections(detections, times_us) -> FrameDetections:
         missing = want[~ok]
         raise ValueError(f"detections: no detection row at t = {missing[:5].tolist()} us "
                          f"({missing.size} of {want.size} times missing; detections cover {t.size} frames)")
+    s2, s3 = getattr(detections, "sigma_2d_px", None), getattr(detections, "sigma_3d_m", None)
     return FrameDetections(detections.keypoints_2d[idx], detections.confidence_2d[idx], detections.joints_3d[idx],
-                           detections.confidence_3d[idx])
+                           detections.confidence_3d[idx], None if s2 is None else s2[idx],
+                           None if s3 is None else s3[idx], getattr(detections, "bias_2d_px", None),
+                           getattr(detections, "bias_3d_m", None))
+
+
+def detection_times(detections, t0_us: int, t1_us: int) -> np.ndarray:
+    """The times of a Detections artifact within [t0_us, t1_us] (intensity frames, and images between them where
+    the detector looked at some)."""
+    t = np.asarray(detections.t_us, dtype=np.int64)
+    return t[(t >= int(t0_us)) & (t <= int(t1_us))]
 
 
 # --------------------------------------------------------------------------------------------- closed-form guess
@@ -171,47 +205,127 @@ def unwrap_root(S: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- E_2D, E_3D of a frame
-def keypoint_expression(template: Template, camera: Camera, S, kp, c2, robust_px: float):
-    """E_2D of one frame as a CasADi expression of the pose S (33): kp (25, 2) px and c2 (25, 1) the landmarks and
-    their confidences (symbols or values). Image residuals are focal-normalised; with robust_px > 0 each
-    landmark's squared error e² becomes the Cauchy loss σ² log(1 + e²/σ²), σ = robust_px (focal-normalised)."""
-    scale = 1.0 / math.sqrt(camera.fx * camera.fy)
+def keypoint_expression(template: Template, camera: Camera, S, kp, w2, s2):
+    """E_2D of one frame as a CasADi expression of the pose S (33): kp (25, 2) the landmarks (px), w2 (25, 1) each
+    one's weight per px² and s2 (25, 1) its Cauchy loss's squared scale in px² (symbols or values): Σ_l w2_l ·
+    s2_l log(1 + e_l² / s2_l), e_l the landmark's image error in px (:func:`eventcap.energy.loss.rho_expression`;
+    s2 = :data:`eventcap.energy.loss.L2_SCALE2`: least squares). :class:`DetectionWeights` gives w2 and s2."""
     L = landmark_positions(S, template)  # (25, 3)
     uv = camera.project_sym(L.T)  # (2, 25)
-    r2 = (uv - kp.T) * scale
-    sq = ca.sum1(r2 * r2)  # (1, 25) squared landmark errors, focal-normalised
-    if robust_px > 0:  # Cauchy: ≈ ‖r‖² for small errors, grows only logarithmically for outliers
-        s2 = (robust_px * scale) ** 2
-        sq = s2 * ca.log1p(sq / s2)
-    return ca.sum2(c2.T * sq)
+    r2 = uv - kp.T
+    sq = ca.sum1(r2 * r2)  # (1, 25) squared landmark errors, px²
+    return ca.sum2(w2.T * rho_expression(sq, s2.T))
 
 
-def joint_expression(template: Template, S, tp, j3, c3):
+def joint_expression(template: Template, camera: Camera, S, tp, j3, w3):
     """E_3D of one frame as a CasADi expression of the pose S (33) and the auxiliary translation t' (3): j3 (24, 3)
-    root-relative joints in metres, c3 (24, 1) their confidences."""
+    root-relative joints in metres (world axes), w3 (24, 3) their weights per m² along each camera axis (x right,
+    y down, z along the line of sight: Σ_j Σ_a w3_ja ((R r_j)_a)², R the camera's rotation)."""
     J = joint_positions(S, template.rest_joints)  # (24, 3)
     r3 = J - (j3 + ca.repmat(tp.T, NUM_JOINTS, 1))
-    return ca.sum1(c3 * ca.sum2(r3 * r3))
-
-
-def detection_terms(template: Template, camera: Camera, S, tp, kp, c2, j3, c3, robust_px: float):
-    """(E_2D, E_3D) of one frame as CasADi expressions (:func:`keypoint_expression`, :func:`joint_expression`)."""
-    return keypoint_expression(template, camera, S, kp, c2, robust_px), joint_expression(template, S, tp, j3, c3)
+    rc = ca.mtimes(r3, ca.DM(np.asarray(camera.R, dtype=np.float64).T))  # camera axes
+    return ca.sum1(ca.sum2(w3 * rc * rc))
 
 
 def det_symbols(prefix: str):
-    """SX symbols of one frame's detections: kp (25, 2), c2 (25, 1), j3 (24, 3), c3 (24, 1)."""
-    return (ca.SX.sym(f"{prefix}kp", NUM_LANDMARKS, 2), ca.SX.sym(f"{prefix}c2", NUM_LANDMARKS, 1),
-            ca.SX.sym(f"{prefix}j3", NUM_JOINTS, 3), ca.SX.sym(f"{prefix}c3", NUM_JOINTS, 1))
+    """SX symbols of one frame's detection data: kp (25, 2), w2 (25, 1), s2 (25, 1), j3 (24, 3), w3 (24, 3)."""
+    return (ca.SX.sym(f"{prefix}kp", NUM_LANDMARKS, 2), ca.SX.sym(f"{prefix}w2", NUM_LANDMARKS, 1),
+            ca.SX.sym(f"{prefix}s2", NUM_LANDMARKS, 1), ca.SX.sym(f"{prefix}j3", NUM_JOINTS, 3),
+            ca.SX.sym(f"{prefix}w3", NUM_JOINTS, 3))
 
 
-def det_values(det: FrameDetections, d: int) -> list[np.ndarray]:
-    """Detection frame d as the values of :func:`det_symbols` (column-major), undetected entries zeroed."""
-    c2, c3 = det.confidence_2d[d], det.confidence_3d[d]
-    # Undetected entries carry confidence 0; their (possibly NaN) values must not poison the sums.
-    kp = np.where(c2[:, None] > 0, det.keypoints_2d[d], 0.0)
-    j3 = np.where(c3[:, None] > 0, det.joints_3d[d], 0.0)
-    return [kp.ravel(order="F"), c2, j3.ravel(order="F"), c3]
+@dataclass(frozen=True)
+class DetectionWeights:
+    """How one frame's detections weigh in E_2D and E_3D, from a solve's ``terms`` (either kind of settings,
+    :mod:`eventcap.energy.settings`), without the terms' λ or gain:
+
+    - weighted (the paper's): a landmark weighs c_l / f² per px² (focal-normalised residuals), its Cauchy scale
+      ``robust_px`` (0: least squares); a joint c_j per m²;
+    - noise (the spline solve's): a landmark weighs ½ / σ_l² per px², σ_l² = w_l² + n_l b_l² with w_l the
+      detector's white noise for that landmark and image (or ``sigma_px``, never below ``min_sigma_px``), b_l the
+      spread of its offset over a capture and n_l the frames of the solve that observe it (n images tell the white
+      noise n times over, the offset once: the variance of their mean is w² / n + b²), and its loss's scale
+      ``loss_scale`` σ_l; a joint ½ / σ_j² per m² alike. Only whether a confidence is > 0 counts (an observation or
+      none): how good it is, is the noise model's.
+
+    lam2 and lam3 are the terms' λ or gain (0: the term is not in the solve)."""
+
+    lam2: float
+    lam3: float
+    noise2: Landmarks2DNoise | None = None
+    noise3: Joints3DNoise | None = None
+    robust_px: float = 0.0
+    focal2: float = 1.0
+
+    @classmethod
+    def from_terms(cls, terms, camera: Camera) -> DetectionWeights:
+        c2 = getattr(terms, Keypoints2D.name, None)
+        c3 = getattr(terms, Joints3D.name, None)
+        noise2 = c2 if isinstance(c2, Landmarks2DNoise) else None
+        noise3 = c3 if isinstance(c3, Joints3DNoise) else None
+        return cls(lam2=0.0 if c2 is None else float(c2.factor_weight),
+                   lam3=0.0 if c3 is None else float(c3.factor_weight), noise2=noise2, noise3=noise3,
+                   robust_px=0.0 if c2 is None or noise2 is not None else float(c2.robust_px),
+                   focal2=float(camera.fx * camera.fy))
+
+    def sigma_2d(self, det: FrameDetections, d: int, n: np.ndarray | float = 1.0) -> np.ndarray:
+        """(25,) each landmark's noise at detection frame d among n frames that observe it (white and offset:
+        class doc; n = 0: the white noise alone), px (noise settings only)."""
+        c = self.noise2
+        if c.sigma_px is not None:
+            return np.full(NUM_LANDMARKS, max(float(c.sigma_px), float(c.min_sigma_px)))
+        if det.sigma_2d_px is None:
+            raise EnergyError("E_2D: the detections state no 2D noise model: set stages.solve.terms.landmarks_2d."
+                              "sigma_px (px)")
+        white = np.maximum(np.nan_to_num(det.sigma_2d_px[d], nan=np.inf), float(c.min_sigma_px))
+        bias = np.zeros(NUM_LANDMARKS) if det.bias_2d_px is None else np.nan_to_num(det.bias_2d_px)
+        return np.sqrt(white**2 + np.asarray(n, dtype=np.float64) * bias**2)
+
+    def sigma_3d(self, det: FrameDetections, d: int, n: np.ndarray | float = 1.0) -> np.ndarray:
+        """(24, 3) each joint's noise along each camera axis at detection frame d among n frames that observe it
+        (class doc), m (noise settings only)."""
+        c = self.noise3
+        if c.sigma_mm is not None:
+            return np.full((NUM_JOINTS, 3), 1e-3 * max(float(c.sigma_mm), float(c.min_sigma_mm)))
+        if det.sigma_3d_m is None:
+            raise EnergyError("E_3D: the detections state no 3D noise model: set stages.solve.terms.joints_3d."
+                              "sigma_mm (mm)")
+        white = np.maximum(np.nan_to_num(det.sigma_3d_m[d], nan=np.inf), 1e-3 * float(c.min_sigma_mm))
+        bias = np.zeros((NUM_JOINTS, 3)) if det.bias_3d_m is None else np.nan_to_num(det.bias_3d_m)
+        n = np.asarray(n, dtype=np.float64)
+        return np.sqrt(white**2 + (n[:, None] if n.ndim else n) * bias**2)
+
+    def values(self, det: FrameDetections, d: int, counts: tuple | None = None) -> list[np.ndarray]:
+        """Detection frame d as the values of :func:`det_symbols` (column-major): kp, w2, s2, j3, w3; entries not
+        observed weigh 0 (their possibly NaN values zeroed, so that they never poison the sums). counts: how many
+        frames of the solve observe each landmark and joint ((25,), (24,); None: this frame alone, a per-frame fit;
+        0: the white noise alone)."""
+        c2, c3 = det.confidence_2d[d], det.confidence_3d[d]
+        n2, n3 = (1.0, 1.0) if counts is None else counts
+        kp = np.where(c2[:, None] > 0, det.keypoints_2d[d], 0.0)
+        j3 = np.where(c3[:, None] > 0, det.joints_3d[d], 0.0)
+        if self.noise2 is not None and self.lam2 > 0:
+            sig = self.sigma_2d(det, d, n2)
+            w2 = np.where(c2 > 0, 0.5 / sig**2, 0.0)
+            scale = float(self.noise2.loss_scale) * sig if self.noise2.loss != "l2" else np.full(sig.shape, np.inf)
+            s2 = np.minimum(scale**2, L2_SCALE2)
+        else:
+            w2 = c2 / self.focal2
+            s2 = np.full(NUM_LANDMARKS, self.robust_px**2 if self.robust_px > 0 else L2_SCALE2)
+        if self.noise3 is not None and self.lam3 > 0:
+            w3 = np.where(c3[:, None] > 0, 0.5 / self.sigma_3d(det, d, n3) ** 2, 0.0)
+        else:  # isotropic: the same weight along every axis, whatever the camera
+            w3 = np.repeat(np.asarray(c3, dtype=np.float64)[:, None], 3, axis=1)
+        return [kp.ravel(order="F"), w2, s2, j3.ravel(order="F"), w3.ravel(order="F")]
+
+    def key(self) -> tuple:
+        """What the fits' cache keys by (every setting that changes a frame's weights)."""
+        return (self.lam2, self.lam3, repr(self.noise2), repr(self.noise3), self.robust_px, self.focal2)
+
+
+def det_values(det: FrameDetections, d: int, weights: DetectionWeights) -> list[np.ndarray]:
+    """Detection frame d as the values of :func:`det_symbols` (:meth:`DetectionWeights.values`)."""
+    return weights.values(det, d)
 
 
 class _MappedTerm:
@@ -237,19 +351,25 @@ class _MappedTerm:
 
 
 class Keypoints2D(Factor):
-    """E_2D (paper Eq. 6) at every detection frame: λ_2D Σ_d Σ_l c_dl ρ(‖π(L_l(S_d)) - P2D_dl‖ / f) over the BODY_25
-    landmarks, ρ the Cauchy loss of scale ``robust_px`` (0: squares). Exact Hessian (CasADi)."""
+    """E_2D (paper Eq. 6) at every detection frame: Σ_d Σ_l w_dl ρ(‖π(L_l(S_d)) - P2D_dl‖²) over the BODY_25
+    landmarks (:class:`DetectionWeights`): weighted, λ_2D c_dl / f² with the Cauchy loss of scale ``robust_px``
+    (0: squares); as a noise model, ½ / σ_dl² with the detector's noise σ_dl and the loss of scale ``loss_scale``
+    σ_dl. Exact Hessian (CasADi)."""
 
     name = "landmarks_2d"
     Config = Landmarks2DConfig
+    Noise = Landmarks2DNoise
     observes_detections = True
 
     def __init__(self, config, template, camera, n):
         super().__init__(config, template, camera, n)
         S = ca.SX.sym("S", _NP)
-        kp, c2, _, _ = det_symbols("")
-        e = keypoint_expression(template, camera, S, kp, c2, float(config.robust_px))
-        self._fn = _MappedTerm("E_2d", e, S, [kp, c2], self.n)
+        kp, w2, s2, _, _ = det_symbols("")
+        e = keypoint_expression(template, camera, S, kp, w2, s2)
+        self._fn = _MappedTerm("E_2d", e, S, [kp, w2, s2], self.n)
+        self._weights = DetectionWeights(lam2=self.gain, lam3=0.0, noise2=config if self.noisy else None,
+                                         robust_px=0.0 if self.noisy else float(config.robust_px),
+                                         focal2=float(camera.fx * camera.fy))
         self._data: list[np.ndarray] = []
 
     @classmethod
@@ -261,8 +381,9 @@ class Keypoints2D(Factor):
         det = inputs.need("detections", "E_2D")
         if det.n != self.n:
             raise EnergyError(f"E_2D: expected {self.n} detection frames, got {det.n}")
-        dv = [det_values(det, d) for d in range(det.n)]
-        self._data = [np.concatenate([v[k] for v in dv]) for k in (0, 1)]
+        counts = det.observed_counts()
+        dv = [self._weights.values(det, d, counts) for d in range(det.n)]
+        self._data = [np.concatenate([v[k] for v in dv]) for k in (0, 1, 2)]
 
     def linearize(self, S, aux, order):
         e, g, H = self._fn(S, self._data, order)
@@ -271,21 +392,24 @@ class Keypoints2D(Factor):
 
 
 class Joints3D(Factor):
-    """E_3D (paper Eq. 7) at every detection frame: λ_3D Σ_d Σ_l c_dl ‖J_l(S_d) - (P3D_dl + t'_d)‖², P3D the
-    root-relative 3D detections, t'_d an auxiliary translation per frame (this factor's own variables, started at
-    the per-frame fits' t')."""
+    """E_3D (paper Eq. 7) at every detection frame: Σ_d Σ_l w_dl ‖J_l(S_d) - (P3D_dl + t'_d)‖², P3D the
+    root-relative 3D detections (:class:`DetectionWeights`: λ_3D c_dl weighted, ½ / σ_dl² with the detector's noise),
+    t'_d an auxiliary translation per frame (this factor's own variables, started at the per-frame fits' t')."""
 
     name = "joints_3d"
     Config = Joints3DConfig
+    Noise = Joints3DNoise
     aux_size = 3
     observes_detections = True
 
     def __init__(self, config, template, camera, n):
         super().__init__(config, template, camera, n)
         S, tp = ca.SX.sym("S", _NP), ca.SX.sym("tp", 3)
-        _, _, j3, c3 = det_symbols("")
-        e = joint_expression(template, S, tp, j3, c3)
-        self._fn = _MappedTerm("E_3d", e, ca.vertcat(S, tp), [j3, c3], self.n)
+        _, _, _, j3, w3 = det_symbols("")
+        e = joint_expression(template, camera, S, tp, j3, w3)
+        self._fn = _MappedTerm("E_3d", e, ca.vertcat(S, tp), [j3, w3], self.n)
+        self._weights = DetectionWeights(lam2=0.0, lam3=self.gain, noise3=config if self.noisy else None,
+                                         focal2=float(camera.fx * camera.fy))
         self._data: list[np.ndarray] = []
 
     @classmethod
@@ -297,8 +421,9 @@ class Joints3D(Factor):
         det = inputs.need("detections", "E_3D")
         if det.n != self.n:
             raise EnergyError(f"E_3D: expected {self.n} detection frames, got {det.n}")
-        dv = [det_values(det, d) for d in range(det.n)]
-        self._data = [np.concatenate([v[k] for v in dv]) for k in (2, 3)]
+        counts = det.observed_counts()
+        dv = [self._weights.values(det, d, counts) for d in range(det.n)]
+        self._data = [np.concatenate([v[k] for v in dv]) for k in (3, 4)]
 
     def start_aux(self, inputs) -> np.ndarray | None:
         t = inputs.evidence("fit_translation")
@@ -316,40 +441,34 @@ class Joints3D(Factor):
         return lin
 
 
-def fit_weights(terms) -> tuple[float, float, float]:
-    """(λ_2D, λ_3D, Cauchy scale px) of the per-frame fits from a solve's ``terms`` group: its E_2D's and E_3D's
-    settings (0 for a term it has not)."""
-    w2 = getattr(terms, Keypoints2D.name, None)
-    w3 = getattr(terms, Joints3D.name, None)
-    return (0.0 if w2 is None else float(w2.weight), 0.0 if w3 is None else float(w3.weight),
-            0.0 if w2 is None else float(w2.robust_px))
-
-
 class FrameFitter:
-    """The one-frame fit of a pose to its detections (E_2D + E_3D, the paper's initialisation), built once.
+    """The one-frame fit of a pose to its detections (E_2D + E_3D, the paper's initialisation), built once; the
+    detections weigh as a solve's terms say (:class:`DetectionWeights`).
 
     lower/upper: bounds (33,) of the pose parameters; settings: pinned IPOPT options (cold-started fits).
     """
 
     def __init__(self, template: Template, camera: Camera, settings: IpoptSettings, lower: np.ndarray,
-                 upper: np.ndarray, robust_px: float):
+                 upper: np.ndarray):
         self.template, self.camera, self.settings = template, camera, settings
-        self.lower, self.upper, self.robust_px = lower, upper, float(robust_px)
+        self.lower, self.upper = lower, upper
         S = ca.SX.sym("S", _NP)
         tp = ca.SX.sym("tp", 3)
         lam = ca.SX.sym("lam", 3)  # 2D, 3D, damp
         ref = ca.SX.sym("ref", _NP)
-        det = det_symbols("")
-        e2, e3 = detection_terms(template, camera, S, tp, *det, robust_px=self.robust_px)
-        p = ca.vertcat(lam, ref, *[ca.vec(d) for d in det])
+        kp, w2, s2, j3, w3 = det = det_symbols("")
+        e2 = keypoint_expression(template, camera, S, kp, w2, s2)
+        e3 = joint_expression(template, camera, S, tp, j3, w3)
+        p = ca.vertcat(lam, ref, *[ca.vec(v) for v in det])
         x = ca.vertcat(S, tp)
         f = lam[0] * e2 + lam[1] * e3 + lam[2] * ca.sumsqr(S - ref)
         self.solver = ca.nlpsol("fit_frame", "ipopt", {"x": x, "p": p, "f": f}, settings.options(False))
         self.terms = ca.Function("fit_terms", [x, p], [e2, e3])
 
-    def fit(self, det: FrameDetections, d: int, d2: float, d3: float, damp: float,
+    def fit(self, det: FrameDetections, d: int, weights: DetectionWeights, damp: float,
             start: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, SolveStats]:
-        """Fit one pose to detection frame d with weights (λ_2D, λ_3D, λ_damp): (S (33,), t' (3,), stats).
+        """Fit one pose to detection frame d, weighed as ``weights`` say, with the proximal pull λ_damp: (S (33,),
+        t' (3,), stats).
 
         start: (S, t') warm start; default :func:`initial_guess`, from which E_3D alone is fitted first.
         """
@@ -358,6 +477,7 @@ class FrameFitter:
                               status="no_detections")
         lbx = np.concatenate([self.lower, np.full(3, -np.inf)])
         ubx = np.concatenate([self.upper, np.full(3, np.inf)])
+        d2, d3 = weights.lam2, weights.lam3
         stages = [(d2, d3)]
         if start is None:
             start = initial_guess(self.template, self.camera, det, d)
@@ -365,10 +485,11 @@ class FrameFitter:
             # swung to the wrong side); the 3D term alone has few. Fit it first, then everything.
             if det.confidence_3d[d].max() > 0 and d3 > 0:
                 stages.insert(0, (0.0, d3))
+        values = weights.values(det, d)
         x = np.concatenate([np.clip(start[0], self.lower, self.upper), start[1]])
         its, secs = 0, 0.0
         for w2, w3 in stages:
-            p = np.concatenate([[w2, w3, damp], x[:_NP], *det_values(det, d)])
+            p = np.concatenate([[w2, w3, damp], x[:_NP], *values])
             x, stats = run_ipopt(self.solver, x, p, lbx, ubx, f"fit of detection frame {d}")
             its, secs = its + stats.iterations, secs + stats.seconds
         return x[:_NP], x[_NP:], replace(stats, iterations=its, seconds=secs)

@@ -40,7 +40,7 @@ from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 from .errors import EnergyError
-from .settings import FactorConfig
+from .settings import FactorConfig, NoiseConfig
 
 if TYPE_CHECKING:
     from .window import Estimate, WindowInputs
@@ -87,8 +87,11 @@ class Factor(ABC):
     estimate)."""
 
     name: ClassVar[str]
-    #: the factor's settings group (a dataclass of eventcap.params.param fields, ``weight`` first)
-    Config: ClassVar[type] = FactorConfig
+    #: the factor's weighted settings group (a dataclass of eventcap.params.param fields, ``weight`` first: the
+    #: paper's λ), or None when the factor has only a noise model
+    Config: ClassVar[type | None] = FactorConfig
+    #: the factor's noise-model settings group (``gain`` first, then its noise: :class:`NoiseConfig`), or None
+    Noise: ClassVar[type | None] = None
     #: the derivative of the poses the factor sees at its samples (0: poses, 1: velocities, 2: accelerations ...)
     derivative: ClassVar[int] = 0
     #: auxiliary variables per sample that belong to this factor alone (E_3D's t': 3)
@@ -109,13 +112,31 @@ class Factor(ABC):
             FACTORS[name] = cls
 
     def __init__(self, config: Any, template: Template, camera: Camera, n: int):
-        weight = config.weight
+        noisy = isinstance(config, NoiseConfig)
+        key = "gain" if noisy else "weight"
+        weight = config.factor_weight
         if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
-            raise EnergyError(f"terms.{self.name}.weight: expected a finite weight >= 0, got {weight!r}")
-        self.config, self.weight = config, float(weight)
+            raise EnergyError(f"terms.{self.name}.{key}: expected a finite number >= 0, got {weight!r}")
+        self.config, self.noisy, self.gain = config, noisy, float(weight)
         self.template, self.camera = template, camera
+        #: what multiplies the factor's squared residuals: its λ (weighted), or gain x the precision its noise
+        #: model gives its residuals' units (:meth:`noise_precision`)
+        self.weight = self.gain * (float(self.noise_precision(config, camera)) if noisy else 1.0)
         self.n = int(n)
         self.t_us = np.zeros(self.n, dtype=np.int64)
+
+    @classmethod
+    def accepts(cls, config: Any) -> bool:
+        """Whether ``config`` is settings of this factor (its weighted ``Config`` or its ``Noise``)."""
+        kinds = tuple(k for k in (cls.Config, cls.Noise) if k is not None)
+        return isinstance(config, kinds)
+
+    @classmethod
+    def noise_precision(cls, config: Any, camera: Camera) -> float:
+        """The precision ½ / σ² that the noise model of ``config`` (a :attr:`Noise`) gives one squared residual in
+        the units the factor computes them in (the negative log-likelihood of Gaussian noise). 1 for a factor whose
+        noise is per observation, in its data (the detection terms), or that has none of its own."""
+        return 1.0
 
     # ------------------------------------------------------------------ a window's data
     @classmethod
@@ -158,7 +179,8 @@ class Factor(ABC):
         return self.linearize(S, aux, 0).value
 
     def unweighted(self, S: np.ndarray, aux: np.ndarray | None = None) -> float:
-        """The term itself (value / weight; 0 with weight 0): what solves report."""
+        """The term itself (value / weight: its squared residuals, weighted by their own noise where it is per
+        observation; 0 with weight 0): what solves report."""
         return self.value(S, aux) / self.weight if self.weight else 0.0
 
     def report(self) -> dict[str, Any]:
@@ -171,4 +193,4 @@ class Factor(ABC):
         return None
 
 
-__all__ = ["FACTORS", "Factor", "FactorConfig", "Layout", "Linearization"]
+__all__ = ["FACTORS", "Factor", "FactorConfig", "Layout", "Linearization", "NoiseConfig"]

@@ -33,7 +33,7 @@ from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, NUM_POSE_PARAMS
 
 from .errors import EnergyError
 from .factor import Factor, Linearization
-from .settings import FloorConfig, SlideConfig
+from .settings import FloorNoise, SlideNoise
 
 _NP = NUM_POSE_PARAMS
 #: The sole points: heels and toes (BODY_25 landmarks of the template).
@@ -157,7 +157,12 @@ class FloorContact(_Contact):
     """λ_floor Σ_k Σ_s [c_ks (y_s - h)² + max(0, h - y_s)²] at the knots (module doc). Exact Hessian (CasADi)."""
 
     name = "floor"
-    Config = FloorConfig
+    Config = None
+    Noise = FloorNoise
+
+    @classmethod
+    def noise_precision(cls, config, camera) -> float:
+        return 0.5 / (1e-3 * float(config.sigma_mm)) ** 2  # the residuals are heights, m
 
     def __init__(self, config, template, camera, n):
         from .detections import _MappedTerm
@@ -182,7 +187,12 @@ class FootSlide(_Contact):
     """λ_slide Σ_k Σ_s c_ks c_(k+1)s ‖Δ_xz p_s‖² / Δt between neighbouring knots (module doc). Exact Hessian."""
 
     name = "slide"
-    Config = SlideConfig
+    Config = None
+    Noise = SlideNoise
+
+    @classmethod
+    def noise_precision(cls, config, camera) -> float:
+        return 0.5 / (1e-3 * float(config.sigma_mm_s)) ** 2  # the integral of the squared sliding speed, m/s
     couples_neighbours = True
 
     def __init__(self, config, template, camera, n):
@@ -216,5 +226,5 @@ class FootSlide(_Contact):
         return lin
 
 
-__all__ = ["SOLE_LANDMARKS", "FloorConfig", "FloorContact", "FootSlide", "SlideConfig", "contact_at", "contact_weights",
+__all__ = ["SOLE_LANDMARKS", "FloorContact", "FloorNoise", "FootSlide", "SlideNoise", "contact_at", "contact_weights",
            "floor_height", "knot_stillness", "sole_points"]

@@ -1,25 +1,24 @@
 """The motion prior and the context pull (not in the paper): what a window's spline knows besides its observations.
 
-- :class:`MotionPrior` — λ_prior Σ_p g_p ∫ (S_p^(k)(t))² dt over the window, k = 2 (acceleration) or 3 (jerk),
-  g_p a gain per pose parameter (the inertia each turns, times the smoothing the fits around the window call for).
-  Evaluated at the 3 Gauss points of every knot interval, which integrate a cubic spline's k-th derivative squared
-  exactly (:data:`eventcap.energy.spline.GAUSS3`).
-- :class:`ContextPull` — λ_context Σ_d Σ_p w_dp (S_p(t_d) - g_p(t_d))² at the window's detection frames: each pose
+- :class:`MotionPrior` — Σ_p ½ / q_p ∫ (S_p^(k)(t))² dt over the window, k = 2 (acceleration) or 3 (jerk): each
+  pose parameter a white-noise-acceleration process of power q_p (the negative log-likelihood of that process, as
+  every noise-modelled term's energy is its residuals'), q_p chosen from the data: the restricted likelihood (REML)
+  on the per-frame fits around the window (:func:`process_noise`). Evaluated at the 3 Gauss points of every knot
+  interval, which integrate a cubic spline's k-th derivative squared exactly (:data:`eventcap.energy.spline.GAUSS3`).
+  A perfect detector's fits choose the motion's own roughness, a noisy one's a smoother motion; the events then
+  carry what the fits do not show. Optionally (``moving_gain`` < 1) the events gate it: where they show a part
+  moving, its prior weighs less.
+- :class:`ContextPull` — gain Σ_d Σ_p w_dp (S_p(t_d) - g_p(t_d))² at the window's detection frames: each pose
   parameter held near the smoothing spline g through its per-frame fits around the window, as much as those fits
-  know more than the frame's own (w), gated by how still the events show the bones it turns.
+  know more than the frame's own (w), gated by how still the events show the bones it turns (off by default).
 
-:func:`context_smoothing` measures both factors' evidence from the per-frame fits around a window (no ground truth):
-each parameter's fits are samples of a smoothing-spline model y = f + noise, whose smoothing lam_p is chosen by
-REML or GCV (:mod:`eventcap.analysis.smoothing`): large where the fits vary no more than their noise (a limb at rest, an
-angle the detections cannot tell), small where the parameter moves. In the window's energy a parameter's detections
-weigh about a_p (the detection terms' curvature, the mean diagonal of their Hessian at the window's fits / 2) per
-rad², so the same trade-off there is a prior weight of a_p · lam_p; the gain is that over λ_prior, clipped to
-[1, gain_max]: the prior never gets weaker than its default, and static parameters stop wiggling with the
-detections' noise. The context pull's target is the same smoothing splines' values at the window's frames, and
-its weight a_p (1 / h_dp - 1), h_dp the smoother's leverage of frame d (1 / h_dp is what the smoother's estimate
-at d weighs in frames): a parameter the frames call static (h ≈ 2 / K of K frames) is held near the line through
-all K fits, which the window's few frames and its acceleration prior cannot tell (a trend within a window costs the
-prior nothing); one that moves (h → 1) is not held.
+:func:`context_smoothing` measures the context pull's evidence from the per-frame fits around a window (no ground
+truth): each parameter's fits are samples of a smoothing-spline model y = f + noise, whose smoothing lam_p is chosen
+by REML or GCV (:mod:`eventcap.analysis.smoothing`). In the window's energy a parameter's detections weigh about a_p
+(the detection terms' curvature, the mean diagonal of their Hessian at the window's fits / 2) per rad²; the pull's
+target is the smoothing splines' values at the window's frames, and its weight a_p (1 / h_dp - 1), h_dp the
+smoother's leverage of frame d (1 / h_dp is what the smoother's estimate at d weighs in frames): a parameter the frames
+call static (h ≈ 2 / K of K frames) is held near the line through all K fits; one that moves (h → 1) is not held.
 """
 
 from __future__ import annotations
@@ -30,11 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from eventcap.analysis.smoothing import MIN_KNOTS, GcvCurve, check_criterion
-from eventcap.body.segments import inertia_prior_gain
 from eventcap.body.skeleton import DOF_JOINT, NUM_POSE_PARAMS, PARENTS
 from .errors import EnergyError
 from .factor import Factor, Linearization
-from .settings import ContextConfig, PriorConfig, SmoothingConfig
+from .settings import ContextNoise, PriorNoise, SmoothingConfig
 from .silence import Silence, knot_gauss_times
 from .spline import PRIOR_ORDERS
 
@@ -42,11 +40,13 @@ _NP = NUM_POSE_PARAMS
 
 
 class MotionPrior(Factor):
-    """λ_prior Σ_p g_p ∫ (S_p^(k))² dt (module doc); k from ``order`` (acceleration | jerk), g the inertia gain of
-    each parameter times the gain the fits around the window call for (:class:`ContextSmoothing`; 1 without)."""
+    """Σ_p ½ / q_p ∫ (S_p^(k))² dt times the gain (module doc); k from ``order`` (acceleration | jerk), q_p each
+    parameter's process power from the window's ``context_fits`` evidence (:func:`process_noise`), ``q_default``
+    where they are too few."""
 
     name = "prior"
-    Config = PriorConfig
+    Config = None
+    Noise = PriorNoise
 
     def __init__(self, config, template, camera, n):
         if config.order not in PRIOR_ORDERS:
@@ -56,11 +56,8 @@ class MotionPrior(Factor):
         self.w = np.zeros((self.n, _NP))
         self.gain: np.ndarray | None = None
         self.n_context = 0
-        try:
-            self.base = None if config.inertia == 0 else inertia_prior_gain(
-                template.rest_joints, float(config.inertia), float(config.inertia_cap), float(config.inertia_floor))
-        except ValueError as exc:
-            raise EnergyError(f"terms.prior.inertia: {exc}") from exc
+        self.process: ProcessNoise | None = None
+        self.moving: float | None = None
 
     @classmethod
     def samples(cls, inputs, config) -> np.ndarray:
@@ -71,34 +68,54 @@ class MotionPrior(Factor):
         t_q, _, w_q = knot_gauss_times(inputs.need("knots_us", "the motion prior"))
         if t_q.size != self.n:
             raise EnergyError(f"the motion prior: expected {self.n // 3} knot intervals, got {t_q.size // 3}")
-        gain, self.n_context = None, 0
-        gain_max = float(self.config.gain_max)
-        if self.weight > 0 and gain_max > 1:
-            ctx = inputs.evidence("smoothing")
-            if ctx is not None and ctx.lam is not None:
-                gain = np.clip(np.asarray(ctx.curvature) * ctx.lam / self.weight, 1.0, gain_max)
-                self.n_context = ctx.n_fits
-        if self.base is not None:
-            gain = self.base * (1.0 if gain is None else gain)
-        self.gain = gain
-        g = np.ones(_NP) if gain is None else np.asarray(gain, dtype=np.float64)
-        if g.shape != (_NP,) or not np.all(np.isfinite(g) & (g > 0)):
-            raise EnergyError(f"the motion prior: expected a positive gain per pose parameter ({_NP},), got {g.shape}")
-        self.t_us, self.w = t_q, w_q[:, None] * g[None, :]
+        self._collect_process(inputs, t_q, w_q)
+
+    def _collect_process(self, inputs, t_q: np.ndarray, w_q: np.ndarray) -> None:
+        """g_p = ½ / q_p from the window's process evidence (:func:`process_noise`; ``q_default`` where it has
+        none)."""
+        q = np.full(_NP, float(self.config.q_default))
+        ctx = inputs.evidence("context_fits") if self.derivative == 2 else None
+        self.process, self.n_context = None, 0
+        if ctx is not None:
+            self.process = process_noise(ctx[0], ctx[1], str(self.config.pool), float(self.config.q_max_ratio),
+                                         float(self.config.q_min))
+            if self.process.q is not None:
+                q, self.n_context = np.asarray(self.process.q, dtype=np.float64), self.process.n_fits
+        if q.shape != (_NP,) or not np.all(np.isfinite(q) & (q > 0)):
+            raise EnergyError(f"the motion prior: expected a positive process power per pose parameter ({_NP},), "
+                              f"got {q}")
+        self.gain = 0.5 / q
+        self.t_us, self.w = t_q, w_q[:, None] * self.gain[None, :]
+        self._base, self._inputs, self.moving = self.w, inputs, None
+
+    def relinearize(self, estimate) -> None:
+        """The events lead: where the window's stillness evidence (measured around the solve's start, once) shows the
+        bones a parameter turns moving, its prior weighs ``moving_gain`` of the fits' choice."""
+        floor = float(self.config.moving_gain)
+        if floor >= 1.0 or self.moving is not None:
+            return
+        sil = self._inputs.evidence("stillness")
+        if sil is None:
+            return
+        gate = still_gate(sil, self.t_us, floor)
+        self.w = self._base * gate
+        self.moving = float(np.mean(gate < 0.5 * (1.0 + floor)))
 
     def start_penalty(self) -> tuple[int, np.ndarray]:
         return self.derivative, max(self.weight, 1e-12) * (1.0 if self.gain is None else self.gain)
 
     def report(self) -> dict:
-        return {} if self.gain is None else {"prior_gain": [float(v) for v in self.gain]}
+        return {} if self.gain is None else {"prior_power": [float(0.5 / g) for g in self.gain]}
 
     def describe(self) -> str | None:
         if not self.n_context:
-            return None
-        g, top = self.gain, float(self.config.gain_max)
-        return (f"motion prior gains from {self.n_context} frames around the window: median "
-                f"{float(np.median(g)):.3g}, {int(np.sum(g >= top * (1 - 1e-9)))} of 33 parameters at the largest "
-                f"({top:g})")
+            return "motion prior: too few fits around the window to choose its power: q_default"
+        q = 0.5 / self.gain
+        gated = "" if self.moving is None else (f"; {100 * self.moving:.0f}% of (time, parameter) pairs free where "
+                                                f"the events show motion")
+        return (f"motion prior: process power from {self.n_context} fits around the window (restricted likelihood): "
+                f"median {float(np.median(q[:30])):.3g} rad²/s³ over the angles, {float(np.median(q[30:])):.3g} "
+                f"m²/s³ for the root's translation{gated}")
 
     def linearize(self, S, aux, order):
         WS = self.w * S
@@ -117,7 +134,8 @@ class ContextPull(Factor):
     window's context evidence (:class:`ContextSmoothing`), w gated by the joints' stillness (:func:`still_gate`)."""
 
     name = "context"
-    Config = ContextConfig
+    Config = None
+    Noise = ContextNoise
 
     @classmethod
     def samples(cls, inputs, config) -> np.ndarray:
@@ -212,6 +230,51 @@ def context_smoothing(t_ctx_us: np.ndarray, fits: np.ndarray, curvature: Callabl
     return ContextSmoothing(lam, a, K, np.where(np.isfinite(g), g, window_fits), frames)
 
 
+@dataclass(frozen=True)
+class ProcessNoise:
+    """The motion's process noise around a window (a window's evidence, :func:`process_noise`): q (33,) each pose
+    parameter's white-noise acceleration power ((rad or m)² / s³; None: too few fits), lam (33,) the smoothing
+    (s³) the restricted likelihood chose on the fits, n_fits."""
+
+    q: np.ndarray | None
+    lam: np.ndarray | None
+    n_fits: int
+
+
+#: The pose parameters sharing one smoothing with ``pool=group``: the angles (joint angles and root rotation) and
+#: the root's translation (as the frames-only smoother pools them, plugins/eventcap_smooth).
+POWER_GROUPS = (slice(0, 30), slice(30, 33))
+
+
+def process_noise(t_us: np.ndarray, fits: np.ndarray, pool: str = "parameter", max_ratio: float = 100.0,
+                  q_min: float = 1e-12) -> ProcessNoise:
+    """Each pose parameter's process power q_p from the per-frame fits (K, 33) at times t_us (K,) around a window:
+    the fits as y = f + e, f a white-noise acceleration of power q (a cubic smoothing spline's prior), e the fits'
+    own white noise, both chosen by the restricted likelihood (REML: the smoothing lam = sigma² / q maximises it,
+    :meth:`eventcap.analysis.smoothing.GcvCurve.choose_reml`, sigma² its estimate there, q = sigma² / lam:
+    :meth:`~eventcap.analysis.smoothing.GcvCurve.power`), per group of parameters (``pool=group``,
+    :data:`POWER_GROUPS`) or per parameter held within ``max_ratio`` of its group's. A detector's fixed offsets move
+    every fit alike and are no noise here; a perfect detector's fits give their own roughness. Never from ground
+    truth. No power is below ``q_min``."""
+    K = len(t_us)
+    if K < MIN_KNOTS:
+        return ProcessNoise(None, None, K)
+    t = np.asarray(t_us, dtype=np.int64)
+    curve = GcvCurve((t - t[0]) * 1e-6)
+    Y = np.asarray(fits, dtype=np.float64)
+    lam, q = np.empty(_NP), np.empty(_NP)
+    for g in POWER_GROUPS:
+        cols = np.arange(_NP)[g]
+        lam_g = curve.choose_reml(Y[:, g]).lam
+        q_group = float(np.mean(curve.power(Y[:, g], np.full(cols.size, lam_g))))  # the pooled noise over lam
+        if pool == "group":
+            lam[g], q[g] = lam_g, q_group
+        else:
+            lam[g] = curve.choose_each(Y[:, g], "reml")
+            q[g] = np.clip(curve.power(Y[:, g], lam[g]), q_group / max_ratio, q_group * max_ratio)
+    return ProcessNoise(np.maximum(q, float(q_min)), lam, K)
+
+
 def _gating_joints() -> list[np.ndarray]:
     """Per pose parameter, the joints whose bones it turns: a joint angle's the children of its joint, the root's
     rotation and translation the pelvis and its children."""
@@ -251,21 +314,6 @@ def smoothed_at(t_us: np.ndarray, fits: np.ndarray, lam: np.ndarray, t_at_us: np
     return g, h
 
 
-def gains_from_fits(t_us: np.ndarray, fits: np.ndarray, curvature: np.ndarray, lam_prior: float,
-                    gain_max: float, criterion: str, curve: GcvCurve | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(gain (P,), lam (P,)): each column p of fits (K, P) at times t_us (K,) gets the smoothing parameter lam_p
-    (s³) of a cubic smoothing spline through it chosen by ``criterion`` (reml | gcv), and the gain
-    clip(curvature_p · lam_p / lam_prior, 1, gain_max) (module doc; curve: the GcvCurve of t_us if already
-    built)."""
-    check_criterion(criterion)
-    t = np.asarray(t_us, dtype=np.int64)
-    curve = GcvCurve((t - t[0]) * 1e-6) if curve is None else curve
-    Y = np.asarray(fits, dtype=np.float64)
-    lam = curve.choose_each(Y, criterion)
-    return np.clip(np.asarray(curvature) * lam / lam_prior, 1.0, float(gain_max)), lam
-
-
-
-
-__all__ = ["ContextConfig", "ContextPull", "ContextSmoothing", "MotionPrior", "PriorConfig", "SmoothingConfig",
-           "context_smoothing", "gains_from_fits", "smoothed_at", "still_gate"]
+__all__ = ["ContextPull", "ContextSmoothing", "MotionPrior", "POWER_GROUPS",
+           "ProcessNoise", "SmoothingConfig", "context_smoothing", "process_noise", "smoothed_at",
+           "still_gate"]

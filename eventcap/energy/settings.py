@@ -1,11 +1,20 @@
 """The settings of the energy's terms and of the evidence they share, declared once (light to import: a stage's
 spec names them without loading a solver).
 
-Each term's settings are one dataclass whose ``weight`` is its λ (:class:`FactorConfig`); its factor class names it
-as ``Config`` (:mod:`.factor`). A solve's config lists the terms it uses as groups of its ``terms`` group, in the
-order they are summed, each with the defaults that solve states differently (e.g. E_cor's weight 500 in the spline
-solve, 50 in the paper's batch solve). The evidence a solve measures once for its factors has its settings here too:
-the joints' stillness in the events, the smoothing of the fits around a window, the sole points' contact.
+A term's settings come in one of two kinds, each a dataclass its factor class accepts (:mod:`.factor`):
+
+- a **noise model** (:class:`NoiseConfig`, the spline solve's): the term is weighted by the noise of what it reads,
+  in its own units (a detector's 2D noise in px, its 3D noise in mm, the event tracks' noise in px, ...), and its
+  energy is the negative log-likelihood of its residuals, ½ Σ ρ(r² / σ²) with ρ a robust loss of scale
+  ``loss_scale`` sigmas (:mod:`.loss`), as GTSAM's noise models and Ceres' loss functions weigh a factor. A perfect
+  source is followed, a noisy one smoothed, and the Laplace uncertainty of the solve means what it says. ``gain``
+  multiplies the precision (1: as the noise says; 0: the term is off);
+- a **weight** (:class:`FactorConfig`, the paper's solves: the batch solve and the refinement): the term's λ of the
+  paper's Eq. 4 and 9 on focal-normalised image residuals and metres, as the paper weighs its terms.
+
+A solve's config lists the terms it uses as groups of its ``terms`` group, in the order they are summed. The
+evidence a solve measures once for its factors has its settings here too: the joints' stillness in the events, the
+smoothing of the fits around a window, the sole points' contact.
 """
 
 from __future__ import annotations
@@ -23,11 +32,32 @@ PRIOR_ORDERS = {"acceleration": 2, "jerk": 3}
 PHI_SCOPES = ("batch", "pair")
 
 
+#: The robust losses of noise-modelled terms (:mod:`.loss`): l2 (Gaussian noise) | cauchy | huber.
+NOISE_LOSSES = ("l2", "cauchy", "huber")
+
+
 @dataclass
 class FactorConfig:
-    """The settings every factor has: its weight. A factor's own ``Config`` subclasses this and adds its settings."""
+    """The settings every weighted factor has: its weight. A factor's own ``Config`` subclasses this and adds its
+    settings."""
 
     weight: float = param(0.0, ge=0, help="the term's weight λ (0: off)")
+
+    @property
+    def factor_weight(self) -> float:
+        return self.weight
+
+
+@dataclass
+class NoiseConfig:
+    """The settings every noise-modelled factor has: its gain on the precision its noise model gives (module doc)."""
+
+    gain: float = param(1.0, ge=0, help="the term's precision (1 / σ² of its noise model) times this, dimensionless "
+                                        "(1: as the noise says; 0: the term is off)")
+
+    @property
+    def factor_weight(self) -> float:
+        return self.gain
 
 
 @dataclass
@@ -74,11 +104,9 @@ class TempConfig(FactorConfig):
 
 
 @dataclass
-class SilConfig(FactorConfig):
-    """E_sil's settings."""
+class SilSearch:
+    """How E_sil finds the closest event of each silhouette boundary pixel (paper Eq. 12-13)."""
 
-    weight: float = param(10.0, ge=0, help="weight of E_sil, the silhouette boundary's point-to-line distances to "
-                                           "its closest events (focal-normalised image units)")
     step_ms: float = param(5.0, gt=0, help="E_sil at the solved batches' tracking frames this many ms apart (first "
                                            "and last included; at most every frame)")
     window_ms: float | None = param(10.0, gt=0, help="a boundary pixel's closest event within ± half this many ms "
@@ -88,6 +116,14 @@ class SilConfig(FactorConfig):
                                         "offset in window lengths against the squared distance in pixels")
     denoise_us: int = param(5000, ge=0, help="events without another event in their 3x3 pixel neighbourhood within "
                                              "this many µs are not searched (a background-activity filter; 0: all)")
+
+
+@dataclass
+class SilConfig(SilSearch, FactorConfig):
+    """E_sil's settings (weighted: the paper's refinement)."""
+
+    weight: float = param(10.0, ge=0, help="weight of E_sil, the silhouette boundary's point-to-line distances to "
+                                           "its closest events (focal-normalised image units)")
     loss: str = param("huber", choices=LOSSES, help="loss on the point-to-line residuals: l2 (the paper) | huber")
     huber_px: float = param(1.0, gt=0, help="Huber threshold, px: beyond it a residual counts linearly")
 
@@ -100,69 +136,113 @@ class StabConfig(FactorConfig):
 
 
 @dataclass
-class StillConfig(FactorConfig):
-    """E_still's settings (how stillness is measured is the solve's ``stillness`` group)."""
+class Landmarks2DNoise(NoiseConfig):
+    """E_2D weighted by the detector's 2D noise (module doc)."""
 
-    weight: float = param(0.1, ge=0, help="weight of E_still: the squared image velocity (px/s) of every joint the "
-                                          "events call still, per knot interval, weighted by that stillness")
+    sigma_px: float | None = param(None, gt=0, help="each landmark's 2D noise per image axis, px (null: the noise "
+                                                    "model the detector states per landmark and image)")
+    min_sigma_px: float = param(0.5, gt=0, help="no landmark is followed closer than this, px (the skeleton's own "
+                                                "error against a detector's landmark; a floor under a stated noise "
+                                                "of 0)")
+    loss: str = param("cauchy", choices=NOISE_LOSSES, help="robust loss on the whitened residuals: l2 | cauchy | "
+                                                           "huber (outliers and left/right flips)")
+    loss_scale: float = param(3.0, gt=0, help="the loss's scale in sigmas: quadratic below it")
 
 
 @dataclass
-class PriorConfig(FactorConfig):
-    """The motion prior's settings."""
+class Joints3DNoise(NoiseConfig):
+    """E_3D weighted by the detector's 3D noise (module doc)."""
 
-    weight: float = param(1e-4, ge=0, help="weight of the motion prior, the integral of the squared acceleration (or "
-                                           "jerk) of the poses (rad and m, time in s)")
+    sigma_mm: float | None = param(None, gt=0, help="each root-relative 3D joint's noise per axis, mm (null: the "
+                                                    "noise model the detector states per joint and image)")
+    min_sigma_mm: float = param(5.0, gt=0, help="no 3D joint is followed closer than this, mm (the skeleton's own "
+                                                "error against a detector's joint)")
+
+
+@dataclass
+class CorNoise(NoiseConfig):
+    """E_cor weighted by the event tracks' noise."""
+
+    sigma_px: float = param(1.0, gt=0, help="noise of a track's displacement between the two frames of a "
+                                            "correspondence, per image axis, px (measured on the tuning seeds: "
+                                            "docs/results/events-add.md)")
+    loss_scale: float = param(3.0, ge=0, help="Cauchy scale in sigmas: from the second ICP round on, each "
+                                              "correspondence weighs 1 / (1 + (e/(scale σ))²) by its residual e at "
+                                              "the previous round's solution (0: least squares)")
+
+
+@dataclass
+class SilNoise(SilSearch, NoiseConfig):
+    """E_sil weighted by the noise of a boundary point's distance to its closest event."""
+
+    sigma_px: float = param(2.0, gt=0, help="noise of a boundary point's distance to its event along the normal, px")
+    loss: str = param("huber", choices=LOSSES, help="loss on the whitened residuals: l2 | huber")
+    loss_scale: float = param(1.0, gt=0, help="Huber threshold in sigmas: beyond it a residual counts linearly")
+
+
+@dataclass
+class StillNoise(NoiseConfig):
+    """E_still weighted by the noise of a still joint's image speed."""
+
+    sigma_px_s: float = param(30.0, gt=0, help="image speed a joint the events call still may still have, px/s "
+                                               "(per axis)")
+
+
+@dataclass
+class PriorNoise(NoiseConfig):
+    """The motion prior as a process noise chosen from the data: each pose parameter a white-noise-acceleration
+    process whose power q_p the restricted likelihood chooses on the per-frame fits around the window, their
+    frame-to-frame noise known from the detector's (eventcap.energy.prior)."""
+
     order: str = param("acceleration", choices=tuple(PRIOR_ORDERS),
-                       help="what the prior penalises: acceleration | jerk (the second or third derivative)")
-    inertia: float = param(1.5, ge=0, help="exponent x of each rotation's gain (I_p / mean I)^x, I_p the inertia of "
-                                           "the body that pose parameter turns (de Leva's segments on the actor's "
-                                           "bones): light parts may accelerate more than the trunk (0: one gain)")
-    inertia_cap: float = param(1.0, ge=1, finite=False, help="largest of those gains (1: parts lighter than the "
-                                                             "mean are held less, none more; .inf: no cap)")
-    inertia_floor: float = param(0.04, ge=0, le=1, help="smallest of those gains")
-    gain_max: float = param(10.0, ge=1, help="largest gain per pose parameter chosen from the per-frame fits around "
-                                             "the window (the window's context evidence): parameters the fits call "
-                                             "static get up to this much more smoothing (1: no chosen gains)")
+                       help="what the prior penalises: acceleration | jerk (the second or third derivative; the power "
+                            "is chosen from the fits for acceleration only, jerk takes q_default)")
+    pool: str = param("parameter", choices=("parameter", "group"),
+                      help="one process power per pose parameter, or per group (the angles, the root's translation)")
+    q_default: float = param(1e3, gt=0, help="the process power where the fits around a window are too few to "
+                                             "choose it, (rad or m)² / s³ (acceleration) or / s⁵ (jerk)")
+    q_max_ratio: float = param(100.0, ge=1, help="a parameter's power within this factor of its group's (a parameter "
+                                                 "the fits barely see would otherwise take any value)")
+    q_min: float = param(1e-3, gt=0, help="the least process power, (rad or m)² / s³: fits of a body at rest choose "
+                                          "none, and an infinitely stiff prior leaves the solve without a scale")
+    moving_gain: float = param(1.0, gt=0, le=1, help="where the events show the bones a parameter turns moving (the "
+                                                      "window's stillness evidence), its prior weighs this much of "
+                                                      "the fits' choice; where they show them still, all of it (1: "
+                                                      "the events do not gate the prior)")
 
 
 @dataclass
-class ContextConfig(FactorConfig):
-    """The context pull's settings."""
+class ContextNoise(NoiseConfig):
+    """The context pull as a gain (off by default: the prior's process power comes from the same fits)."""
 
-    weight: float = param(0.03, ge=0, help="weight of the context pull: each pose parameter held near the smoothing "
-                                           "spline through its per-frame fits around the window, as much as those "
-                                           "fits know more than the frame's own, and as still as the events show the "
-                                           "bones it turns")
+    gain: float = param(0.0, ge=0, help="the context pull's weight on its evidence (the fits' smoother around the "
+                                        "window), dimensionless (0: off)")
     gate_floor: float = param(0.1, ge=0, le=1, help="the events' gate never below this: a part the events show "
                                                     "moving is still held this fraction (0: the events alone gate; "
                                                     "1: no gate)")
 
 
 @dataclass
-class FloorConfig(FactorConfig):
-    """The floor term's settings (contact: the solve's ``contact`` group)."""
+class FloorNoise(NoiseConfig):
+    """The floor term weighted by its noise."""
 
-    weight: float = param(100.0, ge=0, help="weight of the floor term: each sole point (heels, toes) in contact on "
-                                            "the floor, none below it (m²); the floor's height is estimated over the "
-                                            "capture from the per-frame fits")
+    sigma_mm: float = param(10.0, gt=0, help="how far a sole point in contact may be from the floor, mm")
 
 
 @dataclass
-class SlideConfig(FactorConfig):
-    """The no-sliding term's settings (contact: the solve's ``contact`` group)."""
+class SlideNoise(NoiseConfig):
+    """The no-sliding term weighted by its noise."""
 
-    weight: float = param(1.0, ge=0, help="weight of the no-sliding term: a sole point in contact does not move "
-                                          "along the floor (its horizontal speed squared over the contact, m²/s)")
+    sigma_mm_s: float = param(50.0, gt=0, help="how fast a sole point in contact may still slide along the floor, "
+                                               "mm/s")
 
 
 @dataclass
-class BonesConfig(FactorConfig):
-    """The foreshortening term's settings."""
+class BonesNoise(NoiseConfig):
+    """The foreshortening term (off by default)."""
 
-    weight: float = param(0.0, ge=0, help="weight of the foreshortening term: each limb bone's depth extent from its "
-                                          "length and its 2D points, the sign (which end is nearer) from the 3D "
-                                          "detections (m²)")
+    gain: float = param(0.0, ge=0, help="weight of the foreshortening term on its own noise model (the 2D points' "
+                                        "noise_2d_px and the 3D sign's sign_m), dimensionless (0: off)")
     sign_m: float = param(0.05, gt=0, help="the 3D detections' depth noise, m: a bone whose detected ends differ less "
                                            "in depth has an uncertain sign and weighs less")
     noise_2d_px: float = param(2.0, gt=0, help="the 2D points' noise, px: a bone whose depth extent this noise spreads "
@@ -225,4 +305,5 @@ class IpoptConfig:
                               "monotone either way")
 
 
-__all__ = ["BonesConfig", "IpoptConfig", "ContactConfig", "ContextConfig", "CorConfig", "FactorConfig", "FloorConfig", "Joints3DConfig", "LOSSES", "Landmarks2DConfig", "PHI_SCOPES", "PRIOR_ORDERS", "PriorConfig", "SilConfig", "SlideConfig", "SmoothingConfig", "StabConfig", "StillConfig", "StillnessConfig", "TempConfig"]
+__all__ = ["BonesNoise", "ContextNoise", "CorNoise", "FloorNoise", "Joints3DNoise", "Landmarks2DNoise", "NOISE_LOSSES",
+           "NoiseConfig", "PriorNoise", "SilNoise", "SilSearch", "SlideNoise", "StillNoise", "IpoptConfig", "ContactConfig", "CorConfig", "FactorConfig", "Joints3DConfig", "LOSSES", "Landmarks2DConfig", "PHI_SCOPES", "PRIOR_ORDERS", "SilConfig", "SmoothingConfig", "StabConfig", "StillnessConfig", "TempConfig"]

@@ -40,7 +40,8 @@ from .boundary import NORMAL_SIGMA_PX, boundary_samples
 from .errors import EnergyError
 from .event_search import EventIndex
 from .factor import Factor, Linearization
-from .settings import LOSSES, SilConfig, StabConfig
+from .loss import residual_loss
+from .settings import LOSSES, SilConfig, SilNoise, StabConfig
 from .kernels import premultiplied_weights, shared_kernels
 
 _NP = NUM_POSE_PARAMS
@@ -67,15 +68,11 @@ class SilhouetteCorrespondences:
 
 
 def robust_loss(r: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ρ(r), ρ'(r), ρ''(r) elementwise for ``l2`` (r²) or ``huber`` (r² inside |r| <= δ, 2δ|r| - δ² outside)."""
-    if loss == "l2":
-        return r * r, 2.0 * r, np.full_like(r, 2.0)
-    if loss == "huber":
-        a = np.abs(r)
-        inside = a <= delta
-        return (np.where(inside, r * r, 2.0 * delta * a - delta * delta),
-                np.where(inside, 2.0 * r, 2.0 * delta * np.sign(r)), np.where(inside, 2.0, 0.0))
-    raise ValueError(f"loss: expected one of {LOSSES}, got {loss!r}")
+    """ρ(r²), its first and second derivative in r, elementwise, for ``l2`` (r²) or ``huber`` (r² inside |r| <= δ,
+    2δ|r| - δ² outside): :func:`eventcap.energy.loss.residual_loss`."""
+    if loss not in LOSSES:
+        raise ValueError(f"loss: expected one of {LOSSES}, got {loss!r}")
+    return residual_loss(r, loss, delta)
 
 
 # --------------------------------------------------------------------------------------------- the factors
@@ -96,12 +93,20 @@ class SilhouetteToEvents(Factor):
 
     name = "sil"
     Config = SilConfig
+    Noise = SilNoise
+
+    @classmethod
+    def noise_precision(cls, config, camera) -> float:
+        # residuals are focal-normalised: σ_px / f of them
+        return 0.5 * camera.fx * camera.fy / float(config.sigma_px) ** 2
 
     def __init__(self, config, template, camera: Camera, n: int):
         from ._sil_kernels import camera_params
 
         super().__init__(config, template, camera, n)
-        self.loss, self.huber_px = str(config.loss), float(config.huber_px)
+        self.loss = str(config.loss)
+        self.huber_px = (float(config.loss_scale) * float(config.sigma_px) if self.noisy
+                         else float(config.huber_px))
         if self.loss not in LOSSES:
             raise EnergyError(f"terms.sil.loss: expected one of {LOSSES}, got {self.loss!r}")
         if self.loss == "huber" and not self.huber_px > 0:

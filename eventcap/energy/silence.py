@@ -50,7 +50,7 @@ from eventcap.body.skeleton import NUM_JOINTS, NUM_POSE_PARAMS, PARENTS
 
 from .errors import EnergyError
 from .factor import Factor, Linearization
-from .settings import StillConfig, StillnessConfig
+from .settings import StillNoise, StillnessConfig
 from .kernels import Buffered
 from .spline import GAUSS3
 
@@ -182,8 +182,14 @@ class EventSilence(Factor):
     velocities). Samples: the 3 Gauss points of every knot interval (exact for the cubic spline's velocities)."""
 
     name = "still"
-    Config = StillConfig
+    Config = None
+    Noise = StillNoise
     derivative = 1
+
+    @classmethod
+    def noise_precision(cls, config, camera) -> float:
+        # the integral of the squared image speed (px/s) of still joints
+        return 0.5 / float(config.sigma_px_s) ** 2
 
     def __init__(self, config, template, camera, n):
         super().__init__(config, template, camera, n)
@@ -232,5 +238,5 @@ class EventSilence(Factor):
         return lin
 
 
-__all__ = ["EventSilence", "Silence", "StillConfig", "StillnessConfig", "knot_gauss_times", "measure_silence",
+__all__ = ["EventSilence", "Silence", "StillNoise", "StillnessConfig", "knot_gauss_times", "measure_silence",
            "measure_stillness"]

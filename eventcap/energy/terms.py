@@ -2,7 +2,7 @@
 its factors from its config's ``terms`` group.
 
 Importing this module registers them. A solve's ``terms`` group (a dataclass in its stage's spec) lists the terms it
-uses, each as a group of its settings named like the factor (``stages.solve.terms.cor.weight``), in the order the
+uses, each as a group of its settings named like the factor (``stages.solve.terms.cor.sigma_px``), in the order the
 solve sums them; a term with weight 0 is left out (:func:`term_configs`).
 
 ============  ==============================================  ===========================  =====================
@@ -40,8 +40,8 @@ from .factor import FACTORS, Factor
 
 
 def term_configs(terms: Any) -> list[tuple[str, type[Factor], Any]]:
-    """(name, factor class, its settings) of every term of a solve's ``terms`` group whose weight is not 0, in the
-    group's order. EnergyError for an entry that names no registered factor, or whose settings are not the factor's
+    """(name, factor class, its settings) of every term of a solve's ``terms`` group whose weight (or gain) is not 0,
+    in the group's order. EnergyError for an entry that names no registered factor, or whose settings are not the factor's
     ``Config``."""
     if not dataclasses.is_dataclass(terms):
         raise EnergyError(f"terms: expected a group of term settings, got {type(terms).__name__}")
@@ -51,10 +51,11 @@ def term_configs(terms: Any) -> list[tuple[str, type[Factor], Any]]:
         if cls is None:
             raise EnergyError(f"terms.{f.name}: no factor of that name (registered: {', '.join(sorted(FACTORS))})")
         cfg = getattr(terms, f.name)
-        if not isinstance(cfg, cls.Config):
-            raise EnergyError(f"terms.{f.name}: expected the settings {cls.Config.__name__} of factor "
-                              f"{cls.__qualname__}, got {type(cfg).__name__}")
-        w = cfg.weight
+        if not cls.accepts(cfg):
+            kinds = " or ".join(k.__name__ for k in (cls.Config, cls.Noise) if k is not None)
+            raise EnergyError(f"terms.{f.name}: expected the settings {kinds} of factor {cls.__qualname__}, got "
+                              f"{type(cfg).__name__}")
+        w = cfg.factor_weight
         if isinstance(w, (int, float)) and not isinstance(w, bool) and w == 0:  # off (and nothing to build)
             continue
         out.append((f.name, cls, cfg))

@@ -79,6 +79,7 @@ class WindowInputs:
     def evidence(self, name: str) -> Any:
         """The evidence ``name`` (measured once, on first request), or None when the solve offers none: ``fits``
         ((D, 33) per-frame fits at the detection frames, NaN rows where none), ``fit_translation`` ((D, 3) their t'),
+        ``context_fits`` ((times (K,), fits (K, 33)) of the detections around the window),
         ``stillness`` (:class:`eventcap.energy.silence.Silence`), ``smoothing``
         (:class:`eventcap.energy.prior.ContextSmoothing`), ``floor_y`` (the floor's height, world y, m)."""
         if name not in self._measured:

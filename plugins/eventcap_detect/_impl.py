@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,16 +19,38 @@ def _frame_times(rec, stage: str) -> np.ndarray:
     return rec.frames.t_us
 
 
-def _detections(t_us, kp, conf, joints, conf3, detector: str, view=None) -> Detections:
+def _detections(t_us, kp, conf, joints, conf3, detector: str, view=None, noise=None) -> Detections:
+    """The Detections artifact; noise: the detector's noise model, :class:`NoiseModel`."""
     in_view, status, up, world_R, turn = view if view is not None else (None, (), (), None, None)
     joints = np.asarray(joints, dtype=np.float64)
     if turn is not None:
         joints = joints @ turn  # the root-relative joints' axes: the assumed level world's -> the upright world's
+    n = noise if noise is not None else NoiseModel(None, None, 0.0, "")
     return Detections(t_us=np.array(t_us, dtype=np.int64), keypoints_2d=np.asarray(kp, dtype=np.float32),
                       confidence_2d=np.clip(conf, 0.0, 1.0).astype(np.float32), joints_3d=joints,
                       confidence_3d=np.clip(conf3, 0.0, 1.0).astype(np.float32), detector=detector,
                       in_view=None if in_view is None else np.asarray(in_view, bool), image_status=tuple(status),
-                      person_up=tuple(up), world_R=world_R)
+                      person_up=tuple(up), world_R=world_R,
+                      sigma_2d_px=None if n.sigma_2d_px is None else np.asarray(n.sigma_2d_px, np.float32),
+                      sigma_3d_m=None if n.sigma_3d_m is None else np.asarray(n.sigma_3d_m, np.float32),
+                      bias_2d_px=None if n.bias_2d_px is None else np.asarray(n.bias_2d_px, np.float32),
+                      bias_3d_m=None if n.bias_3d_m is None else np.asarray(n.bias_3d_m, np.float32),
+                      outlier_share=float(n.outlier_share), noise_model=n.source)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """A detector's noise model for its images: sigma_2d_px (n, 25) each landmark's white noise per image axis (px),
+    sigma_3d_m (n, 24, 3) each root-relative joint's along each camera axis (m), bias_2d_px (25,) and bias_3d_m
+    (24, 3) the spread of the offsets that stay over a capture, the share of outliers, and where it comes from (the
+    Detections artifact's doc)."""
+
+    sigma_2d_px: np.ndarray | None
+    sigma_3d_m: np.ndarray | None
+    outlier_share: float
+    source: str
+    bias_2d_px: np.ndarray | None = None
+    bias_3d_m: np.ndarray | None = None
 
 
 def view_settings(config):
@@ -202,7 +225,25 @@ def run_simulated(inputs, config, ctx):
     kp, conf, conf3 = sim.keypoints_px.copy(), sim.confidence.copy(), sim.confidence_3d.copy()
     view = finish(rec, truth.t_us, kp, conf, sim.joints_3d_m, conf3, conf > 0, np.ones(truth.t_us.size, bool),
                   config, ctx, "simulated detector")
-    return {"detections": _detections(truth.t_us, kp, conf, sim.joints_3d_m, conf3, detector, view)}
+    return {"detections": _detections(truth.t_us, kp, conf, sim.joints_3d_m, conf3, detector, view,
+                                      simulated_noise(sim, model))}
+
+
+def simulated_noise(sim, model) -> NoiseModel:
+    """The noise model the simulated detector simulates, stated as it is (plugins/eventcap_detect/simulated.py): each
+    landmark's white Gaussian error sigma_px times its blur factor (no 2D offset); each joint's per-frame noise
+    sigma_m (white) and its fixed offset bias_m drawn once per capture (the pelvis is exact: the joints are relative
+    to it); outliers and flips their probabilities."""
+    n, J = sim.joints_3d_m.shape[:2]
+    s3 = np.full((n, J, 3), float(model.sigma_m))  # isotropic: the same along every camera axis
+    s3[:, 0] = 0.0
+    b3 = np.full((J, 3), float(model.bias_m))
+    b3[0] = 0.0
+    return NoiseModel(sim.sigma_px, s3, float(min(1.0, model.outlier_prob + 2 * model.flip_prob)),
+                      f"simulated: the error model it simulates (2D: sigma_px={model.sigma_px:g} x each landmark's blur "
+                      f"factor, outliers {model.outlier_prob:g}, flips {model.flip_prob:g}; 3D: sigma_m="
+                      f"{1000 * model.sigma_m:g} mm per image, bias_m={1000 * model.bias_m:g} mm per capture)",
+                      np.zeros(sim.sigma_px.shape[1]), b3)
 
 
 def run_file(inputs, config, ctx):
@@ -240,7 +281,14 @@ def run_file(inputs, config, ctx):
     in_view = inside_image(kp, rec.width, rec.height, config.border_px)
     view = finish(rec, t_us, kp, conf, joints, conf3, in_view, (conf > 0).any(axis=1), config, ctx,
                   f"detections_file {Path(config.path).name}")
-    return {"detections": _detections(t_us, kp, conf, joints, conf3, detector, view)}
+    not_root = (np.arange(joints.shape[1]) != 0)[:, None]
+    white = np.where(not_root, 1e-3 * float(config.sigma_3d_mm), 0.0).repeat(3, axis=1)
+    noise = NoiseModel(np.full(kp.shape[:2], float(config.sigma_px)), np.repeat(white[None], t_us.size, axis=0), 0.0,
+                       f"file: stated by stages.detect.sigma_px={config.sigma_px:g} px, bias_px={config.bias_px:g} px, "
+                       f"sigma_3d_mm={config.sigma_3d_mm:g} mm, bias_3d_mm={config.bias_3d_mm:g} mm (every axis)",
+                       np.full(kp.shape[1], float(config.bias_px)),
+                       np.where(not_root, 1e-3 * float(config.bias_3d_mm), 0.0).repeat(3, axis=1))
+    return {"detections": _detections(t_us, kp, conf, joints, conf3, detector, view, noise)}
 
 
 def _blazepose_images(rec, latent, config):
@@ -320,4 +368,53 @@ def run_blazepose(inputs, config, ctx):
                   f"blazepose ({config.model}, at {config.at})", joint_views=joint_views)
     detector = (f"blazepose: BlazePose GHUM 3D {config.model} (MediaPipe Pose, TFLite) on {config.at} images, "
                 f"track={config.track}, find={config.find}")
-    return {"detections": _detections(times, kp, conf, joints, conf3, detector, view)}
+    frames = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)
+    return {"detections": _detections(times, kp, conf, joints, conf3, detector, view,
+                                      blazepose_noise(config.at, times, frames))}
+
+
+#: BlazePose's noise model, measured on tuning captures (benchmarks/accuracy/detector_noise.py writes it).
+BLAZEPOSE_NOISE = Path(__file__).resolve().parent / "models" / "blazepose_noise.json"
+
+
+def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Path = BLAZEPOSE_NOISE) -> NoiseModel:
+    """BlazePose's noise model for images at ``times``: the measured noise of each kind of image (the raw frames,
+    the EDI latent images at the frames, and latent images between the frames), per landmark and joint or one
+    figure for all, from ``models/blazepose_noise.json`` (benchmarks/accuracy/detector_noise.py): white noise per
+    image and a capture's offset (none where the table states none: BlazePose's 3D is an effective figure, the
+    table's ``source`` says why), the 2D ones times √ of the table's ``inflation_2d`` (the landmarks of an image err
+    together: d coordinates tell what d / inflation independent ones would). An image between the frames (at=tracking) that falls on
+    an intensity frame counts as a latent image at the frame."""
+    import json
+
+    from eventcap.body.skeleton import NUM_JOINTS, NUM_LANDMARKS
+
+    table = json.loads(path.read_text())
+    t = np.asarray(times, dtype=np.int64)
+    kind = np.full(t.size, "frames" if at == "frames" else "latent", dtype=object)
+    if at == "tracking":
+        kind[~np.isin(t, np.asarray(frame_t_us, dtype=np.int64))] = "between"
+
+    def per(name: str, k: str, shape: tuple, unit: float) -> np.ndarray:
+        """A figure of the table for one kind of image: one for all, per point, per axis, or per point and axis. A
+        latent image between the frames that the table does not measure counts as one at the frames (they are made
+        alike, and measured alike where both were: docs/results/events-add.md)."""
+        row = table[name].get(k, table[name]["latent"] if k == "between" else None)
+        if row is None:
+            raise ValueError(f"{path}: {name}: no figure for the {k!r} images (expected one of "
+                             f"{sorted(table[name])})")
+        return np.broadcast_to(np.asarray(row, dtype=np.float64) * unit, shape).copy()
+
+    s2 = np.stack([per("landmarks_2d_px", k, (NUM_LANDMARKS,), 1.0) for k in kind]) if t.size else \
+        np.zeros((0, NUM_LANDMARKS))
+    s3 = (np.stack([per("joints_3d_mm", k, (NUM_JOINTS, 3), 1e-3) for k in kind]) if t.size
+          else np.zeros((0, NUM_JOINTS, 3)))
+    s3[:, 0] = 0.0  # the joints are relative to the pelvis
+    most = "frames" if at == "frames" else "latent"  # a capture's offset: that of the images it mostly holds
+    # an image's landmarks err together: each counts as its spread times √(d / n_eff), the table's inflation
+    inflate = table.get("inflation_2d", {})
+    s2 = s2 * np.sqrt(np.array([float(inflate.get(k if k in inflate else "latent", 1.0)) for k in kind]))[:, None]
+    b2 = per("bias_2d_px", most, (NUM_LANDMARKS,), 1.0) * np.sqrt(float(inflate.get(most, 1.0)))
+    b3 = per("bias_3d_mm", most, (NUM_JOINTS, 3), 1e-3) if "bias_3d_mm" in table else np.zeros((NUM_JOINTS, 3))
+    b3[0] = 0.0
+    return NoiseModel(s2, s3, float(table.get("outlier_share", 0.0)), f"blazepose: {table['source']}", b2, b3)

@@ -96,7 +96,8 @@ class SimulatedDetections:
     """Output of :func:`simulate_detector` plus what was done to each keypoint (for tests and diagnostics).
 
     keypoints_px (n, L, 2), confidence (n, L), joints_3d_m (n, 24, 3), confidence_3d (n, 24),
-    outlier (n, L) bool, flipped (n, L) bool, bias_m (24, 3) the sequence's 3D offsets.
+    outlier (n, L) bool, flipped (n, L) bool, bias_m (24, 3) the sequence's 3D offsets, sigma_px (n, L) the std of
+    each keypoint's Gaussian error per axis (sigma_px times its blur factor: the noise it simulates).
     """
 
     keypoints_px: np.ndarray
@@ -106,6 +107,7 @@ class SimulatedDetections:
     outlier: np.ndarray
     flipped: np.ndarray
     bias_m: np.ndarray
+    sigma_px: np.ndarray
 
 
 def interpolate_at(t_src_us: np.ndarray, values: np.ndarray, t_us: np.ndarray, what: str = "values") -> np.ndarray:
@@ -292,4 +294,5 @@ def simulate_detector(truth: FrameTruth, model: DetectorErrorModel, rng: np.rand
     joints = truth.joints_rel_m + bias + noise3
     conf3 = np.where(truth.joint_in_image, model.confidence_3d / (1.0 + model.blur_gain * truth.joint_streak_px), 0.0)
     return SimulatedDetections(keypoints_px=detected, confidence=confidence, joints_3d_m=joints,
-                               confidence_3d=conf3, outlier=outlier, flipped=flipped, bias_m=bias)
+                               confidence_3d=conf3, outlier=outlier, flipped=flipped, bias_m=bias,
+                               sigma_px=model.sigma_px * blur)

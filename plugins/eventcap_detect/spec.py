@@ -85,6 +85,15 @@ class DetectionsFileConfig(ViewChecksConfig):
                                         "(rotated into world axes with the recording's camera)",
                           choices=("world", "camera"))
     unit_3d: str = param("m", help="unit of the 3D joints in the files: m | mm", choices=("m", "mm"))
+    sigma_px: float = param(1.0, gt=0, help="the detector's 2D noise per image axis from image to image, px (the "
+                                            "default: BlazePose's on sharp images of a person about 100-200 px "
+                                            "tall, docs/results/events-add.md)")
+    bias_px: float = param(2.0, ge=0, help="the spread per image axis of a landmark's offset that stays over the "
+                                           "capture, px (where the detector puts a hip or a shoulder)")
+    sigma_3d_mm: float = param(25.0, gt=0, help="the detector's noise of each root-relative 3D joint per axis from "
+                                                "image to image, mm")
+    bias_3d_mm: float = param(50.0, ge=0, help="the spread per axis of a 3D joint's offset that stays over the "
+                                               "capture, mm (a monocular 3D network's idea of the body)")
 
 
 @dataclass
@@ -112,8 +121,9 @@ class BlazePoseConfig(ViewChecksConfig):
 
 
 BLAZEPOSE = StageSpec(
-    name="blazepose", kind="detect", version=4,  # 4: the region check at a noisy sensor
-    description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints",
+    name="blazepose", kind="detect", version=9,
+    description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints, "
+                "with its noise model measured on tuning captures (models/blazepose_noise.json)",
     config=BlazePoseConfig,
     inputs={"recording": Port(Recording),
             "latent": Port(LatentFrames, optional=True, doc="EDI latent images (at=latent | tracking)")},
@@ -122,16 +132,18 @@ BLAZEPOSE = StageSpec(
 )
 
 SIMULATED = StageSpec(
-    name="simulated", kind="detect", version=1,
-    description="simulated CNN detector: ground-truth projections + noise, outliers, flips, blur, 3D bias",
+    name="simulated", kind="detect", version=3,
+    description="simulated CNN detector: ground-truth projections + noise, outliers, flips, blur, 3D bias; its "
+                "noise model is the one it simulates",
     config=SimulatedDetectorConfig, inputs={"recording": Port(Recording)},
     outputs={"detections": Port(Detections)},
     run="eventcap_detect._impl:run_simulated",
 )
 
 FILE = StageSpec(
-    name="detections_file", kind="detect", version=3,  # 3: the region check at a noisy sensor
-    description="2D/3D detections produced elsewhere (OpenPose JSON, npz, csv), aligned with the frames",
+    name="detections_file", kind="detect", version=5,
+    description="2D/3D detections produced elsewhere (OpenPose JSON, npz, csv), aligned with the frames; their "
+                "noise as the settings state it",
     config=DetectionsFileConfig, inputs={"recording": Port(Recording)},
     outputs={"detections": Port(Detections)},
     run="eventcap_detect._impl:run_file",

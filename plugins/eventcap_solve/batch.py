@@ -108,9 +108,9 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 from eventcap.energy.correspondences import check_tracks
 from eventcap.energy.detections import (
+    DetectionWeights,
     FrameDetections,
     FrameFitter,
-    fit_weights,
     interpolate_poses,
     select_detections,
     unwrap_root,
@@ -193,16 +193,15 @@ class BatchProblem:
         self.problem = FactorProblem(FramePoses(self.F), self.factors, self.settings, lo, hi,
                                      damp=config.damp, damp_aux=False, name="batch")
         self.lower, self.upper = self.problem.lower, self.problem.upper
-        self.fit_weights = fit_weights(config.terms)
-        self.fitter = FrameFitter(template, camera, self.settings, lo, hi, self.fit_weights[2])
+        self.fit_weights = DetectionWeights.from_terms(config.terms, camera)
+        self.fitter = FrameFitter(template, camera, self.settings, lo, hi)
         self.build_seconds = time.perf_counter() - t0
 
     def fit_frame(self, det: FrameDetections, d: int,
                   start: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, SolveStats]:
         """Fit one pose to detection frame d (the detection terms' weights and the damping): (S (33,), t' (3,),
         stats). start: (S, t') warm start; default :func:`eventcap.energy.detections.initial_guess`."""
-        w2, w3, _ = self.fit_weights
-        return self.fitter.fit(det, d, w2, w3, self.config.damp, start)
+        return self.fitter.fit(det, d, self.fit_weights, self.config.damp, start)
 
     def collect(self, inputs: WindowInputs) -> None:
         """Every factor's data of this batch, and the span of the poses."""

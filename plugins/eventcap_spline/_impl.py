@@ -133,11 +133,11 @@ def window_tracks(parts, step: int, where: str) -> tuple[np.ndarray, np.ndarray,
 
 
 def prior_context(config, plan, t_det, detections, where: str, log):
-    """(times, detections) of the intensity frames within ``smoothing.seconds`` of the window's detection frames
-    t_det, whose fits give the window's smoothing evidence (the prior's gains, the context pull); None (and a log
-    line) when the frames come less often than ``smoothing.min_fps``. StageFailed when their detections are
-    missing."""
-    from eventcap.energy.detections import select_detections
+    """(times, detections) of the detections within ``smoothing.seconds`` of the window's detection frames t_det
+    (at the intensity frames, and between them where the detector looked), whose fits give the window's evidence
+    of the motion (the prior's process power, the context pull); None (and a log line) when the intensity frames come
+    less often than ``smoothing.min_fps``. StageFailed when their detections are missing."""
+    from eventcap.energy.detections import detection_times, select_detections
 
     frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
     fps = 1e6 / float(np.median(np.diff(frames))) if frames.size > 1 else 0.0
@@ -147,7 +147,7 @@ def prior_context(config, plan, t_det, detections, where: str, log):
                  float(config.smoothing.min_fps))
         return None
     reach = int(round(float(config.smoothing.seconds) * 1e6))
-    t_ctx = frames[(frames >= t_det[0] - reach) & (frames <= t_det[-1] + reach)]
+    t_ctx = detection_times(detections, int(t_det[0]) - reach, int(t_det[-1]) + reach)
     try:
         return t_ctx, select_detections(detections, t_ctx)
     except ValueError as exc:
@@ -294,7 +294,7 @@ def window_inputs(inputs, config, where: str, role: tuple[int, int, int, int]):
     kept batch that has tracks, its tracks, window (a, z), the batches whose tracks E_cor uses, their index among
     the tracks, detection times, their detections, the tracks at the correspondence frames
     (:class:`eventcap.energy.window.Tracks`), the tracking times of each batch the window keeps)."""
-    from eventcap.energy.detections import select_detections
+    from eventcap.energy.detections import detection_times, select_detections
     from eventcap.energy.window import Tracks
 
     sliced, detections, plan = inputs["sliced"], inputs["detections"], inputs["batches"]
@@ -313,7 +313,10 @@ def window_inputs(inputs, config, where: str, role: tuple[int, int, int, int]):
     # own: the tracks of the batches the window keeps (this batch alone at window_step 1); window: all of its batches
     kept = [k for k in range(ka, kz + 1) if k in index]
     scope = kept if config.tracks.scope == "own" else [k for k in range(a, z + 1) if k in index]
-    t_det = np.unique(np.concatenate([plan.t0_us[a:z + 1], plan.t1_us[a:z + 1]]))
+    # every detection within the window's span: at its intensity frames, and between them where the detector looked
+    t_det = detection_times(detections, int(plan.t0_us[a]), int(plan.t1_us[z]))
+    if t_det.size < 2:
+        t_det = np.unique(np.concatenate([plan.t0_us[a:z + 1], plan.t1_us[a:z + 1]]))
     try:
         det = select_detections(detections, t_det)
     except ValueError as exc:

@@ -38,7 +38,7 @@ import numpy as np
 from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-from eventcap.energy.detections import FIT_DAMP, FrameDetections, FrameFitter, fit_weights, unwrap_root
+from eventcap.energy.detections import FIT_DAMP, DetectionWeights, FrameDetections, FrameFitter, unwrap_root
 from eventcap.energy.errors import EnergyError, SolveFailed
 from eventcap.energy.factor import Layout
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
@@ -92,8 +92,8 @@ class FitSolver:
         self.template, self.camera, self.config = template, camera, config
         self.lower, self.upper = bounds_with(config.limits, f"{where}.limits")
         self.settings = IpoptSettings.from_config(config.ipopt)
-        self.fit_weights = fit_weights(config.terms)
-        self.fitter = FrameFitter(template, camera, self.settings, self.lower, self.upper, self.fit_weights[2])
+        self.fit_weights = DetectionWeights.from_terms(config.terms, camera)
+        self.fitter = FrameFitter(template, camera, self.settings, self.lower, self.upper)
 
 
 class SplineSolver:
@@ -110,8 +110,8 @@ class SplineSolver:
         self.problem = FactorProblem(SplinePoses(layout.n_seg), self.factors, self.settings, lo, hi,
                                      damp=config.damp, damp_aux=True, name="spline", band=layout.band)
         self.lower, self.upper = self.problem.lower, self.problem.upper
-        self.fit_weights = fit_weights(config.terms)
-        self.fitter = FrameFitter(template, camera, self.settings, lo, hi, self.fit_weights[2])
+        self.fit_weights = DetectionWeights.from_terms(config.terms, camera)
+        self.fitter = FrameFitter(template, camera, self.settings, lo, hi)
         self.build_seconds = time.perf_counter() - t0
 
 
@@ -120,16 +120,14 @@ def frame_fit(solver: SplineSolver | FitSolver, det: FrameDetections, d: int):
     """The per-frame fit of detection frame d, ((S, t', stats), whether it was computed now). A frame's fit is a
     deterministic function of its detections and the fitter's settings, so neighbouring windows of this process
     share it (keyed by value)."""
-    from eventcap.energy.detections import det_values
-
-    w2, w3, robust = solver.fit_weights
+    weights = solver.fit_weights
     key = (solver.template.geometry_digest(), repr(sorted(solver.camera.to_dict().items())), solver.lower.tobytes(),
-           solver.upper.tobytes(), robust, solver.settings, w2, w3, *(v.tobytes() for v in det_values(det, d)))
+           solver.upper.tobytes(), solver.settings, weights.key(), *(v.tobytes() for v in weights.values(det, d)))
     if key in _FITS:
         return _FITS[key], 0
     if len(_FITS) > _FITS_MAX:
         _FITS.clear()
-    _FITS[key] = solver.fitter.fit(det, d, w2, w3, FIT_DAMP)
+    _FITS[key] = solver.fitter.fit(det, d, weights, FIT_DAMP)
     return _FITS[key], 1
 
 
@@ -198,14 +196,20 @@ def window_context(solver: SplineSolver, inputs: WindowInputs, t_ctx_us, det_ctx
     """The window's context evidence (:func:`eventcap.energy.prior.context_smoothing`) from the per-frame fits at the
     intensity frames around it (t_ctx_us, det_ctx; frames whose fit fails are left out); the fits computed here are
     added to counter[0]."""
+    t, S = context_fits(solver, t_ctx_us, det_ctx, counter)
+    return context_smoothing(t, S, lambda: detection_curvature(solver.factors, inputs, fits, tps),
+                             str(solver.config.smoothing.criterion), inputs.t_det_us, fits, unwrap_root)
+
+
+def context_fits(solver: SplineSolver, t_ctx_us, det_ctx: FrameDetections, counter: list[int]):
+    """The per-frame fits at the detection frames around a window that succeed: their times (K,) and poses (K, 33),
+    root angles unwrapped along them; the fits computed here are added to counter[0]."""
     keep, ctx_fits, computed = frame_fits(solver, det_ctx)
     counter[0] += computed
     S = []
     for s in ctx_fits:
         S.append(unwrap_root(s, S[-1]) if S else s)
-    return context_smoothing(np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S) if S else np.zeros((0, _NP)),
-                             lambda: detection_curvature(solver.factors, inputs, fits, tps),
-                             str(solver.config.smoothing.criterion), inputs.t_det_us, fits, unwrap_root)
+    return np.asarray(t_ctx_us, dtype=np.int64)[keep], np.stack(S) if S else np.zeros((0, _NP))
 
 
 def window_stillness(solver: SplineSolver, inputs: WindowInputs) -> Silence:
@@ -242,6 +246,7 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, inputs: Wind
     inputs.offer("fit_translation", lambda: tps)
     if context is not None:
         inputs.offer("smoothing", lambda: window_context(solver, inputs, context[0], context[1], fits, tps, counter))
+        inputs.offer("context_fits", lambda: context_fits(solver, context[0], context[1], counter))
     if inputs.events is not None:
         inputs.offer("stillness", lambda: window_stillness(solver, inputs))
     for f in solver.factors:

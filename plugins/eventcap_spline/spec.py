@@ -11,19 +11,19 @@ from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import SlicedTracks
 from eventcap.core.stage import Port, StageSpec, group, param
 from eventcap.energy.settings import (
-    BonesConfig,
+    BonesNoise,
     ContactConfig,
-    ContextConfig,
-    CorConfig,
-    FloorConfig,
+    ContextNoise,
+    CorNoise,
+    FloorNoise,
     IpoptConfig,
-    Joints3DConfig,
-    Landmarks2DConfig,
-    PriorConfig,
-    SilConfig,
-    SlideConfig,
+    Joints3DNoise,
+    Landmarks2DNoise,
+    PriorNoise,
+    SilNoise,
+    SlideNoise,
     SmoothingConfig,
-    StillConfig,
+    StillNoise,
     StillnessConfig,
 )
 
@@ -42,28 +42,33 @@ class SplineTracks:
 
 @dataclass
 class SplineTerms:
-    """The terms of the spline solve's energy, in the order they are summed (each: its weight, 0 = off, and its
-    settings; eventcap.energy.terms lists them)."""
+    """The terms of the spline solve's energy, in the order they are summed: each weighted by the noise of what it
+    reads (its sigma, in its own units), ``gain`` 0 turns one off (eventcap.energy.terms lists them,
+    eventcap.energy.settings says how a noise model weighs)."""
 
-    landmarks_2d: Landmarks2DConfig = group(Landmarks2DConfig, help="E_2D: the detected 2D landmarks at every "
-                                                                    "intensity frame of the window (Cauchy-robust)")
-    joints_3d: Joints3DConfig = group(Joints3DConfig, help="E_3D: the detected root-relative 3D joints at every "
-                                                           "intensity frame of the window")
-    cor: CorConfig = group(CorConfig, weight=500.0, help="E_cor: the event tracks' correspondences on the mesh")
-    sil: SilConfig = group(SilConfig, help="E_sil (paper Sec. 3.3): the silhouette boundary against its closest "
-                                           "events at the solved batches' frames")
-    still: StillConfig = group(StillConfig, help="E_still (not in the paper): joints the events call still do not "
-                                                 "move in the image")
-    prior: PriorConfig = group(PriorConfig, help="the motion prior (not in the paper): the poses' squared "
-                                                 "acceleration or jerk, integrated")
-    context: ContextConfig = group(ContextConfig, help="the context pull (not in the paper): each parameter near the "
-                                                       "smoothed fits around the window")
-    floor: FloorConfig = group(FloorConfig, help="the floor (not in the paper): sole points in contact on it, none "
-                                                 "below it")
-    slide: SlideConfig = group(SlideConfig, help="no sliding (not in the paper): sole points in contact do not move "
-                                                 "along the floor")
-    bones: BonesConfig = group(BonesConfig, help="foreshortening (not in the paper): each limb bone's depth extent "
-                                                 "from its length and 2D points")
+    landmarks_2d: Landmarks2DNoise = group(Landmarks2DNoise, help="E_2D: the detected 2D landmarks, weighted by the "
+                                                                  "detector's noise (robust)")
+    joints_3d: Joints3DNoise = group(Joints3DNoise, help="E_3D: the detected root-relative 3D joints, weighted by the "
+                                                         "detector's noise")
+    cor: CorNoise = group(CorNoise, sigma_px=6.3, loss_scale=0.0,
+                          help="E_cor: the event tracks' correspondences on the mesh (an effective noise: the "
+                               "association's error at a solve's estimate, not the tracks' own)")
+    sil: SilNoise = group(SilNoise, sigma_px=44.5, loss_scale=0.0225,
+                          help="E_sil (paper Sec. 3.3): the silhouette boundary against its closest events at the "
+                               "solved batches' frames (an effective noise; Huber beyond 1 px)")
+    still: StillNoise = group(StillNoise, sigma_px_s=2.24, help="E_still (not in the paper): joints the events call "
+                                                                "still do not move in the image")
+    prior: PriorNoise = group(PriorNoise, q_default=5000.0, q_min=500.0, help="the motion prior (not in the paper): each pose parameter a "
+                                               "white-noise acceleration whose power the fits around the window "
+                                               "choose")
+    context: ContextNoise = group(ContextNoise, help="the context pull (not in the paper): each parameter near the "
+                                                     "smoothed fits around the window (off)")
+    floor: FloorNoise = group(FloorNoise, sigma_mm=70.7, help="the floor (not in the paper): sole points in contact on it, none "
+                                               "below it")
+    slide: SlideNoise = group(SlideNoise, sigma_mm_s=707.0, help="no sliding (not in the paper): sole points in contact do not move "
+                                               "along the floor")
+    bones: BonesNoise = group(BonesNoise, help="foreshortening (not in the paper): each limb bone's depth extent "
+                                               "from its length and 2D points (off)")
 
 
 @dataclass
@@ -98,48 +103,59 @@ class SplineSolveConfig:
     limits: dict[str, list[float]] = param(
         default_factory=dict, help="joint-limit overrides {parameter name: [min, max]} (radians; metres for root_t*)")
     tracks: SplineTracks = group(SplineTracks, help="which event tracks E_cor uses")
-    smoothing: SmoothingConfig = group(SmoothingConfig, help="evidence: the smoothing the per-frame fits around a "
-                                                             "window call for (the prior's gains, the context pull)")
+    smoothing: SmoothingConfig = group(SmoothingConfig, min_fps=20.0,
+                                       help="evidence: the per-frame fits around a window (the prior's process power, "
+                                            "the context pull)")
     stillness: StillnessConfig = group(StillnessConfig, help="evidence: how still the events show each joint "
                                                              "(E_still, the context pull's gate, contact)")
     contact: ContactConfig = group(ContactConfig, help="evidence: when a sole point counts as in contact with the "
                                                        "floor (the floor and slide terms)")
-    terms: SplineTerms = group(SplineTerms, help="the terms of the energy: each one's weight (0: off) and settings")
+    terms: SplineTerms = group(SplineTerms, help="the terms of the energy: each one's noise, gain (0: off) and "
+                                                 "settings")
     ipopt: IpoptConfig = group(IpoptConfig, barrier="adaptive", help="IPOPT's options for every solve of a window "
                                                                       "(adaptive barrier: a chunk's long window "
                                                                       "needs 37 iterations instead of 64)")
 
 
-#: Settings that moved when the config was nested: {old key: new key}; an old key is refused naming its new one.
+#: Settings that moved when the config was nested, and the weights that became noise models: {old key: new key};
+#: an old key is refused naming its new one.
+_PRIOR_FROM_DATA = "terms.prior.pool"  # the prior's power per parameter is chosen from the fits around the window
 SPLINE_RENAMED = {
-    "lambda_2d": "terms.landmarks_2d.weight", "robust_2d_px": "terms.landmarks_2d.robust_px",
-    "lambda_3d": "terms.joints_3d.weight", "lambda_cor": "terms.cor.weight", "robust_cor_px": "terms.cor.robust_px",
+    "lambda_2d": "terms.landmarks_2d.sigma_px", "robust_2d_px": "terms.landmarks_2d.loss_scale",
+    "lambda_3d": "terms.joints_3d.sigma_mm", "lambda_cor": "terms.cor.sigma_px", "robust_cor_px": "terms.cor.loss_scale",
     "cor_step": "tracks.step", "tracks": "tracks.scope", "edge_margin_px": "tracks.edge_margin_px",
-    "lambda_sil": "terms.sil.weight", "sil_step_ms": "terms.sil.step_ms", "sil_window_ms": "terms.sil.window_ms",
-    "sil_patch_px": "terms.sil.patch_px", "sil_loss": "terms.sil.loss", "sil_huber_px": "terms.sil.huber_px",
-    "sil_dist": "terms.sil.dist", "lambda_still": "terms.still.weight", "still_radius_px": "stillness.radius_px",
+    "lambda_sil": "terms.sil.sigma_px", "sil_step_ms": "terms.sil.step_ms", "sil_window_ms": "terms.sil.window_ms",
+    "sil_patch_px": "terms.sil.patch_px", "sil_loss": "terms.sil.loss", "sil_huber_px": "terms.sil.loss_scale",
+    "sil_dist": "terms.sil.dist", "lambda_still": "terms.still.sigma_px_s", "still_radius_px": "stillness.radius_px",
     "still_rate_hz": "stillness.rate_hz", "still_hold_ms": "stillness.hold_ms",
-    "still_sweep_ms": "stillness.sweep_ms", "prior": "terms.prior.order", "lambda_prior": "terms.prior.weight",
-    "prior_inertia": "terms.prior.inertia", "prior_inertia_cap": "terms.prior.inertia_cap",
-    "prior_inertia_floor": "terms.prior.inertia_floor", "prior_gain_max": "terms.prior.gain_max",
-    "prior_gain_criterion": "smoothing.criterion", "prior_gain_min_fps": "smoothing.min_fps",
-    "prior_context_s": "smoothing.seconds", "lambda_context": "terms.context.weight",
-    "context_gate_floor": "terms.context.gate_floor", "lambda_floor": "terms.floor.weight",
-    "lambda_slide": "terms.slide.weight", "contact_speed_mps": "contact.speed_mps",
-    "contact_height_m": "contact.height_m", "lambda_bones": "terms.bones.weight", "bones_sign_m": "terms.bones.sign_m",
-    "bones_2d_px": "terms.bones.noise_2d_px", "lambda_damp": "damp", "max_iter": "ipopt.max_iter",
-    "tol": "ipopt.tol", "mumps_pivot_order": "ipopt.mumps_pivot_order"}
+    "still_sweep_ms": "stillness.sweep_ms", "prior": "terms.prior.order", "lambda_prior": "terms.prior.q_default",
+    "prior_inertia": _PRIOR_FROM_DATA, "prior_inertia_cap": _PRIOR_FROM_DATA, "prior_inertia_floor": _PRIOR_FROM_DATA,
+    "prior_gain_max": _PRIOR_FROM_DATA, "prior_gain_criterion": "smoothing.criterion",
+    "prior_gain_min_fps": "smoothing.min_fps", "prior_context_s": "smoothing.seconds",
+    "lambda_context": "terms.context.gain", "context_gate_floor": "terms.context.gate_floor",
+    "lambda_floor": "terms.floor.sigma_mm", "lambda_slide": "terms.slide.sigma_mm_s", "contact_speed_mps":
+    "contact.speed_mps", "contact_height_m": "contact.height_m", "lambda_bones": "terms.bones.gain",
+    "bones_sign_m": "terms.bones.sign_m", "bones_2d_px": "terms.bones.noise_2d_px", "lambda_damp": "damp",
+    "max_iter": "ipopt.max_iter", "tol": "ipopt.tol", "mumps_pivot_order": "ipopt.mumps_pivot_order",
+    # the weights tuned for one detector, now noise models (issue "the events add")
+    "terms.landmarks_2d.weight": "terms.landmarks_2d.sigma_px", "terms.landmarks_2d.robust_px":
+    "terms.landmarks_2d.loss_scale", "terms.joints_3d.weight": "terms.joints_3d.sigma_mm",
+    "terms.cor.weight": "terms.cor.sigma_px", "terms.cor.robust_px": "terms.cor.loss_scale",
+    "terms.sil.weight": "terms.sil.sigma_px", "terms.sil.huber_px": "terms.sil.loss_scale",
+    "terms.still.weight": "terms.still.sigma_px_s", "terms.prior.weight": "terms.prior.q_default",
+    "terms.prior.inertia": _PRIOR_FROM_DATA, "terms.prior.inertia_cap": _PRIOR_FROM_DATA,
+    "terms.prior.inertia_floor": _PRIOR_FROM_DATA, "terms.prior.gain_max": _PRIOR_FROM_DATA,
+    "terms.context.weight": "terms.context.gain", "terms.floor.weight": "terms.floor.sigma_mm",
+    "terms.slide.weight": "terms.slide.sigma_mm_s", "terms.bones.weight": "terms.bones.gain"}
 
 
 SPLINE = StageSpec(
-    name="spline", kind="solve", version=14,  # 8: factors; gaps; no estimate beyond the observed frames; 9: floor,
-    # widths; 10: window_step (a batch another window keeps returns no frames); 11: nested settings, energies named
-    # by the terms' groups; 12: a unit may be a chunk of batches; 13: the adaptive barrier capped; 14: each joint's
-    # Laplace σ (sigma_mm)
+    name="spline", kind="solve", version=15,
     description="continuous-time solve (not in the paper): a cubic B-spline in the 33 pose parameters over a "
-                "window of batches, fitted to the detections at every intensity frame (robust, soft), the event "
-                "correspondences of this batch's tracks (or the window's), the event silence and a motion prior, "
-                "joint limits on the control points (CasADi + IPOPT); "
+                "window of batches, fitted to the detections wherever they are (robust, each weighted by the "
+                "detector's noise), the event correspondences of this batch's tracks (or the window's), the event "
+                "silence and a motion prior whose power the data choose, joint limits on the control points "
+                "(CasADi + IPOPT); "
                 "the output is the window's whole curve at the tracking rate (the stitch stage blends the windows)",
     config=SplineSolveConfig,
     inputs={"recording": Port(Recording),

@@ -95,7 +95,7 @@ FAST = {"icp_rounds": 1, "half_window": 1, "knot_ms": 20.0, "tracks.step": 4}  #
 
 def run_stage(inputs, batch, **changes):
     """The spline stage on the stage inputs at a batch, with FAST and these changes (dotted keys:
-    run_stage(inputs, b, **{"terms.sil.weight": 0.0}))."""
+    run_stage(inputs, b, **{"terms.sil.gain": 0.0}))."""
     from eventcap.core.config import build_config
     from eventcap.core.registry import load_registry
 
@@ -129,7 +129,7 @@ def spline_config(changes: dict | None = None) -> SplineSolveConfig:
 
 def solver(**config) -> SplineSolver:
     """The spline solver of the scene's window (3 batches, E_cor at the middle batch's 41 tracking frames, E_sil at 9
-    of them) with the stage's config (defaults but for the changes given, by dotted key: solver(**{"terms.sil.weight":
+    of them) with the stage's config (defaults but for the changes given, by dotted key: solver(**{"terms.sil.gain":
     0}))."""
     return _solver(tuple(sorted(config.items())))
 
