@@ -1,10 +1,12 @@
 """Numeric kernels of the image and skinning terms: closed-form projection derivatives and the per-frame skinning
-transforms G(S) with their Jacobian and contracted second derivatives (CasADi functions called on numpy buffers).
+transforms G(S) with their Jacobian and contracted second derivatives (compiled, :mod:`._skin_kernels`).
 
 Every term on surface points (E_cor, E_sil) poses its points as WX · G(S) with premultiplied skinning weights WX.
 """
 
 from __future__ import annotations
+
+import logging
 
 import casadi as ca
 import numpy as np
@@ -15,6 +17,7 @@ from eventcap.camera import Camera
 from eventcap.memo import ProcessCache
 
 _NP = NUM_POSE_PARAMS
+_log = logging.getLogger("eventcap.energy.kernels")
 
 
 def project_derivatives(camera: Camera, points: np.ndarray, order: int = 2):
@@ -104,9 +107,69 @@ class SkinningKernels:
     """Per frame, the 24 skinning transforms as a (96, 3) matrix G with posed point = WX · G (WX the premultiplied
     weights of a point, see :func:`premultiplied_weights`), their Jacobian and contracted second derivatives.
 
-    All mapped over the F frames of a batch (one call each). Layouts (numpy, C order):
+    All over the F frames of a window (one call each). Layouts (numpy, C order):
     ``G (F, 96, 3)``, ``dG (F, 96, 3, 33)``, ``hess (F, 33, 33)`` of Σ_{a,c} Λ[f, a, c] G[f, a, c].
+
+    Compiled kernels in closed form (:mod:`._skin_kernels`, numba, cached on disk once per machine): nothing is built
+    per window shape. Where they cannot run (numba fails to compile them), the CasADi graph of the same transforms
+    (:class:`CasadiSkinning`, built per number of frames) stands in, and the log says so once.
     """
+
+    def __init__(self, rest_joints: np.ndarray, n_frames: int):
+        self.rest = np.ascontiguousarray(rest_joints, dtype=np.float64)
+        if self.rest.shape != (NUM_JOINTS, 3):
+            raise ValueError(f"rest joints: expected shape (24, 3), got {self.rest.shape}")
+        self.F = int(n_frames)
+        self._fallback: CasadiSkinning | None = None if _compiled() is not None else CasadiSkinning(self.rest, self.F)
+        self._memo: tuple = (None, None)  # the last poses' (G, dG): factors sharing these kernels reuse them
+
+    def _poses(self, S: np.ndarray) -> np.ndarray:
+        S = np.ascontiguousarray(S, dtype=np.float64).reshape(-1, _NP)
+        if S.shape[0] != self.F:
+            raise ValueError(f"skinning kernels of {self.F} frames: got poses of shape {S.shape}")
+        return S
+
+    def transforms(self, S: np.ndarray) -> np.ndarray:
+        S = self._poses(S)
+        key, val = self._memo
+        if key is not None and key == S.tobytes():
+            return val[0]
+        if self._fallback is not None:
+            return self._fallback.transforms(S)
+        k = _compiled()
+        G = np.empty((self.F, 4 * NUM_JOINTS, 3))
+        k.skin_transforms(S, self.rest, *k.tables()[:4], G)
+        return G
+
+    def transforms_jac(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        S = self._poses(S)
+        key = S.tobytes()
+        if self._memo[0] == key:
+            return self._memo[1]
+        if self._fallback is not None:
+            val = self._fallback.transforms_jac(S)
+        else:
+            k = _compiled()
+            val = (np.empty((self.F, 4 * NUM_JOINTS, 3)), np.empty((self.F, 4 * NUM_JOINTS, 3, _NP)))
+            k.skin_jacobian(S, self.rest, *k.tables()[:5], *val)
+        self._memo = (key, val)
+        return val
+
+    def contracted_hessian(self, S: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        S = self._poses(S)
+        lam = np.ascontiguousarray(lam, dtype=np.float64).reshape(self.F, 4 * NUM_JOINTS, 3)
+        if self._fallback is not None:
+            return self._fallback.contracted_hessian(S, lam)
+        k = _compiled()
+        H = np.empty((self.F, _NP, _NP))
+        k.skin_contracted_hessian(S, lam, self.rest, *k.tables(), H)
+        return H
+
+
+class CasadiSkinning:
+    """The skinning transforms, their Jacobian and contracted Hessian as CasADi graphs of
+    :func:`eventcap.body.kinematics.global_transforms`, mapped over n_frames (the reference of the compiled
+    kernels, and their stand-in where numba cannot compile them). Same layouts as :class:`SkinningKernels`."""
 
     def __init__(self, rest_joints: np.ndarray, n_frames: int):
         S = ca.SX.sym("S", _NP)
@@ -121,34 +184,48 @@ class SkinningKernels:
         self._dg = Buffered(ca.Function("skin_dG", [S], [g, dg]).map(n_frames))
         self._h = Buffered(ca.Function("skin_d2G", [S, lam], [hess]).map(n_frames))
 
-        self._memo: tuple = (None, None)  # the last poses' (G, dG): factors sharing these kernels reuse them
-
     def transforms(self, S: np.ndarray) -> np.ndarray:
-        key, val = self._memo
-        if key is not None and key == np.asarray(S, dtype=np.float64).tobytes():
-            return val[0]
         return self._g(S)[0].reshape(self.F, 4 * NUM_JOINTS, 3)
 
     def transforms_jac(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        key = np.asarray(S, dtype=np.float64).tobytes()
-        if self._memo[0] == key:
-            return self._memo[1]
         g, dg = self._dg(S)
-        val = (g.reshape(self.F, 4 * NUM_JOINTS, 3), dg.reshape(self.F, 4 * NUM_JOINTS, 3, _NP))
-        self._memo = (key, val)
-        return val
+        return g.reshape(self.F, 4 * NUM_JOINTS, 3), dg.reshape(self.F, 4 * NUM_JOINTS, 3, _NP)
 
     def contracted_hessian(self, S: np.ndarray, lam: np.ndarray) -> np.ndarray:
         return self._h(S, lam)[0].reshape(self.F, _NP, _NP)
 
 
-#: Built skinning kernels by (rest joints, frames): the factors of one problem (E_cor, E_temp, E_sil, E_stab at the
-#: same frames) share them, and their memo of the last poses.
-_KERNELS = ProcessCache("energy.kernels", maxsize=64)
+_COMPILED: list = []  # [module or None] once tried
+
+
+def _compiled():
+    """The compiled kernels' module, compiled (or loaded from numba's cache) on first use; None when numba cannot
+    compile them (logged once: the CasADi graphs stand in, slower)."""
+    if not _COMPILED:
+        try:
+            from . import _skin_kernels as k
+
+            G, dG, H = np.empty((1, 4 * NUM_JOINTS, 3)), np.empty((1, 4 * NUM_JOINTS, 3, _NP)), np.empty((1, _NP, _NP))
+            S, rest = np.zeros((1, _NP)), np.zeros((NUM_JOINTS, 3))
+            k.skin_transforms(S, rest, *k.tables()[:4], G)
+            k.skin_jacobian(S, rest, *k.tables()[:5], G, dG)
+            k.skin_contracted_hessian(S, np.zeros_like(G), rest, *k.tables(), H)
+            _COMPILED.append(k)
+        except Exception as exc:  # noqa: BLE001 - numba missing, its errors, a missing LLVM: fall back, say so
+            hint = " (is numba installed? it is a dependency of eventcap)" if isinstance(exc, ImportError) else ""
+            _log.warning("the compiled skinning kernels cannot run here (%s: %s)%s: the CasADi graphs stand in for "
+                         "them (slower; same results)", type(exc).__name__, exc, hint)
+            _COMPILED.append(None)
+    return _COMPILED[0]
+
+
+#: Skinning kernels by (rest joints, frames): the factors of one problem (E_cor, E_temp, E_sil, E_stab at the
+#: same frames) share them, and their memo of the last poses. Bounded: windows of many shapes come and go.
+_KERNELS = ProcessCache("energy.skinning_kernels", maxsize=16)
 
 
 def shared_kernels(rest_joints: np.ndarray, n_frames: int) -> SkinningKernels:
-    """The skinning kernels of n_frames frames for these rest joints, built once per process (keyed by value)."""
+    """The skinning kernels of n_frames frames for these rest joints, one per process (keyed by value)."""
     key = (np.asarray(rest_joints, dtype=np.float64).tobytes(), int(n_frames))
     return _KERNELS.get(key, lambda: SkinningKernels(rest_joints, int(n_frames)))[0]
 
