@@ -468,6 +468,355 @@ def prior_cov(start: dict, free: tuple, rest_joints, stature_sd_m: float = STATU
     return names, cov
 
 
+def _floor_for_stature(free: tuple, floor_z: np.ndarray | None, camera_height_m: float | None,
+                       images: list) -> tuple[np.ndarray | None, str]:
+    """Whether the floor can tell the stature: (the pelvis depth per image from the floor, None where it cannot;
+    where the stature comes from meanwhile: "stated", "template default", or why the floor cannot tell it). It can
+    with ``floor_z`` and ``camera_height_m`` given, the camera at least :data:`MIN_FLOOR_ELEVATION` times the
+    person's distance high, and a supporting foot's sole seen on the floor in :data:`MIN_IMAGES` of the ``images``
+    with segments."""
+    if "height_m" not in free:
+        return None, "stated"
+    if floor_z is None or camera_height_m is None:
+        return None, ("template default (without the floor and the camera's height one camera cannot tell the "
+                      "stature)")
+    fz_all = np.asarray(floor_z, dtype=np.float64)
+    dist = float(np.nanmedian(fz_all)) if np.isfinite(fz_all).any() else float("nan")
+    if not np.isfinite(dist):
+        return None, "template default (no sole of a supporting foot seen on the floor)"
+    if camera_height_m < MIN_FLOOR_ELEVATION * dist:
+        return None, (f"template default (the camera {camera_height_m:.2f} m high, the person ~{dist:.1f} m "
+                      f"away: too low for the floor to tell the depth, below {MIN_FLOOR_ELEVATION} x the "
+                      "distance)")
+    ok = np.isfinite(fz_all[images]) & (fz_all[images] > 0) if images else np.zeros(0, bool)
+    if int(ok.sum()) < MIN_IMAGES:
+        return None, (f"template default (the supporting foot's sole seen on the floor in {int(ok.sum())} images "
+                      f"with segments; needs {MIN_IMAGES})")
+    return fz_all, "template default"
+
+
+def _images_span_s(t_us: np.ndarray | None, images: list) -> float:
+    """The time the images cover (s): from the first to the last plus their median interval (1 s without times)."""
+    if t_us is None or len(images) <= 1:
+        return 1.0
+    times = np.asarray(t_us, dtype=np.float64)[images]
+    return float(np.ptp(times) + np.median(np.diff(times))) / 1e6
+
+
+#: Per segment kind: the indices of its segments in :data:`SEGMENTS`.
+_KIND_IDX = {k: [i for i, n in enumerate(SEGMENTS) if KIND_OF[n] == k] for k in KINDS}
+
+
+@dataclass
+class _BodyFit:
+    """One fit's observations (one per seen segment and image: the log of its seen length), the layout of its
+    parameters and the model it fits (:func:`fit_body`). The parameters: θ (``theta``, the body) | β (the
+    detector's error on each seen segment) | φ (the floor's error, 1 with the floor) | ln z (each image's depth)."""
+
+    params: dict  #: the template's body (the prior's centre)
+    theta: list  #: the body's parameters estimated
+    pheno: list  #: the phenotypes among them
+    names: list  #: the seen segments (each in at least MIN_IMAGES images)
+    rest_joints: object  #: rest_joints(height_m, build, muscle, sex): a body's rest joints
+    n_images: int  #: the images with segments
+    use_floor: bool  #: whether the floor gives the depths (and the stature)
+    seg: np.ndarray  #: per observation: its segment (index into names)
+    img: np.ndarray  #: per observation: its image (index into the images with segments)
+    unit: np.ndarray  #: per observation: the seen length at unit depth
+    off: np.ndarray  #: per observation: the segment's depth offset from the pelvis (m)
+    g: np.ndarray  #: per observation: its noise relative to the others (:func:`image_noise`)
+    ln_c: np.ndarray  #: per seen segment: the log of the detector's seen/true length share
+    sd_beta: np.ndarray  #: per seen segment: the prior SD of the detector's error on it (log)
+    sd_phi: float  #: the prior SD of the floor's error (log)
+    fz: np.ndarray  #: per image: the pelvis depth from the floor (m; NaN where unknown)
+    fimg: np.ndarray  #: the images whose floor depth counts (narrowed to those on the floor before the final fit)
+    obs_idx: np.ndarray  #: per seen segment: its index in SEGMENTS
+    W_prop: np.ndarray  #: Wᵀ W = the inverse of the proportions' prior covariance
+    sd_lnH: float  #: the stature's prior SD (log)
+    ln_H0: float  #: the template's log stature
+    lo: np.ndarray  #: the parameters' lower bounds
+    hi: np.ndarray  #: the parameters' upper bounds
+    memo: dict = field(default_factory=dict)  #: the bodies' log lengths computed so far
+
+    @property
+    def o_beta(self) -> int:
+        return len(self.theta)
+
+    @property
+    def o_phi(self) -> int:
+        return len(self.theta) + len(self.names)
+
+    @property
+    def o_z(self) -> int:
+        return self.o_phi + (1 if self.use_floor else 0)
+
+    @property
+    def size(self) -> int:
+        return self.o_z + self.n_images
+
+    def body_of(self, x_theta) -> dict:
+        return {**self.params, **dict(zip(self.theta, (float(v) for v in x_theta)))}
+
+    def log_lengths(self, p: dict) -> np.ndarray:
+        """The log lengths of :data:`SEGMENTS` of the body p."""
+        key = (round(p["height_m"], 12), round(p["build"], 12), round(p["muscle"], 12), round(p["sex"], 12))
+        if key not in self.memo:
+            L = segment_lengths(self.rest_joints(p["height_m"], p["build"], p["muscle"], p["sex"]))
+            self.memo[key] = np.log(np.array([L[n] for n in SEGMENTS]))
+        return self.memo[key]
+
+    @staticmethod
+    def kinds(ll: np.ndarray) -> np.ndarray:
+        return np.array([ll[_KIND_IDX[k]].mean() for k in KINDS])
+
+    def residuals(self, x, sig_obs, sig_floor, keep, flat_stature=False):
+        """The whitened residuals: the observations kept, the floor's depths (with the floor), the stature's prior
+        (unless ``flat_stature``), the floor's error, the proportions' and phenotypes' priors, the detector's errors."""
+        T, o_beta, o_phi, o_z = len(self.theta), self.o_beta, self.o_phi, self.o_z
+        seg, img, fimg, fz = self.seg, self.img, self.fimg, self.fz
+        p = self.body_of(x[:T])
+        ll = self.log_lengths(p)
+        beta, lz = x[o_beta:o_phi], x[o_z:]
+        depth = np.maximum(np.exp(lz)[img] + self.off, 0.05)
+        r = [((np.log(self.unit * depth) - self.ln_c[seg] - ll[self.obs_idx][seg] - beta[seg]) / sig_obs)[keep]]
+        if self.use_floor:
+            r.append((lz[fimg] - np.log(fz[fimg]) - x[o_phi]) / sig_floor)
+            if not flat_stature:
+                r.append(np.array([(np.log(p["height_m"]) - self.ln_H0) / self.sd_lnH]))
+            r.append(np.array([x[o_phi] / self.sd_phi]))
+        if self.pheno:
+            # the template's proportions at this stature
+            ref = self.log_lengths({**p, **{q: self.params[q] for q in self.pheno}})
+            r.append(self.W_prop @ (self.kinds(ll) - self.kinds(ref)))
+            r.append(np.array([(p[q] - self.params[q]) / PHENOTYPE_SD for q in self.pheno]))
+        r.append(beta / self.sd_beta)
+        return np.concatenate(r)
+
+    def sparsity(self, keep, flat=False):
+        """Which parameters each residual of :meth:`residuals` depends on (rows in its order)."""
+        from scipy.sparse import coo_matrix
+
+        T, S, o_beta, o_phi, o_z, fimg = len(self.theta), len(self.names), self.o_beta, self.o_phi, self.o_z, self.fimg
+        rows, cols = [], []
+
+        def add(r, c):
+            rows.append(np.asarray(r, dtype=np.int64).ravel())
+            cols.append(np.asarray(c, dtype=np.int64).ravel())
+
+        ki = np.flatnonzero(keep)
+        m = ki.size
+        r_obs = np.arange(m)
+        add(np.repeat(r_obs, T), np.tile(np.arange(T), m))  # the body
+        add(r_obs, o_beta + self.seg[ki])  # the detector's error on the segment
+        add(r_obs, o_z + self.img[ki])  # the image's depth
+        rr = m
+        if self.use_floor:
+            r_f = rr + np.arange(len(fimg))
+            add(r_f, o_z + fimg)
+            add(r_f, np.full(len(fimg), o_phi))
+            rr += len(fimg)
+            if not flat:
+                add(np.full(T, rr), np.arange(T))  # the stature's prior
+                rr += 1
+            add([rr], [o_phi])
+            rr += 1
+        if self.pheno:
+            k = len(KINDS) + len(self.pheno)
+            add(np.repeat(rr + np.arange(k), T), np.tile(np.arange(T), k))
+            rr += k
+        add(rr + np.arange(S), o_beta + np.arange(S))
+        rr += S
+        return coo_matrix((np.ones(sum(r.size for r in rows), dtype=int), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(rr, self.size)).tocsr()
+
+
+def _body_fit(seen: SeenSegments, names: list, counts: dict, images: list, params: dict, theta: list, pheno: list,
+              fz_all: np.ndarray | None, definitions: dict, spread: DetectorSpread, k_span: float, rest_joints,
+              stature_sd_m: float, proportion_cov: np.ndarray) -> _BodyFit:
+    """The observations of the seen segments ``names`` in ``images`` and the fit's layout and bounds
+    (:class:`_BodyFit`); the detector's spread scaled by ``k_span`` (:func:`span_factor`)."""
+    col = {f: i for i, f in enumerate(images)}
+    N, S, T = len(images), len(names), len(theta)
+    use_floor = fz_all is not None
+    fz = fz_all[images] if use_floor else np.full(N, np.nan)
+    P = T + S + (1 if use_floor else 0) + N
+    lo = np.full(P, -np.inf)
+    hi = np.full(P, np.inf)
+    for j, q in enumerate(theta):
+        lo[j], hi[j] = STATURE_RANGE_M if q == "height_m" else (-1.0, 1.0)
+    lo[P - N:] = np.log(0.1)
+    return _BodyFit(
+        params=params, theta=theta, pheno=pheno, names=names, rest_joints=rest_joints, n_images=N, use_floor=use_floor,
+        seg=np.concatenate([np.full(counts[n], k) for k, n in enumerate(names)]),
+        img=np.concatenate([[col[f] for f in seen.image[n]] for n in names]).astype(np.int64),
+        unit=np.concatenate([seen.unit[n] for n in names]),
+        off=np.concatenate([seen.offset[n] for n in names]),
+        g=image_noise(np.concatenate([seen.pixels[n] for n in names]),
+                      np.concatenate([seen.across[n] for n in names])),
+        ln_c=np.log([definitions.get(n, 1.0) for n in names]),
+        sd_beta=np.array([spread.of(n) for n in names]) * k_span, sd_phi=spread.floor * k_span,
+        fz=fz, fimg=np.flatnonzero(np.isfinite(fz) & (fz > 0)),
+        obs_idx=np.array([list(SEGMENTS).index(n) for n in names]),
+        W_prop=np.linalg.cholesky(np.linalg.inv(np.asarray(proportion_cov, dtype=np.float64))).T,
+        sd_lnH=stature_sd_m / params["height_m"], ln_H0=np.log(params["height_m"]), lo=lo, hi=hi)
+
+
+def _start(fit: _BodyFit) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's start, the template at the seen depths (with the floor: at the stature the floor implies, the
+    template seen at the floor's depths), within the bounds; (x, the template's log lengths of :data:`SEGMENTS`)."""
+    T, N, o_z, fz, fimg, params = len(fit.theta), fit.n_images, fit.o_z, fit.fz, fit.fimg, fit.params
+    ll0 = fit.log_lengths(params)
+    z0 = np.full(N, np.nan)
+    per = np.exp(fit.ln_c + ll0[fit.obs_idx])[fit.seg] / fit.unit - fit.off
+    for i in range(N):
+        z0[i] = np.median(per[fit.img == i])
+    z0 = np.maximum(z0, 0.1)
+    x = np.zeros(fit.size)
+    x[:T] = [params[q] for q in fit.theta]
+    x[o_z:] = np.log(z0)
+    if fit.use_floor:
+        k = float(np.exp(np.median(np.log(fz[fimg]) - np.log(z0[fimg]))))
+        x[0] = float(np.clip(params["height_m"] * k, *STATURE_RANGE_M))
+        x[o_z:] += np.log(k)
+    return np.clip(x, fit.lo + 1e-9, fit.hi - 1e-9), ll0
+
+
+def _start_spread(fit: _BodyFit, x: np.ndarray) -> tuple[float, float]:
+    """The images' spread at the start x, both in logs: (the observations' per unit of ``fit.g``, the floor's; 1
+    without the floor)."""
+    T, o_z, seg, fimg = len(fit.theta), fit.o_z, fit.seg, fit.fimg
+    r0 = (np.log(fit.unit * np.maximum(np.exp(x[o_z:])[fit.img] + fit.off, 0.05)) - fit.ln_c[seg]
+          - fit.log_lengths(fit.body_of(x[:T]))[fit.obs_idx][seg])
+    sigma = max(_robust_sd(r0 / fit.g), 0.05)
+    sig_f = max(_robust_sd(x[o_z:][fimg] - np.log(fit.fz[fimg])), 0.005) if fit.use_floor else 1.0
+    return sigma, sig_f
+
+
+def _solve(fit: _BodyFit, x, keep, sig_obs, sig_floor, loss, flat=False):
+    """The fit from x (scipy's least_squares, sparse trust region): the observations ``keep`` with the noise
+    ``sig_obs``, the floor's with ``sig_floor``; ``flat``: without the stature's prior."""
+    from scipy.optimize import least_squares
+
+    return least_squares(fit.residuals, x, args=(sig_obs, sig_floor, keep, flat), bounds=(fit.lo, fit.hi), loss=loss,
+                         f_scale=2.5, jac_sparsity=fit.sparsity(keep, flat), method="trf", x_scale="jac",
+                         max_nfev=200)
+
+
+def _seen_spread(fit: _BodyFit, x: np.ndarray) -> tuple[dict, float, np.ndarray, float]:
+    """The observations' spread around the robust fit x: (its body, sigma per unit of ``fit.g``, which observations
+    are kept (within :data:`OUTLIER_SIGMAS`), the kept residuals' lag-1 correlation ρ in [0, 0.9])."""
+    T, o_z, seg, img, g = len(fit.theta), fit.o_z, fit.seg, fit.img, fit.g
+    p = fit.body_of(x[:T])
+    lz = x[o_z:]
+    res = (np.log(fit.unit * np.maximum(np.exp(lz)[img] + fit.off, 0.05)) - fit.ln_c[seg]
+           - fit.log_lengths(p)[fit.obs_idx][seg] - x[fit.o_beta:fit.o_phi][seg])
+    sigma = max(_robust_sd(res / g), 0.05)
+    keep = np.abs(res) <= OUTLIER_SIGMAS * sigma * g
+    rho = float(np.clip(_lag1(res[keep] / g[keep], seg[keep], img[keep]), 0.0, 0.9))
+    return p, sigma, keep, rho
+
+
+def _floor_spread(fit: _BodyFit, x: np.ndarray, p: dict, keep: np.ndarray, sigma: float) -> tuple[float, float, float]:
+    """The floor's noise per image around the robust fit x (body p): its depth against the depth the image's
+    segments alone give the body (the fit's own depths follow the floor, so its residuals would understate it); the
+    segments' own noise in that depth counts too, which keeps it on the safe side. A foot off the floor (a jump, a
+    kick) puts the floor's point behind it: the floor then says too far, never too near. So the floor's spread is
+    read below its middle (median - 16th percentile: one SD of a normal) and images more than
+    :data:`OFF_FLOOR_SIGMAS` of it beyond are taken to be off the floor: ``fit.fimg`` is narrowed to the others.
+    (the spread, the lag-1 correlation ρ of the images kept, the spread inflated by it)."""
+    seg, img, N, fimg = fit.seg, fit.img, fit.n_images, fit.fimg
+    seg_z = np.log(np.maximum(np.exp(fit.ln_c + fit.log_lengths(p)[fit.obs_idx] + x[fit.o_beta:fit.o_phi])[seg]
+                              / fit.unit - fit.off, 0.05))
+    w_z = keep / (sigma * fit.g) ** 2
+    w_sum = np.bincount(img, weights=w_z, minlength=N)
+    lz_seg = np.where(w_sum > 0, np.bincount(img, weights=w_z * seg_z, minlength=N) / np.maximum(w_sum, 1e-12),
+                      np.nan)
+    d = np.log(fit.fz[fimg]) + x[fit.o_phi] - lz_seg[fimg]
+    ok = np.isfinite(d)
+    m = float(np.median(d[ok]))
+    sig_f = max(float(m - np.percentile(d[ok], 16)), 0.005)
+    fkeep = ok & (d <= m + OFF_FLOOR_SIGMAS * sig_f) & (d >= m - OUTLIER_SIGMAS * sig_f)
+    dd = np.where(ok, d - m, 0.0)
+    rho_f = float(np.clip(_lag1(dd[fkeep], np.zeros(int(fkeep.sum()), int), fimg[fkeep]), 0.0, 0.9))
+    fit.fimg = fimg[fkeep]
+    return sig_f, rho_f, sig_f * float(np.sqrt((1.0 + rho_f) / (1.0 - rho_f)))
+
+
+def _covariance(sol, o_z: int) -> np.ndarray:
+    """The posterior covariance of the parameters before ``o_z`` (the body, the detector's and the floor's errors)
+    from the fit's Jacobian, the images' depths marginalised (a Schur complement)."""
+    J = sol.jac.tocsc() if hasattr(sol.jac, "tocsc") else np.asarray(sol.jac)
+    Jg = J[:, :o_z].toarray() if hasattr(J, "toarray") else J[:, :o_z]
+    Jz = J[:, o_z:]
+    A = Jg.T @ Jg
+    Bm = np.asarray((Jz.T @ Jg)).T if hasattr(Jz, "toarray") else Jg.T @ Jz  # (Pg, N)
+    D = np.asarray(Jz.multiply(Jz).sum(axis=0)).ravel() if hasattr(Jz, "multiply") else (Jz ** 2).sum(axis=0)
+    Schur = A - (Bm / np.maximum(D, 1e-12)) @ Bm.T
+    return np.linalg.pinv(Schur)
+
+
+def _grad_log_lengths(fit: _BodyFit, p: dict, unc: tuple) -> np.ndarray:
+    """The gradient of each segment's log length at the body p with respect to the parameters ``unc`` (central
+    differences, within their ranges)."""
+    G = np.zeros((len(SEGMENTS), len(unc)))
+    for j, q in enumerate(unc):
+        h = 1e-4 if q == "height_m" else 1e-3
+        lo_q, hi_q = STATURE_RANGE_M if q == "height_m" else (-1.0, 1.0)
+        up = {**p, q: min(p[q] + h, hi_q)}
+        dn = {**p, q: max(p[q] - h, lo_q)}
+        G[:, j] = (fit.log_lengths(up) - fit.log_lengths(dn)) / (up[q] - dn[q])
+    return G
+
+
+def _segment_updates(fit: _BodyFit, x: np.ndarray, p: dict, ll0: np.ndarray, cov: np.ndarray, unc: tuple,
+                     keep: np.ndarray, sig_obs: np.ndarray, rho: float, spread: DetectorSpread,
+                     k_span: float) -> tuple[dict, dict]:
+    """Per segment, what moved and on what evidence, at the fit x (body p) with the posterior covariance ``cov`` of
+    ``unc`` (lengths and SDs by the delta method): (segment -> its seen length, m; segment -> :class:`Moved`)."""
+    ll = fit.log_lengths(p)
+    G = _grad_log_lengths(fit, p, unc)
+    G0 = _grad_log_lengths(fit, fit.params, unc)
+    seg, lz = fit.seg, x[fit.o_z:]
+    res = (np.log(fit.unit * np.maximum(np.exp(lz)[fit.img] + fit.off, 0.05)) - fit.ln_c[seg])  # the seen log lengths
+    measured, segments = {}, {}
+    kind_pos = {k: i for i, k in enumerate(KINDS)}
+    var_lnH_prior = fit.sd_lnH ** 2 if "height_m" in unc else 0.0
+    for j, n in enumerate(SEGMENTS):
+        gH = G0[j, unc.index("height_m")] * fit.params["height_m"] if "height_m" in unc else 0.0  # d ln L / d ln H
+        prior_sd = float(np.exp(ll0[j]) * np.sqrt(PROPORTION_COV[kind_pos[KIND_OF[n]], kind_pos[KIND_OF[n]]]
+                                                   * (1.0 if fit.pheno else 0.0) + gH ** 2 * var_lnH_prior))
+        post_sd = float(np.exp(ll[j]) * np.sqrt(max(G[j] @ cov @ G[j], 0.0)))
+        moved = dict(template=float(np.exp(ll0[j])), prior_sd=prior_sd, posterior=float(np.exp(ll[j])),
+                     posterior_sd=post_sd)
+        if n in fit.names:
+            k = fit.names.index(n)
+            m = (seg == k) & keep
+            v = res[m]
+            w = 1.0 / (sig_obs[m] ** 2)
+            mean = float((w * v).sum() / w.sum())
+            n_eff = float(m.sum()) * (1.0 - rho) / (1.0 + rho)
+            se = float(np.sqrt(1.0 / w.sum() + (spread.of(n) * k_span) ** 2))
+            measured[n] = float(np.exp(mean))
+            moved.update(seen=float(np.exp(mean)), seen_se=float(np.exp(mean) * se), images=int(m.sum()),
+                         effective=n_eff)
+        segments[n] = Moved(**moved)
+    return measured, segments
+
+
+def _stature_update(fit: _BodyFit, x: np.ndarray, Sg: np.ndarray, keep: np.ndarray, sig_obs: np.ndarray,
+                    sig_f_eff: float, rho_f: float, stature_sd_m: float) -> Moved:
+    """The stature's update from the floor at the fit x (posterior covariance ``Sg``); what the floor alone says is
+    the same fit without the stature's prior."""
+    floor_images = int(len(fit.fimg))
+    alone = _solve(fit, x, keep, sig_obs, sig_f_eff, "linear", flat=True)
+    Sa = _covariance(alone, fit.o_z)
+    H_alone = float(alone.x[0])
+    return Moved(template=fit.params["height_m"], prior_sd=stature_sd_m, posterior=float(x[0]),
+                 posterior_sd=float(np.sqrt(max(Sg[0, 0], 0.0))), seen=H_alone,
+                 seen_se=float(np.sqrt(max(Sa[0, 0], 0.0))), images=floor_images,
+                 effective=floor_images * (1.0 - rho_f) / (1.0 + rho_f))
+
+
 def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray | None = None,
              definitions: dict | None = None, spread: DetectorSpread | None = None, rest_joints=None,
              camera_height_m: float | None = None, stature_sd_m: float = STATURE_SD_M,
@@ -482,10 +831,12 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     detector's errors share within a capture (default :data:`UNKNOWN_SPREAD`); ``rest_joints(height_m, build,
     muscle, sex)`` gives a body's rest joints (default: :func:`eventcap.body.anny.anny_rest_joints`); the prior:
     ``stature_sd_m`` and ``proportion_cov`` (:data:`KINDS`' log lengths at a given stature); ``t_us`` the images'
-    times (the span they cover scales the detector's spread, :func:`span_factor`; None: 1 s)."""
-    from scipy.optimize import least_squares
-    from scipy.sparse import coo_matrix
+    times (the span they cover scales the detector's spread, :func:`span_factor`; None: 1 s).
 
+    The steps: a robust fit from the template at the seen depths (:func:`_start`, :func:`_solve`); the images'
+    spread around it, the outliers left out, the correlation in time (:func:`_seen_spread`, and the floor's,
+    :func:`_floor_spread`); the final fit, its covariance (:func:`_covariance`) and per quantity what moved
+    (:func:`_segment_updates`, :func:`_stature_update`)."""
     if rest_joints is None:
         from eventcap.body.anny import anny_rest_joints as rest_joints
     definitions = definitions or {}
@@ -494,30 +845,8 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
     counts = {n: int(len(seen.image.get(n, ()))) for n in SEGMENTS}
     names = [n for n in SEGMENTS if counts[n] >= MIN_IMAGES]
     pheno = [p for p in FITTED_PHENOTYPES if p in free]
-    scale_from = "stated" if "height_m" not in free else "template default"
-    fz_all = None
-    if "height_m" in free:
-        if floor_z is None or camera_height_m is None:
-            scale_from = ("template default (without the floor and the camera's height one camera cannot tell the "
-                          "stature)")
-        else:
-            fz_all = np.asarray(floor_z, dtype=np.float64)
-            dist = float(np.nanmedian(fz_all)) if np.isfinite(fz_all).any() else float("nan")
-            if not np.isfinite(dist):
-                scale_from = "template default (no sole of a supporting foot seen on the floor)"
-                fz_all = None
-            elif camera_height_m < MIN_FLOOR_ELEVATION * dist:
-                scale_from = (f"template default (the camera {camera_height_m:.2f} m high, the person ~{dist:.1f} m "
-                              f"away: too low for the floor to tell the depth, below {MIN_FLOOR_ELEVATION} x the "
-                              "distance)")
-                fz_all = None
     images = sorted(set(np.concatenate([seen.image[n] for n in names]).tolist())) if names else []
-    if fz_all is not None:
-        ok = np.isfinite(fz_all[images]) & (fz_all[images] > 0) if images else np.zeros(0, bool)
-        if int(ok.sum()) < MIN_IMAGES:
-            scale_from = (f"template default (the supporting foot's sole seen on the floor in {int(ok.sum())} images "
-                          f"with segments; needs {MIN_IMAGES})")
-            fz_all = None
+    fz_all, scale_from = _floor_for_stature(free, floor_z, camera_height_m, images)
     use_floor = fz_all is not None
     theta = (["height_m"] if use_floor else []) + pheno
     unc, cov0 = prior_cov(params, tuple(free), rest_joints, stature_sd_m, proportion_cov)
@@ -526,260 +855,50 @@ def fit_body(seen: SeenSegments, start: dict, free: tuple, floor_z: np.ndarray |
                             measured_m={}, cov=cov0, uncertain=unc,
                             why="too few segments seen across the line of sight (each needs "
                                 f"{MIN_IMAGES} images): " + ", ".join(f"{n} {k}" for n, k in counts.items()))
-    span_s = 1.0
-    if t_us is not None and len(images) > 1:
-        times = np.asarray(t_us, dtype=np.float64)[images]
-        span_s = float(np.ptp(times) + np.median(np.diff(times))) / 1e6
+    span_s = _images_span_s(t_us, images)
     if span_s < MIN_SPAN_S:
         return BodyEstimate(**params, estimated=(), scale_from=scale_from, images=len(images), seen=counts,
                             measured_m={}, cov=cov0, uncertain=unc,
                             why=f"the images with segments span {span_s:.2f} s: too few poses to tell "
-                                               f"the body from its detector's errors (it moves on >= {MIN_SPAN_S} s)",
+                                f"the body from its detector's errors (it moves on >= {MIN_SPAN_S} s)",
                             noise={"span_s": span_s})
-
-    # ---------------------------------------------------------------- the observations
-    col = {f: i for i, f in enumerate(images)}
-    N, S, T = len(images), len(names), len(theta)
-    seg = np.concatenate([np.full(counts[n], k) for k, n in enumerate(names)])
-    img = np.concatenate([[col[f] for f in seen.image[n]] for n in names]).astype(np.int64)
-    unit = np.concatenate([seen.unit[n] for n in names])
-    off = np.concatenate([seen.offset[n] for n in names])
-    g = image_noise(np.concatenate([seen.pixels[n] for n in names]), np.concatenate([seen.across[n] for n in names]))
-    ln_c = np.log([definitions.get(n, 1.0) for n in names])
     k_span = span_factor(span_s)
-    sd_beta = np.array([spread.of(n) for n in names]) * k_span
-    sd_phi = spread.floor * k_span
-    fz = fz_all[images] if use_floor else np.full(N, np.nan)
-    fimg = np.flatnonzero(np.isfinite(fz) & (fz > 0))
-    kind_idx = {k: [i for i, n in enumerate(SEGMENTS) if KIND_OF[n] == k] for k in KINDS}
-    seg_all = list(SEGMENTS)
-    obs_idx = np.array([seg_all.index(n) for n in names])
-
-    def body_of(x_theta) -> dict:
-        return {**params, **dict(zip(theta, (float(v) for v in x_theta)))}
-
-    memo: dict = {}
-
-    def log_lengths(p: dict) -> np.ndarray:
-        key = (round(p["height_m"], 12), round(p["build"], 12), round(p["muscle"], 12), round(p["sex"], 12))
-        if key not in memo:
-            L = segment_lengths(rest_joints(p["height_m"], p["build"], p["muscle"], p["sex"]))
-            memo[key] = np.log(np.array([L[n] for n in seg_all]))
-        return memo[key]
-
-    def kinds(ll: np.ndarray) -> np.ndarray:
-        return np.array([ll[kind_idx[k]].mean() for k in KINDS])
-
-    W_prop = np.linalg.cholesky(np.linalg.inv(np.asarray(proportion_cov, dtype=np.float64))).T  # Wᵀ W = C⁻¹
-    sd_lnH = stature_sd_m / params["height_m"]
-    ln_H0 = np.log(params["height_m"])
-    # layout: θ (T) | β (S) | φ (1 with the floor) | ln z (N)
-    nphi = 1 if use_floor else 0
-    o_beta, o_phi, o_z = T, T + S, T + S + nphi
-    P = o_z + N
-
-    def residuals(x, sig_obs, sig_floor, keep, flat_stature=False):
-        p = body_of(x[:T])
-        ll = log_lengths(p)
-        beta, lz = x[o_beta:o_phi], x[o_z:]
-        depth = np.maximum(np.exp(lz)[img] + off, 0.05)
-        r = [((np.log(unit * depth) - ln_c[seg] - ll[obs_idx][seg] - beta[seg]) / sig_obs)[keep]]
-        if use_floor:
-            r.append((lz[fimg] - np.log(fz[fimg]) - x[o_phi]) / sig_floor)
-            if not flat_stature:
-                r.append(np.array([(np.log(p["height_m"]) - ln_H0) / sd_lnH]))
-            r.append(np.array([x[o_phi] / sd_phi]))
-        if pheno:
-            ref = log_lengths({**p, **{q: params[q] for q in pheno}})  # the template's proportions at this stature
-            r.append(W_prop @ (kinds(ll) - kinds(ref)))
-            r.append(np.array([(p[q] - params[q]) / PHENOTYPE_SD for q in pheno]))
-        r.append(beta / sd_beta)
-        return np.concatenate(r)
-
-    def sparsity(keep, flat=False):
-        """Which parameters each residual of :func:`residuals` depends on (rows in its order)."""
-        rows, cols = [], []
-
-        def add(r, c):
-            rows.append(np.asarray(r, dtype=np.int64).ravel())
-            cols.append(np.asarray(c, dtype=np.int64).ravel())
-
-        ki = np.flatnonzero(keep)
-        m = ki.size
-        r_obs = np.arange(m)
-        add(np.repeat(r_obs, T), np.tile(np.arange(T), m))  # the body
-        add(r_obs, o_beta + seg[ki])  # the detector's error on the segment
-        add(r_obs, o_z + img[ki])  # the image's depth
-        rr = m
-        if use_floor:
-            r_f = rr + np.arange(len(fimg))
-            add(r_f, o_z + fimg)
-            add(r_f, np.full(len(fimg), o_phi))
-            rr += len(fimg)
-            if not flat:
-                add(np.full(T, rr), np.arange(T))  # the stature's prior
-                rr += 1
-            add([rr], [o_phi])
-            rr += 1
-        if pheno:
-            k = len(KINDS) + len(pheno)
-            add(np.repeat(rr + np.arange(k), T), np.tile(np.arange(T), k))
-            rr += k
-        add(rr + np.arange(S), o_beta + np.arange(S))
-        rr += S
-        return coo_matrix((np.ones(sum(r.size for r in rows), dtype=int), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(rr, P)).tocsr()
-
-    # ---------------------------------------------------------------- start: the template at the seen depths
-    ll0 = log_lengths(params)
-    z0 = np.full(N, np.nan)
-    per = np.exp(ln_c + ll0[obs_idx])[seg] / unit - off
-    for i in range(N):
-        z0[i] = np.median(per[img == i])
-    z0 = np.maximum(z0, 0.1)
-    x = np.zeros(P)
-    x[:T] = [params[q] for q in theta]
-    x[o_z:] = np.log(z0)
-    if use_floor:  # the stature the floor implies at the start (the template seen at the floor's depths)
-        k = float(np.exp(np.median(np.log(fz[fimg]) - np.log(z0[fimg]))))
-        x[0] = float(np.clip(params["height_m"] * k, *STATURE_RANGE_M))
-        x[o_z:] += np.log(k)
-    lo = np.full(P, -np.inf)
-    hi = np.full(P, np.inf)
-    for j, q in enumerate(theta):
-        lo[j], hi[j] = STATURE_RANGE_M if q == "height_m" else (-1.0, 1.0)
-    lo[o_z:] = np.log(0.1)
-    x = np.clip(x, lo + 1e-9, hi - 1e-9)
-
-    # the images' spread, first from the start, then from the robust fit
-    keep = np.ones(seg.size, bool)
-    r0 = (np.log(unit * np.maximum(np.exp(x[o_z:])[img] + off, 0.05)) - ln_c[seg]
-          - log_lengths(body_of(x[:T]))[obs_idx][seg])
-    sigma = max(_robust_sd(r0 / g), 0.05)
-    sig_f = max(_robust_sd(x[o_z:][fimg] - np.log(fz[fimg])), 0.005) if use_floor else 1.0
-
-    def solve(x, keep, sig_obs, sig_floor, loss, flat=False):
-        sol = least_squares(residuals, x, args=(sig_obs, sig_floor, keep, flat), bounds=(lo, hi), loss=loss,
-                            f_scale=2.5, jac_sparsity=sparsity(keep, flat), method="trf", x_scale="jac", max_nfev=200)
-        return sol
-
-    sol = solve(x, keep, sigma * g, sig_f, "soft_l1")
-    x = sol.x
-    p = body_of(x[:T])
-    lz = x[o_z:]
-    res = (np.log(unit * np.maximum(np.exp(lz)[img] + off, 0.05)) - ln_c[seg] - log_lengths(p)[obs_idx][seg]
-           - x[o_beta:o_phi][seg])
-    sigma = max(_robust_sd(res / g), 0.05)
-    keep = np.abs(res) <= OUTLIER_SIGMAS * sigma * g
-    rho = float(np.clip(_lag1(res[keep] / g[keep], seg[keep], img[keep]), 0.0, 0.9))
-    inflate = float(np.sqrt((1.0 + rho) / (1.0 - rho)))
+    fit = _body_fit(seen, names, counts, images, params, theta, pheno, fz_all, definitions, spread, k_span,
+                    rest_joints, stature_sd_m, proportion_cov)
+    x, ll0 = _start(fit)
+    keep = np.ones(fit.seg.size, bool)
+    sigma, sig_f = _start_spread(fit, x)
+    x = _solve(fit, x, keep, sigma * fit.g, sig_f, "soft_l1").x
+    p, sigma, keep, rho = _seen_spread(fit, x)
+    fimg_all = fit.fimg
     if use_floor:
-        # the floor's noise per image: its depth against the depth the image's segments alone give the body (the
-        # fit's own depths follow the floor, so its residuals would understate it); the segments' own noise in
-        # that depth counts too, which keeps it on the safe side
-        seg_z = np.log(np.maximum(np.exp(ln_c + log_lengths(p)[obs_idx] + x[o_beta:o_phi])[seg] / unit - off, 0.05))
-        w_z = keep / (sigma * g) ** 2
-        w_sum = np.bincount(img, weights=w_z, minlength=N)
-        lz_seg = np.where(w_sum > 0, np.bincount(img, weights=w_z * seg_z, minlength=N) / np.maximum(w_sum, 1e-12),
-                          np.nan)
-        d = np.log(fz[fimg]) + x[o_phi] - lz_seg[fimg]
-        # a foot off the floor (a jump, a kick) puts the floor's point behind it: the floor then says too far, never
-        # too near. So the floor's spread is read below its middle (median - 16th percentile: one SD of a normal)
-        # and images more than OFF_FLOOR_SIGMAS of it beyond are taken to be off the floor
-        ok = np.isfinite(d)
-        m = float(np.median(d[ok]))
-        sig_f = max(float(m - np.percentile(d[ok], 16)), 0.005)
-        fkeep = ok & (d <= m + OFF_FLOOR_SIGMAS * sig_f) & (d >= m - OUTLIER_SIGMAS * sig_f)
-        dd = np.where(ok, d - m, 0.0)
-        rho_f = float(np.clip(_lag1(dd[fkeep], np.zeros(int(fkeep.sum()), int), fimg[fkeep]), 0.0, 0.9))
-        fimg_all = fimg
-        fimg = fimg[fkeep]
-        sig_f_eff = sig_f * float(np.sqrt((1.0 + rho_f) / (1.0 - rho_f)))
+        sig_f, rho_f, sig_f_eff = _floor_spread(fit, x, p, keep, sigma)
     else:
-        rho_f, sig_f_eff, fimg_all = 0.0, 1.0, fimg
-    sig_obs = sigma * g * inflate
-    sol = solve(x, keep, sig_obs, sig_f_eff, "linear")
+        rho_f, sig_f_eff = 0.0, 1.0
+    sig_obs = sigma * fit.g * float(np.sqrt((1.0 + rho) / (1.0 - rho)))
+    sol = _solve(fit, x, keep, sig_obs, sig_f_eff, "linear")
     x = sol.x
-
-    # ---------------------------------------------------------------- the posterior covariance (Schur on the depths)
-    def covariance(sol) -> np.ndarray:
-        J = sol.jac.tocsc() if hasattr(sol.jac, "tocsc") else np.asarray(sol.jac)
-        Jg = J[:, :o_z].toarray() if hasattr(J, "toarray") else J[:, :o_z]
-        Jz = J[:, o_z:]
-        A = Jg.T @ Jg
-        Bm = np.asarray((Jz.T @ Jg)).T if hasattr(Jz, "toarray") else Jg.T @ Jz  # (Pg, N)
-        D = np.asarray(Jz.multiply(Jz).sum(axis=0)).ravel() if hasattr(Jz, "multiply") else (Jz ** 2).sum(axis=0)
-        Schur = A - (Bm / np.maximum(D, 1e-12)) @ Bm.T
-        return np.linalg.pinv(Schur)
-
-    Sg = covariance(sol)
-    # in the parameters' own units: height_m in m
-    # the covariance of every parameter not stated: the posterior's where estimated, the prior's where not (an unstated
-    # stature the floor cannot tell keeps its prior's spread)
+    Sg = _covariance(sol, fit.o_z)
+    # the covariance of every parameter not stated: the posterior's where estimated, the prior's where not (an
+    # unstated stature the floor cannot tell keeps its prior's spread); height_m in m
     cov = cov0.copy()
     it = [unc.index(q) for q in theta]
-    cov[np.ix_(it, it)] = Sg[:T, :T]
-    p = body_of(x[:T])
-    ll = log_lengths(p)
-
-    # the gradient of each segment's log length with respect to the parameters not stated (central differences)
-    def grad_ll(p: dict) -> np.ndarray:
-        G = np.zeros((len(seg_all), len(unc)))
-        for j, q in enumerate(unc):
-            h = 1e-4 if q == "height_m" else 1e-3
-            lo_q, hi_q = STATURE_RANGE_M if q == "height_m" else (-1.0, 1.0)
-            up = {**p, q: min(p[q] + h, hi_q)}
-            dn = {**p, q: max(p[q] - h, lo_q)}
-            G[:, j] = (log_lengths(up) - log_lengths(dn)) / (up[q] - dn[q])
-        return G
-
-    G = grad_ll(p)
-    G0 = grad_ll(params)
-    # ---------------------------------------------------------------- per quantity: what moved, on what evidence
-    lz = x[o_z:]
-    res = (np.log(unit * np.maximum(np.exp(lz)[img] + off, 0.05)) - ln_c[seg])  # the seen log lengths
-    measured, segments = {}, {}
-    kind_pos = {k: i for i, k in enumerate(KINDS)}
-    var_lnH_prior = sd_lnH ** 2 if "height_m" in unc else 0.0
-    for j, n in enumerate(seg_all):
-        gH = G0[j, unc.index("height_m")] * params["height_m"] if "height_m" in unc else 0.0  # d ln L / d ln H
-        prior_sd = float(np.exp(ll0[j]) * np.sqrt(PROPORTION_COV[kind_pos[KIND_OF[n]], kind_pos[KIND_OF[n]]]
-                                                   * (1.0 if pheno else 0.0) + gH ** 2 * var_lnH_prior))
-        post_sd = float(np.exp(ll[j]) * np.sqrt(max(G[j] @ cov @ G[j], 0.0)))
-        moved = dict(template=float(np.exp(ll0[j])), prior_sd=prior_sd, posterior=float(np.exp(ll[j])),
-                     posterior_sd=post_sd)
-        if n in names:
-            k = names.index(n)
-            m = (seg == k) & keep
-            v = res[m]
-            w = 1.0 / (sig_obs[m] ** 2)
-            mean = float((w * v).sum() / w.sum())
-            n_eff = float(m.sum()) * (1.0 - rho) / (1.0 + rho)
-            se = float(np.sqrt(1.0 / w.sum() + (spread.of(n) * k_span) ** 2))
-            measured[n] = float(np.exp(mean))
-            moved.update(seen=float(np.exp(mean)), seen_se=float(np.exp(mean) * se), images=int(m.sum()),
-                         effective=n_eff)
-        segments[n] = Moved(**moved)
+    cov[np.ix_(it, it)] = Sg[:len(theta), :len(theta)]
+    p = fit.body_of(x[:len(theta)])
+    measured, segments = _segment_updates(fit, x, p, ll0, cov, unc, keep, sig_obs, rho, spread, k_span)
     stature = None
     floor_images = 0
     if use_floor:
-        floor_images = int(len(fimg))
-        # what the floor alone says: the same fit without the stature's prior
-        alone = solve(x, keep, sig_obs, sig_f_eff, "linear", flat=True)
-        Sa = covariance(alone)
-        H_alone = float(alone.x[0])
-        stature = Moved(template=params["height_m"], prior_sd=stature_sd_m, posterior=float(x[0]),
-                        posterior_sd=float(np.sqrt(max(Sg[0, 0], 0.0))), seen=H_alone,
-                        seen_se=float(np.sqrt(max(Sa[0, 0], 0.0))), images=floor_images,
-                        effective=floor_images * (1.0 - rho_f) / (1.0 + rho_f))
+        stature = _stature_update(fit, x, Sg, keep, sig_obs, sig_f_eff, rho_f, stature_sd_m)
+        floor_images = stature.images
         scale_from = "floor"
     noise = {"span_s": span_s, "span_factor": k_span, "sigma": sigma, "rho": rho, "outliers": int((~keep).sum()),
-             "observations": int(seg.size),
+             "observations": int(fit.seg.size),
              "sigma_floor": sig_f if use_floor else None, "rho_floor": rho_f if use_floor else None,
-             "off_floor": int(len(fimg_all) - len(fimg)) if use_floor else 0}
+             "off_floor": int(len(fimg_all) - len(fit.fimg)) if use_floor else 0}
     params.update(p)
     return BodyEstimate(**{k: float(v) for k, v in params.items()}, estimated=tuple(theta), scale_from=scale_from,
-                        images=N, seen=counts, measured_m=measured, floor_images=floor_images, cov=cov,
+                        images=fit.n_images, seen=counts, measured_m=measured, floor_images=floor_images, cov=cov,
                         uncertain=unc, segments=segments, stature=stature, noise=noise)
 
 
