@@ -30,6 +30,14 @@ def _poses(n: int, seed: int) -> np.ndarray:
     return S
 
 
+
+@pytest.fixture(autouse=True)
+def _compile_afresh():
+    """Each test finds the kernels' compilation untried, and leaves it so (a test that breaks it, undone)."""
+    kernels._compiled.cache_clear()
+    yield
+    kernels._compiled.cache_clear()
+
 def test_transforms_are_the_kinematics(rest):
     S = _poses(7, 0)
     G = SkinningKernels(rest, 7).transforms(S)
@@ -84,7 +92,7 @@ def test_the_casadi_graphs_stand_in_and_say_so(rest, monkeypatch, caplog):
     def broken(*args):
         raise RuntimeError("no LLVM here")
 
-    monkeypatch.setattr(kernels, "_COMPILED", [])
+    kernels._compiled.cache_clear()
     monkeypatch.setattr(compiled, "skin_jacobian", broken)
     S = _poses(4, 5)
     lam = np.random.default_rng(6).normal(size=(4, 96, 3))
@@ -93,7 +101,7 @@ def test_the_casadi_graphs_stand_in_and_say_so(rest, monkeypatch, caplog):
     assert "cannot run here (RuntimeError: no LLVM here)" in caplog.text
     assert "CasADi graphs stand in" in caplog.text
     assert isinstance(k._fallback, CasadiSkinning)
-    monkeypatch.setattr(kernels, "_COMPILED", [])
+    kernels._compiled.cache_clear()
     monkeypatch.undo()
     good = SkinningKernels(rest, 4)
     assert good._fallback is None
@@ -115,7 +123,7 @@ def test_a_missing_numba_falls_back_and_says_so(rest, monkeypatch, caplog):
 
     import eventcap.energy
 
-    monkeypatch.setattr(kernels, "_COMPILED", [])
+    kernels._compiled.cache_clear()
     monkeypatch.setitem(sys.modules, "numba", None)  # `import numba` raises ImportError
     monkeypatch.delitem(sys.modules, "eventcap.energy._skin_kernels", raising=False)
     monkeypatch.delattr(eventcap.energy, "_skin_kernels", raising=False)

@@ -249,7 +249,7 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
                  "template.target_faces=2000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     log = (run_dir / "eventcap.log").read_text()
     assert code == 1
-    assert ("detect (blazepose v5): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
+    assert ("detect (blazepose v10): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
             "images; the network saw no person in its images: look at the recording in `eventcap preview FILE`") in log
     assert ("run incomplete: detect failed (no_person); skipped because of it: 8 nodes (body, track, slice, solve, "
             "stitch, cut, confidence, evaluate); the first error is above (detect)") in log
@@ -278,7 +278,7 @@ def test_detections_of_schema_1_are_refused_and_new_fields_round_trip(tmp_path):
     with pytest.raises(ArtifactError, match=r"Detections.world_R: expected a rotation matrix \(R R\^T = I\)"):
         dataclasses.replace(d, world_R=2 * np.eye(3))
     g.attrs["schema_version"] = 1  # a cache entry written before what is in view was stated
-    with pytest.raises(ArtifactError, match="Detections schema version 1 on disk, this code reads version 3"):
+    with pytest.raises(ArtifactError, match="Detections schema version 1 on disk, this code reads version 4"):
         Detections.from_zarr(zarr.open_group(str(tmp_path / "d.zarr"), mode="r"))
     # a landmark out of view cannot carry a confidence
     with pytest.raises(ArtifactError, match="landmark 0 of image 0 is not in view but has confidence"):

@@ -6,6 +6,8 @@ Every term on surface points (E_cor, E_sil) poses its points as WX · G(S) with 
 
 from __future__ import annotations
 
+import functools
+
 import logging
 
 import casadi as ca
@@ -195,33 +197,29 @@ class CasadiSkinning:
         return self._h(S, lam)[0].reshape(self.F, _NP, _NP)
 
 
-_COMPILED: list = []  # [module or None] once tried
-
-
+@functools.cache
 def _compiled():
     """The compiled kernels' module, compiled (or loaded from numba's cache) on first use; None when numba cannot
     compile them (logged once: the CasADi graphs stand in, slower)."""
-    if not _COMPILED:
-        try:
-            from . import _skin_kernels as k
+    try:
+        from . import _skin_kernels as k
 
-            G, dG, H = np.empty((1, 4 * NUM_JOINTS, 3)), np.empty((1, 4 * NUM_JOINTS, 3, _NP)), np.empty((1, _NP, _NP))
-            S, rest = np.zeros((1, _NP)), np.zeros((NUM_JOINTS, 3))
-            k.skin_transforms(S, rest, *k.tables()[:4], G)
-            k.skin_jacobian(S, rest, *k.tables()[:5], G, dG)
-            k.skin_contracted_hessian(S, np.zeros_like(G), rest, *k.tables(), H)
-            _COMPILED.append(k)
-        except Exception as exc:  # noqa: BLE001 - numba missing, its errors, a missing LLVM: fall back, say so
-            hint = " (is numba installed? it is a dependency of eventcap)" if isinstance(exc, ImportError) else ""
-            _log.warning("the compiled skinning kernels cannot run here (%s: %s)%s: the CasADi graphs stand in for "
-                         "them (slower; same results)", type(exc).__name__, exc, hint)
-            _COMPILED.append(None)
-    return _COMPILED[0]
+        G, dG, H = np.empty((1, 4 * NUM_JOINTS, 3)), np.empty((1, 4 * NUM_JOINTS, 3, _NP)), np.empty((1, _NP, _NP))
+        S, rest = np.zeros((1, _NP)), np.zeros((NUM_JOINTS, 3))
+        k.skin_transforms(S, rest, *k.tables()[:4], G)
+        k.skin_jacobian(S, rest, *k.tables()[:5], G, dG)
+        k.skin_contracted_hessian(S, np.zeros_like(G), rest, *k.tables(), H)
+        return k
+    except Exception as exc:  # noqa: BLE001 - numba missing, its errors, a missing LLVM: fall back, say so
+        hint = " (is numba installed? it is a dependency of eventcap)" if isinstance(exc, ImportError) else ""
+        _log.warning("the compiled skinning kernels cannot run here (%s: %s)%s: the CasADi graphs stand in for "
+                     "them (slower; same results)", type(exc).__name__, exc, hint)
+        return None
 
 
 #: Skinning kernels by (rest joints, frames): the factors of one problem (E_cor, E_temp, E_sil, E_stab at the
 #: same frames) share them, and their memo of the last poses. Bounded: windows of many shapes come and go.
-_KERNELS = ProcessCache("energy.skinning_kernels", maxsize=16)
+_KERNELS = ProcessCache("energy.kernels", maxsize=16)
 
 
 def shared_kernels(rest_joints: np.ndarray, n_frames: int) -> SkinningKernels:

@@ -291,12 +291,12 @@ def run_file(inputs, config, ctx):
     view = finish(rec, t_us, kp, conf, joints, conf3, in_view, (conf > 0).any(axis=1), config, ctx,
                   f"detections_file {Path(config.path).name}")
     not_root = (np.arange(joints.shape[1]) != 0)[:, None]
-    white = np.where(not_root, 1e-3 * float(config.sigma_3d_mm), 0.0).repeat(3, axis=1)
-    noise = NoiseModel(np.full(kp.shape[:2], float(config.sigma_px)), np.repeat(white[None], t_us.size, axis=0), 0.0,
-                       f"file: stated by stages.detect.sigma_px={config.sigma_px:g} px, bias_px={config.bias_px:g} px, "
-                       f"sigma_3d_mm={config.sigma_3d_mm:g} mm, bias_3d_mm={config.bias_3d_mm:g} mm (every axis)",
-                       np.full(kp.shape[1], float(config.bias_px)),
-                       np.where(not_root, 1e-3 * float(config.bias_3d_mm), 0.0).repeat(3, axis=1))
+    white = np.where(not_root, 1e-3 * float(config.noise_3d_mm), 0.0).repeat(3, axis=1)
+    noise = NoiseModel(np.full(kp.shape[:2], float(config.noise_px)), np.repeat(white[None], t_us.size, axis=0), 0.0,
+                       f"file: stated by stages.detect.noise_px={config.noise_px:g} px, offset_px={config.offset_px:g} px, "
+                       f"noise_3d_mm={config.noise_3d_mm:g} mm, offset_3d_mm={config.offset_3d_mm:g} mm (every axis)",
+                       np.full(kp.shape[1], float(config.offset_px)),
+                       np.where(not_root, 1e-3 * float(config.offset_3d_mm), 0.0).repeat(3, axis=1))
     return {"detections": _detections(t_us, kp, conf, joints, conf3, detector, view, noise)}
 
 

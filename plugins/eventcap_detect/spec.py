@@ -85,13 +85,13 @@ class DetectionsFileConfig(ViewChecksConfig):
                                         "(rotated into world axes with the recording's camera)",
                           choices=("world", "camera"))
     unit_3d: str = param("m", help="unit of the 3D joints in the files: m | mm", choices=("m", "mm"))
-    sigma_px: float = param(1.0, gt=0, help="the detector's 2D noise per image axis from image to image, px (the "
+    noise_px: float = param(1.0, gt=0, help="the detector's 2D noise per image axis from image to image, px (the "
                                             "default: a detector of BlazePose's class on sharp images)")
-    bias_px: float = param(2.0, ge=0, help="the spread per image axis of a landmark's offset that stays over the "
+    offset_px: float = param(2.0, ge=0, help="the spread per image axis of a landmark's offset that stays over the "
                                            "capture, px (where the detector puts a hip or a shoulder)")
-    sigma_3d_mm: float = param(25.0, gt=0, help="the detector's noise of each root-relative 3D joint per axis from "
+    noise_3d_mm: float = param(25.0, gt=0, help="the detector's noise of each root-relative 3D joint per axis from "
                                                 "image to image, mm")
-    bias_3d_mm: float = param(50.0, ge=0, help="the spread per axis of a 3D joint's offset that stays over the "
+    offset_3d_mm: float = param(50.0, ge=0, help="the spread per axis of a 3D joint's offset that stays over the "
                                                "capture, mm (a monocular 3D network's idea of the body)")
 
 
