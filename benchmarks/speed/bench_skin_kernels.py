@@ -51,8 +51,8 @@ def main() -> None:
         graphs = CasadiSkinning(rest, n)
         build = time.process_time() - t
         for name, k, b in (("casadi", graphs, f"{build:.2f}"), ("numba", SkinningKernels(rest, n), "-")):
-            jac = _cpu_ms(lambda: k.transforms_jac(S + rng.normal(0.0, 1e-9, S.shape)), args.calls)
-            hess = _cpu_ms(lambda: k.contracted_hessian(S, lam), args.calls)
+            jac = _cpu_ms(lambda k=k, S=S: k.transforms_jac(S + rng.normal(0.0, 1e-9, S.shape)), args.calls)
+            hess = _cpu_ms(lambda k=k, S=S, lam=lam: k.contracted_hessian(S, lam), args.calls)
             print(f"{n:>6} {name:>8} {b:>8} {jac:>9.2f} {hess:>11.2f}")
 
 
