@@ -17,7 +17,8 @@ from eventcap.energy.spline import UniformCubicBSpline
 from eventcap.analysis.metrics import mean_joint_error
 from eventcap.core.stage import StageFailed
 from eventcap.core.testing import StageConformance
-from eventcap_spline._impl import cor_frames, window_of
+from eventcap_spline._impl import window_of
+from eventcap_spline.plan import cor_frames
 from eventcap.energy.errors import EnergyError
 from eventcap.energy.window import Estimate, WindowInputs
 from eventcap.params import nest
@@ -168,7 +169,7 @@ def test_spline_through_noisy_detections_beats_the_per_frame_fits():
     the detector's 3D offset, shared by the 4 frames, weighs the 3D less in the window than in one frame's fit; with
     the weights of before the noise models it was 0.85 x), and the joint limits hold at 1 kHz."""
     rec, det, t_det, t_us, S, xy, valid = scene()
-    sol = solver(**{"icp_rounds": 0, "terms.sil.gain": 0.0, "terms.prior.q_default": 1e4})
+    sol = solver(**{"icp_rounds": 0, "terms.sil.gain": 0.0, "terms.still.gain": 0.0, "terms.prior.q_default": 1e4})
     spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
     res = window(sol, spl, det, xy, valid)
     assert all(s.status == "Solve_Succeeded" for s in res.solves[-1:])
@@ -308,7 +309,7 @@ def test_settled_correspondences_end_the_icp_rounds():
     rec, det, t_det, t_us, S, xy, valid = scene()
 
     def solve(**change):
-        sol = solver(**{"terms.sil.gain": 0.0, **change})
+        sol = solver(**{"terms.sil.gain": 0.0, "terms.still.gain": 0.0, **change})
         spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
         return window(sol, spl, det, xy, valid)
 
@@ -332,7 +333,7 @@ def test_a_window_started_from_its_solution_needs_fewer_iterations_and_lands_the
     same spline; rows with a NaN start from the fits' spline (all NaN: the cold start exactly); a start of the
     wrong shape is refused, naming both shapes."""
     rec, det, t_det, t_us, S, xy, valid = scene()
-    sol = solver(**{"terms.sil.gain": 0.0, "icp_rounds": 2})
+    sol = solver(**{"terms.sil.gain": 0.0, "terms.still.gain": 0.0, "icp_rounds": 2})
     spl = UniformCubicBSpline(int(t_det[0]), H_US, sol.layout.n_seg)
     cold = window(sol, spl, det, xy, valid)
     warm = window(sol, spl, det, xy, valid, start=(cold.control, cold.aux))
@@ -434,7 +435,7 @@ def test_a_window_uses_the_tracks_of_all_its_batches():
 
 
 def test_window_tracks_stacks_each_batch_in_its_own_columns():
-    from eventcap_spline._impl import window_tracks
+    from eventcap_spline.plan import window_tracks
 
     sliced = stage_inputs()["sliced"]
     t, xy, valid = window_tracks(list(sliced), 4, "batch 1")

@@ -13,7 +13,7 @@ import pytest
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import PoseSequence
 from eventcap.core.stage import StageFailed
-from eventcap_spline._impl import kept_by, window_of, window_plan, window_role
+from eventcap_spline._impl import kept_by, window_of, window_schedule, window_role
 from helpers.spline_scene import run_stage, stage_inputs, stitch
 from helpers.runs import TINY_SPLINE_RUN
 
@@ -25,10 +25,10 @@ def test_window_role_cuts_the_batches_into_runs_each_kept_by_its_middle_batchs_w
     assert [k for k, r in enumerate(roles) if r is not None] == [1, 4, 7]
     assert roles[1] == (0, 4, 0, 2) and roles[4] == (2, 6, 3, 5) and roles[7] == (5, 9, 6, 9)
     assert [kept_by(10, k, 2, 3) for k in range(10)] == [1, 1, 1, 4, 4, 4, 7, 7, 7, 7]
-    assert window_plan(24, 2, 3) == tuple((c, *window_of(24, c, 2), c - 1, c + 1) for c in range(1, 24, 3))
+    assert window_schedule(24, 2, 3) == tuple((c, *window_of(24, c, 2), c - 1, c + 1) for c in range(1, 24, 3))
     # step 2: the earlier of the two middles solves; batches 0 and 2 both have the window 0..4 (one run 0-3), and so
     # have batches 8 and 10 of 11 (6..10)
-    assert window_plan(11, 2, 2) == ((0, 0, 4, 0, 3), (4, 2, 6, 4, 5), (6, 4, 8, 6, 7), (8, 6, 10, 8, 10))
+    assert window_schedule(11, 2, 2) == ((0, 0, 4, 0, 3), (4, 2, 6, 4, 5), (6, 4, 8, 6, 7), (8, 6, 10, 8, 10))
     # step 1: every batch its own window, keeping itself (the plan before window_step), even where windows coincide
     assert [window_role(10, k, 2, 1) for k in range(10)] == [(*window_of(10, k, 2), k, k) for k in range(10)]
 

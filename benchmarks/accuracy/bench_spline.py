@@ -167,7 +167,8 @@ def timing(args) -> None:
     from eventcap.energy.spline import UniformCubicBSpline
     from eventcap.energy.terms import sample_times
     from eventcap.energy.window import Tracks, WindowInputs
-    from eventcap_spline._impl import cor_frames, window_of
+    from eventcap_spline._impl import window_of
+    from eventcap_spline.plan import cor_frames
     from eventcap_spline.solve import SplineSolver, fit_window, solve_window
     from eventcap_spline.spec import SplineSolveConfig
 

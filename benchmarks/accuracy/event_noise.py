@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -61,13 +63,12 @@ def robust_sigma(r: np.ndarray) -> float:
 
 
 def measure(run_dir: Path, at: str = "truth") -> dict:
-    import math
-
     from eventcap.core.config import build_settings
-    from eventcap.energy.spline import UniformCubicBSpline
-    from eventcap.energy.window import Estimate, WindowInputs
+    from eventcap.energy.terms import TermSet
+    from eventcap.energy.window import Estimate
     from eventcap.worldframe import upright
     from eventcap_spline import _impl as impl
+    from eventcap_spline.plan import plan_window
     from eventcap_spline.spec import SPLINE
 
     out = outputs_of(run_dir)
@@ -78,13 +79,9 @@ def measure(run_dir: Path, at: str = "truth") -> dict:
     inputs = {"recording": rec, "detections": out["detections"], "batches": plan,
               "sliced": _Seq(out["sliced"], plan)}
     _, role = impl.unit_role(plan, unit, int(config.half_window), 1)
-    b, own, (a, z), scope, index, t_det, det, tracks, kept_times = impl.window_inputs(inputs, config, "m", role)
-    h_us = int(round(config.knot_ms * 1000))
-    spline = UniformCubicBSpline(int(t_det[0]), h_us, int(math.ceil((t_det[-1] - t_det[0]) / h_us)))
-    data = WindowInputs(spline.t0_us, spline.t1_us,
-                        knots_us=spline.t0_us + spline.h_us * np.arange(spline.n_seg + 1, dtype=np.int64),
-                        t_det_us=t_det, detections=det, tracks=tracks, track_times_us=kept_times,
-                        events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), contact=config.contact)
+    terms = TermSet.decode(config.terms)
+    window = plan_window(inputs, config, terms, "m", role, logging.getLogger("event_noise"))
+    spline, data = window.spline, window.inputs()
     if at == "truth":
         gt = rec.ground_truth
         t_p, poses = gt.t_us, np.asarray(gt.poses, dtype=np.float64)
@@ -100,13 +97,10 @@ def measure(run_dir: Path, at: str = "truth") -> dict:
     curve = lambda t, deriv=0: spline.evaluate(C, t, deriv)  # noqa: E731
     data.start = curve
     from eventcap.energy.silence import measure_stillness
-    from eventcap.energy.terms import factors_from_config, sample_times
 
     data.offer("stillness", lambda: measure_stillness(curve, data.knots_us, rec.template, rec.camera, data.events,
                                                       config.stillness))
-    times = sample_times(config.terms, data)
-    factors = {f.name: f for f in factors_from_config(config.terms, rec.template, rec.camera,
-                                                      {k: t.size for k, t in times.items()})}
+    factors = {f.name: f for f in terms.factors(rec.template, rec.camera, dict(window.layout.sizes))}
     est = Estimate(curve, 1, data, rec.template, rec.camera)
     res: dict = {"run": str(run_dir)}
     f = factors.get("cor")

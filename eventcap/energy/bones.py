@@ -30,8 +30,9 @@ import numpy as np
 from eventcap.body.kinematics import joint_positions
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX, NUM_POSE_PARAMS
 
+from .detections import _MappedTerm, detections_missing
 from .errors import EnergyError
-from .factor import Factor, Linearization
+from .factor import Factor, Linearization, Missing
 from .settings import BonesNoise
 
 _NP = NUM_POSE_PARAMS
@@ -75,12 +76,11 @@ class BoneDepth(Factor):
     detections and the current estimate's depths at each round. Exact Hessian (CasADi)."""
 
     name = "bones"
+    needs = ("t_det_us", "detections")
     Config = None
     Noise = BonesNoise
 
     def __init__(self, config, template, camera, n):
-        from .detections import _MappedTerm
-
         super().__init__(config, template, camera, n)
         self.sign_m = float(config.sign_m)
         self.noise_2d = float(config.noise_2d_px) / np.sqrt(camera.fx * camera.fy)
@@ -100,6 +100,10 @@ class BoneDepth(Factor):
     def samples(cls, inputs, config) -> np.ndarray:
         t = inputs.t_det_us
         return np.zeros(0, dtype=np.int64) if t is None else t
+
+    @classmethod
+    def missing(cls, inputs, config) -> Missing | None:
+        return super().missing(inputs, config) or detections_missing(inputs, True, True)
 
     def collect(self, inputs) -> None:
         super().collect(inputs)

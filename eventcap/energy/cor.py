@@ -89,6 +89,7 @@ class EventCorrespondences(Factor):
     block-tridiagonal Hessian."""
 
     name = "cor"
+    needs = ("tracks",)
     Config = CorConfig
     Noise = CorNoise
     couples_neighbours = True
@@ -256,6 +257,7 @@ class TemporalStability(Factor):
     correspondences do not couple the frames)."""
 
     name = "temp"
+    needs = ("tracks",)
     Config = TempConfig
     couples_neighbours = True
 

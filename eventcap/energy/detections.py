@@ -24,7 +24,7 @@ from eventcap.body.template import Template
 from eventcap.camera import Camera
 
 from .errors import EnergyError, SolveFailed
-from .factor import Factor, Linearization
+from .factor import Factor, Linearization, Missing
 from .loss import L2_SCALE2, rho_expression
 from .settings import Joints3DConfig, Joints3DNoise, Landmarks2DConfig, Landmarks2DNoise
 from .ipopt import IpoptSettings, SolveStats, run_ipopt
@@ -350,6 +350,21 @@ class _MappedTerm:
         return e, g.reshape(self.n, self.nz), H
 
 
+def detections_missing(inputs, needs_2d: bool, needs_3d: bool) -> Missing | None:
+    """What the window's detections lack for a factor that reads their 2D landmarks and/or 3D joints: a kind of
+    detection the detector gives nowhere in the window while it gives the other (a detector of 2D landmarks only,
+    or of 3D joints only). A window where nothing is detected lacks nothing here: it is a gap, not a mistake."""
+    det = inputs.detections
+    has_2d, has_3d = bool(np.any(det.confidence_2d > 0)), bool(np.any(det.confidence_3d > 0))
+    if needs_3d and has_2d and not has_3d:
+        return Missing("the window's detections hold no 3D joints (confidence_3d 0 at every frame: a detector of "
+                       "2D landmarks only)")
+    if needs_2d and has_3d and not has_2d:
+        return Missing("the window's detections hold no 2D landmarks (confidence_2d 0 at every frame: a detector of "
+                       "3D joints only)")
+    return None
+
+
 class Keypoints2D(Factor):
     """E_2D (paper Eq. 6) at every detection frame: Σ_d Σ_l w_dl ρ(‖π(L_l(S_d)) - P2D_dl‖²) over the BODY_25
     landmarks (:class:`DetectionWeights`): weighted, λ_2D c_dl / f² with the Cauchy loss of scale ``robust_px``
@@ -357,6 +372,7 @@ class Keypoints2D(Factor):
     σ_dl. Exact Hessian (CasADi)."""
 
     name = "landmarks_2d"
+    needs = ("t_det_us", "detections")
     Config = Landmarks2DConfig
     Noise = Landmarks2DNoise
     observes_detections = True
@@ -375,6 +391,15 @@ class Keypoints2D(Factor):
     @classmethod
     def samples(cls, inputs, config) -> np.ndarray:
         return inputs.need("t_det_us", "E_2D")
+
+    @classmethod
+    def missing(cls, inputs, config) -> Missing | None:
+        gone = super().missing(inputs, config) or detections_missing(inputs, True, False)
+        det = inputs.detections
+        if (gone is None and isinstance(config, Landmarks2DNoise) and config.sigma_px is None
+                and det.sigma_2d_px is None and np.any(det.confidence_2d > 0)):
+            return Missing("the window's detections state no 2D noise model", "sigma_px=<px>")
+        return gone
 
     def collect(self, inputs) -> None:
         super().collect(inputs)
@@ -397,6 +422,7 @@ class Joints3D(Factor):
     t'_d an auxiliary translation per frame (this factor's own variables, started at the per-frame fits' t')."""
 
     name = "joints_3d"
+    needs = ("t_det_us", "detections")
     Config = Joints3DConfig
     Noise = Joints3DNoise
     aux_size = 3
@@ -415,6 +441,15 @@ class Joints3D(Factor):
     @classmethod
     def samples(cls, inputs, config) -> np.ndarray:
         return inputs.need("t_det_us", "E_3D")
+
+    @classmethod
+    def missing(cls, inputs, config) -> Missing | None:
+        gone = super().missing(inputs, config) or detections_missing(inputs, False, True)
+        det = inputs.detections
+        if (gone is None and isinstance(config, Joints3DNoise) and config.sigma_mm is None
+                and det.sigma_3d_m is None and np.any(det.confidence_3d > 0)):
+            return Missing("the window's detections state no 3D noise model", "sigma_mm=<mm>")
+        return gone
 
     def collect(self, inputs) -> None:
         super().collect(inputs)

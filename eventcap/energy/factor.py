@@ -65,6 +65,15 @@ class Linearization:
 
 
 @dataclass(frozen=True)
+class Missing:
+    """What a factor that is on lacks in a solve (:meth:`Factor.missing`): the reason, and the setting of its own
+    (relative to its settings group, e.g. ``sigma_px=<px>``) that would give it what it lacks, if any."""
+
+    reason: str
+    instead: str | None = None
+
+
+@dataclass(frozen=True)
 class Layout:
     """The sizes a problem is built for (fixed per built problem; each window's data must fit them).
 
@@ -101,6 +110,11 @@ class Factor(ABC):
     #: whether the factor observes the detections of single frames (the per-frame fits fit these factors; their
     #: curvature at the fits is what a parameter's detections weigh, :func:`eventcap.energy.window.detection_curvature`)
     observes_detections: ClassVar[bool] = False
+    #: what the factor reads from a window and cannot do without: data of the window's inputs (``tracks``,
+    #: ``events``, ``detections`` ...) or evidence a solve offers (``stillness``, ``floor_y``). A solve that provides
+    #: one of them not at all fails when it is built (:meth:`missing`, :meth:`eventcap.energy.terms.TermSet.check`);
+    #: data that is there but empty in a window (no track, no event: a still scene) is data, not a missing input
+    needs: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -139,6 +153,16 @@ class Factor(ABC):
         return 1.0
 
     # ------------------------------------------------------------------ a window's data
+    @classmethod
+    def missing(cls, inputs: WindowInputs, config: Any) -> Missing | None:
+        """Why this factor, turned on, would have nothing to read in a window with these inputs (None: it has what
+        it reads): what it :attr:`needs` that the solve does not provide. Subclasses add what their data must hold
+        (the detection factors: the kind of detection they read, their noise model)."""
+        gone = [name for name in cls.needs if not inputs.provides(name)]
+        if not gone:
+            return None
+        return Missing(f"it reads the window's {' and '.join(gone)}, which this solve does not provide")
+
     @classmethod
     @abstractmethod
     def samples(cls, inputs: WindowInputs, config: Any) -> np.ndarray:
@@ -193,4 +217,4 @@ class Factor(ABC):
         return None
 
 
-__all__ = ["FACTORS", "Factor", "FactorConfig", "Layout", "Linearization", "NoiseConfig"]
+__all__ = ["FACTORS", "Factor", "FactorConfig", "Layout", "Linearization", "Missing", "NoiseConfig"]

@@ -157,6 +157,7 @@ class FloorContact(_Contact):
     """λ_floor Σ_k Σ_s [c_ks (y_s - h)² + max(0, h - y_s)²] at the knots (module doc). Exact Hessian (CasADi)."""
 
     name = "floor"
+    needs = ("knots_us",)  # no floor known (no fit succeeded, none offered): nothing to hold, by rule
     Config = None
     Noise = FloorNoise
 
@@ -187,6 +188,7 @@ class FootSlide(_Contact):
     """λ_slide Σ_k Σ_s c_ks c_(k+1)s ‖Δ_xz p_s‖² / Δt between neighbouring knots (module doc). Exact Hessian."""
 
     name = "slide"
+    needs = ("knots_us",)  # no floor known (no fit succeeded, none offered): nothing to hold, by rule
     Config = None
     Noise = SlideNoise
 

@@ -45,6 +45,7 @@ class MotionPrior(Factor):
     where they are too few."""
 
     name = "prior"
+    needs = ("knots_us",)  # its evidence (the fits around the window, the stillness) is optional
     Config = None
     Noise = PriorNoise
 
@@ -134,6 +135,7 @@ class ContextPull(Factor):
     window's context evidence (:class:`ContextSmoothing`), w gated by the joints' stillness (:func:`still_gate`)."""
 
     name = "context"
+    needs = ("t_det_us",)  # no smoothing evidence (smoothing.min_fps): nothing to hold, by rule
     Config = None
     Noise = ContextNoise
 

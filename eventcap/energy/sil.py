@@ -92,6 +92,7 @@ class SilhouetteToEvents(Factor):
     exact block-diagonal Hessian."""
 
     name = "sil"
+    needs = ("track_times_us", "events")
     Config = SilConfig
     Noise = SilNoise
 
@@ -259,6 +260,7 @@ class JointStability(Factor):
     (the refinement's: where the batch solve put them), at the reference's times."""
 
     name = "stab"
+    needs = ("reference_us", "reference_joints")
     Config = StabConfig
 
     def __init__(self, config, template, camera, n):

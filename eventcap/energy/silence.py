@@ -180,6 +180,7 @@ class EventSilence(Factor):
     velocities). Samples: the 3 Gauss points of every knot interval (exact for the cubic spline's velocities)."""
 
     name = "still"
+    needs = ("knots_us", "events")  # its evidence, the stillness, is measured in the events
     Config = None
     Noise = StillNoise
     derivative = 1

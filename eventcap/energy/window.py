@@ -71,6 +71,14 @@ class WindowInputs:
             raise EnergyError(f"{who}: the window has no {name} (this solve does not provide it)")
         return v
 
+    def provides(self, name: str) -> bool:
+        """Whether this solve provides ``name`` at all: data that is set (a non-empty tuple of times), or evidence
+        offered (:meth:`offer`), whatever it measures to."""
+        if name in self._providers:
+            return True
+        value = getattr(self, name, None)
+        return value is not None and not (isinstance(value, tuple) and not value)
+
     def offer(self, name: str, provider: Callable[[], Any]) -> None:
         """Offer evidence ``name``, measured by ``provider()`` on its first request."""
         self._providers[name] = provider

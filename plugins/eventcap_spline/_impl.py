@@ -1,16 +1,31 @@
-"""Run function of the spline stage (imported when the stage runs)."""
+"""Run function of the spline stage (imported when the stage runs).
+
+One way through a unit of the solve (:func:`run_spline`): the stage's ``terms`` decoded once (a
+:class:`eventcap.energy.terms.TermSet`); the unit's part in the plan of windows (:func:`unit_role`); its window
+planned once (:class:`eventcap_spline.plan.WindowPlan`); every term that is on checked against what the window
+provides (a term that reads something the solve does not offer fails here, naming the setting that turns it off);
+the capture's template and the built solver (once per process); the window solved
+(:func:`eventcap_spline.solve.solve_window`); its curve output at the tracking rate.
+"""
 
 from __future__ import annotations
 
 import functools
-import math
 
 import numpy as np
 
 from eventcap.artifacts.pose import PoseSequence
-from eventcap.analysis.motion import tracking_times_us
 from eventcap.core.stage import StageFailed
+from eventcap.energy.detections import select_detections
+from eventcap.energy.errors import EnergyError, SolveFailed
+from eventcap.energy.landmarks import measure_widths, with_widths
+from eventcap.energy.terms import TermSet
 from eventcap.memo import ProcessCache
+from eventcap.worldframe import upright
+
+from . import solve  # solve.solve_window through its module: benchmarks and tests wrap it there
+from .plan import WindowPlan, plan_window
+from .solve import FitSolver, NothingObserved, SplineSolver, WindowResult, capture_floor, frame_fit, observed_frames
 
 #: Built solvers of this process, keyed by value (template, camera, window layout, config): built once per run.
 _SOLVERS = ProcessCache("eventcap_spline.solvers", maxsize=16)
@@ -29,7 +44,7 @@ def window_of(n_batches: int, k: int, half: int) -> tuple[int, int]:
 
 
 @functools.lru_cache(maxsize=64)
-def window_plan(n_batches: int, half: int, step: int) -> tuple[tuple[int, int, int, int, int], ...]:
+def window_schedule(n_batches: int, half: int, step: int) -> tuple[tuple[int, int, int, int, int], ...]:
     """The windows solved when windows advance by ``step`` batches: (solving batch, a, z, ka, kz) each, the window of
     batches a..z (:func:`window_of` of the solving batch) keeping batches ka..kz.
 
@@ -54,28 +69,28 @@ def window_plan(n_batches: int, half: int, step: int) -> tuple[tuple[int, int, i
 
 
 def window_role(n_batches: int, k: int, half: int, step: int) -> tuple[int, int, int, int] | None:
-    """Batch k's part in the :func:`window_plan`: (a, z, ka, kz) when batch k solves the window of batches a..z that
+    """Batch k's part in the :func:`window_schedule`: (a, z, ka, kz) when batch k solves the window of batches a..z that
     keeps batches ka..kz; None when it solves none (another batch's window keeps it: :func:`kept_by`)."""
     if not 0 <= k < n_batches:
         raise ValueError(f"batch {k}: expected 0 .. {n_batches - 1}")
-    for c, a, z, ka, kz in window_plan(n_batches, half, step):
+    for c, a, z, ka, kz in window_schedule(n_batches, half, step):
         if c == k:
             return a, z, ka, kz
     return None
 
 
-def unit_role(plan, unit, half: int, step: int) -> tuple[int, tuple[int, int, int, int] | None]:
+def unit_role(batches, unit, half: int, step: int) -> tuple[int, tuple[int, int, int, int] | None]:
     """The batches a unit of the solve (a batch, or a chunk of batches: the node's plan) keeps, and its window:
-    (its first batch, (a, z, ka, kz) or None). A unit of one batch takes its part in the :func:`window_plan` (None:
+    (its first batch, (a, z, ka, kz) or None). A unit of one batch takes its part in the :func:`window_schedule` (None:
     another batch's window keeps it). A chunk keeps its batches ka..kz, and its window is them with ``half``
     batches on each side, shifted inwards at the ends of the recording (all batches when there are fewer); then
     windows advance by whole chunks, and ``step`` must be 1."""
-    t0, t1 = np.asarray(plan.t0_us), np.asarray(plan.t1_us)
+    t0, t1 = np.asarray(batches.t0_us), np.asarray(batches.t1_us)
     kept = np.flatnonzero((t0 >= unit.t0_us) & (t1 <= unit.t1_us))
     if kept.size == 0:
-        raise StageFailed(f"{unit_name(unit)}: none of the recording's {len(plan)} batches lies in it "
+        raise StageFailed(f"{unit_name(unit)}: none of the recording's {len(batches)} batches lies in it "
                           f"({unit.t0_us}..{unit.t1_us} us)", status="invalid_input")
-    ka, kz, n = int(kept[0]), int(kept[-1]), len(plan)
+    ka, kz, n = int(kept[0]), int(kept[-1]), len(batches)
     if ka == kz:
         return ka, window_role(n, ka, half, step)
     if step != 1:
@@ -94,82 +109,17 @@ def unit_name(unit) -> str:
 
 
 def kept_by(n_batches: int, k: int, half: int, step: int) -> int:
-    """The batch whose window keeps batch k (:func:`window_plan`)."""
-    return next(c for c, _, _, ka, kz in window_plan(n_batches, half, step) if ka <= k <= kz)
+    """The batch whose window keeps batch k (:func:`window_schedule`)."""
+    return next(c for c, _, _, ka, kz in window_schedule(n_batches, half, step) if ka <= k <= kz)
 
 
-def cor_frames(n_frames: int, step: int) -> np.ndarray:
-    """Indices of the tracking frames whose poses E_cor compares: every ``step``-th, always with the last."""
-    idx = np.arange(0, n_frames, step)
-    return idx if idx[-1] == n_frames - 1 else np.append(idx, n_frames - 1)
-
-
-def window_tracks(parts, step: int, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The tracks of several consecutive batches as one set for E_cor: (t_us (n_cor,), xy (n_cor, H, 2), valid
-    (n_cor, H)). Each batch contributes its correspondence frames (every ``step``-th tracking frame and its last,
-    :func:`cor_frames`) and its own columns of tracks, valid only within its own frames; neighbouring batches share
-    their boundary frame."""
-    times, cols = [], []
-    for part in parts:
-        t = np.asarray(part.t_us, dtype=np.int64)
-        if t.size < 2:
-            raise StageFailed(f"{where}: {t.size} tracking frame(s) in a batch of the window; need at least 2",
-                              status="invalid_input")
-        idx = cor_frames(t.size, step)
-        times.append(t[idx])
-        cols.append((idx, np.asarray(part.xy, dtype=np.float64), np.asarray(part.valid)))
-    t_cor = np.unique(np.concatenate(times))
-    H = sum(xy.shape[1] for _, xy, _ in cols)
-    xy_all = np.full((t_cor.size, H, 2), np.nan)
-    valid_all = np.zeros((t_cor.size, H), dtype=bool)
-    o = 0
-    for t_p, (idx, xy, valid) in zip(times, cols):
-        rows = np.searchsorted(t_cor, t_p)
-        h = xy.shape[1]
-        xy_all[rows, o:o + h] = xy[idx]
-        valid_all[rows, o:o + h] = valid[idx]
-        o += h
-    bad = valid_all & ~np.all(np.isfinite(xy_all), axis=-1)
-    if bad.any():
-        raise StageFailed(f"{where}: a track has a non-finite position where it is marked valid", status="invalid_input")
-    return t_cor, xy_all, valid_all
-
-
-def prior_context(config, plan, t_det, detections, where: str, log):
-    """(times, detections) of the detections within ``smoothing.seconds`` of the window's detection frames t_det
-    (at the intensity frames, and between them where the detector looked), whose fits give the window's evidence
-    of the motion (the prior's process power, the context pull); None (and a log line) when the intensity frames come
-    less often than ``smoothing.min_fps``. StageFailed when their detections are missing."""
-    from eventcap.energy.detections import detection_times, select_detections
-
-    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
-    fps = 1e6 / float(np.median(np.diff(frames))) if frames.size > 1 else 0.0
-    if fps < float(config.smoothing.min_fps):
-        log.info("%s: no smoothing evidence from the fits around the window (no prior gains, no context pull): "
-                 "intensity frames at %.1f fps, below stages.solve.smoothing.min_fps (%g)", where, fps,
-                 float(config.smoothing.min_fps))
-        return None
-    reach = int(round(float(config.smoothing.seconds) * 1e6))
-    t_ctx = detection_times(detections, int(t_det[0]) - reach, int(t_det[-1]) + reach)
-    try:
-        return t_ctx, select_detections(detections, t_ctx)
-    except ValueError as exc:
-        raise StageFailed(f"{where}: the prior's context: {exc}", status="missing_detections") from exc
-
-
-def capture_template(rec, config, layout, plan, detections, where: str, ctx):
+def capture_template(rec, config, terms: TermSet, plan: WindowPlan, detections, ctx):
     """The template of the solve: the recording's, with the detector's hip and shoulder widths measured over the
     capture (eventcap.energy.landmarks) unless ``landmarks`` is template (the same in every
     window, kept per process); the log says which."""
-    from eventcap.energy.detections import select_detections
-    from eventcap.energy.errors import SolveFailed
-    from eventcap.energy.landmarks import measure_widths, with_widths
-
-    from .solve import frame_fit
-
     if config.landmarks == "template":
         return rec.template
-    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+    frames, where = plan.capture_frames_us, plan.where
     try:
         det = select_detections(detections, frames)
     except ValueError as exc:
@@ -179,7 +129,7 @@ def capture_template(rec, config, layout, plan, detections, where: str, ctx):
                                                           det.confidence_3d)))
 
     def measure():
-        plain = fit_solver_for(rec.template, rec.camera, config)
+        plain = fit_solver_for(rec.template, rec.camera, config, terms)
         fits, keep = [], []
         for d in range(det.n):
             try:
@@ -200,15 +150,11 @@ def capture_template(rec, config, layout, plan, detections, where: str, ctx):
     return _TEMPLATES.get(key, measure)[0]
 
 
-def capture_floor_of(solver, plan, detections, where: str, log) -> float | None:
+def capture_floor_of(solver: SplineSolver, plan: WindowPlan, detections, log) -> float | None:
     """The floor's height over the capture (the floor evidence of every window; asked for by the factors that need
-    it), from the per-frame fits at every intensity frame of the plan (eventcap_spline.solve.capture_floor; the
+    it), from the per-frame fits at every intensity frame of the capture (eventcap_spline.solve.capture_floor; the
     same in every window, kept per process)."""
-    from eventcap.energy.detections import select_detections
-
-    from .solve import capture_floor
-
-    frames = np.unique(np.concatenate([plan.t0_us, plan.t1_us]))
+    frames, where = plan.capture_frames_us, plan.where
     try:
         det = select_detections(detections, frames)
     except ValueError as exc:
@@ -227,15 +173,12 @@ def capture_floor_of(solver, plan, detections, where: str, log) -> float | None:
     return _FLOORS.get(key, measure)[0]
 
 
-def solver_for(template, camera, layout, config):
-    """The built solver for this window layout and config (built once per process, keyed by value)."""
-    from eventcap.energy.errors import EnergyError
-
-    from .solve import SplineSolver
-
+def solver_for(template, camera, layout, config, terms: TermSet):
+    """The built solver for this window layout and config (built once per process, keyed by value; terms: the
+    config's, decoded)."""
     def build():
         try:
-            return SplineSolver(template, camera, layout, config)
+            return SplineSolver(template, camera, layout, config, terms=terms)
         except EnergyError as exc:
             raise StageFailed(f"stages.solve: {exc}", status=exc.status) from exc
 
@@ -243,15 +186,11 @@ def solver_for(template, camera, layout, config):
                         build)
 
 
-def fit_solver_for(template, camera, config):
+def fit_solver_for(template, camera, config, terms: TermSet):
     """The per-frame fits' solver for this template, camera and config (built once per process, keyed by value)."""
-    from eventcap.energy.errors import EnergyError
-
-    from .solve import FitSolver
-
     def build():
         try:
-            return FitSolver(template, camera, config)
+            return FitSolver(template, camera, config, terms=terms)
         except EnergyError as exc:
             raise StageFailed(f"stages.solve: {exc}", status=exc.status) from exc
 
@@ -271,145 +210,94 @@ def check_config(config) -> None:
                           status="invalid_config")
 
 
-def window_inputs(inputs, config, where: str, role: tuple[int, int, int, int]):
-    """The data of a unit's window (role: :func:`unit_role`, the window a..z keeping batches ka..kz): (the first
-    kept batch that has tracks, its tracks, window (a, z), the batches whose tracks E_cor uses, their index among
-    the tracks, detection times, their detections, the tracks at the correspondence frames
-    (:class:`eventcap.energy.window.Tracks`), the tracking times of each batch the window keeps)."""
-    from eventcap.energy.detections import detection_times, select_detections
-    from eventcap.energy.window import Tracks
-
-    sliced, detections, plan = inputs["sliced"], inputs["detections"], inputs["batches"]
-    a, z, ka, kz = role
-    # every batch's tracks, as the runner hands them (runner.BatchSequence: .batches names them, loaded on access)
-    index = {bb.index: i for i, bb in enumerate(sliced.batches)}
-    present = [k for k in range(ka, kz + 1) if k in index]  # batches= may select part of a chunk
-    if not present:
-        raise StageFailed(f"{where}: no tracks of {'batch' if ka == kz else 'batches'} {ka}"
-                          f"{'' if ka == kz else f'..{kz}'} among the {len(sliced)} given", status="invalid_input")
-    b = present[0]
-    own = sliced[index[b]]
-    t_us = np.asarray(own.t_us, dtype=np.int64)
-    if t_us.size < 2:
-        raise StageFailed(f"{where}: {t_us.size} tracking frame(s); need at least 2", status="invalid_input")
-    # own: the tracks of the batches the window keeps (this batch alone at window_step 1); window: all of its batches
-    kept = [k for k in range(ka, kz + 1) if k in index]
-    scope = kept if config.tracks.scope == "own" else [k for k in range(a, z + 1) if k in index]
-    # every detection within the window's span: at its intensity frames, and between them where the detector looked
-    t_det = detection_times(detections, int(plan.t0_us[a]), int(plan.t1_us[z]))
-    if t_det.size < 2:
-        t_det = np.unique(np.concatenate([plan.t0_us[a:z + 1], plan.t1_us[a:z + 1]]))
+def decode_terms(config) -> TermSet:
+    """The stage's ``terms`` group decoded once (StageFailed naming the key of a group it cannot use)."""
     try:
-        det = select_detections(detections, t_det)
-    except ValueError as exc:
-        raise StageFailed(f"{where}: {exc}", status="missing_detections") from exc
-    problems = det.problems()
-    if problems:
-        raise StageFailed(f"{where}: detections unusable: " + "; ".join(problems), status="invalid_input")
-    part = (lambda k: own if k == b else sliced[index[k]])
-    t_cor, xy, valid = window_tracks([part(k) for k in scope], int(config.tracks.step), where)
-    tracks = Tracks(t_cor, xy, valid, float(config.tracks.edge_margin_px))
-    kept_times = tuple(np.asarray(part(k).t_us, dtype=np.int64) for k in kept)
-    return b, own, (a, z), scope, index, t_det, det, tracks, kept_times
+        return TermSet.decode(config.terms)
+    except EnergyError as exc:
+        raise StageFailed(f"stages.solve: {exc}", status=exc.status) from exc
 
 
-def window_times(sliced, index, plan, b: int, a: int, z: int, t_us: np.ndarray) -> np.ndarray:
-    """The window's batches' tracking times (one grid for the whole recording, eventcap.analysis.motion.tracking_times_us), so
-    overlapping windows give the same times. They follow from the plan at the step of batch b (the unit's first)
-    when that step reproduces its own times (a whole number of µs: 1 kHz); else they are read from the batches' tracks."""
-    rate = 1e6 / int(np.median(np.diff(t_us)))
-    whole_us = np.array_equal(tracking_times_us(int(plan.t0_us[b]), int(plan.t1_us[b]), rate), t_us)
-    return np.unique(np.concatenate([
-        np.asarray(sliced[index[k]].t_us, dtype=np.int64) if k in index and not whole_us
-        else tracking_times_us(int(plan.t0_us[k]), int(plan.t1_us[k]), rate) for k in range(a, z + 1)]))
+def check_terms(terms: TermSet, plan: WindowPlan) -> None:
+    """StageFailed naming the first term that is on but reads what the window's solve does not provide (its
+    inputs, a kind of detection the detector does not give, a noise model nobody states) and the setting that turns
+    it off: before anything is measured or built (:meth:`eventcap.energy.terms.TermSet.check`)."""
+    try:
+        terms.check(plan.inputs(), "stages.solve")
+    except EnergyError as exc:
+        raise StageFailed(f"{plan.what}: {exc}", status=exc.status) from exc
 
 
 def run_spline(inputs, config, ctx):
-    from eventcap.energy.errors import EnergyError, SolveFailed
-    from eventcap.energy.factor import Layout
-    from eventcap.energy.problem import SplinePoses, coupling_band
-    from eventcap.energy.spline import UniformCubicBSpline
-    from eventcap.energy.terms import FACTORS, sample_times
-    from eventcap.energy.window import WindowInputs
-    from eventcap.worldframe import upright
-
-    from .solve import NothingObserved, observed_frames, solve_window
-
     inputs = {**inputs, "recording": upright(inputs["recording"], inputs["detections"])}  # the detections' world
-    rec, plan, unit = inputs["recording"], inputs["batches"], ctx.batch
-    where = f"batch {unit.index}" if unit is not None else "batch ?"
+    rec, batches, unit = inputs["recording"], inputs["batches"], ctx.batch
     if rec.template is None:
         raise StageFailed(f"stage 'spline' needs the actor template, but recording {rec.name or rec.source!r} has "
                           "none", status="missing_template")
     if unit is None:
         raise StageFailed("stage 'spline' runs per batch (no batch given)", status="invalid_input")
     check_config(config)
-    step = int(config.window_step)
-    b, role = unit_role(plan, unit, int(config.half_window), step)
-    if role is not None and role[2] < role[3]:  # a chunk of batches
-        where = f"chunk {unit.index} (batches {role[2]}..{role[3]})"
+    terms = decode_terms(config)
+    half, step = int(config.half_window), int(config.window_step)
+    b, role = unit_role(batches, unit, half, step)
     if role is None:  # another batch's window keeps this batch (windows advance by window_step batches)
-        ctx.stats["kept_by"] = kept_by(len(plan), b, int(config.half_window), step)
+        ctx.stats["kept_by"] = kept_by(len(batches), b, half, step)
         return {"poses": PoseSequence(t_us=np.zeros(0, dtype=np.int64), poses=np.zeros((0, 33)), status="in_window",
                                       iterations=0, energies={})}
-    b, own, (a, z), scope, index, t_det, det, tracks, kept_times = window_inputs(inputs, config, where, role)
-    h_us = int(round(config.knot_ms * 1000))
-    n_seg = int(math.ceil((t_det[-1] - t_det[0]) / h_us))
-    spline = UniformCubicBSpline(int(t_det[0]), h_us, n_seg)
-    data = WindowInputs(spline.t0_us, spline.t1_us,
-                        knots_us=spline.t0_us + spline.h_us * np.arange(n_seg + 1, dtype=np.int64),
-                        t_det_us=t_det, detections=det, tracks=tracks, track_times_us=kept_times,
-                        events=rec.events.window(int(t_det[0]), int(t_det[-1]) + 1), contact=config.contact)
-    times = sample_times(config.terms, data)
-    band = max([coupling_band(SplinePoses(n_seg, spline), tracks.t_us)]  # how far coupled samples reach
-               + [coupling_band(SplinePoses(n_seg, spline), t) for k, t in times.items()
-                  if FACTORS[k].couples_neighbours and t.size > 1])
-    layout = Layout(n_seg=n_seg, sizes=tuple((k, int(t.size)) for k, t in times.items()), band=band)
-    template = capture_template(rec, config, layout, plan, inputs["detections"], where, ctx)
-    solver, built = solver_for(template, rec.camera, layout, config)
+    where = f"batch {unit.index}" if role[2] == role[3] else f"chunk {unit.index} (batches {role[2]}..{role[3]})"
+    plan = plan_window(inputs, config, terms, where, role, ctx.log)
+    check_terms(terms, plan)
+    template = capture_template(rec, config, terms, plan, inputs["detections"], ctx)
+    solver, built = solver_for(template, rec.camera, plan.layout, config, terms)
     if built:
         ctx.log.info("built the spline NLP (%d control points; terms %s) in %.2f s (once per process)",
-                     spline.n_ctrl, ", ".join(f"{f.name} ({f.n})" for f in solver.factors), solver.build_seconds)
+                     plan.spline.n_ctrl, ", ".join(f"{f.name} ({f.n})" for f in solver.factors), solver.build_seconds)
         ctx.stats["build_s"] = solver.build_seconds
-    what = f"{where} (window of batches {a}..{z})"
-    context = prior_context(config, plan, t_det, inputs["detections"], where, ctx.log)
-    t_win = window_times(inputs["sliced"], index, plan, b, a, z, np.asarray(own.t_us, dtype=np.int64))
-    data.offer("floor_y", lambda: capture_floor_of(solver, plan, inputs["detections"], where, ctx.log))
+    data = plan.inputs()
+    data.offer("floor_y", lambda: capture_floor_of(solver, plan, inputs["detections"], ctx.log))
     try:
-        res = solve_window(solver, spline, data, what=what, context=context)
+        res = solve.solve_window(solver, plan.spline, data, what=plan.what, context=plan.context)
     except NothingObserved as exc:  # a gap: nothing was seen, so nothing is estimated (stitch leaves it out)
-        ctx.log.warning("%s: a gap: %s", where, str(exc).removeprefix(f"{what}: "))
+        ctx.log.warning("%s: a gap: %s", where, str(exc).removeprefix(f"{plan.what}: "))
         ctx.stats["gap"] = True
-        return {"poses": PoseSequence(t_us=t_win, poses=np.full((t_win.size, 33), np.nan), status="gap",
+        t_out = plan.t_out_us
+        return {"poses": PoseSequence(t_us=t_out, poses=np.full((t_out.size, 33), np.nan), status="gap",
                                       iterations=0, energies={})}
     except (StageFailed, SolveFailed, EnergyError) as exc:  # name the window in every failure (the fits' too)
-        msg = str(exc) if what in str(exc) else f"{what}: {exc}"
+        msg = str(exc) if plan.what in str(exc) else f"{plan.what}: {exc}"
         raise StageFailed(msg, status=getattr(exc, "status", "failed"), details=getattr(exc, "details", {})) from exc
-    # The output is the window's curve at the tracking rate, between its first and last detection frame that holds
-    # an observation (NaN beyond: never extrapolated); stitch blends the overlapping windows.
-    poses = spline.evaluate(res.control, t_win)
-    seen = t_det[observed_frames(det)]
-    poses[(t_win < seen[0]) | (t_win > seen[-1])] = np.nan
+    poses, sigma = window_poses(plan, res, template)
+    log_window(ctx, config, res, plan)
+    energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
+    iters = int(sum(s.iterations for s in res.solves))
+    return {"poses": PoseSequence(t_us=plan.t_out_us, poses=poses, sigma_mm=sigma, status=res.solves[-1].status,
+                                  iterations=iters, energies=energies)}
+
+
+def window_poses(plan: WindowPlan, res: WindowResult, template) -> tuple[np.ndarray, np.ndarray]:
+    """The window's curve at its output times (poses (T, 33)) and each joint's σ there (the Laplace approximation,
+    mm (T, 24)): between its first and last detection frame that holds an observation (NaN beyond: never
+    extrapolated); stitch blends the overlapping windows."""
+    t_out, spline = plan.t_out_us, plan.spline
+    poses = spline.evaluate(res.control, t_out)
+    seen = plan.t_det_us[observed_frames(plan.detections)]
+    poses[(t_out < seen[0]) | (t_out > seen[-1])] = np.nan
     # The window unwrapped its root angles from its own first fit: one branch per window (its first pose's root
     # angles in (-π, π]); stitch aligns neighbouring windows' branches before blending.
     first = int(np.flatnonzero(np.isfinite(poses[:, 0]))[0])
     poses[:, 27:30] -= 2.0 * np.pi * np.round(poses[first, 27:30] / (2.0 * np.pi))
-    sigma = res.covariance.joint_sigma_mm(spline.basis(t_win), poses, template).astype(np.float32)  # the Laplace σ
-    log_window(ctx, config, res, where, (a, z), t_det, scope, spline)
-    energies = {k: (int(v) if k.startswith("n_") else float(v)) for k, v in res.energies.items()}
-    iters = int(sum(s.iterations for s in res.solves))
-    return {"poses": PoseSequence(t_us=t_win, poses=poses, sigma_mm=sigma, status=res.solves[-1].status,
-                                  iterations=iters, energies=energies)}
+    sigma = res.covariance.joint_sigma_mm(spline.basis(t_out), poses, template).astype(np.float32)
+    return poses, sigma
 
 
-def log_window(ctx, config, res, where, window, t_det, scope, spline) -> None:
+def log_window(ctx, config, res: WindowResult, plan: WindowPlan) -> None:
     """The window's log lines and run statistics: the solve's, and what each factor says of its data."""
-    a, z = window
+    (a, z), where, scope = plan.window, plan.where, plan.scope
     iters = int(sum(s.iterations for s in res.solves))
     secs = sum(res.seconds.values())
     ctx.log.info("%s: window of batches %d..%d (%d frames of detections, %d fitted here, %d control points, tracks "
-                 "of %s), %d IPOPT iterations, %.2f s (%s)", where, a, z, t_det.size, res.fits_computed,
-                 spline.n_ctrl, f"batch {scope[0]}" if len(scope) == 1 else f"{len(scope)} batches", iters, secs,
+                 "of %s), %d IPOPT iterations, %.2f s (%s)", where, a, z, plan.t_det_us.size, res.fits_computed,
+                 plan.spline.n_ctrl, f"batch {scope[0]}" if len(scope) == 1 else f"{len(scope)} batches", iters, secs,
                  res.solves[-1].status)
     for line in res.lines:
         ctx.log.info("%s: %s", where, line)

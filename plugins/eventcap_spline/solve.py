@@ -38,16 +38,17 @@ import numpy as np
 from eventcap.body.skeleton import NUM_POSE_PARAMS
 from eventcap.body.template import Template
 from eventcap.camera import Camera
-from eventcap.energy.detections import FIT_DAMP, DetectionWeights, FrameDetections, FrameFitter, unwrap_root
+from eventcap.energy.detections import FIT_DAMP, FrameDetections, FrameFitter, unwrap_root
 from eventcap.energy.errors import EnergyError, SolveFailed
 from eventcap.energy.factor import Layout
+from eventcap.energy.floor import floor_height, sole_points
 from eventcap.energy.ipopt import IpoptSettings, SolveStats, bounds_with
 from eventcap.energy.laplace import UnitCovariance, laplace_covariance, limits_precision
 from eventcap.energy.prior import context_smoothing
 from eventcap.energy.problem import FactorProblem, SplinePoses
 from eventcap.energy.silence import Silence, measure_stillness
 from eventcap.energy.spline import UniformCubicBSpline
-from eventcap.energy.terms import factors_from_config
+from eventcap.energy.terms import TermSet
 from eventcap.energy.window import Estimate, WindowInputs, detection_curvature
 from eventcap.memo import ProcessCache
 
@@ -81,31 +82,37 @@ class WindowResult:
 class FitSolver:
     """The per-frame fits' built pieces for a template and camera (the paper's initialisation, and what the capture's
     measures start from): the fitter with the solve's bounds, IPOPT settings and E_2D / E_3D weights. Much cheaper to
-    build than a :class:`SplineSolver` (no window problem)."""
+    build than a :class:`SplineSolver` (no window problem). terms: the config's ``terms`` decoded (None: decoded
+    here)."""
 
-    def __init__(self, template: Template, camera: Camera, config, where: str = "stages.solve"):
+    def __init__(self, template: Template, camera: Camera, config, where: str = "stages.solve",
+                 terms: TermSet | None = None):
         self.template, self.camera, self.config = template, camera, config
+        self.terms = TermSet.decode(config.terms) if terms is None else terms
         self.lower, self.upper = bounds_with(config.limits, f"{where}.limits")
         self.settings = IpoptSettings.from_config(config.ipopt)
-        self.fit_weights = DetectionWeights.from_terms(config.terms, camera)
+        self.fit_weights = self.terms.detection_weights(camera)
         self.fitter = FrameFitter(template, camera, self.settings, self.lower, self.upper)
 
 
 class SplineSolver:
     """The spline solve's built pieces for windows of one layout (template, camera, config): the factor problem
     (:class:`FactorProblem` over a spline's control points) and the per-frame fitter. ``config`` is the stage's
-    config (plugins/eventcap_spline/spec.py, SplineSolveConfig), the one source of every setting."""
+    config (plugins/eventcap_spline/spec.py, SplineSolveConfig), the one source of every setting; terms: its
+    ``terms`` decoded (None: decoded here); where: its key in the run's config (messages name settings by it)."""
 
-    def __init__(self, template: Template, camera: Camera, layout: Layout, config, where: str = "stages.solve"):
+    def __init__(self, template: Template, camera: Camera, layout: Layout, config, where: str = "stages.solve",
+                 terms: TermSet | None = None):
         t0 = time.perf_counter()
-        self.template, self.camera, self.layout, self.config = template, camera, layout, config
+        self.template, self.camera, self.layout, self.config, self.where = template, camera, layout, config, where
+        self.terms = TermSet.decode(config.terms) if terms is None else terms
         lo, hi = bounds_with(config.limits, f"{where}.limits")
         self.settings = IpoptSettings.from_config(config.ipopt)
-        self.factors = factors_from_config(config.terms, template, camera, dict(layout.sizes))
+        self.factors = self.terms.factors(template, camera, dict(layout.sizes))
         self.problem = FactorProblem(SplinePoses(layout.n_seg), self.factors, self.settings, lo, hi,
                                      damp=config.damp, damp_aux=True, name="spline", band=layout.band)
         self.lower, self.upper = self.problem.lower, self.problem.upper
-        self.fit_weights = DetectionWeights.from_terms(config.terms, camera)
+        self.fit_weights = self.terms.detection_weights(camera)
         self.fitter = FrameFitter(template, camera, self.settings, lo, hi)
         self.build_seconds = time.perf_counter() - t0
 
@@ -173,8 +180,6 @@ def capture_floor(solver: SplineSolver, det: FrameDetections) -> tuple[float | N
     """The floor's height (world y, m) over a capture (:func:`eventcap.energy.floor.floor_height`) from the per-frame
     fits at its intensity frames (det: their detections; frames whose fit fails are left out), and how many fits
     were computed here (the others came from this process's earlier windows)."""
-    from eventcap.energy.floor import floor_height, sole_points
-
     _, S, computed = frame_fits(solver, det)
     if not S:
         return None, computed
@@ -216,13 +221,16 @@ def solve_window(solver: SplineSolver, spline: UniformCubicBSpline, inputs: Wind
                  start: tuple[np.ndarray, dict] | None = None) -> WindowResult:
     """Solve one window (module doc) with the solver's config: fits at its detection frames, every factor's data,
     a penalised spline through the fits as the start, then ``icp_rounds`` alternations of relinearising and IPOPT.
-    SolveFailed on a failed solve; NothingObserved when no detection frame holds an observation.
+    SolveFailed on a failed solve; NothingObserved when no detection frame holds an observation; EnergyError
+    (invalid_config), before anything is measured, when a term that is on reads what the inputs do not provide
+    (:meth:`eventcap.energy.terms.TermSet.check`).
 
     inputs: the window's data (its detections, tracks, events; the evidence is offered here). context: (times,
     detections) of the intensity frames around the window whose fits give the smoothing evidence (None: none).
     start: (control points (n_ctrl, 33), {factor: auxiliary variables}) the solve starts from instead of the
     smoothing spline through the fits (rows with a NaN are taken from it); the stillness is measured around the fits'
     spline either way (benchmarks/speed/bench_warm_start.py starts a window from its neighbour's solution)."""
+    solver.terms.check(inputs, solver.where)
     prob = solver.problem
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
