@@ -103,7 +103,8 @@ class BoneDepth(Factor):
 
     @classmethod
     def missing(cls, inputs, config) -> Missing | None:
-        return super().missing(inputs, config) or detections_missing(inputs, True, True)
+        return (super().missing(inputs, config)
+                or detections_missing(inputs, config, ("2D landmarks", "3D joints"), noise=False))
 
     def collect(self, inputs) -> None:
         super().collect(inputs)

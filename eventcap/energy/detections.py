@@ -26,7 +26,7 @@ from eventcap.camera import Camera
 from .errors import EnergyError, SolveFailed
 from .factor import Factor, Linearization, Missing
 from .loss import L2_SCALE2, rho_expression
-from .settings import Joints3DConfig, Joints3DNoise, Landmarks2DConfig, Landmarks2DNoise
+from .settings import Joints3DConfig, Joints3DNoise, Landmarks2DConfig, Landmarks2DNoise, NoiseConfig
 from .ipopt import IpoptSettings, SolveStats, run_ipopt
 from .kernels import Buffered
 
@@ -350,18 +350,29 @@ class _MappedTerm:
         return e, g.reshape(self.n, self.nz), H
 
 
-def detections_missing(inputs, needs_2d: bool, needs_3d: bool) -> Missing | None:
-    """What the window's detections lack for a factor that reads their 2D landmarks and/or 3D joints: a kind of
-    detection the detector gives nowhere in the window while it gives the other (a detector of 2D landmarks only,
-    or of 3D joints only). A window where nothing is detected lacks nothing here: it is a gap, not a mistake."""
+#: The kinds of detection a factor reads: their confidences, the noise model a detector states for them, and the
+#: setting of a factor's noise model that states one instead.
+_KINDS = {"2D landmarks": ("confidence_2d", "sigma_2d_px", "sigma_px"),
+          "3D joints": ("confidence_3d", "sigma_3d_m", "sigma_mm")}
+
+
+def detections_missing(inputs, config, reads: tuple[str, ...], noise: bool = True) -> Missing | None:
+    """What the window's detections lack for a factor that reads these kinds (:data:`_KINDS`): a kind the detector
+    gives nowhere in the window while it gives the other (a detector of 2D landmarks only, or of 3D joints only), or
+    (noise: the factor weighs them by the detector's noise) a noise model neither the detections nor the factor's
+    settings state. A window where nothing is detected lacks nothing here: it is a gap, not a mistake."""
     det = inputs.detections
-    has_2d, has_3d = bool(np.any(det.confidence_2d > 0)), bool(np.any(det.confidence_3d > 0))
-    if needs_3d and has_2d and not has_3d:
-        return Missing("the window's detections hold no 3D joints (confidence_3d 0 at every frame: a detector of "
-                       "2D landmarks only)")
-    if needs_2d and has_3d and not has_2d:
-        return Missing("the window's detections hold no 2D landmarks (confidence_2d 0 at every frame: a detector of "
-                       "3D joints only)")
+    seen = {kind: bool(np.any(getattr(det, conf) > 0)) for kind, (conf, _, _) in _KINDS.items()}
+    for kind in reads:
+        if not seen[kind] and any(seen.values()):
+            other = next(k for k in _KINDS if k != kind)
+            return Missing(f"the window's detections hold no {kind} ({_KINDS[kind][0]} 0 at every frame: a detector "
+                           f"of {other} only)")
+    for kind in reads if noise and isinstance(config, NoiseConfig) else ():
+        _, stated, setting = _KINDS[kind]
+        if seen[kind] and getattr(det, stated) is None and getattr(config, setting) is None:
+            unit = "px" if kind.startswith("2D") else "mm"
+            return Missing(f"the window's detections state no {kind[:2]} noise model", f"{setting}=<{unit}>")
     return None
 
 
@@ -394,12 +405,7 @@ class Keypoints2D(Factor):
 
     @classmethod
     def missing(cls, inputs, config) -> Missing | None:
-        gone = super().missing(inputs, config) or detections_missing(inputs, True, False)
-        det = inputs.detections
-        if (gone is None and isinstance(config, Landmarks2DNoise) and config.sigma_px is None
-                and det.sigma_2d_px is None and np.any(det.confidence_2d > 0)):
-            return Missing("the window's detections state no 2D noise model", "sigma_px=<px>")
-        return gone
+        return super().missing(inputs, config) or detections_missing(inputs, config, ("2D landmarks",))
 
     def collect(self, inputs) -> None:
         super().collect(inputs)
@@ -444,12 +450,7 @@ class Joints3D(Factor):
 
     @classmethod
     def missing(cls, inputs, config) -> Missing | None:
-        gone = super().missing(inputs, config) or detections_missing(inputs, False, True)
-        det = inputs.detections
-        if (gone is None and isinstance(config, Joints3DNoise) and config.sigma_mm is None
-                and det.sigma_3d_m is None and np.any(det.confidence_3d > 0)):
-            return Missing("the window's detections state no 3D noise model", "sigma_mm=<mm>")
-        return gone
+        return super().missing(inputs, config) or detections_missing(inputs, config, ("3D joints",))
 
     def collect(self, inputs) -> None:
         super().collect(inputs)
