@@ -249,7 +249,7 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
                  "template.target_faces=2000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     log = (run_dir / "eventcap.log").read_text()
     assert code == 1
-    assert ("detect (blazepose v10): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
+    assert ("detect (blazepose v11): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
             "images; the network saw no person in its images: look at the recording in `eventcap preview FILE`") in log
     assert ("run incomplete: detect failed (no_person); skipped because of it: 8 nodes (body, track, slice, solve, "
             "stitch, cut, confidence, evaluate); the first error is above (detect)") in log
@@ -309,3 +309,30 @@ def test_sensor_noise_is_not_a_moving_region():
     ev = make_events(np.sort(rng.integers(0, 40_000, m + px.size)), np.r_[cx, px], np.r_[cy, py],
                      np.ones(m + px.size, dtype=np.int8))
     assert checks.activity_cells(ev, 20_000, W, H, 40_000).mean() > 0.9
+
+
+def test_images_made_from_the_events_must_agree_on_the_person():
+    """Check agree: a pose that only one of the images of its moment shows is rejected, naming the counts; a moment
+    with one image (no alternatives), a pose two images show, min_agree 1 and checks without agree are not judged."""
+    n, lm = 4, len(LANDMARK_NAMES)
+    kp = np.tile(np.linspace(10, 60, lm)[:, None], (n, 1, 2)).astype(float)
+    in_view = np.ones((n, lm), bool)
+    found = np.array([True, True, True, False])
+    t = np.arange(n) * 40_000
+    agreeing = (np.array([1, 2, 1, 0]), np.array([5, 5, 1, 5]))
+
+    def settings(names=checks.CHECKS, min_agree=2):
+        return checks.ViewSettings(checks=tuple(names), border_px=0.0, min_in_view=3, region_ratio=0.5,
+                                   edge_ratio=0.15, head_ratio=0.35, shoulder_ratio=0.9, window_us=40_000,
+                                   min_found=0.5, min_agree=min_agree)
+
+    status, why = checks.check_images(kp, in_view, found, t, None, 128, 128, settings(), agreeing)
+    assert status == ["agree", "ok", "ok", "no_person"]
+    assert why[0] == ("the person shows in 1 of the 5 images made from the events of that moment (at least 2 must "
+                      "agree on where they are)")
+    for s in (settings(min_agree=1), settings(names=("outside", "parts", "region", "scale"))):
+        assert checks.check_images(kp, in_view, found, t, None, 128, 128, s, agreeing)[0][:3] == ["ok"] * 3
+    assert checks.check_images(kp, in_view, found, t, None, 128, 128, settings(), None)[0][:3] == ["ok"] * 3
+    assert checks.CHECK_SETTINGS["agree"] == "stages.detect.min_agree / stages.detect.agree_ratio"
+    with pytest.raises(ValueError, match="min_agree: expected at least 1 image, got 0"):
+        settings(min_agree=0)

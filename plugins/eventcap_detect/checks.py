@@ -23,7 +23,13 @@ Every detector's landmarks (the skeleton's BODY_25 order) go through the same th
      is not rejected: it is a person partly out of view (status ``close_up``), its head, shoulders and arms kept
      (:data:`UPPER_BODY`) and the lower body it drew marked unobserved.
 
-   Checks that need what a detection lacks (no torso, no events near it) do not judge it. They assume a static
+   - ``agree``: images reconstructed from the events only (an event-only camera), where the detector tries several
+     images of each moment (``stages.detect.event_images``): fewer than ``min_agree`` of them show the person where
+     the kept pose puts them (their own pose within ``agree_ratio`` of its size). A person in view shows in the
+     counts, time surfaces and reconstruction alike; a shape the network took for a person (a lap seen from the
+     side, a blob) in one of them only (benchmarks/accuracy/bench_view_checks.py, docs/results/real.md).
+
+   Checks that need what a detection lacks (no torso, no events near it, one image per moment) do not judge it. They assume a static
    camera, as the method does: a moving camera makes the whole image fire.
 3. **Enough to solve**: the stage stops when fewer than ``min_found`` of the images (default: half) hold an
    accepted detection, naming the counts (:func:`found_message`): "no person in 199 of 202 images: a person in 3". Half, because a solve pinned by fewer detections than frames it spans fabricates the rest; the
@@ -40,7 +46,7 @@ import numpy as np
 
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX
 
-CHECKS = ("outside", "parts", "region", "scale")
+CHECKS = ("outside", "parts", "region", "scale", "agree")
 #: The status of a detection the scale check keeps as a close-up: its head, shoulders and arms are observations, the
 #: lower body it drew under them is not (:data:`UPPER_BODY`).
 CLOSE_UP = "close_up"
@@ -75,6 +81,7 @@ class ViewSettings:
     shoulder_ratio: float
     window_us: int
     min_found: float
+    min_agree: int = 1
 
     @classmethod
     def without_checks(cls, min_found: float) -> ViewSettings:
@@ -94,6 +101,8 @@ class ViewSettings:
             raise ValueError(f"min_found: expected a share of the images in [0, 1], got {self.min_found!r}")
         if int(self.window_us) <= 0 or int(self.min_in_view) < 0:
             raise ValueError(f"window_us > 0 and min_in_view >= 0 expected, got {self.window_us}, {self.min_in_view}")
+        if int(self.min_agree) < 1:
+            raise ValueError(f"min_agree: expected at least 1 image, got {self.min_agree!r}")
 
 
 def inside_image(kp: np.ndarray, width: int, height: int, border_px: float = 0.0) -> np.ndarray:
@@ -215,15 +224,23 @@ def _region(box, size, region, grid_shape, cell, settings) -> tuple[str, str]:
 
 
 def check_images(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, t_us: np.ndarray, events: np.ndarray,
-                 width: int, height: int, settings: ViewSettings) -> tuple[list[str], list[str]]:
+                 width: int, height: int, settings: ViewSettings, agreeing: tuple[np.ndarray, np.ndarray] | None = None
+                 ) -> tuple[list[str], list[str]]:
     """Per image: its status (``ok`` | ``no_person`` | the rejecting check) and why (empty for ``ok``).
-    kp (n, L, 2) px, in_view (n, L), found (n,) whether the detector gave a detection at all."""
+    kp (n, L, 2) px, in_view (n, L), found (n,) whether the detector gave a detection at all; ``agreeing``: per
+    image, how many of the images tried at that moment show the kept pose, and how many were tried (check agree)."""
     cell = cell_size(width, height)
     status, why = [], []
     for i in range(t_us.size):
         if not found[i]:
             status.append("no_person")
             why.append("")
+            continue
+        if "agree" in settings.checks and agreeing is not None and agreeing[1][i] > 1 and \
+                agreeing[0][i] < settings.min_agree:
+            status.append("agree")
+            why.append(f"the person shows in {agreeing[0][i]} of the {agreeing[1][i]} images made from the events "
+                       f"of that moment (at least {settings.min_agree} must agree on where they are)")
             continue
         active = activity_cells(events, int(t_us[i]), width, height, settings.window_us) \
             if "region" in settings.checks and events is not None and events.size else None
@@ -237,6 +254,7 @@ def check_images(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, t_us: n
 ACCEPTED = ("ok", CLOSE_UP)
 #: What changes each check (the setting a refusal names).
 CHECK_SETTINGS = {"outside": "stages.detect.min_in_view", "parts": "stages.detect.checks",
+                  "agree": "stages.detect.min_agree / stages.detect.agree_ratio",
                   "region": "stages.detect.region_ratio / stages.detect.edge_ratio",
                   "scale": "stages.detect.head_ratio / stages.detect.shoulder_ratio"}
 
