@@ -147,6 +147,12 @@ def test_a_refusal_names_the_check_that_rejected_and_its_setting(tmp_path):
     # nobody found at all: the hint points at the images and at preview
     hint = checks.refusal_hint(["no_person"] * 5 + ["ok"], [""] * 6, event_images=True)
     assert "stages.detect.event_images" in hint and "eventcap preview FILE" in hint
+    assert "agree" not in hint
+    # more images without a person than poses the images made from the events disagreed on: both said
+    hint = checks.refusal_hint(["no_person"] * 5 + ["agree"] * 2 + ["ok"], [""] * 8, event_images=True)
+    assert hint.startswith("the images made from the events (stages.detect.event_images) showed the network no "
+                           "person (and in 2 more, too few of them agreed on one: check agree, stages.detect.min_agree"
+                           " / stages.detect.agree_ratio): look at the recording in `eventcap preview FILE`")
 
 
 def test_a_whole_body_inside_a_much_larger_moving_region_is_rejected(tmp_path):

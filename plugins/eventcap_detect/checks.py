@@ -291,7 +291,9 @@ def refusal_hint(status: list[str], why: list[str], event_images: bool) -> str:
                 f"them in `eventcap preview FILE --t SECONDS`; if a person shows there, the check is wrong for this "
                 f"recording: {CHECK_SETTINGS.get(check, 'stages.detect.checks')} (or stages.detect.checks without "
                 f"{check}) changes it")
-    images = ("the images made from the events (stages.detect.event_images) showed the network no person: "
+    images = ("the images made from the events (stages.detect.event_images) showed the network no person"
+              + (f" (and in {counts['agree']} more, too few of them agreed on one: check agree, "
+                 f"{CHECK_SETTINGS['agree']})" if counts.get("agree") else "") + ": "
               if event_images else "the network saw no person in its images: ")
     return (images + "look at the recording in `eventcap preview FILE` (a person in view there means the images "
             "were too poor for it; none means there is nobody to capture); stages.detect.min_found solves the "
