@@ -374,7 +374,7 @@ def agreeing_poses(best, others, ratio: float) -> int:
 
 def detect_sequence(net: BlazePose, images, times_us: np.ndarray, *, track: bool = True, find: str = "detector",
                     events: np.ndarray | None = None, events_window_us: int = 20000, gamma: float = 1.0,
-                    log=None, alternatives=None, agree_ratio: float = 0.1) -> SequenceResult:
+                    log=None, alternatives=None, agree_ratio: float = 0.2) -> SequenceResult:
     """Run the landmark model over a time-ordered sequence of grey images (linear intensity in [0, 1]).
 
     With ``track``, each image's ROI comes from the previous pose's auxiliary points while its pose flag stays at

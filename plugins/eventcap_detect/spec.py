@@ -128,7 +128,7 @@ class BlazePoseConfig(ViewChecksConfig):
     min_agree: int = param(2, ge=1, help="check agree: of the images made from the events of a moment "
                                          "(event_images), at least this many must show the person where the kept "
                                          "pose puts them; 1 accepts a pose seen in one image alone")
-    agree_ratio: float = param(0.1, gt=0, help="check agree: two images show the person in the same place when "
+    agree_ratio: float = param(0.2, gt=0, help="check agree: two images show the person in the same place when "
                                                "their poses' median landmark distance is at most this share of the "
                                                "kept pose's size (its box's diagonal)")
 
