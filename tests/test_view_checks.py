@@ -318,14 +318,17 @@ def test_sensor_noise_is_not_a_moving_region():
 
 
 def test_images_made_from_the_events_must_agree_on_the_person():
-    """Check agree: a pose that only one of the images of its moment shows is rejected, naming the counts; a moment
-    with one image (no alternatives), a pose two images show, min_agree 1 and checks without agree are not judged."""
-    n, lm = 4, len(LANDMARK_NAMES)
-    kp = np.tile(np.linspace(10, 60, lm)[:, None], (n, 1, 2)).astype(float)
+    """Check agree: a pose that only one of the images of its moment shows, and that no corroborated pose of the
+    moment before or after vouches for, is rejected naming the counts; a pose next to a corroborated one is
+    followed through time; one image per moment, min_agree 1 and checks without agree are not judged."""
+    n, lm = 5, len(LANDMARK_NAMES)
+    body = np.column_stack([np.linspace(10, 40, lm), np.linspace(20, 100, lm)])  # diagonal ~85 px
+    shift = np.array([0.0, 0.0, 60.0, 10.0, 10.0])  # image 2 drawn 60 px away from the others
+    kp = body[None] + shift[:, None, None] * [1.0, 0.0]
     in_view = np.ones((n, lm), bool)
-    found = np.array([True, True, True, False])
+    found = np.array([True, True, True, True, False])
     t = np.arange(n) * 40_000
-    agreeing = (np.array([1, 2, 1, 0]), np.array([5, 5, 1, 5]))
+    agreeing = (np.array([2, 1, 1, 1, 0]), np.array([5, 5, 5, 1, 5]))
 
     def settings(names=checks.CHECKS, min_agree=2):
         return checks.ViewSettings(checks=tuple(names), border_px=0.0, min_in_view=3, region_ratio=0.5,
@@ -333,12 +336,15 @@ def test_images_made_from_the_events_must_agree_on_the_person():
                                    min_found=0.5, min_agree=min_agree)
 
     status, why = checks.check_images(kp, in_view, found, t, None, 128, 128, settings(), agreeing)
-    assert status == ["agree", "ok", "ok", "no_person"]
-    assert why[0] == ("the person shows in 1 of the 5 images made from the events of that moment (at least 2 must "
-                      "agree on where they are)")
+    # 0: two images agree; 1: one image, next to 0 (followed); 2: one image, 60 px off both neighbours (0.7 of the
+    # body); 3: one image tried, not judged
+    assert status == ["ok", "ok", "agree", "ok", "no_person"]
+    assert why[2] == ("the person shows in 1 of the 5 images made from the events of that moment (at least 2 must "
+                      "agree on where they are) and at no neighbouring moment's agreed place")
+    assert checks.corroborated(kp, in_view, found, agreeing[0] >= 2, 0.8).tolist() == [True, True, True, True, False]
     for s in (settings(min_agree=1), settings(names=("outside", "parts", "region", "scale"))):
-        assert checks.check_images(kp, in_view, found, t, None, 128, 128, s, agreeing)[0][:3] == ["ok"] * 3
-    assert checks.check_images(kp, in_view, found, t, None, 128, 128, settings(), None)[0][:3] == ["ok"] * 3
+        assert checks.check_images(kp, in_view, found, t, None, 128, 128, s, agreeing)[0][:4] == ["ok"] * 4
+    assert checks.check_images(kp, in_view, found, t, None, 128, 128, settings(), None)[0][:4] == ["ok"] * 4
     assert checks.CHECK_SETTINGS["agree"] == "stages.detect.min_agree / stages.detect.agree_ratio"
     with pytest.raises(ValueError, match="min_agree: expected at least 1 image, got 0"):
         settings(min_agree=0)

@@ -24,10 +24,12 @@ Every detector's landmarks (the skeleton's BODY_25 order) go through the same th
      (:data:`UPPER_BODY`) and the lower body it drew marked unobserved.
 
    - ``agree``: images reconstructed from the events only (an event-only camera), where the detector tries several
-     images of each moment (``stages.detect.event_images``): fewer than ``min_agree`` of them show the person where
-     the kept pose puts them (their own pose within ``agree_ratio`` of its size). A person in view shows in the
-     counts, time surfaces and reconstruction alike; a shape the network took for a person (a lap seen from the
-     side, a blob) in one of them only (benchmarks/accuracy/bench_view_checks.py, docs/results/real.md).
+     images of each moment (``stages.detect.event_images``): the pose is not corroborated (:func:`corroborated`):
+     fewer than ``min_agree`` of the images show the person where the kept pose puts them (their own pose within
+     ``agree_ratio`` of its size), and neither neighbouring moment holds a corroborated pose that close. A person in
+     view shows in the counts, time surfaces and reconstruction alike, and is followed through the moments where
+     they move so little that one image alone shows them; a shape the network took for a person (a lap seen from
+     the side, a blob) mostly shows in one image (docs/results/real.md).
 
    Checks that need what a detection lacks (no torso, no events near it, one image per moment) do not judge it. They assume a static
    camera, as the method does: a moving camera makes the whole image fire.
@@ -82,6 +84,7 @@ class ViewSettings:
     window_us: int
     min_found: float
     min_agree: int = 1
+    agree_ratio: float = 0.2
 
     @classmethod
     def without_checks(cls, min_found: float) -> ViewSettings:
@@ -103,6 +106,8 @@ class ViewSettings:
             raise ValueError(f"window_us > 0 and min_in_view >= 0 expected, got {self.window_us}, {self.min_in_view}")
         if int(self.min_agree) < 1:
             raise ValueError(f"min_agree: expected at least 1 image, got {self.min_agree!r}")
+        if not (math.isfinite(self.agree_ratio) and self.agree_ratio > 0):
+            raise ValueError(f"agree_ratio: expected a share > 0 of the body's size, got {self.agree_ratio!r}")
 
 
 def inside_image(kp: np.ndarray, width: int, height: int, border_px: float = 0.0) -> np.ndarray:
@@ -223,6 +228,34 @@ def _region(box, size, region, grid_shape, cell, settings) -> tuple[str, str]:
     return "ok", ""
 
 
+def _near(kp: np.ndarray, in_view: np.ndarray, i: int, j: int, ratio: float) -> bool:
+    """Whether image j's pose puts the body where image i's does: the median distance over the landmarks both see
+    (at least 3) at most ``ratio`` x the diagonal of image i's landmarks' box."""
+    common = in_view[i] & in_view[j]
+    if common.sum() < 3:
+        return False
+    pts = kp[i][in_view[i]]
+    size = float(np.hypot(*(pts.max(axis=0) - pts.min(axis=0))))
+    return float(np.median(np.linalg.norm(kp[i][common] - kp[j][common], axis=1))) <= ratio * size
+
+
+def corroborated(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, agreed: np.ndarray, ratio: float
+                 ) -> np.ndarray:
+    """(n,) bool: the poses something besides their own image vouches for: ``agreed`` (enough images of the moment
+    show it), or next to a corroborated pose of the moment before or after that lies within ``ratio`` of its size
+    (followed through time, so a person seen by several images once stays corroborated while only one image shows
+    them). kp (n, L, 2) px, in_view (n, L), found (n,)."""
+    ok = np.asarray(found, bool) & np.asarray(agreed, bool)
+    n = ok.size
+    changed = True
+    while changed:
+        changed = False
+        for i in np.nonzero(np.asarray(found, bool) & ~ok)[0]:
+            if any(0 <= j < n and ok[j] and _near(kp, in_view, i, j, ratio) for j in (i - 1, i + 1)):
+                ok[i] = changed = True
+    return ok
+
+
 def check_images(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, t_us: np.ndarray, events: np.ndarray,
                  width: int, height: int, settings: ViewSettings, agreeing: tuple[np.ndarray, np.ndarray] | None = None
                  ) -> tuple[list[str], list[str]]:
@@ -230,17 +263,20 @@ def check_images(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, t_us: n
     kp (n, L, 2) px, in_view (n, L), found (n,) whether the detector gave a detection at all; ``agreeing``: per
     image, how many of the images tried at that moment show the kept pose, and how many were tried (check agree)."""
     cell = cell_size(width, height)
+    judged = "agree" in settings.checks and agreeing is not None
+    agreed = corroborated(kp, in_view, found, agreeing[0] >= settings.min_agree, settings.agree_ratio) \
+        if judged else None
     status, why = [], []
     for i in range(t_us.size):
         if not found[i]:
             status.append("no_person")
             why.append("")
             continue
-        if "agree" in settings.checks and agreeing is not None and agreeing[1][i] > 1 and \
-                agreeing[0][i] < settings.min_agree:
+        if judged and agreeing[1][i] > 1 and not agreed[i]:
             status.append("agree")
             why.append(f"the person shows in {agreeing[0][i]} of the {agreeing[1][i]} images made from the events "
-                       f"of that moment (at least {settings.min_agree} must agree on where they are)")
+                       f"of that moment (at least {settings.min_agree} must agree on where they are) and at no "
+                       f"neighbouring moment's agreed place")
             continue
         active = activity_cells(events, int(t_us[i]), width, height, settings.window_us) \
             if "region" in settings.checks and events is not None and events.size else None

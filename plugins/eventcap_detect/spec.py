@@ -127,10 +127,12 @@ class BlazePoseConfig(ViewChecksConfig):
                                          "ms); [] = the reconstruction alone")
     min_agree: int = param(2, ge=1, help="check agree: of the images made from the events of a moment "
                                          "(event_images), at least this many must show the person where the kept "
-                                         "pose puts them; 1 accepts a pose seen in one image alone")
-    agree_ratio: float = param(0.2, gt=0, help="check agree: two images show the person in the same place when "
-                                               "their poses' median landmark distance is at most this share of the "
-                                               "kept pose's size (its box's diagonal)")
+                                         "pose puts them, or the pose lie next to such a pose of the moment before "
+                                         "or after; 1 accepts a pose seen in one image alone")
+    agree_ratio: float = param(0.2, gt=0, help="check agree: two images (of one moment, or of "
+                                               "neighbouring moments) show the person in the same place when their "
+                                               "poses' median landmark distance is at most this share of the kept "
+                                               "pose's size (its box's diagonal)")
 
 
 BLAZEPOSE = StageSpec(
