@@ -255,7 +255,7 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
                  "template.target_faces=2000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     log = (run_dir / "eventcap.log").read_text()
     assert code == 1
-    assert ("detect (blazepose v11): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
+    assert ("detect (blazepose v12): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
             "images; the network saw no person in its images: look at the recording in `eventcap preview FILE`") in log
     assert ("run incomplete: detect failed (no_person); skipped because of it: 8 nodes (body, track, slice, solve, "
             "stitch, cut, confidence, evaluate); the first error is above (detect)") in log

@@ -136,7 +136,7 @@ class BlazePoseConfig(ViewChecksConfig):
 
 
 BLAZEPOSE = StageSpec(
-    name="blazepose", kind="detect", version=11,
+    name="blazepose", kind="detect", version=12,
     description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints, "
                 "with its noise model (models/blazepose_noise.json)",
     config=BlazePoseConfig,
