@@ -375,3 +375,49 @@ def test_detect_sequence_keeps_the_alternative_the_network_scores_best():
     assert seq.found_by == ["image@bright", "tracked@bright"]
     plain = bp.detect_sequence(Net(), images, np.array([0, 40_000]))
     assert plain.poses == [None, None] and plain.found_by == ["", ""]
+
+
+def test_poses_agree_when_their_landmarks_lie_within_a_share_of_the_body():
+    """agreeing_poses: the median distance over the body landmarks against ratio x the kept pose's box diagonal."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(3)
+    xy = np.column_stack([rng.uniform(0, 60, 35), rng.uniform(0, 80, 35)])
+    best = SimpleNamespace(xy=xy)
+    ref = xy[list(bp.AGREE_POINTS)]
+    diag = float(np.hypot(*(ref.max(0) - ref.min(0))))
+    near = SimpleNamespace(xy=xy + [0.09 * diag, 0.0])
+    far = SimpleNamespace(xy=xy + [0.0, 0.11 * diag])
+    assert bp.agreeing_poses(best, [best, near, None, far], 0.1) == 1
+    assert bp.agreeing_poses(best, [near, far], 0.12) == 2
+    assert bp.agreeing_poses(best, [None, None], 0.1) == 0
+
+
+def test_detect_sequence_counts_the_images_that_show_the_kept_pose():
+    """Per moment: how many of the images tried put the body where the kept pose does, and how many were tried."""
+    from types import SimpleNamespace
+
+    class Net:  # the pose lies where the image is bright; its flag is the image's brightness
+        presence_threshold = 0.5
+
+        def detect_person(self, rgb):
+            return None
+
+        def landmarks(self, rgb, roi):
+            ys, xs = np.nonzero(rgb[..., 0] > 100)
+            if xs.size == 0:
+                return SimpleNamespace(flag=0.0, roi=roi, next_roi=lambda: roi, xy=np.zeros((35, 2)))
+            xy = np.column_stack([np.linspace(xs.min(), xs.max(), 35), np.linspace(ys.min(), ys.max(), 35)])
+            return SimpleNamespace(flag=float(rgb.max()) / 255, roi=roi, next_roi=lambda: roi, xy=xy)
+
+    def image(x0, value=0.9):
+        im = np.zeros((40, 40))
+        im[5:35, x0:x0 + 10] = value
+        return im
+
+    alts = lambda i, im: [("a", image(5)), ("b", image(6, 0.8)), ("c", image(25, 0.7))] if i == 0 else \
+        [("a", image(5)), ("b", image(25, 0.8)), ("c", np.zeros((40, 40)))]
+    seq = bp.detect_sequence(Net(), [np.zeros((40, 40))] * 2, np.array([0, 40_000]), track=False, alternatives=alts)
+    assert seq.agreeing == [2, 1] and seq.tried == [3, 3]
+    plain = bp.detect_sequence(Net(), [image(5)], np.array([0]), track=False)
+    assert plain.agreeing == [1] and plain.tried == [1]

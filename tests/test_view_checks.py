@@ -147,6 +147,12 @@ def test_a_refusal_names_the_check_that_rejected_and_its_setting(tmp_path):
     # nobody found at all: the hint points at the images and at preview
     hint = checks.refusal_hint(["no_person"] * 5 + ["ok"], [""] * 6, event_images=True)
     assert "stages.detect.event_images" in hint and "eventcap preview FILE" in hint
+    assert "agree" not in hint
+    # more images without a person than poses the images made from the events disagreed on: both said
+    hint = checks.refusal_hint(["no_person"] * 5 + ["agree"] * 2 + ["ok"], [""] * 8, event_images=True)
+    assert hint.startswith("the images made from the events (stages.detect.event_images) showed the network no "
+                           "person (and in 2 more, too few of them agreed on one: check agree, stages.detect.min_agree"
+                           " / stages.detect.agree_ratio): look at the recording in `eventcap preview FILE`")
 
 
 def test_a_whole_body_inside_a_much_larger_moving_region_is_rejected(tmp_path):
@@ -249,7 +255,7 @@ def test_the_davis346_lab_scene_stops_at_detect_naming_the_count(tmp_path, monke
                  "template.target_faces=2000", f"cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run_dir}"])
     log = (run_dir / "eventcap.log").read_text()
     assert code == 1
-    assert ("detect (blazepose v10): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
+    assert ("detect (blazepose v12): FAILED (no_person): StageFailed: blazepose (full, at latent): no person in 3 of 3 "
             "images; the network saw no person in its images: look at the recording in `eventcap preview FILE`") in log
     assert ("run incomplete: detect failed (no_person); skipped because of it: 8 nodes (body, track, slice, solve, "
             "stitch, cut, confidence, evaluate); the first error is above (detect)") in log
@@ -309,3 +315,36 @@ def test_sensor_noise_is_not_a_moving_region():
     ev = make_events(np.sort(rng.integers(0, 40_000, m + px.size)), np.r_[cx, px], np.r_[cy, py],
                      np.ones(m + px.size, dtype=np.int8))
     assert checks.activity_cells(ev, 20_000, W, H, 40_000).mean() > 0.9
+
+
+def test_images_made_from_the_events_must_agree_on_the_person():
+    """Check agree: a pose that only one of the images of its moment shows, and that no corroborated pose of the
+    moment before or after vouches for, is rejected naming the counts; a pose next to a corroborated one is
+    followed through time; one image per moment, min_agree 1 and checks without agree are not judged."""
+    n, lm = 5, len(LANDMARK_NAMES)
+    body = np.column_stack([np.linspace(10, 40, lm), np.linspace(20, 100, lm)])  # diagonal ~85 px
+    shift = np.array([0.0, 0.0, 60.0, 10.0, 10.0])  # image 2 drawn 60 px away from the others
+    kp = body[None] + shift[:, None, None] * [1.0, 0.0]
+    in_view = np.ones((n, lm), bool)
+    found = np.array([True, True, True, True, False])
+    t = np.arange(n) * 40_000
+    agreeing = (np.array([2, 1, 1, 1, 0]), np.array([5, 5, 5, 1, 5]))
+
+    def settings(names=checks.CHECKS, min_agree=2):
+        return checks.ViewSettings(checks=tuple(names), border_px=0.0, min_in_view=3, region_ratio=0.5,
+                                   edge_ratio=0.15, head_ratio=0.35, shoulder_ratio=0.9, window_us=40_000,
+                                   min_found=0.5, min_agree=min_agree)
+
+    status, why = checks.check_images(kp, in_view, found, t, None, 128, 128, settings(), agreeing)
+    # 0: two images agree; 1: one image, next to 0 (followed); 2: one image, 60 px off both neighbours (0.7 of the
+    # body); 3: one image tried, not judged
+    assert status == ["ok", "ok", "agree", "ok", "no_person"]
+    assert why[2] == ("the person shows in 1 of the 5 images made from the events of that moment (at least 2 must "
+                      "agree on where they are) and at no neighbouring moment's agreed place")
+    assert checks.corroborated(kp, in_view, found, agreeing[0] >= 2, 0.8).tolist() == [True, True, True, True, False]
+    for s in (settings(min_agree=1), settings(names=("outside", "parts", "region", "scale"))):
+        assert checks.check_images(kp, in_view, found, t, None, 128, 128, s, agreeing)[0][:4] == ["ok"] * 4
+    assert checks.check_images(kp, in_view, found, t, None, 128, 128, settings(), None)[0][:4] == ["ok"] * 4
+    assert checks.CHECK_SETTINGS["agree"] == "stages.detect.min_agree / stages.detect.agree_ratio"
+    with pytest.raises(ValueError, match="min_agree: expected at least 1 image, got 0"):
+        settings(min_agree=0)

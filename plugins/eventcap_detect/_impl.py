@@ -63,7 +63,8 @@ def view_settings(config):
     return ViewSettings(checks=tuple(config.checks), border_px=config.border_px, min_in_view=config.min_in_view,
                         region_ratio=config.region_ratio, edge_ratio=config.edge_ratio, head_ratio=config.head_ratio,
                         shoulder_ratio=config.shoulder_ratio, window_us=config.check_window_us,
-                        min_found=config.min_found)
+                        min_found=config.min_found, min_agree=getattr(config, "min_agree", 1),
+                        agree_ratio=getattr(config, "agree_ratio", 0.2))
 
 
 def person_up(joints: np.ndarray, conf3: np.ndarray, ok: np.ndarray, R: np.ndarray) -> tuple[tuple, int, float]:
@@ -152,7 +153,8 @@ def _log_world_up(rec, up: tuple, n: int, log) -> None:
         log.info(msg)
 
 
-def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what: str, joint_views=None):
+def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what: str, joint_views=None,
+           agreeing=None):
     """In view, checks, enough detections to solve: zero what is not observed, log per rejected image, stop the
     stage when too few images hold a detection (StageFailed naming the counts); the person's vertical, and the upright
     world it gives (:func:`upright_world`). Returns (in_view, status, up, world_R, turn): world_R None keeps the
@@ -163,7 +165,7 @@ def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what
     n = int(t_us.size)
     in_view = np.asarray(in_view, bool) & (conf > 0) & found[:, None]
     status, why_rejected = checks.check_images(kp, in_view, found, t_us, rec.events.events, rec.width, rec.height,
-                                               settings)
+                                               settings, agreeing)
     for i, (st, w) in enumerate(zip(status, why_rejected)):
         if st == checks.CLOSE_UP:
             ctx.log.info("%s: image %d (t = %.3f s) a close-up: %s; its lower body marked unobserved", what, i,
@@ -372,7 +374,7 @@ def run_blazepose(inputs, config, ctx):
     net = bp.BlazePose(config.model, config.detector_threshold, config.presence_threshold)
     seq = bp.detect_sequence(net, images, times, track=config.track, find=config.find, events=rec.events.events,
                              events_window_us=config.events_window_us, gamma=config.gamma,
-                             log=ctx.log.warning, alternatives=alternatives)
+                             log=ctx.log.warning, alternatives=alternatives, agree_ratio=config.agree_ratio)
     n = times.size
     w2 = bp.mapping_matrix(bp.LANDMARK_FROM_BLAZEPOSE, LANDMARK_NAMES)
     w3 = bp.mapping_matrix(bp.JOINT_FROM_BLAZEPOSE, JOINT_NAMES)
@@ -409,8 +411,12 @@ def run_blazepose(inputs, config, ctx):
                  "last box %d, whole image %d), %d tracking losses, %.1f ms per image", config.model, config.at,
                  found.sum(), n, how["tracked"], how["detector"], how["events"], how["last box"], how["image"],
                  len(seq.losses), ms)
+    agreeing = None if alternatives is None else (np.array(seq.agreeing), np.array(seq.tried))
+    if agreeing is not None and found.any():
+        ctx.stats["agreeing_images"] = {int(k): int((agreeing[0][found] == k).sum()) for k in
+                                        np.unique(agreeing[0][found])}
     view = finish(rec, times, kp, conf, joints, conf3, in_view, found, config, ctx,
-                  f"blazepose ({config.model}, at {config.at})", joint_views=joint_views)
+                  f"blazepose ({config.model}, at {config.at})", joint_views=joint_views, agreeing=agreeing)
     detector = (f"blazepose: BlazePose GHUM 3D {config.model} (MediaPipe Pose, TFLite) on {config.at} images, "
                 f"track={config.track}, find={config.find}")
     frames = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)

@@ -345,11 +345,36 @@ class SequenceResult:
     found_by: list  # "tracked" | "detector" | "events" | "image" | ""
     losses: list  # (index, flag) where tracking lost the person
     seconds: float
+    #: per image, how many of the images tried at that moment (the ``alternatives``) show the kept pose: their own
+    #: pose within ``agree_ratio`` of its size (the kept one counts); 1 without alternatives, 0 where none was found
+    agreeing: list
+    #: per image, how many images were tried at that moment
+    tried: list
+
+
+#: The body landmarks (BlazePose order) two poses are compared on: the nose, shoulders, elbows, wrists, hips, knees
+#: and ankles (the face's and hands' small points would weigh a head many times over).
+AGREE_POINTS = (0, 11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28)
+
+
+def agreeing_poses(best, others, ratio: float) -> int:
+    """How many of ``others`` (poses of the same moment in other images; None where none was found) put the body
+    where ``best`` does: the median distance over :data:`AGREE_POINTS` at most ``ratio`` x the diagonal of
+    ``best``'s box over them. ``best`` itself is not counted."""
+    ref = np.asarray(best.xy, float)[AGREE_POINTS, :2]
+    size = float(np.hypot(*(ref.max(axis=0) - ref.min(axis=0))))
+    n = 0
+    for pose in others:
+        if pose is None or pose is best:
+            continue
+        d = np.hypot(*(np.asarray(pose.xy, float)[AGREE_POINTS, :2] - ref).T)
+        n += int(np.median(d) <= ratio * size)
+    return n
 
 
 def detect_sequence(net: BlazePose, images, times_us: np.ndarray, *, track: bool = True, find: str = "detector",
                     events: np.ndarray | None = None, events_window_us: int = 20000, gamma: float = 1.0,
-                    log=None, alternatives=None) -> SequenceResult:
+                    log=None, alternatives=None, agree_ratio: float = 0.2) -> SequenceResult:
     """Run the landmark model over a time-ordered sequence of grey images (linear intensity in [0, 1]).
 
     With ``track``, each image's ROI comes from the previous pose's auxiliary points while its pose flag stays at
@@ -367,19 +392,22 @@ def detect_sequence(net: BlazePose, images, times_us: np.ndarray, *, track: bool
         raise ValueError(f"find: expected 'detector' or 'events', got {find!r}")
     if find == "events" and events is None:
         raise ValueError("find='events' needs the recording's events")
-    poses, found_by, losses = [], [], []
+    poses, found_by, losses, agreeing, tried = [], [], [], [], []
     prev, last_roi = None, None
     t0 = time.perf_counter()
     for i, image in enumerate(images):
         candidates = [("", image)] if alternatives is None else list(alternatives(i, image))
-        best, best_how, lost_flag = None, "", None
+        best, best_how, lost_flag, found = None, "", None, []
         for name, img in candidates:
             pose, how, flag = _pose_in(net, to_rgb8(img, gamma), prev if track else None, last_roi, find, events,
                                        int(times_us[i]), events_window_us)
+            found.append(pose)
             if flag is not None:
                 lost_flag = flag if lost_flag is None else max(lost_flag, flag)
             if pose is not None and (best is None or pose.flag > best.flag):
                 best, best_how = pose, (f"{how}@{name}" if name else how)
+        agreeing.append(0 if best is None else 1 + agreeing_poses(best, found, agree_ratio))
+        tried.append(len(candidates))
         if track and prev is not None and (best is None or not best_how.startswith("tracked")):
             losses.append((i, 0.0 if lost_flag is None else lost_flag))
         if log is not None and best is None and prev is not None:
@@ -391,7 +419,7 @@ def detect_sequence(net: BlazePose, images, times_us: np.ndarray, *, track: bool
         prev = best
         if best is not None:
             last_roi = best.roi
-    return SequenceResult(poses, found_by, losses, time.perf_counter() - t0)
+    return SequenceResult(poses, found_by, losses, time.perf_counter() - t0, agreeing, tried)
 
 
 def _pose_in(net: BlazePose, rgb: np.ndarray, prev, last_roi, find: str, events, t_us: int, window_us: int):

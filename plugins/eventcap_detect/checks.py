@@ -23,7 +23,15 @@ Every detector's landmarks (the skeleton's BODY_25 order) go through the same th
      is not rejected: it is a person partly out of view (status ``close_up``), its head, shoulders and arms kept
      (:data:`UPPER_BODY`) and the lower body it drew marked unobserved.
 
-   Checks that need what a detection lacks (no torso, no events near it) do not judge it. They assume a static
+   - ``agree``: images reconstructed from the events only (an event-only camera), where the detector tries several
+     images of each moment (``stages.detect.event_images``): the pose is not corroborated (:func:`corroborated`):
+     fewer than ``min_agree`` of the images show the person where the kept pose puts them (their own pose within
+     ``agree_ratio`` of its size), and neither neighbouring moment holds a corroborated pose that close. A person in
+     view shows in the counts, time surfaces and reconstruction alike, and is followed through the moments where
+     they move so little that one image alone shows them; a shape the network took for a person (a lap seen from
+     the side, a blob) mostly shows in one image (docs/results/real.md).
+
+   Checks that need what a detection lacks (no torso, no events near it, one image per moment) do not judge it. They assume a static
    camera, as the method does: a moving camera makes the whole image fire.
 3. **Enough to solve**: the stage stops when fewer than ``min_found`` of the images (default: half) hold an
    accepted detection, naming the counts (:func:`found_message`): "no person in 199 of 202 images: a person in 3". Half, because a solve pinned by fewer detections than frames it spans fabricates the rest; the
@@ -40,7 +48,7 @@ import numpy as np
 
 from eventcap.body.skeleton import JOINT_INDEX, LANDMARK_INDEX
 
-CHECKS = ("outside", "parts", "region", "scale")
+CHECKS = ("outside", "parts", "region", "scale", "agree")
 #: The status of a detection the scale check keeps as a close-up: its head, shoulders and arms are observations, the
 #: lower body it drew under them is not (:data:`UPPER_BODY`).
 CLOSE_UP = "close_up"
@@ -75,6 +83,8 @@ class ViewSettings:
     shoulder_ratio: float
     window_us: int
     min_found: float
+    min_agree: int = 1
+    agree_ratio: float = 0.2
 
     @classmethod
     def without_checks(cls, min_found: float) -> ViewSettings:
@@ -94,6 +104,10 @@ class ViewSettings:
             raise ValueError(f"min_found: expected a share of the images in [0, 1], got {self.min_found!r}")
         if int(self.window_us) <= 0 or int(self.min_in_view) < 0:
             raise ValueError(f"window_us > 0 and min_in_view >= 0 expected, got {self.window_us}, {self.min_in_view}")
+        if int(self.min_agree) < 1:
+            raise ValueError(f"min_agree: expected at least 1 image, got {self.min_agree!r}")
+        if not (math.isfinite(self.agree_ratio) and self.agree_ratio > 0):
+            raise ValueError(f"agree_ratio: expected a share > 0 of the body's size, got {self.agree_ratio!r}")
 
 
 def inside_image(kp: np.ndarray, width: int, height: int, border_px: float = 0.0) -> np.ndarray:
@@ -214,16 +228,55 @@ def _region(box, size, region, grid_shape, cell, settings) -> tuple[str, str]:
     return "ok", ""
 
 
+def _near(kp: np.ndarray, in_view: np.ndarray, i: int, j: int, ratio: float) -> bool:
+    """Whether image j's pose puts the body where image i's does: the median distance over the landmarks both see
+    (at least 3) at most ``ratio`` x the diagonal of image i's landmarks' box."""
+    common = in_view[i] & in_view[j]
+    if common.sum() < 3:
+        return False
+    pts = kp[i][in_view[i]]
+    size = float(np.hypot(*(pts.max(axis=0) - pts.min(axis=0))))
+    return float(np.median(np.linalg.norm(kp[i][common] - kp[j][common], axis=1))) <= ratio * size
+
+
+def corroborated(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, agreed: np.ndarray, ratio: float
+                 ) -> np.ndarray:
+    """(n,) bool: the poses something besides their own image vouches for: ``agreed`` (enough images of the moment
+    show it), or next to a corroborated pose of the moment before or after that lies within ``ratio`` of its size
+    (followed through time, so a person seen by several images once stays corroborated while only one image shows
+    them). kp (n, L, 2) px, in_view (n, L), found (n,)."""
+    ok = np.asarray(found, bool) & np.asarray(agreed, bool)
+    n = ok.size
+    changed = True
+    while changed:
+        changed = False
+        for i in np.nonzero(np.asarray(found, bool) & ~ok)[0]:
+            if any(0 <= j < n and ok[j] and _near(kp, in_view, i, j, ratio) for j in (i - 1, i + 1)):
+                ok[i] = changed = True
+    return ok
+
+
 def check_images(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, t_us: np.ndarray, events: np.ndarray,
-                 width: int, height: int, settings: ViewSettings) -> tuple[list[str], list[str]]:
+                 width: int, height: int, settings: ViewSettings, agreeing: tuple[np.ndarray, np.ndarray] | None = None
+                 ) -> tuple[list[str], list[str]]:
     """Per image: its status (``ok`` | ``no_person`` | the rejecting check) and why (empty for ``ok``).
-    kp (n, L, 2) px, in_view (n, L), found (n,) whether the detector gave a detection at all."""
+    kp (n, L, 2) px, in_view (n, L), found (n,) whether the detector gave a detection at all; ``agreeing``: per
+    image, how many of the images tried at that moment show the kept pose, and how many were tried (check agree)."""
     cell = cell_size(width, height)
+    judged = "agree" in settings.checks and agreeing is not None
+    agreed = corroborated(kp, in_view, found, agreeing[0] >= settings.min_agree, settings.agree_ratio) \
+        if judged else None
     status, why = [], []
     for i in range(t_us.size):
         if not found[i]:
             status.append("no_person")
             why.append("")
+            continue
+        if judged and agreeing[1][i] > 1 and not agreed[i]:
+            status.append("agree")
+            why.append(f"the person shows in {agreeing[0][i]} of the {agreeing[1][i]} images made from the events "
+                       f"of that moment (at least {settings.min_agree} must agree on where they are) and at no "
+                       f"neighbouring moment's agreed place")
             continue
         active = activity_cells(events, int(t_us[i]), width, height, settings.window_us) \
             if "region" in settings.checks and events is not None and events.size else None
@@ -237,6 +290,7 @@ def check_images(kp: np.ndarray, in_view: np.ndarray, found: np.ndarray, t_us: n
 ACCEPTED = ("ok", CLOSE_UP)
 #: What changes each check (the setting a refusal names).
 CHECK_SETTINGS = {"outside": "stages.detect.min_in_view", "parts": "stages.detect.checks",
+                  "agree": "stages.detect.min_agree / stages.detect.agree_ratio",
                   "region": "stages.detect.region_ratio / stages.detect.edge_ratio",
                   "scale": "stages.detect.head_ratio / stages.detect.shoulder_ratio"}
 
@@ -273,7 +327,9 @@ def refusal_hint(status: list[str], why: list[str], event_images: bool) -> str:
                 f"them in `eventcap preview FILE --t SECONDS`; if a person shows there, the check is wrong for this "
                 f"recording: {CHECK_SETTINGS.get(check, 'stages.detect.checks')} (or stages.detect.checks without "
                 f"{check}) changes it")
-    images = ("the images made from the events (stages.detect.event_images) showed the network no person: "
+    images = ("the images made from the events (stages.detect.event_images) showed the network no person"
+              + (f" (and in {counts['agree']} more, too few of them agreed on one: check agree, "
+                 f"{CHECK_SETTINGS['agree']})" if counts.get("agree") else "") + ": "
               if event_images else "the network saw no person in its images: ")
     return (images + "look at the recording in `eventcap preview FILE` (a person in view there means the images "
             "were too poor for it; none means there is nobody to capture); stages.detect.min_found solves the "

@@ -15,11 +15,12 @@ class ViewChecksConfig:
     """What is in view and the checks against the events, shared by the detectors of real images
     (plugins/eventcap_detect/checks.py)."""
 
-    checks: list[str] = param(default_factory=lambda: ["outside", "parts", "region", "scale"],
+    checks: list[str] = param(default_factory=lambda: ["outside", "parts", "region", "scale", "agree"],
                               help="checks that reject a detection: outside (too few landmarks in the image) | "
                                    "parts (head and ankle in view, no hip) | region (a whole body that does not "
                                    "fit the moving region around it) | scale (a whole body too small for its own "
-                                   "head and shoulders); [] = none")
+                                   "head and shoulders) | agree (images made from the events: too few of them "
+                                   "show the person in the same place); [] = none")
     border_px: float = param(0.0, help="a landmark is in view when at least this far inside the image, px")
     min_in_view: int = param(3, help="check outside: fewer landmarks in the image reject the detection")
     region_ratio: float = param(0.5, help="check region: a whole body smaller than this x the moving region it "
@@ -124,10 +125,18 @@ class BlazePoseConfig(ViewChecksConfig):
                                          "scores best: reconstruction (the high-pass image) | counts:MS (events per "
                                          "pixel over the last MS ms, 1-500) | surface:MS (a time surface over MS "
                                          "ms); [] = the reconstruction alone")
+    min_agree: int = param(2, ge=1, help="check agree: of the images made from the events of a moment "
+                                         "(event_images), at least this many must show the person where the kept "
+                                         "pose puts them, or the pose lie next to such a pose of the moment before "
+                                         "or after; 1 accepts a pose seen in one image alone")
+    agree_ratio: float = param(0.2, gt=0, help="check agree: two images (of one moment, or of "
+                                               "neighbouring moments) show the person in the same place when their "
+                                               "poses' median landmark distance is at most this share of the kept "
+                                               "pose's size (its box's diagonal)")
 
 
 BLAZEPOSE = StageSpec(
-    name="blazepose", kind="detect", version=10,
+    name="blazepose", kind="detect", version=12,
     description="BlazePose GHUM 3D (MediaPipe Pose) on the CPU, offline: 2D landmarks + root-relative 3D joints, "
                 "with its noise model (models/blazepose_noise.json)",
     config=BlazePoseConfig,
