@@ -11,7 +11,8 @@ kind of detector that made their detections (simulated, blazepose, file); per ki
 
 1. the relative weights (per unit of the solve's σ: detection_3d, detection_2d, events, motion, speed, between_mm,
    floor_mm) by coordinate descent over a grid of each, scored by the mean of the kind's pooled Spearman correlation
-   and of each row's (the ranking is the same for any common factor);
+   and of each row's (the ranking is the same for any common factor); a cue whose leaving out costs less than
+   MIN_GAIN is left out (it would only move the uncertainty about, e.g. colour a still torso untrusted);
 2. the common factor that puts the kind's pooled 2-sigma coverage at 93.5 % (the middle of the 90-97 % target);
 3. trusted_mm: the 90th percentile of the uncertainty of the joints in view (so that nine in ten of them are
    trusted), and unseen_mm a fifth above it (a joint out of view is never trusted);
@@ -36,6 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_uncertainty import capture_groups  # noqa: E402
 
 TARGET = 0.935
+#: a cue stays only if leaving it out costs the objective at least this much (Spearman)
+MIN_GAIN = 0.005
 LADDER_TUNING = (0, 1)
 #: the relative weights' grids (per unit of the solve's σ; between_mm and floor_mm in mm per unit)
 GRID = {"detection_3d": [0.0, 0.25, 0.5, 1.0, 1.5, 2.5, 4.0], "detection_2d": [0.0, 0.15, 0.3, 0.7, 1.5, 3.0],
@@ -173,6 +176,12 @@ def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: 
                                                   for g, v in s0.items()))
     w, obj = fit_weights(runs, groups)
     print("1. relative weights (per unit of the solve's sigma):", json.dumps(w), f"objective {obj:.3f}")
+    for k in CUES:  # a cue that does not earn its place is left out: it would only move the uncertainty about
+        if w[k] != 0:
+            o = objective(score(runs, groups, lambda r, t={**w, k: 0.0}: uncertainty(r, t)))
+            if o > obj - MIN_GAIN:
+                print(f"   {k} left out: it adds {obj - o:+.4f} to the objective (less than {MIN_GAIN})")
+                w, obj = {**w, k: 0.0}, o
     factor = common_factor(runs, w)
     us = [uncertainty(r, w, factor) for r in runs]
     seen = np.concatenate([(in_view(r, u, margin) & r["est"][:, None]).ravel() for r, u in zip(runs, us)])
