@@ -135,6 +135,9 @@ def test_the_calibration_is_the_detector_kinds_and_a_setting_given_takes_its_pla
     assert np.allclose(c.uncertainty_mm, 10.0, atol=1.5)
     assert np.allclose(c.confidence, 1.0 / (1.0 + (c.uncertainty_mm / 50.0) ** 2))
     assert np.allclose(confidence(calibration=table, scale=3.0).uncertainty_mm, 60.0, atol=1.5)
+    # trusted_mm given alone (above the table's unseen_mm, 120): unseen keeps the table's ratio (1.2), not refused
+    c = confidence(calibration=table, trusted_mm=200.0)
+    assert np.allclose(c.confidence, 1.0 / (1.0 + (c.uncertainty_mm / 200.0) ** 2))
 
 
 def test_a_calibration_table_that_cannot_work_is_refused_naming_what_is_wrong(tmp_path):

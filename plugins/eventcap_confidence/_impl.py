@@ -75,16 +75,20 @@ def read_calibration(config) -> dict:
 
 def settings_of(config, detector: str) -> tuple[str, dict]:
     """(the calibration entry used, the uncertainty's settings) for detections made by ``detector`` (the Detections'
-    text): the detector kind's calibration from the table, each setting given in the config taking its place."""
+    text): the detector kind's calibration from the table, each setting given in the config taking its place (a
+    trusted_mm given without unseen_mm keeps the table's unseen / trusted ratio)."""
     kind = detector_kind(detector)
     try:
         name, cal = calibration(read_calibration(config), kind)
     except ValueError as exc:
         raise StageFailed(f"stages.confidence.calibration: {exc}", status="invalid_config") from None
+    ratio = cal["unseen_mm"] / cal["trusted_mm"]
     for key in CALIBRATED:
         v = getattr(config, key, None)
         if v is not None:
             cal[key] = float(v)
+    if config.trusted_mm is not None and config.unseen_mm is None:  # the table's unseen / trusted kept
+        cal["unseen_mm"] = ratio * cal["trusted_mm"]
     return name, cal
 
 

@@ -68,7 +68,9 @@ class ConfidenceConfig:
                                                       "trusted" + _FROM_TABLE)
     unseen_mm: float | None = param(None, gt=0, help="the least uncertainty of a joint out of view (outside the image "
                                                      "with the body around it), mm; at least trusted_mm, so that such "
-                                                     "a joint is never marked observed" + _FROM_TABLE)
+                                                     "a joint is never marked observed" + _FROM_TABLE
+                                                     + "; given trusted_mm alone: the table's unseen / trusted "
+                                                       "ratio times it")
     view_margin: float = param(1.0, ge=0, help="a joint counts as in view when the ball of this many times its "
                                                "uncertainty around it (or of its body's depth, if larger) projects "
                                                "inside every image edge (dimensionless)")
