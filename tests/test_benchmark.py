@@ -345,3 +345,30 @@ def test_only_picks_rows_by_name_and_refuses_unknown_names():
     assert [m.name for m in Benchmark(compose_benchmark(CONF, "default", ["only=paper"]), CONF, []).methods] == ["paper"]
     with pytest.raises(ValueError, match=r"only: expected names of methods \(default, paper, linear.*got \['splin'\]"):
         Benchmark(compose_benchmark(CONF, "default", ["only=[splin]"]), CONF, [])
+
+
+def test_the_reliability_figures_and_plot_of_each_rows_uncertainty(tmp_path):
+    """Each row's uncertainty against its error over its runs' (frame, joint) pairs: an uncertainty equal to the
+    error ranks it perfectly (Spearman 1, sparsification area 0) and covers every error within 1 u; a constant one
+    ranks nothing (area = random's); per group when the runs have several; the plot is written."""
+    from eventcap.apps.benchmark import format_reliability, plot_reliability, reliability_figures
+
+    rng = np.random.default_rng(0)
+    records = []
+    for k in range(4):
+        e = rng.uniform(5.0, 100.0, size=(10, 24))
+        for name, u in (("good", e), ("flat", np.full_like(e, 50.0))):
+            records.append({"method": name, "group": "whole" if k < 2 else "partial",
+                            "reliability": {"u_mm": u.tolist(), "err_mm": e.tolist()}})
+    records.append({"method": "good", "group": "whole", "reliability": None})  # a run without an uncertainty
+    figs = reliability_figures(records, ["good", "flat", "none"])
+    assert set(figs) == {"good", "flat"} and set(figs["good"]) == {"all", "whole", "partial"}
+    g = figs["good"]["all"]
+    assert g["runs"] == 4 and g["pairs"] == 960 and g["spearman"] == pytest.approx(1.0)
+    assert g["ause_ratio"] == pytest.approx(0.0, abs=1e-9) and g["cover1"] == 1.0
+    assert g["u_median_mm"] == pytest.approx(g["error_median_mm"])
+    assert figs["flat"]["all"]["ause_ratio"] == pytest.approx(1.0, abs=0.05)
+    text = format_reliability(figs)
+    assert "good" in text.splitlines()[2] and "1.00" in text.splitlines()[2]
+    path = plot_reliability(tmp_path / "fig_reliability.png", records, ["good", "flat"])
+    assert path is not None and path.stat().st_size > 10_000

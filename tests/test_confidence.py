@@ -55,7 +55,8 @@ class TestConfidenceConformance(StageConformance):
         return inputs()
 
 
-WEIGHTS = {"scale": 1.5, "detection_2d": 0.5, "detection_3d": 0.5, "floor_mm": 5.0, "events": 0.0, "trusted_mm": 100.0}
+WEIGHTS = {"scale": 1.5, "detection_2d": 0.5, "detection_3d": 0.5, "floor_mm": 5.0, "events": 0.0, "trusted_mm": 100.0,
+           "motion": 0.0, "speed": 0.0, "between_mm": 0.0}
 
 
 def test_the_uncertainty_is_the_solves_sigma_on_the_truth_and_grows_where_the_detections_disagree():
@@ -108,3 +109,69 @@ def test_a_body_estimated_from_the_detections_adds_its_own_uncertainty():
     assert want.max() > 10.0 and np.allclose(extra, want, atol=0.5)
     off = confidence(rest_spread=spread, **WEIGHTS, body=0.0)
     assert np.allclose(off.uncertainty_mm, exact.uncertainty_mm)
+
+
+def _table(tmp_path, detectors: dict, default: str = "simulated"):
+    import json
+
+    entry = {"scale": 1.0, "detection_2d": 0.0, "detection_3d": 0.0, "events": 0.0, "motion": 0.0, "speed": 0.0,
+             "between_mm": 0.0, "floor_mm": 0.0, "trusted_mm": 100.0, "unseen_mm": 120.0}
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps({"default": default,
+                                "detectors": {k: {**entry, **v} for k, v in detectors.items()}}))
+    return str(path)
+
+
+def test_the_calibration_is_the_detector_kinds_and_a_setting_given_takes_its_place(tmp_path):
+    """Exact detections by the simulated detector, a solve's σ of 20 mm: the table's entry for kind 'simulated'
+    scales it (2 x 20 = 40 mm), not the other kinds'; a kind without an entry takes the table's default; a setting
+    given in the config replaces the table's."""
+    table = _table(tmp_path, {"simulated": {"scale": 2.0}, "blazepose": {"scale": 0.1}})
+    c = confidence(calibration=table)
+    assert np.allclose(c.uncertainty_mm, 40.0, atol=1.5)
+    assert np.allclose(c.confidence, 1.0 / (1.0 + (c.uncertainty_mm / 100.0) ** 2))
+    other = _table(tmp_path, {"blazepose": {"scale": 0.5, "trusted_mm": 50.0, "unseen_mm": 60.0}}, default="blazepose")
+    c = confidence(calibration=other)
+    assert np.allclose(c.uncertainty_mm, 10.0, atol=1.5)
+    assert np.allclose(c.confidence, 1.0 / (1.0 + (c.uncertainty_mm / 50.0) ** 2))
+    assert np.allclose(confidence(calibration=table, scale=3.0).uncertainty_mm, 60.0, atol=1.5)
+    # trusted_mm given alone (above the table's unseen_mm, 120): unseen keeps the table's ratio (1.2), not refused
+    c = confidence(calibration=table, trusted_mm=200.0)
+    assert np.allclose(c.confidence, 1.0 / (1.0 + (c.uncertainty_mm / 200.0) ** 2))
+
+
+def test_a_calibration_table_that_cannot_work_is_refused_naming_what_is_wrong(tmp_path):
+    from eventcap.core.stage import StageFailed
+
+    with pytest.raises(StageFailed, match=r"no entry for detector kind 'simulated' and no default entry"):
+        confidence(calibration=_table(tmp_path, {"blazepose": {}}, default=""))
+    with pytest.raises(StageFailed, match=r"detector kind 'simulated': scale must be a number >= 0, got 'x'"):
+        confidence(calibration=_table(tmp_path, {"simulated": {"scale": "x"}}))
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2]")
+    with pytest.raises(StageFailed, match=r"stages.confidence.calibration: .*bad.json: expected an object"):
+        confidence(calibration=str(bad))
+
+
+def test_the_shipped_calibration_has_every_detector_kind_and_its_table_is_in_the_cache_key(tmp_path):
+    """simulated and blazepose each have their own entry, detections from a file take the documented default, and
+    every entry is one the stage accepts (unseen at least trusted); the table's content is part of the key."""
+    import json
+
+    from eventcap.analysis.uncertainty import calibration
+    from eventcap.core.config import file_digests
+    from eventcap_confidence.spec import SHIPPED_CALIBRATION
+
+    table = json.loads(SHIPPED_CALIBRATION.read_text())
+    assert {"simulated", "blazepose"} <= set(table["detectors"])
+    assert calibration(table, "file")[0] == table["default"] in table["detectors"]
+    for kind in table["detectors"]:
+        name, cal = calibration(table, kind)
+        assert name == kind and cal["unseen_mm"] >= cal["trusted_mm"] > 0 and cal["scale"] > 0
+        assert table["detectors"][kind]["source"]
+    spec = load_registry().get("confidence")
+    a = file_digests(spec, build_config(spec, {}, "stages.confidence"), "stages.confidence")
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({**table, "about": "changed"}))
+    b = file_digests(spec, build_config(spec, {"calibration": str(other)}, "stages.confidence"), "stages.confidence")
+    assert set(a) == set(b) == {"calibration"} and a != b

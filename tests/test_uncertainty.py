@@ -179,3 +179,49 @@ def test_the_bodys_uncertainty_is_its_rest_spread_carried_to_the_posed_joints_le
     u = joint_uncertainty(m, sig, z, z, z, est, got)
     assert np.allclose(u[ok], np.hypot(30.0, want))
     assert np.allclose(joint_uncertainty(dataclasses.replace(m, body=0.0), sig, z, z, z, est, got)[ok], 30.0)
+
+
+def test_the_motion_between_the_frames_is_each_joints_move_over_its_interval_less_the_bodys():
+    """A body that only translates moves no joint relative to the joints' mean (the rigid alignment takes it): step 0;
+    a turned arm moves its hand by the chord of the turn over the interval it turns in, and 4τ(1 - τ) is 0 at the
+    frames and 1 half way."""
+    from eventcap.analysis.uncertainty import motion_mm
+    from eventcap.body.kinematics import joint_positions
+    from eventcap.body.skeleton import DOF_INDEX, JOINT_INDEX
+    from helpers.poses import posed_recording
+
+    tpl = posed_recording("jumping_jack", n_frames=4, speed=1.0, with_template=True).template
+    t = np.arange(0, 201_000, 1_000, dtype=np.int64)
+    P = np.zeros((t.size, 33))
+    P[:, 30] = np.linspace(0.0, 0.5, t.size)  # the root moves 0.5 m (S[30:33]: its translation)
+    t_det = np.array([0, 100_000, 200_000])
+    m, step = motion_mm(tpl, t, P, t_det)
+    assert m.shape == (t.size,) and step.shape == (t.size, 24)
+    assert m[0] == m[100] == m[200] == 0.0 and m[50] == pytest.approx(1.0) and m[150] == pytest.approx(1.0)
+    assert np.allclose(step, 0.0, atol=1e-6)
+    Q = np.zeros((t.size, 33))
+    Q[100:, DOF_INDEX["r_shoulder_flex"]] = np.linspace(0.0, 1.0, 101)  # the arm turns in the second interval only
+    _, step = motion_mm(tpl, t, Q, t_det)
+    J0, J1 = joint_positions(Q[[100, 200]], tpl)
+    rel0, rel1 = J0 - J0.mean(axis=0), J1 - J1.mean(axis=0)
+    hand = JOINT_INDEX["r_hand"]
+    assert np.allclose(step[:100], 0.0, atol=1e-6)
+    assert step[150, hand] == pytest.approx(np.linalg.norm(rel1[hand] - rel0[hand]) * 1000.0, rel=1e-6)
+    assert step[150, hand] > 100.0
+    P[60:70] = np.nan  # no estimate: NaN there
+    _, step = motion_mm(tpl, t, P, t_det)
+    assert np.isnan(step[60:70]).all() and np.isfinite(step[100:]).all()
+
+
+def test_the_detector_kind_is_the_word_before_the_colon_and_a_table_gives_its_entry_or_the_default():
+    from eventcap.analysis.uncertainty import CALIBRATED, calibration, detector_kind
+
+    assert detector_kind("blazepose: BlazePose GHUM 3D full on latent images") == "blazepose"
+    assert detector_kind("simulated: ground-truth projections") == "simulated"
+    assert detector_kind("file: a.json (openpose, layout body25)") == "file" and detector_kind("") == ""
+    entry = {k: 1.0 for k in CALIBRATED}
+    table = {"default": "simulated", "detectors": {"simulated": entry, "blazepose": {**entry, "scale": 2.0}}}
+    assert calibration(table, "blazepose") == ("blazepose", {**entry, "scale": 2.0})
+    assert calibration(table, "file") == ("simulated", entry)
+    with pytest.raises(ValueError, match=r"kind 'blazepose': trusted_mm must be a number >= 0, got None"):
+        calibration({"detectors": {"blazepose": {**entry, "trusted_mm": None}}}, "blazepose")

@@ -2,7 +2,8 @@
 
     eventcap benchmark benchmark=open_check only=[default] cache_dir=/work/cache out=runs/bench/check \\
         "overrides=[outputs.video=false,outputs.c3d=true]"
-    python benchmarks/accuracy/bench_uncertainty.py runs/bench/check [more benchmark folders] [--plot out.png]
+    python benchmarks/accuracy/bench_uncertainty.py runs/bench/check [more benchmark or run folders] [--plot out.png]
+    python benchmarks/accuracy/bench_uncertainty.py runs/bench/ladder_check --method edefault   # a ladder row
 
 For every run of the ``default`` row in each benchmark folder (``<folder>/runs/<capture>/default``), pooled over the
 runs and per group of the open suite (whole body with frames, whole body event-only, partial view):
@@ -109,6 +110,7 @@ def figures(rows: list[dict]) -> dict:
     ok = np.isfinite(e) & np.isfinite(u)
     sp = sparsification(u[ok], e[ok])
     out = {"runs": len(rows), "pairs": int(ok.sum()), "error_mean_mm": float(e[ok].mean()),
+           "error_median_mm": float(np.median(e[ok])),
            "uncertainty_median_mm": float(np.median(u[ok])), "spearman": spearman(u, e),
            "ause_ratio": sp["ratio"], "cover1": coverage(u, e, 1.0), "cover2": coverage(u, e, 2.0)}
     oov = sum(r["out_of_view"] for r in rows)
@@ -167,7 +169,8 @@ def _fmt(v, pct: bool = False) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("folders", nargs="+", help="benchmark output folders (their runs/<capture>/default are read)")
+    ap.add_argument("folders", nargs="+", help="benchmark output folders (their runs/<capture>/default are read) or "
+                                               "run folders")
     ap.add_argument("--method", default="default", help="the row whose runs are measured")
     ap.add_argument("--plot", default=None, help="write the binned error-against-uncertainty plot here (PNG)")
     ap.add_argument("--json", default=None, help="write every figure here")
@@ -176,8 +179,9 @@ def main(argv=None) -> int:
     skipped = []
     for folder in map(Path, args.folders):
         groups = capture_groups(folder)
-        for run_dir in sorted((folder / "runs").glob(f"*/{args.method}")):
-            label = run_dir.parent.name
+        dirs = [folder] if (folder / "run.json").is_file() else sorted((folder / "runs").glob(f"*/{args.method}"))
+        for run_dir in dirs:
+            label = run_dir.parent.name if run_dir != folder else folder.name
             if not (run_dir / "motion.npz").is_file():
                 skipped.append(f"{folder.name}/{label}: no motion.npz (failed or refused)")
                 continue
@@ -193,14 +197,16 @@ def main(argv=None) -> int:
             by_group.setdefault(groups.get(label, "other"), []).append(r)
     table = {"pooled": figures([r for rows in by_group.values() for r in rows])}
     table.update({g: figures(rows) for g, rows in by_group.items() if rows})
-    head = (f"{'':<14}{'runs':>5}{'pairs':>7}{'err mm':>8}{'u med':>7}{'spearman':>9}{'ause/rnd':>9}{'cover1':>8}"
+    head = (f"{'':<14}{'runs':>5}{'pairs':>7}{'err mm':>8}{'err med':>8}{'u med':>7}{'spearman':>9}{'ause/rnd':>9}"
+            f"{'cover1':>8}"
             f"{'cover2':>8}{'out/obs':>8}{'obs/out':>8}{'c3d -1':>8}")
     print(head)
     for name, f in table.items():
         if not f.get("runs"):
             continue
         c3d = "-" if "c3d_points" not in f else f"{f['c3d_minus_one_outside_gaps']}/{f['c3d_points']}"
-        print(f"{name:<14}{f['runs']:>5}{f['pairs']:>7}{f['error_mean_mm']:>8.1f}{f['uncertainty_median_mm']:>7.1f}"
+        print(f"{name:<14}{f['runs']:>5}{f['pairs']:>7}{f['error_mean_mm']:>8.1f}{f['error_median_mm']:>8.1f}"
+              f"{f['uncertainty_median_mm']:>7.1f}"
               f"{_fmt(f['spearman']):>9}{_fmt(f['ause_ratio']):>9}{_fmt(f['cover1'], True):>8}"
               f"{_fmt(f['cover2'], True):>8}{_fmt(f['out_of_view_observed'], True):>8}"
               f"{_fmt(f['observed_out_of_view'], True):>8}{c3d:>8}")

@@ -1,28 +1,33 @@
-"""Calibrate the uncertainty's settings (stages.confidence.*) on the open benchmark's TUNING seeds (issue 45).
+"""Calibrate the uncertainty per detector kind (stages.confidence.calibration) on TUNING captures (issues 45, 58).
 
-    eventcap benchmark benchmark=open only=[default] cache_dir=/work/cache out=runs/bench/tune
-    python benchmarks/accuracy/calibrate_uncertainty.py runs/bench/tune [--cues runs/cues]
+    eventcap benchmark benchmark=ladder 'seeds=[0,1]' 'only=[a default,d default,e default]' out=runs/bench/tune
+    python benchmarks/accuracy/calibrate_uncertainty.py runs/bench/tune [--cues runs/cues] [--write calibration.json]
 
-For every finished run of the ``default`` row: the uncertainty's cues (the confidence stage's own
-``motion_cues``: the solve's σ, the detections' residuals, the events' gap, the joints' image positions) at the
-evaluated frames, and the error there (the evaluate stage's, after its per-frame rigid alignment). Then:
+For every finished run of the rows asked for (``--rows``, the method folders' names; default: every row whose name
+ends in ``default``): the uncertainty's cues (the confidence stage's own ``motion_cues``: the solve's σ, the
+detections' residuals, the events' gap, the motion between the frames, the joints' image positions) at the evaluated
+frames, and the error there (the evaluate stage's, after its per-frame rigid alignment). The runs are split by the
+kind of detector that made their detections (simulated, blazepose, file); per kind:
 
-1. the relative weights (detection_3d / scale, detection_2d / scale, events / scale, floor_mm / scale) on a grid,
-   each scored by the mean of the pooled Spearman correlation and of each group's (the ranking is the same for any
-   common factor);
-2. the common factor that puts the pooled 2-sigma coverage at 93.5 % (the middle of the 90-97 % target);
-3. trusted_mm: the 90th percentile of the uncertainty of the joints in view on whole-body captures with frames (so
-   that nine in ten of them are trusted), and unseen_mm a fifth above it (a joint out of view is never trusted).
+1. the relative weights (per unit of the solve's σ: detection_3d, detection_2d, events, motion, speed, between_mm,
+   floor_mm) by coordinate descent over a grid of each, scored by the mean of the kind's pooled Spearman correlation
+   and of each row's (the ranking is the same for any common factor); a cue whose leaving out costs less than
+   MIN_GAIN is left out (it would only move the uncertainty about, e.g. colour a still torso untrusted);
+2. the common factor that puts the kind's pooled 2-sigma coverage at 93.5 % (the middle of the 90-97 % target);
+3. trusted_mm: the 90th percentile of the uncertainty of the joints in view (so that nine in ten of them are
+   trusted), and unseen_mm a fifth above it (a joint out of view is never trusted);
+4. each cue's worth: the Spearman correlation and sparsification area with that cue left out (issue 58 item 3).
 
-It prints each step's figures and the settings to state in plugins/eventcap_confidence/spec.py. Never run it on the
-check seeds: the suite refuses them for tuning (benchmark=open holds only seeds 0-19).
+``--write``: the calibration table (plugins/eventcap_confidence/calibration.json's form) with these kinds' entries
+(the entries of kinds not calibrated here kept from the table it replaces). Only tuning captures are accepted:
+the ladder's seeds 0-1 (labels ``<motion>-s<seed>``), the open benchmark's tuning seeds (labels ``s<seed>``).
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -32,13 +37,32 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_uncertainty import capture_groups  # noqa: E402
 
 TARGET = 0.935
+#: a cue stays only if leaving it out costs the objective at least this much (Spearman)
+MIN_GAIN = 0.005
+LADDER_TUNING = (0, 1)
+#: the relative weights' grids (per unit of the solve's σ; between_mm and floor_mm in mm per unit)
+GRID = {"detection_3d": [0.0, 0.25, 0.5, 1.0, 1.5, 2.5, 4.0], "detection_2d": [0.0, 0.15, 0.3, 0.7, 1.5, 3.0],
+        "events": [0.0, 0.5, 1.0, 2.0], "motion": [0.0, 0.1, 0.2, 0.4, 0.8, 1.5],
+        "speed": [0.0, 0.05, 0.1, 0.2, 0.4], "between_mm": [0.0, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0],
+        "floor_mm": [0.0, 0.5, 1.0, 2.0, 5.0, 10.0]}
+CUES = ("detection_3d", "detection_2d", "events", "motion", "speed", "between_mm", "floor_mm")
+
+
+def is_tuning(label: str) -> bool:
+    from eventcap.apps.open_suite import TUNING_SEEDS
+
+    m = re.fullmatch(r".+-s(\d+)", label)
+    if m:
+        return int(m.group(1)) in LADDER_TUNING
+    m = re.fullmatch(r"s(\d+)", label)
+    return bool(m) and int(m.group(1)) in TUNING_SEEDS
 
 
 def run_cues(run_dir: Path) -> dict:
-    """The cues and the error at the evaluated frames of a finished run (arrays (F, 24))."""
-    from eventcap.analysis.uncertainty import joint_uncertainty  # noqa: F401 (the model the cues feed)
-    from eventcap.body.kinematics import joint_positions
+    """The cues and the error at the evaluated frames of a finished run (arrays (F, 24); ``kind`` the detector's)."""
     from eventcap.analysis.confidence import joint_radii
+    from eventcap.analysis.uncertainty import detector_kind
+    from eventcap.body.kinematics import joint_positions
     from eventcap.core.runner import load_finished_run
     from eventcap.worldframe import upright
     from eventcap_confidence._impl import motion_cues
@@ -47,8 +71,9 @@ def run_cues(run_dir: Path) -> dict:
     get = lambda key: runner.load_output(result, key)  # noqa: E731
     det = get("detect.detections")[None]
     rec = upright(get("source.recording")[None], det)
-    cut = get("cut.poses")
-    cues = motion_cues(rec, det, [cut[k] for k in sorted(cut)], runner.by_name["confidence"].config)
+    node = runner.by_name["confidence"]
+    poses = get(node.inputs["poses"] if isinstance(node.inputs, dict) and "poses" in node.inputs else "cut.poses")
+    cues = motion_cues(rec, det, [poses[k] for k in sorted(poses)], node.config)
     errors = get("evaluate.errors")[None]
     t = cues["t_us"]
     k = np.searchsorted(t, errors.t_us)
@@ -66,15 +91,20 @@ def run_cues(run_dir: Path) -> dict:
     f_over_z = max(cam.fx, cam.fy) / np.maximum(z, 0.05)
     sig = cues["sigma"] if cues["sigma"] is not None else np.full((t.size, 24), np.nan)
     return {"E": errors.error_m * 1000.0, "sig": sig[k], "r2": cues["r2"][k], "r3": cues["r3"][k],
-            "gap": cues["gap"][k], "edge": np.nan_to_num(edge, nan=-1e9), "f_over_z": f_over_z,
-            "radius_px": joint_radii(rec.template)[None] * f_over_z, "est": est}
+            "gap": cues["gap"][k], "between": cues["between"][k], "step": cues["step"][k],
+            "edge": np.nan_to_num(edge, nan=-1e9), "f_over_z": f_over_z,
+            "radius_px": joint_radii(rec.template)[None] * f_over_z, "est": est,
+            "kind": np.array(detector_kind(cues["detector"]))}
 
 
 def uncertainty(c: dict, w: dict, common: float = 1.0) -> np.ndarray:
-    """The uncertainty of one run's cues with relative weights w, times the common factor (before out of view)."""
+    """The uncertainty of one run's cues with relative weights w, times the common factor (before out of view):
+    joint_uncertainty's sum of variances, in the same order."""
+    m = c["between"][:, None]
+    d = np.nan_to_num(c["step"])
     var = (c["sig"] ** 2 + (w["detection_3d"] * np.nan_to_num(c["r3"])) ** 2
            + (w["detection_2d"] * np.nan_to_num(c["r2"])) ** 2 + (w["events"] * np.nan_to_num(c["gap"])) ** 2
-           + w["floor_mm"] ** 2)
+           + w["floor_mm"] ** 2 + (w["between_mm"] * m) ** 2 + (w["motion"] * m * d) ** 2 + (w["speed"] * d) ** 2)
     return common * np.sqrt(var)
 
 
@@ -89,38 +119,131 @@ def pooled(runs: list[dict], fn) -> tuple[np.ndarray, np.ndarray]:
     return u[ok], e[ok]
 
 
-def score(runs: list[dict], groups: list[str], fn) -> dict:
+def score(runs: list[dict], groups: list[str], fn, cover: bool = False) -> dict:
     from eventcap.analysis.uncertainty import coverage, sparsification, spearman
 
     out = {}
     for g in ["pooled", *sorted(set(groups))]:
         sel = runs if g == "pooled" else [r for r, gg in zip(runs, groups) if gg == g]
         u, e = pooled(sel, fn)
-        out[g] = {"runs": len(sel), "spearman": spearman(u, e), "ause_ratio": sparsification(u, e)["ratio"],
-                  "cover2": coverage(u, e, 2.0)}
+        out[g] = {"runs": len(sel), "spearman": spearman(u, e)}
+        if cover:
+            out[g].update(ause_ratio=sparsification(u, e)["ratio"], cover2=coverage(u, e, 2.0),
+                          u_median=float(np.median(u)), e_median=float(np.median(e)))
     return out
+
+
+def objective(s: dict) -> float:
+    rows = [v["spearman"] for g, v in s.items() if g != "pooled"]
+    return 0.5 * s["pooled"]["spearman"] + 0.5 * float(np.mean(rows)) if len(rows) > 1 else s["pooled"]["spearman"]
+
+
+def fit_weights(runs, groups, fixed: dict | None = None, sweeps: int = 3) -> tuple[dict, float]:
+    """Coordinate descent over GRID (the cues in ``fixed`` held at their value)."""
+    fixed = fixed or {}
+    w = {k: fixed.get(k, 0.0) for k in CUES}
+    best = objective(score(runs, groups, lambda r: uncertainty(r, w)))
+    for _ in range(sweeps):
+        moved = False
+        for k in CUES:
+            if k in fixed:
+                continue
+            for v in GRID[k]:
+                trial = {**w, k: v}
+                o = objective(score(runs, groups, lambda r, t=trial: uncertainty(r, t)))
+                if o > best + 1e-4:
+                    best, w, moved = o, trial, True
+        if not moved:
+            break
+    return w, best
+
+
+def common_factor(runs, w) -> float:
+    lo, hi = 1e-3, 1e3
+    factor = 1.0
+    for _ in range(60):
+        factor = np.sqrt(lo * hi)
+        u, e = pooled(runs, lambda r, f=factor: uncertainty(r, w, f))
+        lo, hi = (factor, hi) if float(np.mean(e <= 2 * u)) < TARGET else (lo, factor)
+    return float(factor)
+
+
+def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: float) -> dict:
+    print(f"\n== detector kind {kind}: {len(runs)} tuning runs ({', '.join(sorted(set(groups)))})")
+    base = {k: 0.0 for k in CUES}
+    s0 = score(runs, groups, lambda r: uncertainty(r, base), cover=True)
+    print("   the solve's sigma alone:  " + "  ".join(f"{g} sp {v['spearman']:.3f} ause {v['ause_ratio']:.3f}"
+                                                  for g, v in s0.items()))
+    w, obj = fit_weights(runs, groups)
+    print("1. relative weights (per unit of the solve's sigma):", json.dumps(w), f"objective {obj:.3f}")
+    for k in CUES:  # a cue that does not earn its place is left out: it would only move the uncertainty about
+        if w[k] != 0:
+            o = objective(score(runs, groups, lambda r, t={**w, k: 0.0}: uncertainty(r, t)))
+            if o > obj - MIN_GAIN:
+                print(f"   {k} left out: it adds {obj - o:+.4f} to the objective (less than {MIN_GAIN})")
+                w, obj = {**w, k: 0.0}, o
+    factor = common_factor(runs, w)
+    us = [uncertainty(r, w, factor) for r in runs]
+    seen = np.concatenate([(in_view(r, u, margin) & r["est"][:, None]).ravel() for r, u in zip(runs, us)])
+    uw = np.concatenate([u.ravel() for u in us])
+    trusted = float(np.nanpercentile(uw[seen], 90))
+    unseen = unseen_over_trusted * trusted
+    entry = {"scale": round(factor, 4), **{k: round(w[k] * factor, 4) for k in ("detection_2d", "detection_3d",
+                                                                                 "events", "motion", "speed")},
+             "between_mm": round(w["between_mm"] * factor, 2), "floor_mm": round(w["floor_mm"] * factor, 2),
+             "trusted_mm": round(trusted, 1), "unseen_mm": round(unseen, 1)}
+    print("2-3. settings:", json.dumps(entry))
+
+    def full(r, w=w, factor=factor):
+        u = uncertainty(r, w, factor)
+        return np.where(in_view(r, u, margin), u, np.maximum(u, unseen))
+
+    final = score(runs, groups, full, cover=True)
+    for g, v in final.items():
+        print(f"   {g:<18} runs {v['runs']:>2}  spearman {v['spearman']:.3f}  ause/random {v['ause_ratio']:.3f}  "
+              f"2-sigma {100 * v['cover2']:.1f}%  u median {v['u_median']:.1f}  error median {v['e_median']:.1f} mm")
+    print("4. each cue left out (the others kept; pooled spearman, ause/random; then refitted without it):")
+    for k in CUES:
+        if w[k] == 0:
+            print(f"   {k:<13} not used (weight 0 at the optimum)")
+            continue
+        wo = {**w, k: 0.0}
+        s = score(runs, groups, lambda r, t=wo: uncertainty(r, t), cover=True)["pooled"]
+        w2, o2 = fit_weights(runs, groups, fixed={k: 0.0}, sweeps=2)
+        s2 = score(runs, groups, lambda r, t=w2: uncertainty(r, t), cover=True)["pooled"]
+        print(f"   without {k:<13} spearman {s['spearman']:.3f} ause {s['ause_ratio']:.3f} | refitted "
+              f"spearman {s2['spearman']:.3f} ause {s2['ause_ratio']:.3f} (with it: "
+              f"{final['pooled']['spearman']:.3f} / {final['pooled']['ause_ratio']:.3f})")
+    entry["view_margin"] = margin
+    return entry, final
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("folders", nargs="+")
+    ap.add_argument("--rows", nargs="*", default=None, help="method folders to read (default: *default)")
     ap.add_argument("--cues", default=None, help="keep each run's cues here (npz) and read them back next time")
     ap.add_argument("--unseen-over-trusted", type=float, default=1.2)
     ap.add_argument("--view-margin", type=float, default=1.0)
+    ap.add_argument("--write", default=None, help="write the calibration table here (entries of other kinds kept "
+                                                  "from --base)")
+    ap.add_argument("--base", default=str(Path(__file__).resolve().parents[2] / "plugins" / "eventcap_confidence"
+                                          / "calibration.json"))
+    ap.add_argument("--source", default="", help="text stored as each written entry's source")
     args = ap.parse_args(argv)
-    from eventcap.apps.open_suite import TUNING_SEEDS
-
-    runs, groups, names = [], [], []
+    by_kind: dict[str, tuple[list, list, list]] = {}
     for folder in map(Path, args.folders):
         gmap = capture_groups(folder)
-        for run_dir in sorted((folder / "runs").glob("*/default")):
-            label = run_dir.parent.name
-            if int(label.lstrip("s")) not in TUNING_SEEDS:
-                sys.exit(f"{run_dir}: seed {label} is not a tuning seed: calibrate on benchmark=open only")
-            if not (run_dir / "motion.npz").is_file():
-                print(f"left out: {label} (no motion: failed or refused)")
+        for run_dir in sorted((folder / "runs").glob("*/*")):
+            label, row = run_dir.parent.name, run_dir.name
+            if (args.rows is None and not row.endswith("default")) or (args.rows is not None and row not in args.rows):
                 continue
-            cache = Path(args.cues) / f"{label}.npz" if args.cues else None
+            if not is_tuning(label):
+                sys.exit(f"{run_dir}: {label} is not a tuning capture: calibrate on tuning seeds only")
+            if not (run_dir / "motion.npz").is_file():
+                print(f"left out: {label}/{row} (no motion: failed or refused)")
+                continue
+            cache = Path(args.cues) / f"{folder.name}_{label}_{row}.npz" if args.cues else None
             if cache is not None and cache.is_file():
                 c = dict(np.load(cache))
             else:
@@ -128,51 +251,21 @@ def main(argv=None) -> int:
                 if cache is not None:
                     cache.parent.mkdir(parents=True, exist_ok=True)
                     np.savez_compressed(cache, **c)
+            kind = str(c["kind"])
+            runs, groups, names = by_kind.setdefault(kind, ([], [], []))
             runs.append(c)
-            groups.append(gmap.get(label, "other"))
-            names.append(label)
-    print(f"{len(runs)} tuning runs: " + ", ".join(f"{n} ({g})" for n, g in zip(names, groups)))
-    # 1. relative weights, by ranking
-    grid = {"detection_3d": [0.0, 0.4, 1.0, 1.5, 2.5, 4.0, 6.0], "detection_2d": [0.0, 0.3, 0.7, 1.5, 3.0],
-            "events": [0.0, 0.5, 1.0, 2.0, 4.0], "floor_mm": [0.0, 20.0, 50.0]}
-    best = None
-    for vals in itertools.product(*grid.values()):
-        w = dict(zip(grid, vals))
-        s = score(runs, groups, lambda r, w=w: uncertainty(r, w))
-        obj = 0.5 * s["pooled"]["spearman"] + 0.5 * np.mean([v["spearman"] for g, v in s.items() if g != "pooled"])
-        if best is None or obj > best[0]:
-            best = (obj, w, s)
-    obj, w, s = best
-    print("1. relative weights (per unit of the solve's sigma):", json.dumps(w))
-    for g, v in s.items():
-        print(f"   {g:<13} runs {v['runs']:>2}  spearman {v['spearman']:.3f}  ause/random {v['ause_ratio']:.3f}")
-    # 2. the common factor for 93.5 % coverage within 2 uncertainties (pooled), out of view included
-    margin, factor = args.view_margin, 1.0
-    lo, hi = 1e-3, 1e3
-    for _ in range(60):
-        factor = np.sqrt(lo * hi)
-        u, e = pooled(runs, lambda r, f=factor: uncertainty(r, w, f))
-        cov = float(np.mean(e <= 2 * u))
-        lo, hi = (factor, hi) if cov < TARGET else (lo, factor)
-    # 3. trusted_mm and unseen_mm from the joints in view of whole-body captures with frames
-    us = [uncertainty(r, w, factor) for r in runs]
-    seen = np.concatenate([(in_view(r, u, margin) & r["est"][:, None]).ravel()
-                           for r, u, g in zip(runs, us, groups) if g == "whole_frames"])
-    uw = np.concatenate([u.ravel() for u, g in zip(us, groups) if g == "whole_frames"])
-    trusted = float(np.nanpercentile(uw[seen], 90))
-    unseen = args.unseen_over_trusted * trusted
-    final = {"scale": round(factor, 4), **{k: round(v * factor, 4) for k, v in w.items() if k != "floor_mm"},
-             "floor_mm": round(w["floor_mm"] * factor, 1), "trusted_mm": round(trusted, 0),
-             "unseen_mm": round(unseen, 0), "view_margin": margin}
-    print("2-3. settings:", json.dumps(final))
-
-    def full(r):
-        u = uncertainty(r, w, factor)
-        return np.where(in_view(r, u, margin), u, np.maximum(u, unseen))
-
-    for g, v in score(runs, groups, full).items():
-        print(f"   {g:<13} runs {v['runs']:>2}  spearman {v['spearman']:.3f}  ause/random {v['ause_ratio']:.3f}  "
-              f"2-sigma coverage {100 * v['cover2']:.1f}%")
+            groups.append(f"{folder.name}:{row}:{gmap.get(label, 'whole_frames')}")
+            names.append(f"{label}/{row}")
+    table = json.loads(Path(args.base).read_text())
+    for kind, (runs, groups, names) in sorted(by_kind.items()):
+        print(f"{kind}: " + ", ".join(names))
+        entry, _ = calibrate_kind(kind, runs, groups, args.view_margin, args.unseen_over_trusted)
+        entry.pop("view_margin")
+        entry["source"] = args.source or f"calibrate_uncertainty.py on {len(runs)} tuning runs"
+        table["detectors"][kind] = entry
+    if args.write:
+        Path(args.write).write_text(json.dumps(table, indent=1) + "\n")
+        print(f"wrote {args.write}")
     return 0
 
 

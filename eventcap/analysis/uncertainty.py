@@ -3,10 +3,13 @@
 The uncertainty u (mm) of joint j at frame t says how far from the truth the joint is likely to be, after the
 evaluation's per-frame rigid alignment (``stages.evaluate.align=procrustes``: the error the paper reports, and the
 one every figure of this module measures): the true 3D distance lies within 2 u about 90-97 % of the time
-(calibrated on the open benchmark's tuning seeds; docs/results/uncertainty.md). It is made of (:func:`joint_uncertainty`):
+(calibrated per detector kind on tuning captures: :func:`calibration`, docs/results/uncertainty.md). It is made of
+(:func:`joint_uncertainty`):
 
 1. **The solve's own curvature**: σ_L, the Laplace approximation of the solve (:mod:`eventcap.energy.laplace`), times
-   a global ``scale`` (the energy is not a negative log-likelihood of unit noise: its scale is calibrated).
+   a ``scale``: the energy is a negative log-likelihood of the noise the detector states, but the detector's errors
+   are not that independent Gaussian noise (they err together, lean, flip), so the scale is calibrated per detector
+   kind.
 2. **Where the cues disagree**, each a distance in mm that the curvature cannot see (it measures how tightly the
    terms hold the solution, not whether they agree), added as variances:
 
@@ -16,6 +19,12 @@ one every figure of this module measures): the true 3D distance lies within 2 u 
    - the events along the bones between the frames: a joint that moved while no events outline its bones where the
      solve puts it (1 - the event support of :mod:`eventcap.analysis.confidence`, growing away from the frames as
      4τ(1 - τ)), times the joint's image displacement carried to its depth;
+
+   - the motion between the frames: the joint's displacement over its interval between two intensity frames
+     (relative to the joints' mean, what the rigid alignment leaves; mm), times 4τ(1 - τ) (``motion``: far from a
+     detection in time and fast), and as it is (``speed``: fast, at the frames too, where it blurs the image);
+     ``between_mm`` the least added half way between two frames, 4τ(1 - τ) · between_mm, however still the joint
+     (:func:`motion_mm`);
 
    - the body: a body estimated from the detections (the body stage) is known only to within its posterior
      (``Template.rest_spread``: independent one-sigma deviations of its rest joints); each carried to the posed
@@ -66,8 +75,9 @@ def spearman(u, e) -> float:
 
 def sparsification(u, e, steps: int = 50) -> dict:
     """The sparsification curves of an uncertainty: at each fraction f in [0, 1) (``steps`` of them), the mean error
-    of what is left after dropping the f most uncertain (``curve``), the f largest errors (``oracle``), or a random
-    f (``random``: the mean error, in expectation). ``ause``: the area between curve and oracle; ``ause_random``:
+    of what is left after dropping the f most uncertain (``curve``; pairs of equal uncertainty in a fixed random
+    order), the f largest errors (``oracle``), or a random f (``random``: the mean error, in
+    expectation). ``ause``: the area between curve and oracle; ``ause_random``:
     between random and oracle; ``ratio``: their quotient (1: no better than random, 0: the oracle's order)."""
     u, e = _pairs(u, e)
     n = e.size
@@ -82,7 +92,9 @@ def sparsification(u, e, steps: int = 50) -> dict:
         c = np.cumsum(e[order])
         return c[keep - 1] / keep
 
-    curve = left(np.lexsort((e, u)))  # ties: the smaller error kept first (no credit for ties)
+    # ties in u (a floor, a constant) are broken in a fixed random order: neither the oracle's credit nor its
+    # opposite, what a random ranking of the tied pairs would give
+    curve = left(np.lexsort((np.random.default_rng(0).permutation(n), u)))
     oracle = left(np.argsort(e, kind="stable"))
     random = np.full(steps, e.mean())
     ause, ause_r = float(np.mean(curve - oracle)), float(np.mean(random - oracle))
@@ -234,6 +246,32 @@ def event_gap_mm(template, camera: Camera, t_us: np.ndarray, poses: np.ndarray, 
     return out
 
 
+def motion_mm(template, t_us: np.ndarray, poses: np.ndarray, t_det: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(between (T,), step (T, 24) mm): 4τ(1 - τ) at each time (:func:`between_frames`), and each joint's 3D
+    displacement over its interval between the two intensity frames around t (t_det; the first or last interval
+    beyond them), relative to the joints' mean (the rigid alignment's translation takes the rest away), in the
+    estimate; NaN where the motion has no estimate at t or at either frame of its interval."""
+    t = np.asarray(t_us, dtype=np.int64)
+    P = np.asarray(poses, dtype=np.float64)
+    est = np.isfinite(P).all(axis=1)
+    step = np.full((t.size, NUM_JOINTS), np.nan)
+    td = np.asarray(t_det, dtype=np.int64)
+    td = td[(td >= t[0]) & (td <= t[-1])] if t.size else td[:0]
+    m = between_frames(t, td)
+    k = np.searchsorted(t, td)
+    ok = (k < t.size) & (t[np.minimum(k, max(t.size - 1, 0))] == td) if t.size else np.zeros(0, bool)
+    k, td = k[ok], td[ok]
+    if td.size < 2 or not est.any():
+        return m, step
+    J = np.full((t.size, NUM_JOINTS, 3), np.nan)
+    J[est] = joint_positions(P[est], template)
+    rel = J - J.mean(axis=1, keepdims=True)
+    d = np.linalg.norm(rel[k[1:]] - rel[k[:-1]], axis=-1) * 1000.0  # (D - 1, 24) mm over each interval
+    seg = np.clip(np.searchsorted(td, t, side="right") - 1, 0, td.size - 2)
+    step = np.where(est[:, None], d[seg], np.nan)
+    return m, step
+
+
 def body_mm(template, poses: np.ndarray) -> np.ndarray | None:
     """(T, 24) mm: how far each posed joint may lie from where the template's body puts it, given how uncertain the
     body is (``template.rest_spread`` (K, 24, 3): K independent one-sigma deviations of the rest joints): per frame
@@ -280,7 +318,9 @@ class UncertaintyModel:
     """How the uncertainty is made (module doc): ``scale`` of the solve's σ_L; the weights of the detections' 2D and
     3D residuals and of the events' missing support; ``unseen_mm`` the least uncertainty of a joint out of view;
     ``floor_mm`` the least of any joint; ``fallback_mm`` σ_L's stand-in where the solve gives none; ``body`` the
-    weight of the body's own uncertainty (:func:`body_mm`)."""
+    weight of the body's own uncertainty (:func:`body_mm`); ``motion`` and ``speed`` the weights of the joint's
+    displacement between the frames, away from them and everywhere, ``between_mm`` what is added half way between two
+    frames (:func:`motion_mm`)."""
 
     scale: float
     detection_2d: float
@@ -290,14 +330,54 @@ class UncertaintyModel:
     floor_mm: float
     fallback_mm: float
     body: float = 1.0
+    motion: float = 0.0
+    speed: float = 0.0
+    between_mm: float = 0.0
+
+
+#: the settings a calibration states (per detector kind), besides where it comes from
+CALIBRATED = ("scale", "detection_2d", "detection_3d", "events", "motion", "speed", "between_mm", "floor_mm",
+              "trusted_mm", "unseen_mm")
+
+
+def detector_kind(detector: str) -> str:
+    """The kind of detector a Detections artifact's ``detector`` text names: the word before its first colon
+    (``simulated``, ``blazepose``, ``file``); '' when it names none."""
+    head, sep, _ = str(detector or "").partition(":")
+    return head.strip().lower() if sep else ""
+
+
+def calibration(table: dict, kind: str) -> tuple[str, dict]:
+    """(the entry used, its settings) of a calibration table (``{"detectors": {kind: {setting: value, ...,
+    "source": text}}, "default": kind}``) for a detector kind: the kind's own entry, else the table's ``default``
+    (a detector nobody calibrated, e.g. detections from a file). ValueError naming the entry and the setting when
+    one is missing or not a number >= 0."""
+    dets = table.get("detectors") or {}
+    name = kind if kind in dets else str(table.get("default", ""))
+    if name not in dets:
+        raise ValueError(f"the uncertainty's calibration table has no entry for detector kind {kind!r} and no "
+                         f"default entry (its entries: {', '.join(sorted(dets)) or 'none'})")
+    entry = dets[name]
+    out = {}
+    for key in CALIBRATED:
+        v = entry.get(key)
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not np.isfinite(v) or v < 0:
+            raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: {key} must be a number >= 0, "
+                             f"got {v!r}")
+        out[key] = float(v)
+    if out["scale"] <= 0 or out["trusted_mm"] <= 0:
+        raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: scale and trusted_mm must be > 0")
+    return name, out
 
 
 def joint_uncertainty(model: UncertaintyModel, sigma_mm: np.ndarray | None, r2_mm: np.ndarray, r3_mm: np.ndarray,
-                      event_gap_mm: np.ndarray, estimated: np.ndarray, body_mm: np.ndarray | None = None) -> np.ndarray:
+                      event_gap_mm: np.ndarray, estimated: np.ndarray, body_mm: np.ndarray | None = None,
+                      between: np.ndarray | None = None, step_mm: np.ndarray | None = None) -> np.ndarray:
     """(T, 24) the uncertainty (mm; module doc, 1-2) from σ_L (T, 24; None or NaN: ``fallback_mm``), the detections'
     residuals at the frames interpolated in time (T, 24, mm; NaN: none), the events' missing support carried to mm
-    (T, 24), whether each frame has an estimate (T,): NaN where not, and the body's own uncertainty (T, 24, mm;
-    None: an exact body). Out of view: :func:`out_of_view`."""
+    (T, 24), whether each frame has an estimate (T,): NaN where not, the body's own uncertainty (T, 24, mm;
+    None: an exact body), and the motion between the frames (:func:`motion_mm`: 4τ(1 - τ) (T,) and the joints'
+    displacement over the interval (T, 24) mm; None: left out). Out of view: :func:`out_of_view`."""
     T = np.asarray(estimated).shape[0]
     sig = np.full((T, NUM_JOINTS), np.nan) if sigma_mm is None else np.asarray(sigma_mm, dtype=np.float64)
     var = np.where(np.isfinite(sig), model.scale * sig, model.fallback_mm) ** 2
@@ -305,6 +385,12 @@ def joint_uncertainty(model: UncertaintyModel, sigma_mm: np.ndarray | None, r2_m
     var = var + (model.events * np.nan_to_num(event_gap_mm)) ** 2 + model.floor_mm ** 2
     if body_mm is not None:
         var = var + (model.body * np.nan_to_num(np.asarray(body_mm, dtype=np.float64))) ** 2
+    if between is not None:
+        m = np.asarray(between, dtype=np.float64)[:, None]
+        var = var + (model.between_mm * m) ** 2
+        if step_mm is not None:
+            d = np.nan_to_num(np.asarray(step_mm, dtype=np.float64))
+            var = var + (model.motion * m * d) ** 2 + (model.speed * d) ** 2
     return np.where(np.asarray(estimated, dtype=bool)[:, None], np.sqrt(var), np.nan)
 
 
@@ -322,6 +408,6 @@ def confidence_of(u_mm: np.ndarray, trusted_mm: float) -> np.ndarray:
     return np.where(np.isfinite(u), 1.0 / (1.0 + (np.nan_to_num(u) / trusted_mm) ** 2), 0.0)
 
 
-__all__ = ["UncertaintyModel", "at_times", "between_frames", "body_mm", "confidence_of", "coverage", "detection_residuals",
-           "event_gap_mm", "fill_from_neighbours", "joined_sigma", "joint_uncertainty", "out_of_view", "sparsification",
-           "spearman"]
+__all__ = ["CALIBRATED", "UncertaintyModel", "at_times", "between_frames", "body_mm", "calibration", "confidence_of",
+           "coverage", "detection_residuals", "detector_kind", "event_gap_mm", "fill_from_neighbours", "joined_sigma",
+           "joint_uncertainty", "motion_mm", "out_of_view", "sparsification", "spearman"]

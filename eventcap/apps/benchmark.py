@@ -19,9 +19,14 @@ acceleration error are the mean over the runs; the end effectors' peak-speed err
 shows, per motion (first seed), the speed of the end effector that moves fastest in the truth, truth against each
 method (from each run's ``motion.npz``).
 
+Uncertainty: where a run has a confidence node, its uncertainty against its error at the evaluated frames
+(:func:`reliability_figures`: Spearman, sparsification area over random, 1- and 2-sigma coverage, medians, per row
+and per group) and ``fig_reliability.png`` (error against uncertainty, binned, per row and group).
+
 Writes ``table.csv`` (one row per method), ``runs.csv`` (one row per run), ``benchmark.json`` (config, runs with
-their per-frame errors, table), ``fig7_per_frame_error.png`` and ``fig_end_effector_speed.png``, and prints the
-tables, then the first row against every other capture by capture (where it is lower, and where not).
+their per-frame errors, table), ``fig7_per_frame_error.png``, ``fig_end_effector_speed.png`` and
+``fig_reliability.png``, and prints the tables, then the first row against every other capture by capture (where it
+is lower, and where not).
 """
 
 from __future__ import annotations
@@ -362,7 +367,8 @@ class Benchmark:
         results = {"config": self.cfg, "run_overrides": self.run_overrides, "methods_left_out": left_out,
                    "methods": names, "motions": self.motions, "seeds": self.seeds, "runs": records,
                    "table": aggregate(records, names, [] if self.draws else self.motions),
-                   "per_capture": per_capture(records, names), "failures": failed_runs(records)}
+                   "per_capture": per_capture(records, names), "failures": failed_runs(records),
+                   "uncertainty": reliability_figures(records, names)}
         if self.draws:
             from eventcap.apps.open_suite import CHECK_NOTE
 
@@ -511,8 +517,140 @@ def collect_run(runner, result, metrics_out: str, errors_out: str, data_field: s
             e = got[None]
             rec["frames"] = {"t_us": e.t_us.tolist(), "err_mm": (1000.0 * e.error_m.mean(axis=1)).round(6).tolist(),
                              "sampled": e.sampled.tolist(), "raw": e.raw.tolist()}
+    rec["reliability"] = uncertainty_pairs(runner, result, errors_out)
     rec.update(stage_times(runner, result))
     return rec
+
+
+def uncertainty_pairs(runner, result, errors_out: str, confidence_out: str = "confidence.confidence"):
+    """A run's (frame, joint) pairs at the evaluated frames for the reliability figures: ``u_mm`` the confidence
+    stage's uncertainty and ``err_mm`` the evaluate stage's error there (F x 24 lists, 0.1 mm); None when the run
+    has no uncertainty or no errors."""
+    from eventcap.artifacts.pose import JointConfidence, JointErrors
+
+    node = confidence_out.partition(".")[0]
+    if node not in runner.by_name or errors_out.partition(".")[0] not in runner.by_name:
+        return None
+    try:
+        c, e = runner.load_output(result, confidence_out), runner.load_output(result, errors_out)
+    except Exception:  # noqa: BLE001 - a node that did not finish leaves no pairs, the run is still recorded
+        return None
+    c, e = (c or {}).get(None), (e or {}).get(None)
+    if not isinstance(c, JointConfidence) or not isinstance(e, JointErrors) or not e.t_us.size:
+        return None
+    k = np.searchsorted(c.t_us, e.t_us)
+    if (k >= c.t_us.size).any() or not np.array_equal(c.t_us[k], e.t_us):
+        return None
+    u = np.asarray(c.uncertainty_mm, np.float64)[k]
+    return {"u_mm": np.round(u, 1).tolist(), "err_mm": np.round(1000.0 * e.error_m, 1).tolist()}
+
+
+def _reliability_arrays(records: Sequence[Mapping[str, Any]]) -> tuple[np.ndarray, np.ndarray]:
+    u = [np.asarray(r["reliability"]["u_mm"], np.float64).ravel() for r in records if r.get("reliability")]
+    e = [np.asarray(r["reliability"]["err_mm"], np.float64).ravel() for r in records if r.get("reliability")]
+    if not u:
+        return np.zeros(0), np.zeros(0)
+    u, e = np.concatenate(u), np.concatenate(e)
+    ok = np.isfinite(u) & np.isfinite(e)
+    return u[ok], e[ok]
+
+
+def reliability_figures(records: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> dict[str, Any]:
+    """Does each row's uncertainty mean something (eventcap.analysis.uncertainty): per row, and per group of a
+    generated suite, over the pooled (evaluated frame, joint) pairs of its runs: Spearman(uncertainty, error), the
+    sparsification area over a random ranking's, the shares of errors within 1 and 2 uncertainties, the medians."""
+    from eventcap.analysis.uncertainty import coverage, sparsification, spearman
+
+    out: dict[str, Any] = {}
+    for name in methods:
+        rows = [r for r in records if r["method"] == name and r.get("reliability")]
+        if not rows:
+            continue
+        parts = {"all": rows}
+        groups = sorted({r.get("group") for r in rows if r.get("group")})
+        if len(groups) > 1:
+            parts.update({g: [r for r in rows if r.get("group") == g] for g in groups})
+        out[name] = {}
+        for g, sel in parts.items():
+            u, e = _reliability_arrays(sel)
+            if u.size < 3:
+                continue
+            out[name][g] = {"runs": len(sel), "pairs": int(u.size), "spearman": spearman(u, e),
+                            "ause_ratio": sparsification(u, e)["ratio"], "cover1": coverage(u, e, 1.0),
+                            "cover2": coverage(u, e, 2.0), "u_median_mm": float(np.median(u)),
+                            "error_median_mm": float(np.median(e))}
+    return out
+
+
+def format_reliability(figures: Mapping[str, Any]) -> str:
+    """The reliability figures as a table (one line per row and group)."""
+    if not figures:
+        return ""
+    lines = ["Uncertainty against error (pairs: evaluated frame x joint; targets: Spearman >= 0.5, AUSE <= 0.4 x "
+             "random, 2-sigma 90-97 %, median u within 2 x median error)",
+             f"{'row':<24}{'group':<14}{'runs':>5}{'pairs':>7}{'spearman':>9}{'ause/rnd':>9}{'1-sigma':>8}"
+             f"{'2-sigma':>8}{'u med':>7}{'err med':>8}"]
+    for name, groups in figures.items():
+        for g, f in groups.items():
+            lines.append(f"{name:<24}{g:<14}{f['runs']:>5}{f['pairs']:>7}{f['spearman']:>9.2f}"
+                         f"{f['ause_ratio']:>9.2f}{100 * f['cover1']:>7.1f}%{100 * f['cover2']:>7.1f}%"
+                         f"{f['u_median_mm']:>7.1f}{f['error_median_mm']:>8.1f}")
+    return "\n".join(lines)
+
+
+def plot_reliability(path: Path, records: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> Path | None:
+    """The reliability plot: per row (and per group of a generated suite), the error against the uncertainty over
+    the runs' (evaluated frame, joint) pairs, in 10 quantile bins of the uncertainty: the mean and 90th percentile
+    of the error per bin, with the lines error = u and error = 2 u (a calibrated uncertainty keeps the 90th
+    percentile near 2 u and the mean rising with u)."""
+    panels = []
+    for name in methods:
+        rows = [r for r in records if r["method"] == name and r.get("reliability")]
+        groups = sorted({r.get("group") for r in rows if r.get("group")})
+        for g in (groups if len(groups) > 1 else [None]):
+            sel = [r for r in rows if g is None or r.get("group") == g]
+            u, e = _reliability_arrays(sel)
+            if u.size >= 20:
+                panels.append((f"{name}" + (f", {g}" if g else "") + f" ({len(sel)} runs)", u, e))
+    if not panels:
+        return None
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log.warning("no plot: matplotlib is not installed (pip install matplotlib)")
+        return None
+    cols = min(3, len(panels))
+    rows_n = math.ceil(len(panels) / cols)
+    fig, axes = plt.subplots(rows_n, cols, figsize=(4.3 * cols, 3.8 * rows_n), squeeze=False)
+    for ax, (title, u, e) in zip(axes.flat, panels):
+        edges = np.unique(np.quantile(u, np.linspace(0, 1, 11)))
+        b = np.clip(np.searchsorted(edges, u, side="right") - 1, 0, max(edges.size - 2, 0))
+        bins = [i for i in range(max(edges.size - 1, 1)) if (b == i).any()]
+        mu = np.array([u[b == i].mean() for i in bins])
+        me = np.array([e[b == i].mean() for i in bins])
+        q90 = np.array([np.quantile(e[b == i], 0.9) for i in bins])
+        step = max(1, u.size // 3000)
+        ax.scatter(u[::step], e[::step], s=2, alpha=0.15, color="grey", label="(frame, joint) pairs")
+        ax.plot(mu, me, "o-", color="C0", label="mean error per bin")
+        ax.plot(mu, q90, "s--", color="C1", label="90th percentile per bin")
+        top = float(max(np.quantile(u, 0.98), np.quantile(e, 0.98) / 2.0, 1e-3) * 1.1)
+        ax.plot([0, top], [0, top], "k:", lw=1, label="error = u")
+        ax.plot([0, top], [0, 2 * top], color="0.5", lw=1, ls="-.", label="error = 2 u")
+        ax.set_xlim(0, top)
+        ax.set_ylim(0, 2.2 * top)
+        ax.set_xlabel("uncertainty u (mm)", fontsize=8)
+        ax.set_ylabel("error after rigid alignment (mm)", fontsize=8)
+        ax.set_title(title, fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=6, loc="upper left")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.suptitle("Reliability: error against the run's uncertainty (10 quantile bins of u)", fontsize=9)
+    fig.tight_layout()
+    return save_figure(fig, path)
 
 
 def speed_series(runner, result, run_dir: Path, recording_out: str, window_ms: float) -> dict[str, Any] | None:
@@ -825,6 +963,7 @@ def format_generated(results: Mapping[str, Any]) -> str:
                      + format_tables(g["table"], [], f"{name}; {seq}", g["per_capture"], times=False))
     parts.append(f"== All {len(results['captures'])} captures pooled\n"
                  + format_tables(results["table"], [], seq, None, times=True))
+    parts.append(format_reliability(results.get("uncertainty") or {}))
     parts.append(format_captures(results["captures"], results["runs"], results["methods"]))
     parts.append(format_failures(results["failures"]))
     return "\n\n".join(p for p in parts if p)
@@ -1024,6 +1163,9 @@ def write_results(out: Path, results: Mapping[str, Any], plot: bool = True) -> d
         p = plot_speeds(out / "fig_end_effector_speed.png", results["runs"], results["methods"], results["motions"])
         if p is not None:
             files["speed_plot"] = p
+        p = plot_reliability(out / "fig_reliability.png", results["runs"], results["methods"])
+        if p is not None:
+            files["reliability_plot"] = p
     return files
 
 
@@ -1067,6 +1209,9 @@ def main(argv: Sequence[str], config_dir: Path) -> int:
         print(format_generated(results))
     else:
         print(format_tables(results["table"], bench.motions, seq, results.get("per_capture")))
+        if results.get("uncertainty"):
+            print()
+            print(format_reliability(results["uncertainty"]))
     print()
     print("wrote " + ", ".join(str(p) for p in files.values()))
     bad = results["failures"]

@@ -429,7 +429,9 @@ def _log_legend(rr, s) -> None:
     text = ("## Joint colours: the uncertainty\n\nEach joint of the estimate is coloured by its uncertainty (the RMS 3D "
             "distance to the truth one expects, calibrated: within 2 of it 90-97 % of the time; `uncertainty_mm` in "
             "motion.npz), log-interpolated between these colours:\n\n| uncertainty | colour |\n|---|---|\n" + rows +
-            f"\n| none (a gap) | {swatch(UNKNOWN_RGB)} |\n\nAbove stages.confidence.trusted_mm (100 mm by default) a joint is not trusted (confidence < 0.5).")
+            f"\n| none (a gap) | {swatch(UNKNOWN_RGB)} |\n\nAbove trusted_mm (calibrated per detector kind: "
+            "plugins/eventcap_confidence/calibration.json, or stages.confidence.trusted_mm) a joint is not trusted "
+            "(confidence < 0.5).")
     s.log("legend", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
 
 

@@ -2,20 +2,26 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from eventcap.artifacts.pose import JointConfidence
 from eventcap.analysis.confidence import OBSERVED, joints_in_view
 from eventcap.analysis.motion import join_batches
 from eventcap.analysis.uncertainty import (
+    CALIBRATED,
     UncertaintyModel,
     at_times,
     body_mm,
+    calibration,
     confidence_of,
     detection_residuals,
+    detector_kind,
     event_gap_mm,
     joined_sigma,
     joint_uncertainty,
+    motion_mm,
     out_of_view,
 )
 from eventcap.core.stage import StageFailed
@@ -48,23 +54,66 @@ def event_support(rec, template, t_us: np.ndarray, poses: np.ndarray, config) ->
     return np.where(np.isfinite(seen[b]), seen[b], 0.0)
 
 
-def model_of(config) -> UncertaintyModel:
-    """The uncertainty's settings from the stage's config (StageFailed naming a key whose value cannot work)."""
-    if float(config.unseen_mm) < float(config.trusted_mm):
-        raise StageFailed(f"stages.confidence.unseen_mm: expected at least trusted_mm ({config.trusted_mm:g} mm: a "
-                          f"joint out of view must never be marked observed), got {config.unseen_mm:g}",
+def read_calibration(config) -> dict:
+    """The calibration table ``stages.confidence.calibration`` names (``shipped``: the stage's own); StageFailed
+    naming the key and the file when it cannot be read as one."""
+    import json
+
+    from .spec import calibration_files
+
+    path = Path(calibration_files(str(config.calibration))[0])
+    try:
+        table = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise StageFailed(f"stages.confidence.calibration: cannot read {path} as a JSON calibration table: {exc}",
+                          status="invalid_config") from None
+    if not isinstance(table, dict) or not isinstance(table.get("detectors"), dict):
+        raise StageFailed(f"stages.confidence.calibration: {path}: expected an object with a 'detectors' object "
+                          "{kind: {setting: value}}", status="invalid_config")
+    return table
+
+
+def settings_of(config, detector: str) -> tuple[str, dict]:
+    """(the calibration entry used, the uncertainty's settings) for detections made by ``detector`` (the Detections'
+    text): the detector kind's calibration from the table, each setting given in the config taking its place (a
+    trusted_mm given without unseen_mm keeps the table's unseen / trusted ratio)."""
+    kind = detector_kind(detector)
+    try:
+        name, cal = calibration(read_calibration(config), kind)
+    except ValueError as exc:
+        raise StageFailed(f"stages.confidence.calibration: {exc}", status="invalid_config") from None
+    ratio = cal["unseen_mm"] / cal["trusted_mm"]
+    for key in CALIBRATED:
+        v = getattr(config, key, None)
+        if v is not None:
+            cal[key] = float(v)
+    if config.trusted_mm is not None and config.unseen_mm is None:  # the table's unseen / trusted kept
+        cal["unseen_mm"] = ratio * cal["trusted_mm"]
+    return name, cal
+
+
+def model_of(config, detector: str = "") -> tuple[UncertaintyModel, dict]:
+    """The uncertainty's model and its settings (trusted_mm, unseen_mm, the entry used) for the detector, from the
+    stage's config (StageFailed naming a key whose value cannot work)."""
+    name, cal = settings_of(config, detector)
+    if cal["unseen_mm"] < cal["trusted_mm"]:
+        raise StageFailed(f"stages.confidence.unseen_mm: expected at least trusted_mm ({cal['trusted_mm']:g} mm: a "
+                          f"joint out of view must never be marked observed), got {cal['unseen_mm']:g}",
                           status="invalid_config")
-    return UncertaintyModel(scale=float(config.scale), detection_2d=float(config.detection_2d),
-                            detection_3d=float(config.detection_3d), events=float(config.events),
-                            unseen_mm=float(config.unseen_mm), floor_mm=float(config.floor_mm),
-                            fallback_mm=float(config.fallback_mm), body=float(config.body))
+    model = UncertaintyModel(scale=cal["scale"], detection_2d=cal["detection_2d"], detection_3d=cal["detection_3d"],
+                             events=cal["events"], unseen_mm=cal["unseen_mm"], floor_mm=cal["floor_mm"],
+                             fallback_mm=float(config.fallback_mm), body=float(config.body), motion=cal["motion"],
+                             speed=cal["speed"], between_mm=cal["between_mm"])
+    return model, {**cal, "entry": name}
 
 
 def motion_cues(rec, det, parts, config) -> dict:
     """What the uncertainty is made of at every frame of the joined per-batch poses (eventcap.analysis.uncertainty):
     ``t_us`` (T,), ``estimated`` (T,), ``sigma`` (T, 24) the solve's σ (None: the poses carry none), the detections'
     residuals ``r2``, ``r3`` (T, 24) mm interpolated between the frames, the events' ``gap`` (T, 24) mm, the body's
-    own uncertainty ``body`` (T, 24) mm (None: an exact body)."""
+    own uncertainty ``body`` (T, 24) mm (None: an exact body), the motion between the frames ``between`` (T,) and
+    ``step`` (T, 24) mm (:func:`eventcap.analysis.uncertainty.motion_mm`), the ``detector`` that made the
+    detections."""
     tpl, cam = rec.template, rec.camera
     t_us, poses, _ = join_batches(parts, "later")
     est = np.isfinite(poses).all(axis=1)
@@ -75,18 +124,20 @@ def motion_cues(rec, det, parts, config) -> dict:
     P_det[hit] = poses[idx[hit]]
     r2, r3 = detection_residuals(tpl, cam, P_det, det.keypoints_2d, det.observed(), det.joints_3d, det.confidence_3d)
     ev = event_support(rec, tpl, t_us, poses, config) if est.any() else np.zeros((t_us.size, 24))
+    between, step = motion_mm(tpl, t_us, poses, t_det[hit])
     return {"t_us": t_us, "estimated": est, "sigma": joined_sigma(parts, t_us), "r2": at_times(t_us, t_det, r2),
             "r3": at_times(t_us, t_det, r3), "gap": event_gap_mm(tpl, cam, t_us, poses, t_det[hit], ev),
-            "events": ev, "poses": poses, "body": body_mm(tpl, poses)}
+            "events": ev, "poses": poses, "body": body_mm(tpl, poses), "between": between, "step": step,
+            "detector": str(det.detector)}
 
 
 def motion_uncertainty(rec, cues: dict, config) -> tuple[np.ndarray, np.ndarray]:
     """(uncertainty (T, 24) mm, in view (T, 24)) from the cues (:func:`motion_cues`) with the stage's settings: a
     joint is in view with ``view_margin`` times its uncertainty around it, and one out of view is raised to
     ``unseen_mm``."""
-    model = model_of(config)
+    model, _ = model_of(config, cues.get("detector", ""))
     u = joint_uncertainty(model, cues["sigma"], cues["r2"], cues["r3"], cues["gap"], cues["estimated"],
-                          cues.get("body"))
+                          cues.get("body"), cues.get("between"), cues.get("step"))
     seen = joints_in_view(rec.template, rec.camera, cues["poses"],
                           float(config.view_margin) * np.nan_to_num(u) / 1000.0)
     return out_of_view(u, seen, model.unseen_mm), seen
@@ -103,8 +154,12 @@ def run_confidence(inputs, config, ctx):
     parts = [seq[i] for i in range(len(seq))]
     cues = motion_cues(rec, det, parts, config)
     t_us, est = cues["t_us"], cues["estimated"]
+    _, cal = model_of(config, cues["detector"])
     u, seen = motion_uncertainty(rec, cues, config)
-    c = confidence_of(u, float(config.trusted_mm))
+    c = confidence_of(u, cal["trusted_mm"])
+    ctx.log.info("confidence: the uncertainty calibrated for detector kind %r (entry %r of %s): scale %g, trusted "
+                 "%g mm", detector_kind(cues["detector"]), cal["entry"], config.calibration, cal["scale"],
+                 cal["trusted_mm"])
     if cues["sigma"] is None:
         ctx.log.warning("confidence: the poses carry no σ of their solve (a solve without a Laplace approximation): "
                         "stages.confidence.fallback_mm (%g mm) stands for it, so the uncertainty is only that of "
@@ -118,7 +173,7 @@ def run_confidence(inputs, config, ctx):
                  ", ".join(f"{n} {100 * observed[j]:.0f}%" for j, n in _least_seen(observed)))
     ctx.stats.update({"observed_share": [round(float(v), 4) for v in observed], "gap_frames": int((~est).sum()),
                       "uncertainty_median_mm": [round(float(v), 1) for v in _column_medians(u[est])],
-                      "solve_sigma": cues["sigma"] is not None})
+                      "solve_sigma": cues["sigma"] is not None, "calibration": cal["entry"]})
     return {"confidence": JointConfidence(t_us=t_us, confidence=c.astype(np.float32),
                                           uncertainty_mm=u.astype(np.float32), estimated=est)}
 
