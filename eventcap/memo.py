@@ -93,6 +93,14 @@ class ProcessCache:
         with self._lock:
             return len(self._data)
 
+    def discard(self, drop: Callable[[Hashable, Any], bool]) -> int:
+        """Drop the entries for which ``drop(key, value)`` is true; returns how many were dropped."""
+        with self._lock:
+            gone = [k for k, v in self._data.items() if drop(k, v)]
+            for k in gone:
+                self._bytes -= self._size(self._data.pop(k))
+        return len(gone)
+
     def clear(self) -> int:
         """Drop every entry; returns how many there were."""
         with self._lock:
