@@ -251,12 +251,18 @@ class Artifact:
         return {n: _jsonable(getattr(self, n)) for n in type(self).attr_fields()}
 
     @classmethod
-    def from_zarr(cls, group, where: str = "", window: tuple[int, int] | None = None):
+    def from_zarr(cls, group, where: str = "", window: tuple[int, int] | None = None, without: tuple[str, ...] = ()):
         """Read and validate an artifact of this type from a zarr group written by to_zarr.
 
         ``window=(t0_us, t1_us)``: only the rows of its time dimensions (:attr:`time_dims`, its children's too)
-        with t0 <= t <= t1, read from disk without the others (the recording of one chunk of a long capture)."""
-        return cls._read(group, where or str(getattr(group, "store_path", "zarr group")), window, {})[0]
+        with t0 <= t <= t1, read from disk without the others (the recording of one chunk of a long capture);
+        ``without``: optional fields of a windowed read left out (None), not read."""
+        where = where or str(getattr(group, "store_path", "zarr group"))
+        if window is None and without:
+            raise ValueError(f"{where}: without={without!r} applies to a windowed read only")
+        if window is not None:  # many windows of one entry: its groups and arrays opened once
+            group = _OPENED.get(where, lambda: _OpenedGroup(group))[0]
+        return cls._read(group, where, window, {}, frozenset(without))[0]
 
     @classmethod
     def has_time_dims(cls) -> bool:
@@ -265,9 +271,9 @@ class Artifact:
         return bool(cls.time_dims) or any(t.has_time_dims() for t, _ in cls.child_fields().values())
 
     @classmethod
-    def _read(cls, group, where: str, window, given: dict[str, slice]):
+    def _read(cls, group, where: str, window, given: dict[str, slice], without: frozenset[str] = frozenset()):
         """(the artifact, the rows kept of each time dimension). ``given``: rows of dimensions whose own time array
-        is absent, from the parent (:attr:`window_links`)."""
+        is absent, from the parent (:attr:`window_links`); ``without``: optional fields left out."""
         meta = dict(group.attrs)
         if meta.get("artifact") != cls.type_name():
             raise ArtifactError(f"{where}: expected a {cls.type_name()} artifact, found {meta.get('artifact')!r}")
@@ -281,7 +287,7 @@ class Artifact:
         rows = cls._window_rows(group, where, window, given) if window is not None else {}
         fields = cls.array_fields()
         for fname, spec in fields.items():
-            if fname not in members:
+            if fname not in members or fname in without:
                 if spec.optional:
                     kwargs[fname] = None
                     continue
@@ -304,12 +310,17 @@ class Artifact:
                 kwargs[fname] = read_array(group[fname], f"{where}/{fname}", sel)
         kept: dict[str, dict[str, slice]] = {}
         for fname, (ctype, _optional) in cls.child_fields().items():
-            if fname not in members:
+            if fname not in members or fname in without:
                 kwargs[fname] = None
+                continue
+            at = f"{where}/{fname}"
+            if window is not None and not ctype.has_time_dims():  # the same in every window: read once
+                kwargs[fname], kept[fname] = _WINDOW_STATIC.get((at, ctype), lambda: ctype._read(
+                    group[fname], at, None, {})[0])[0], {}
                 continue
             links = {d: kept[s][sd] for d, (s, sd) in cls.window_links.get(fname, {}).items()
                      if sd in kept.get(s, {})}
-            kwargs[fname], kept[fname] = ctype._read(group[fname], f"{where}/{fname}", window, links)
+            kwargs[fname], kept[fname] = ctype._read(group[fname], at, window, links)
         for fname, value in list(kwargs.items()):
             if isinstance(value, list):
                 kwargs[fname] = _tuplify(value)
@@ -390,14 +401,54 @@ def read_array(arr, where: str, rows: slice | None = None) -> np.ndarray:
         values = np.asarray(arr[...] if rows is None else arr[rows])
     except Exception as exc:  # noqa: BLE001 - numcodecs raises RuntimeError/ValueError/...; named below
         raise ArtifactError(_bad_chunk_message(arr, where, exc)) from exc
-    if arr.nchunks_initialized < arr.nchunks:
+    if rows is None and arr.nchunks_initialized < arr.nchunks:  # rows: _check_declared counted the chunk files
         raise ArtifactError(_bad_chunk_message(arr, where, None))
     return values
 
 
+#: The children without time dimensions of artifacts read by windows (a recording's camera and template), by their
+#: group's path: the same in every window of a committed entry, read once per process.
+_WINDOW_STATIC = ProcessCache("artifact.window_static", maxsize=8)
+
 #: The first value of each chunk of the time arrays read by windows, by the array's folder and shape: a window finds
 #: its rows by reading the one or two chunks that hold its ends, never the whole array.
 _CHUNK_STARTS = ProcessCache("artifact.chunk_starts", maxsize=64)
+
+
+class _OpenedGroup:
+    """A zarr group as windowed reads see it: its attributes, member names and members (arrays, groups) read once,
+    when first asked for. Every open of a zarr node is a round trip through zarr's event loop; a window of a
+    recording reads about twenty arrays."""
+
+    def __init__(self, group):
+        self._group = group
+        self.attrs = dict(group.attrs)
+        self._names = set(group.keys())
+        self._members: dict[str, Any] = {}
+
+    def keys(self):
+        return self._names
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._names
+
+    def __getitem__(self, name: str):
+        if name not in self._members:
+            m = self._group[name]
+            self._members[name] = m if hasattr(m, "dtype") else _OpenedGroup(m)
+        return self._members[name]
+
+
+#: The zarr groups read by windows, opened, by their path (:class:`_OpenedGroup`).
+_OPENED = ProcessCache("artifact.window_groups", maxsize=16)
+
+
+def forget_windows() -> None:
+    """Forget what windowed reads keep per process (the groups opened, the chunks' first values, the children read
+    once): files on disk may have changed between runs."""
+    _OPENED.clear()
+    _WINDOW_STATIC.clear()
+    _CHUNK_STARTS.clear()
 
 
 def rows_between(arr, where: str, t0: int, t1: int) -> slice:

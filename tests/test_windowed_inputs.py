@@ -174,3 +174,33 @@ def test_a_task_drops_the_capture_long_artifacts_it_does_not_read_whole():
         assert runner_mod._drop_capture_artifacts(set()) == 1 and len(memo) == 1  # the plan grows with nothing
     finally:
         memo.clear()
+
+
+def test_a_windowed_input_leaves_out_the_optional_fields_its_stage_never_reads(stored):
+    rec, cache, entry = stored
+    part = cache.load(entry, "recording", Recording, (200_000, 300_000), ("frames", "ground_truth"))
+    assert part.frames is None and part.ground_truth is None
+    ev = rec.events.events
+    assert np.array_equal(part.events.events, ev[(ev["t"] >= 200_000) & (ev["t"] <= 300_000)])
+    with pytest.raises(ValueError, match="applies to a windowed read only"):
+        cache.load(entry, "recording", Recording, None, ("ground_truth",))
+    from eventcap.core.stage import StageSpec
+
+    with pytest.raises(StageSpecError, match=r"without=\('events',\) applies to a windowed input and names optional "
+                                             r"fields of Recording \(frames, ground_truth, template\)"):
+        StageSpec("w", "test", 1, "", Cfg, {"recording": Port(Recording, window=0, without=("events",))},
+                  {"out": Port(BatchPlan)}, "m:f", per_batch=True)
+    with pytest.raises(StageSpecError, match="applies to a windowed input"):
+        StageSpec("w", "test", 1, "", Cfg, {"recording": Port(Recording, without=("frames",))},
+                  {"out": Port(BatchPlan)}, "m:f", per_batch=True)
+
+
+def test_the_track_and_spline_stages_read_their_unit_of_the_recording_without_its_ground_truth():
+    from eventcap_spline.spec import SPLINE
+    from eventcap_track.spec import EKLT, KLT_LATENT, ORACLE
+
+    for spec in (EKLT, KLT_LATENT):
+        assert spec.inputs["recording"].window == 0 and spec.inputs["latent"].window == 0
+        assert set(spec.inputs["recording"].without) == {"frames", "ground_truth"}
+    assert SPLINE.inputs["recording"].without == ("frames", "ground_truth")
+    assert ORACLE.inputs["recording"].window is None  # the oracle reads the ground truth's tracks

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from eventcap.artifact import forget_windows
 from eventcap.artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
 from eventcap.core.cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
 from eventcap.core.config import ConfigError, build_config, build_settings, config_to_dict, file_digests, result_config
@@ -58,6 +59,7 @@ class InputRefSpec:
     plan: tuple[tuple[int, int, int, int], ...] = ()  # (index, t0_us, t1_us, frame0) per key when all_batches
     whole: bool = False
     window: tuple[int, int] | None = None
+    without: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -145,13 +147,13 @@ def _drop_capture_artifacts(keep: set[tuple]) -> int:
 
 
 def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact],
-          window: tuple[int, int] | None = None) -> Artifact:
+          window: tuple[int, int] | None = None, without: tuple[str, ...] = ()) -> Artifact:
     def read() -> Artifact:
         cache = _cache_at(root)
         entry = cache.lookup(stage, key)
         if entry is None:
             raise CacheCorruptError(f"input {stage}/{key} ({port}) is not in the cache at {root}")
-        return cache.load(entry, port, cls, window)
+        return cache.load(entry, port, cls, window, without)
 
     if window is not None:  # one task's part of the capture: read for it alone
         return read()
@@ -224,7 +226,7 @@ def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
             if ref.all_batches:
                 inputs[port] = BatchSequence(cache, ref, cls)
             else:
-                inputs[port] = _load(task.cache_root, ref.stage, ref.keys[0], ref.port, cls, ref.window)
+                inputs[port] = _load(task.cache_root, ref.stage, ref.keys[0], ref.port, cls, ref.window, ref.without)
         ctx = StageContext(node=task.node, stage=task.stage, batch=task.batch,
                            log=logging.getLogger(f"eventcap.core.stage.{task.node}"),
                            progress=_ProgressLog(task.node) if task.batch is None else None)
@@ -499,6 +501,7 @@ class Runner:
         # every run checks what it reads against the manifests again (files may have changed between runs)
         self.cache.forget_verified()
         _ARTIFACTS.clear()
+        forget_windows()
         self.cache.clean_orphans()
         reports: dict[str, NodeReport] = {}
         node_keys: dict[str, str] = {}  # node-level key (whole nodes: the entry key)
@@ -656,7 +659,7 @@ class Runner:
                 margin = node.spec.inputs[port].margin(node.config) if batch is not None else None
                 window = self._window(batch, margin, node_keys) if margin is not None else None
                 refs[port] = InputRefSpec(up.spec.name, ref.port, (node_keys[ref.node],), every, whole=every,
-                                          window=window)
+                                          window=window, without=node.spec.inputs[port].without if window else ())
                 keydoc[port] = node_keys[ref.node]  # the window follows from the unit and the config: not keyed
         return refs, keydoc
 

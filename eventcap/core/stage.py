@@ -56,7 +56,8 @@ class Port:
     ``Artifact.time_dims``, e.g. the recording's events and frames, the latent images): each unit reads only its own
     time range, from its first batch's start to its last batch's end (both ends included), widened by ``window``
     batches of the recording on each side (an int, or a function of the stage's config giving it), instead of the
-    whole capture. None: the whole artifact.
+    whole capture. None: the whole artifact. ``without``: optional fields of a windowed input that the stage never
+    reads (e.g. the recording's ground truth, which a method never looks at), left out (None) and not read.
     """
 
     type: type[Artifact]
@@ -64,6 +65,7 @@ class Port:
     optional: bool = False
     all_batches: bool = False
     window: int | Callable[[Any], int] | None = None
+    without: tuple[str, ...] = ()
 
     def margin(self, config: Any) -> int | None:
         """The batches on each side of a unit that a windowed input reads (``window``), None when read whole."""
@@ -131,6 +133,12 @@ class StageSpec:
                 raise StageSpecError(f"{where}: input {pname!r}: window applies to an input of a per-batch stage read "
                                      f"one unit at a time whose type has time dimensions ({port.type.__name__} "
                                      f"{'has' if port.type.has_time_dims() else 'has none'})")
+            optional = {f.name for f in dataclasses.fields(port.type) if f.default is None}
+            bad = [f for f in port.without if f not in optional]
+            if port.without and (port.window is None or bad):
+                raise StageSpecError(f"{where}: input {pname!r}: without={port.without!r} applies to a windowed input "
+                                     f"and names optional fields of {port.type.__name__} "
+                                     f"({', '.join(sorted(optional)) or 'it has none'})")
         for pname, port in self.outputs.items():
             if port.window is not None or port.all_batches or port.optional:
                 raise StageSpecError(f"{where}: output {pname!r} cannot be optional, all_batches or windowed")
