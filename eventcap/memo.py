@@ -172,9 +172,12 @@ def process_caches() -> list[ProcessCache]:
         return sorted(_ALL, key=lambda c: c.name)
 
 
-def clear_process_caches() -> dict[str, int]:
-    """Empty every process cache; returns how many entries each held, by name."""
+def clear_process_caches(prefix: str = "") -> dict[str, int]:
+    """Empty every process cache (those whose name starts with ``prefix``); returns how many entries each held, by
+    name."""
     out: dict[str, int] = {}
     for cache in process_caches():
+        if not cache.name.startswith(prefix):
+            continue
         out[cache.name] = out.get(cache.name, 0) + cache.clear()
     return out

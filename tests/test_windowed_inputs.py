@@ -204,3 +204,21 @@ def test_the_track_and_spline_stages_read_their_unit_of_the_recording_without_it
         assert set(spec.inputs["recording"].without) == {"frames", "ground_truth"}
     assert SPLINE.inputs["recording"].without == ("frames", "ground_truth")
     assert ORACLE.inputs["recording"].window is None  # the oracle reads the ground truth's tracks
+
+
+def test_a_stage_packages_memos_are_emptied_once_its_last_node_has_run(toy_cfg):
+    """The toy pipeline's stages all run from module toy_stages: its memos (``toy_stages.*``) live through the run
+    and are emptied after its last node; another package's are kept."""
+    from eventcap.core.runner import Runner
+    from eventcap.memo import ProcessCache
+
+    mine, other = ProcessCache("toy_stages.solvers", maxsize=2), ProcessCache("toy_stages_other.solvers", maxsize=2)
+    mine.put("built", 1)
+    other.put("built", 2)
+    runner = Runner(toy_cfg())
+    seen = []
+    real = runner._release_memos
+    runner._release_memos = lambda done: (seen.append(("built" in mine, done)), real(done))
+    assert runner.run().ok
+    assert seen[:-1] == [(True, d) for d in range(1, len(runner.nodes))] and seen[-1] == (True, len(runner.nodes))
+    assert "built" not in mine and "built" in other

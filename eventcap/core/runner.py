@@ -547,6 +547,7 @@ class Runner:
                     batch_keys.setdefault(node.name, {})
                 finally:
                     rep.elapsed_s = time.perf_counter() - t0
+                    self._release_memos(i)
         self.cache.clean_orphans()  # also those of writers killed just before this run started
         try:
             metrics = self._collect_metrics(reports, node_keys)
@@ -563,6 +564,25 @@ class Runner:
         if run_dir is not None:
             self._write_summary(Path(run_dir), result, node_keys, batch_keys)
         return result
+
+    def _release_memos(self, done: int) -> None:
+        """Once the last node whose stage runs from a package has run (``done`` nodes have), empty that package's
+        process memos (``<package>.*``: a solve's built solvers, hundreds of MB): the nodes after it (evaluate,
+        confidence) read the whole recording, and should not do so beside them."""
+        import gc
+
+        def package(node: Node) -> str:
+            module = node.spec.run.partition(":")[0]
+            return module.rpartition(".")[0] or module
+
+        later = {package(n) for n in self.nodes[done:]}
+        pkg = package(self.nodes[done - 1])
+        if pkg in later or pkg in ("eventcap", "eventcap.core"):
+            return
+        dropped = {k: v for k, v in clear_process_caches(pkg + ".").items() if v}
+        if dropped:
+            gc.collect()  # a built solver holds reference cycles
+            log.debug("released the process memos of %s: %s", pkg, dropped)
 
     # -- failures and skips ---------------------------------------------------------------------------------------
     def _check_selection(self, plan_node: Node, port: str, node_keys) -> str | None:
