@@ -107,6 +107,13 @@ class Artifact:
     """Base of every artifact type. Subclasses are frozen dataclasses declaring fields with array()/attr()."""
 
     schema_version: ClassVar[int] = 1
+    #: Dimensions whose rows follow time (always an array's first axis), each with the array that holds their times
+    #: in µs, increasing (``"events.t"``: column ``t`` of the structured array ``events``): a windowed read
+    #: (:meth:`from_zarr` with ``window``) keeps only the rows with t0 <= t <= t1 and reads no other rows from disk.
+    time_dims: ClassVar[dict[str, str]] = {}
+    #: For a windowed read: a child's time dimension whose own time array is absent (an optional array left out)
+    #: takes the rows a sibling kept: ``{child: {dim: (sibling, sibling's dim)}}`` (ground truth at the frames).
+    window_links: ClassVar[dict[str, dict[str, tuple[str, str]]]] = {}
 
     # -- schema -----------------------------------------------------------------------------------------------
     @classmethod
@@ -244,9 +251,29 @@ class Artifact:
         return {n: _jsonable(getattr(self, n)) for n in type(self).attr_fields()}
 
     @classmethod
-    def from_zarr(cls, group, where: str = ""):
-        """Read and validate an artifact of this type from a zarr group written by to_zarr."""
+    def from_zarr(cls, group, where: str = "", window: tuple[int, int] | None = None, without: tuple[str, ...] = ()):
+        """Read and validate an artifact of this type from a zarr group written by to_zarr.
+
+        ``window=(t0_us, t1_us)``: only the rows of its time dimensions (:attr:`time_dims`, its children's too)
+        with t0 <= t <= t1, read from disk without the others (the recording of one chunk of a long capture);
+        ``without``: optional fields of a windowed read left out (None), not read."""
         where = where or str(getattr(group, "store_path", "zarr group"))
+        if window is None and without:
+            raise ValueError(f"{where}: without={without!r} applies to a windowed read only")
+        if window is not None:  # many windows of one entry: its groups and arrays opened once
+            group = _OPENED.get(where, lambda: _OpenedGroup(group))[0]
+        return cls._read(group, where, window, {}, frozenset(without))[0]
+
+    @classmethod
+    def has_time_dims(cls) -> bool:
+        """Whether a windowed read can leave rows of this type (or of a child) out: its arrays grow with the
+        capture."""
+        return bool(cls.time_dims) or any(t.has_time_dims() for t, _ in cls.child_fields().values())
+
+    @classmethod
+    def _read(cls, group, where: str, window, given: dict[str, slice], without: frozenset[str] = frozenset()):
+        """(the artifact, the rows kept of each time dimension). ``given``: rows of dimensions whose own time array
+        is absent, from the parent (:attr:`window_links`); ``without``: optional fields left out."""
         meta = dict(group.attrs)
         if meta.get("artifact") != cls.type_name():
             raise ArtifactError(f"{where}: expected a {cls.type_name()} artifact, found {meta.get('artifact')!r}")
@@ -257,12 +284,15 @@ class Artifact:
             )
         kwargs: dict[str, Any] = dict(meta.get("attrs", {}))
         members = set(group.keys())
-        for fname, spec in cls.array_fields().items():
-            if fname not in members:
+        rows = cls._window_rows(group, where, window, given) if window is not None else {}
+        fields = cls.array_fields()
+        for fname, spec in fields.items():
+            if fname not in members or fname in without:
                 if spec.optional:
                     kwargs[fname] = None
                     continue
                 raise ArtifactError(f"{where}: array '{fname}' missing (expected {spec.describe()})")
+            sel = rows.get(spec.dims[0]) if spec.dims else None
             if spec.dtype.names:
                 sub = group[fname]
                 n = None
@@ -270,25 +300,50 @@ class Artifact:
                 for col in spec.dtype.names:
                     if col not in sub:
                         raise ArtifactError(f"{where}/{fname}: column '{col}' missing")
-                    cols[col] = read_array(sub[col], f"{where}/{fname}/{col}")
+                    cols[col] = read_array(sub[col], f"{where}/{fname}/{col}", sel)
                     n = cols[col].shape[0]
                 out = np.empty(n or 0, dtype=spec.dtype)
                 for col, values in cols.items():
                     out[col] = values
                 kwargs[fname] = out
             else:
-                kwargs[fname] = read_array(group[fname], f"{where}/{fname}")
+                kwargs[fname] = read_array(group[fname], f"{where}/{fname}", sel)
+        kept: dict[str, dict[str, slice]] = {}
         for fname, (ctype, _optional) in cls.child_fields().items():
-            kwargs[fname] = ctype.from_zarr(group[fname], f"{where}/{fname}") if fname in members else None
+            if fname not in members or fname in without:
+                kwargs[fname] = None
+                continue
+            at = f"{where}/{fname}"
+            if window is not None and not ctype.has_time_dims():  # the same in every window: read once
+                kwargs[fname], kept[fname] = _WINDOW_STATIC.get((at, ctype), lambda: ctype._read(
+                    group[fname], at, None, {})[0])[0], {}
+                continue
+            links = {d: kept[s][sd] for d, (s, sd) in cls.window_links.get(fname, {}).items()
+                     if sd in kept.get(s, {})}
+            kwargs[fname], kept[fname] = ctype._read(group[fname], at, window, links)
         for fname, value in list(kwargs.items()):
             if isinstance(value, list):
                 kwargs[fname] = _tuplify(value)
         try:
-            return cls(**kwargs)
+            return cls(**kwargs), rows
         except TypeError as exc:
             raise ArtifactError(f"{where}: cannot build {cls.type_name()}: {exc}") from exc
         except ArtifactError as exc:  # a value check: say which group on disk holds the bad value
             raise ArtifactError(f"{where}: {exc}") from exc
+
+    @classmethod
+    def _window_rows(cls, group, where: str, window: tuple[int, int], given: dict[str, slice]) -> dict[str, slice]:
+        """The rows of each time dimension with t0 <= t <= t1 (``given`` for a dimension without its own times)."""
+        t0, t1 = int(window[0]), int(window[1])
+        rows = {}
+        for dim, field_name in cls.time_dims.items():
+            name, _, col = field_name.partition(".")
+            if name in group and (not col or col in group[name]):
+                arr = group[name][col] if col else group[name]
+                rows[dim] = rows_between(arr, f"{where}/{field_name.replace('.', '/')}", t0, t1)
+            elif dim in given:
+                rows[dim] = given[dim]
+        return rows
 
     # -- comparison helpers -------------------------------------------------------------------------------------
     def equals(self, other: Artifact) -> bool:
@@ -336,19 +391,96 @@ def _jsonable(v):
 _CHUNK_BYTES = 4 << 20
 
 
-def read_array(arr, where: str) -> np.ndarray:
-    """All of zarr array ``arr`` (``where`` names it in messages). A chunk that cannot be decoded (damaged
-    compressed data) or whose file is missing raises an ArtifactError naming the chunk's file, the array and the
-    rows it holds, instead of the codec's bare message or, for a missing chunk, fill values read back silently
-    (:meth:`Artifact.to_zarr` writes every chunk, so a missing one is damage)."""
+def read_array(arr, where: str, rows: slice | None = None) -> np.ndarray:
+    """All of zarr array ``arr`` (``where`` names it in messages), or the ``rows`` of its first axis. A chunk that
+    cannot be decoded (damaged compressed data) or whose file is missing raises an ArtifactError naming the chunk's
+    file, the array and the rows it holds, instead of the codec's bare message or, for a missing chunk, fill values
+    read back silently (:meth:`Artifact.to_zarr` writes every chunk, so a missing one is damage)."""
     _check_declared(arr, where)
     try:
-        values = np.asarray(arr[...])
+        values = np.asarray(arr[...] if rows is None else arr[rows])
     except Exception as exc:  # noqa: BLE001 - numcodecs raises RuntimeError/ValueError/...; named below
         raise ArtifactError(_bad_chunk_message(arr, where, exc)) from exc
-    if arr.nchunks_initialized < arr.nchunks:
+    if rows is None and arr.nchunks_initialized < arr.nchunks:  # rows: _check_declared counted the chunk files
         raise ArtifactError(_bad_chunk_message(arr, where, None))
     return values
+
+
+#: The children without time dimensions of artifacts read by windows (a recording's camera and template), by their
+#: group's path: the same in every window of a committed entry, read once per process.
+_WINDOW_STATIC = ProcessCache("artifact.window_static", maxsize=8)
+
+#: The first value of each chunk of the time arrays read by windows, by the array's folder and shape: a window finds
+#: its rows by reading the one or two chunks that hold its ends, never the whole array.
+_CHUNK_STARTS = ProcessCache("artifact.chunk_starts", maxsize=64)
+
+
+class _OpenedGroup:
+    """A zarr group as windowed reads see it: its attributes, member names and members (arrays, groups) read once,
+    when first asked for. Every open of a zarr node is a round trip through zarr's event loop; a window of a
+    recording reads about twenty arrays."""
+
+    def __init__(self, group):
+        self._group = group
+        self.attrs = dict(group.attrs)
+        self._names = set(group.keys())
+        self._members: dict[str, Any] = {}
+
+    def keys(self):
+        return self._names
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._names
+
+    def __getitem__(self, name: str):
+        if name not in self._members:
+            m = self._group[name]
+            self._members[name] = m if hasattr(m, "dtype") else _OpenedGroup(m)
+        return self._members[name]
+
+
+#: The zarr groups read by windows, opened, by their path (:class:`_OpenedGroup`).
+_OPENED = ProcessCache("artifact.window_groups", maxsize=16)
+
+
+def forget_windows() -> None:
+    """Forget what windowed reads keep per process (the groups opened, the chunks' first values, the children read
+    once): files on disk may have changed between runs."""
+    _OPENED.clear()
+    _WINDOW_STATIC.clear()
+    _CHUNK_STARTS.clear()
+
+
+def rows_between(arr, where: str, t0: int, t1: int) -> slice:
+    """The rows of zarr array ``arr`` (1-D, increasing times) with t0 <= t <= t1, as a slice. A short array is read
+    whole; a long one reads the first value of each chunk once per process, then only the chunks at the ends."""
+    n = int(arr.shape[0]) if arr.shape else 0
+    if arr.ndim != 1:
+        raise ArtifactError(f"{where}: a time array must have one axis, got shape {tuple(arr.shape)}")
+    if n == 0:
+        return slice(0, 0)
+    c = int(arr.chunks[0])
+    if n <= c:
+        t = read_array(arr, where)
+        return slice(int(np.searchsorted(t, t0, side="left")), int(np.searchsorted(t, t1, side="right")))
+    folder = _array_folder(arr)
+    key = (str(folder) if folder is not None else where, n, c)
+    def first_values() -> np.ndarray:
+        _check_declared(arr, where)  # once: every chunk file is there (a missing one would read as fill values)
+        try:
+            return np.array([arr[i] for i in range(0, n, c)])
+        except Exception as exc:  # noqa: BLE001 - named as read_array does
+            raise ArtifactError(_bad_chunk_message(arr, where, exc)) from exc
+
+    starts = _CHUNK_STARTS.get(key, first_values)[0]
+
+    def find(t: int, side: str) -> int:
+        k = max(int(np.searchsorted(starts, t, side=side)) - 1, 0)  # the chunk whose values may hold t
+        part = read_array(arr, where, slice(k * c, min((k + 1) * c, n)))
+        return k * c + int(np.searchsorted(part, t, side=side))
+
+    a, b = find(t0, "left"), find(t1, "right")
+    return slice(a, max(a, b))
 
 
 def _array_folder(arr):

@@ -93,6 +93,14 @@ class ProcessCache:
         with self._lock:
             return len(self._data)
 
+    def discard(self, drop: Callable[[Hashable, Any], bool]) -> int:
+        """Drop the entries for which ``drop(key, value)`` is true; returns how many were dropped."""
+        with self._lock:
+            gone = [k for k, v in self._data.items() if drop(k, v)]
+            for k in gone:
+                self._bytes -= self._size(self._data.pop(k))
+        return len(gone)
+
     def clear(self) -> int:
         """Drop every entry; returns how many there were."""
         with self._lock:
@@ -164,9 +172,12 @@ def process_caches() -> list[ProcessCache]:
         return sorted(_ALL, key=lambda c: c.name)
 
 
-def clear_process_caches() -> dict[str, int]:
-    """Empty every process cache; returns how many entries each held, by name."""
+def clear_process_caches(prefix: str = "") -> dict[str, int]:
+    """Empty every process cache (those whose name starts with ``prefix``); returns how many entries each held, by
+    name."""
     out: dict[str, int] = {}
     for cache in process_caches():
+        if not cache.name.startswith(prefix):
+            continue
         out[cache.name] = out.get(cache.name, 0) + cache.clear()
     return out

@@ -23,6 +23,7 @@ class EventStream(Artifact):
     """Events of one sensor, sorted by time, inside the sensor, polarity ±1 (``EVENT_DTYPE``, eventcap/events.py)."""
 
     schema_version: ClassVar[int] = 1
+    time_dims: ClassVar[dict[str, str]] = {"n": "events.t"}
     events: np.ndarray = array(EVENT_DTYPE, ("n",), units="t: us, x/y: px, p: ±1")
     width: int = attr(units="px")
     height: int = attr(units="px")
@@ -58,6 +59,7 @@ class FrameStack(Artifact):
     exposure-centre times and exposure durations (0 = unknown: the file did not record it)."""
 
     schema_version: ClassVar[int] = 2
+    time_dims: ClassVar[dict[str, str]] = {"n": "t_us"}
     images: np.ndarray = array("float32", ("n", "height", "width"), units="linear intensity [0,1]")
     t_us: np.ndarray = array("int64", ("n",), units="us", doc="exposure centre")
     exposure_us: np.ndarray = array("int64", ("n",), units="us")
@@ -86,6 +88,7 @@ class GroundTruth(Artifact):
     """Exact motion of a synthetic capture (or a reference capture of a real one)."""
 
     schema_version: ClassVar[int] = 1
+    time_dims: ClassVar[dict[str, str]] = {"t": "t_us", "n": "frame_t_us"}
     t_us: np.ndarray = array("int64", ("t",), units="us")
     poses: np.ndarray = array("float64", ("t", 33), units="rad, m (S = [theta, R, t])")
     joints: np.ndarray = array("float64", ("t", 24, 3), units="m")
@@ -117,6 +120,8 @@ class Recording(Artifact):
     """One event-camera recording: events, frames, camera, optionally the actor template and ground truth."""
 
     schema_version: ClassVar[int] = 1
+    #: a windowed read keeps the ground truth's frames (without times of their own) at the frames it keeps
+    window_links: ClassVar[dict[str, dict[str, tuple[str, str]]]] = {"ground_truth": {"n": ("frames", "n")}}
     events: EventStream
     camera: Camera
     frames: FrameStack | None = None

@@ -15,6 +15,7 @@ class LatentFrames(Artifact):
     """EDI latent log images L(t_k) = log(I + eps) at every intensity frame's exposure centre (Eq. 2)."""
 
     schema_version: ClassVar[int] = 1
+    time_dims: ClassVar[dict[str, str]] = {"n": "t_us"}
     log_images: np.ndarray = array("float32", ("n", "height", "width"), units="log(linear intensity + eps)")
     t_us: np.ndarray = array("int64", ("n",), units="us")
     contrast: float = attr(units="log intensity", doc="contrast threshold C used for the event integrals")

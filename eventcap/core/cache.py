@@ -187,8 +187,11 @@ class Cache:
         """Check every entry against its manifest again when it is next read."""
         self._verified.clear()
 
-    def load(self, entry: Entry, port: str, cls: type[Artifact]) -> Artifact:
-        """Read one output port of a committed entry as ``cls`` (verified first)."""
+    def load(self, entry: Entry, port: str, cls: type[Artifact], window: tuple[int, int] | None = None,
+             without: tuple[str, ...] = ()) -> Artifact:
+        """Read one output port of a committed entry as ``cls`` (verified first); ``window=(t0_us, t1_us)``: only the
+        rows of its time dimensions within it, ``without`` optional fields left out
+        (:meth:`eventcap.artifact.Artifact.from_zarr`)."""
         import zarr
 
         self.verify(entry)
@@ -196,7 +199,8 @@ class Cache:
         if port not in outputs:
             raise CacheCorruptError(f"cache entry {entry.path}: no output {port!r} (has {sorted(outputs)})")
         group = zarr.open_group(str(entry.path / "data"), mode="r")
-        return cls.from_zarr(group[port], where=f"{entry.path}/data/{port}")
+        return cls.from_zarr(group[port], where=f"{entry.path}/data/{port}", window=window,
+                             without=without)
 
     # -- commit ---------------------------------------------------------------------------------------------------
     def commit(self, stage: str, key: str, doc: Mapping[str, Any], outputs: Mapping[str, Artifact],

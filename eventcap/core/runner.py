@@ -22,6 +22,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from eventcap.artifact import forget_windows
 from eventcap.artifacts import Artifact, ArtifactError, Batch, BatchPlan, Metrics
 from eventcap.core.cache import Cache, CacheCorruptError, Entry, EntryLock, explain_difference, make_key
 from eventcap.core.config import ConfigError, build_config, build_settings, config_to_dict, file_digests, result_config
@@ -46,7 +49,8 @@ THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUM
 @dataclass(frozen=True)
 class InputRefSpec:
     """Where a task reads one input: a single entry, or all batches of a per-batch upstream node (``all_batches``;
-    with ``whole``, the one entry of a whole-recording upstream node, read as a sequence of one)."""
+    with ``whole``, the one entry of a whole-recording upstream node, read as a sequence of one). ``window``: only
+    the rows within (t0_us, t1_us) of the entry's time dimensions (``Port.window``), read for this task alone."""
 
     stage: str
     port: str
@@ -54,6 +58,8 @@ class InputRefSpec:
     all_batches: bool = False
     plan: tuple[tuple[int, int, int, int], ...] = ()  # (index, t0_us, t1_us, frame0) per key when all_batches
     whole: bool = False
+    window: tuple[int, int] | None = None
+    without: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -106,6 +112,18 @@ def _cache_at(root: str) -> Cache:
     return Cache(root)
 
 
+def unit_window(plan: BatchPlan, unit: Batch, margin: int) -> tuple[int, int]:
+    """(t0_us, t1_us) of a unit (a batch, or a chunk of batches) with ``margin`` batches of ``plan`` on each side:
+    the batches of the plan that overlap the unit, widened by ``margin`` rows (within the plan); the unit's own
+    range when none overlaps."""
+    t0, t1 = np.asarray(plan.t0_us), np.asarray(plan.t1_us)
+    over = np.flatnonzero((t0 < unit.t1_us) & (t1 > unit.t0_us))
+    if over.size == 0:
+        return int(unit.t0_us), int(unit.t1_us)
+    a, z = max(int(over[0]) - margin, 0), min(int(over[-1]) + margin, len(plan) - 1)
+    return min(int(t0[a]), int(unit.t0_us)), max(int(t1[z]), int(unit.t1_us))
+
+
 def artifact_nbytes(a: Artifact) -> int:
     """The bytes of an artifact's arrays (its children's included)."""
     n = sum(int(v.nbytes) for f in type(a).array_fields() if (v := getattr(a, f)) is not None)
@@ -115,18 +133,30 @@ def artifact_nbytes(a: Artifact) -> int:
 #: Artifacts this process loaded or committed, by (cache root, stage, key, port): a node's outputs are read by the
 #: nodes after it without reading them back. Bounded by count and by their arrays' bytes; the bytes bound is well
 #: above a long capture's recording: a recording evicted by smaller entries would be read again by every task that
-#: needs it (docs/results/implementation.md).
+#: needs it (docs/results/implementation.md). A capture-long artifact (one with time dimensions: the recording, the
+#: latent images) stays only while the tasks read it whole: a task drops those it does not read whole before it
+#: loads its inputs (:func:`_drop_capture_artifacts`), so a chunk's solver never sits beside the whole recording.
+#: Windowed inputs (``Port.window``) are read for their task alone and never kept here.
 _ARTIFACTS = ProcessCache("runner.inputs", maxsize=32, max_bytes=2 << 30, weigh=artifact_nbytes)
 
 
-def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact]) -> Artifact:
+def _drop_capture_artifacts(keep: set[tuple]) -> int:
+    """Drop from the memo the capture-long artifacts (``Artifact.has_time_dims``) not under a key in ``keep``;
+    returns how many were dropped."""
+    return _ARTIFACTS.discard(lambda key, value: key not in keep and type(value).has_time_dims())
+
+
+def _load(root: str, stage: str, key: str, port: str, cls: type[Artifact],
+          window: tuple[int, int] | None = None, without: tuple[str, ...] = ()) -> Artifact:
     def read() -> Artifact:
         cache = _cache_at(root)
         entry = cache.lookup(stage, key)
         if entry is None:
             raise CacheCorruptError(f"input {stage}/{key} ({port}) is not in the cache at {root}")
-        return cache.load(entry, port, cls)
+        return cache.load(entry, port, cls, window, without)
 
+    if window is not None:  # one task's part of the capture: read for it alone
+        return read()
     value, _ = _ARTIFACTS.get((root, stage, key, port), read)
     if not isinstance(value, cls):  # kept as another type than this reader declares: read it as that
         return read()
@@ -188,13 +218,15 @@ def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
     try:
         spec = _registry().get(task.stage)
         config = build_config(spec, task.config, task.config_path)
+        _drop_capture_artifacts({(task.cache_root, r.stage, k, r.port) for r in task.inputs.values()
+                                 if r.window is None for k in r.keys})
         inputs: dict[str, Any] = {}
         for port, ref in task.inputs.items():
             cls = spec.inputs[port].type
             if ref.all_batches:
                 inputs[port] = BatchSequence(cache, ref, cls)
             else:
-                inputs[port] = _load(task.cache_root, ref.stage, ref.keys[0], ref.port, cls)
+                inputs[port] = _load(task.cache_root, ref.stage, ref.keys[0], ref.port, cls, ref.window, ref.without)
         ctx = StageContext(node=task.node, stage=task.stage, batch=task.batch,
                            log=logging.getLogger(f"eventcap.core.stage.{task.node}"),
                            progress=_ProgressLog(task.node) if task.batch is None else None)
@@ -469,6 +501,7 @@ class Runner:
         # every run checks what it reads against the manifests again (files may have changed between runs)
         self.cache.forget_verified()
         _ARTIFACTS.clear()
+        forget_windows()
         self.cache.clean_orphans()
         reports: dict[str, NodeReport] = {}
         node_keys: dict[str, str] = {}  # node-level key (whole nodes: the entry key)
@@ -514,6 +547,7 @@ class Runner:
                     batch_keys.setdefault(node.name, {})
                 finally:
                     rep.elapsed_s = time.perf_counter() - t0
+                    self._release_memos(i)
         self.cache.clean_orphans()  # also those of writers killed just before this run started
         try:
             metrics = self._collect_metrics(reports, node_keys)
@@ -530,6 +564,25 @@ class Runner:
         if run_dir is not None:
             self._write_summary(Path(run_dir), result, node_keys, batch_keys)
         return result
+
+    def _release_memos(self, done: int) -> None:
+        """Once the last node whose stage runs from a package has run (``done`` nodes have), empty that package's
+        process memos (``<package>.*``: a solve's built solvers, hundreds of MB): the nodes after it (evaluate,
+        confidence) read the whole recording, and should not do so beside them."""
+        import gc
+
+        def package(node: Node) -> str:
+            module = node.spec.run.partition(":")[0]
+            return module.rpartition(".")[0] or module
+
+        later = {package(n) for n in self.nodes[done:]}
+        pkg = package(self.nodes[done - 1])
+        if pkg in later or pkg in ("eventcap", "eventcap.core"):
+            return
+        dropped = {k: v for k, v in clear_process_caches(pkg + ".").items() if v}
+        if dropped:
+            gc.collect()  # a built solver holds reference cycles
+            log.debug("released the process memos of %s: %s", pkg, dropped)
 
     # -- failures and skips ---------------------------------------------------------------------------------------
     def _check_selection(self, plan_node: Node, port: str, node_keys) -> str | None:
@@ -623,9 +676,22 @@ class Runner:
                     keydoc[port] = {"node_key": node_keys[ref.node], "batches": [b.index for b in sel]}
             else:
                 every = node.spec.inputs[port].all_batches  # a whole output read as a sequence of one
-                refs[port] = InputRefSpec(up.spec.name, ref.port, (node_keys[ref.node],), every, whole=every)
-                keydoc[port] = node_keys[ref.node]
+                margin = node.spec.inputs[port].margin(node.config) if batch is not None else None
+                window = self._window(batch, margin, node_keys) if margin is not None else None
+                refs[port] = InputRefSpec(up.spec.name, ref.port, (node_keys[ref.node],), every, whole=every,
+                                          window=window, without=node.spec.inputs[port].without if window else ())
+                keydoc[port] = node_keys[ref.node]  # the window follows from the unit and the config: not keyed
         return refs, keydoc
+
+    def _window(self, unit: Batch, margin: int, node_keys) -> tuple[int, int] | None:
+        """The time range a unit's windowed inputs read (``Port.window``): from the unit's start to its end, widened
+        by ``margin`` batches of the recording's plan (all of it, whatever ``batches=`` selects) on each side;
+        None (read whole) when the pipeline has no recording plan."""
+        if self.primary_plan is None:
+            return None
+        plan_node, port = self.by_name[self.primary_plan[0]], self.primary_plan[1]
+        plan = _load(str(self.cache.root), plan_node.spec.name, node_keys[plan_node.name], port, BatchPlan)
+        return unit_window(plan, unit, margin)
 
     def _why(self, node: Node, doc: dict[str, Any], batch: int | None) -> str:
         old = self.cache.latest_for(node.spec.name, node.name, batch)

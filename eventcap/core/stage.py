@@ -51,12 +51,30 @@ class Port:
     reads either. A whole-recording stage needs it to read a per-batch output; a per-batch stage may ask for it to
     see its neighbours' batches too (each of its batches then depends on all of them, and a failed upstream batch
     skips every one of its batches).
+
+    ``window`` on an input of a per-batch stage whose type grows with the capture (its rows follow time:
+    ``Artifact.time_dims``, e.g. the recording's events and frames, the latent images): each unit reads only its own
+    time range, from its first batch's start to its last batch's end (both ends included), widened by ``window``
+    batches of the recording on each side (an int, or a function of the stage's config giving it), instead of the
+    whole capture. None: the whole artifact. ``without``: optional fields of a windowed input that the stage never
+    reads (e.g. the recording's ground truth, which a method never looks at), left out (None) and not read.
     """
 
     type: type[Artifact]
     doc: str = ""
     optional: bool = False
     all_batches: bool = False
+    window: int | Callable[[Any], int] | None = None
+    without: tuple[str, ...] = ()
+
+    def margin(self, config: Any) -> int | None:
+        """The batches on each side of a unit that a windowed input reads (``window``), None when read whole."""
+        if self.window is None:
+            return None
+        m = self.window(config) if callable(self.window) else self.window
+        if not isinstance(m, int) or isinstance(m, bool) or m < 0:
+            raise StageSpecError(f"Port window: expected a number of batches >= 0, got {m!r}")
+        return m
 
 
 class StageSpecError(TypeError):
@@ -109,9 +127,21 @@ class StageSpec:
             for pname, port in ports.items():
                 if not isinstance(port, Port) or not (isinstance(port.type, type) and issubclass(port.type, Artifact)):
                     raise StageSpecError(f"{where}: {direction} {pname!r} must be Port(<Artifact type>)")
+        for pname, port in self.inputs.items():
+            if port.window is not None and not (self.per_batch and not port.all_batches
+                                                and port.type.has_time_dims()):
+                raise StageSpecError(f"{where}: input {pname!r}: window applies to an input of a per-batch stage read "
+                                     f"one unit at a time whose type has time dimensions ({port.type.__name__} "
+                                     f"{'has' if port.type.has_time_dims() else 'has none'})")
+            optional = {f.name for f in dataclasses.fields(port.type) if f.default is None}
+            bad = [f for f in port.without if f not in optional]
+            if port.without and (port.window is None or bad):
+                raise StageSpecError(f"{where}: input {pname!r}: without={port.without!r} applies to a windowed input "
+                                     f"and names optional fields of {port.type.__name__} "
+                                     f"({', '.join(sorted(optional)) or 'it has none'})")
         for pname, port in self.outputs.items():
-            if port.all_batches or port.optional:
-                raise StageSpecError(f"{where}: output {pname!r} cannot be optional or all_batches")
+            if port.window is not None or port.all_batches or port.optional:
+                raise StageSpecError(f"{where}: output {pname!r} cannot be optional, all_batches or windowed")
         if not self.outputs:
             raise StageSpecError(f"{where}: a stage must declare at least one output")
         if self.plan and not (self.per_batch and self.plan in self.inputs

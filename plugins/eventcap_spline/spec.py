@@ -156,7 +156,10 @@ SPLINE = StageSpec(
                 "(CasADi + IPOPT); "
                 "the output is the window's whole curve at the tracking rate (the stitch stage blends the windows)",
     config=SplineSolveConfig,
-    inputs={"recording": Port(Recording),
+    inputs={"recording": Port(Recording, "its events over the unit's window (the unit's batches with up to "
+                                         "2·half_window batches on each side: windows shift inwards at the ends), "
+                                         "its camera and template; not its frames or ground truth",
+                          window=lambda config: 2 * int(config.half_window), without=("frames", "ground_truth")),
             "sliced": Port(SlicedTracks, "every batch's tracks (a window reads those of its batches)",
                            all_batches=True),
             "detections": Port(Detections),
