@@ -112,7 +112,8 @@ class SplineSolveConfig:
                                                        "floor (the floor and slide terms)")
     terms: SplineTerms = group(SplineTerms, help="the terms of the energy: each one's noise, gain (0: off) and "
                                                  "settings")
-    ipopt: IpoptConfig = group(IpoptConfig, barrier="adaptive", help="IPOPT's options for every solve of a window")
+    ipopt: IpoptConfig = group(IpoptConfig, barrier="adaptive", max_iter=1000,
+                               help="IPOPT's options for every solve of a window")
 
 
 #: Settings that moved when the config was nested, and the weights that became noise models: {old key: new key};
