@@ -63,7 +63,7 @@ def view_settings(config):
     return ViewSettings(checks=tuple(config.checks), border_px=config.border_px, min_in_view=config.min_in_view,
                         region_ratio=config.region_ratio, edge_ratio=config.edge_ratio, head_ratio=config.head_ratio,
                         shoulder_ratio=config.shoulder_ratio, window_us=config.check_window_us,
-                        min_found=config.min_found, min_agree=getattr(config, "min_agree", 1),
+                        min_found=config.min_found, min_agree=getattr(config, "min_agree", 2),
                         agree_ratio=getattr(config, "agree_ratio", 0.2))
 
 

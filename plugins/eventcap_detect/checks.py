@@ -83,7 +83,7 @@ class ViewSettings:
     shoulder_ratio: float
     window_us: int
     min_found: float
-    min_agree: int = 1
+    min_agree: int = 2
     agree_ratio: float = 0.2
 
     @classmethod
