@@ -96,3 +96,32 @@ def test_sweep_on_hydra_launchers_shares_the_cache(tmp_path, launcher):
     assert sums[1] == pytest.approx(2 * sums[0])
     # 1 signal + 4 smooth shared by both jobs, 2 x (4 scale + 1 total)
     assert len(Cache(tmp_path / "cache").entries()) == 1 + 4 + 2 * 5
+
+
+def test_a_worker_with_another_stage_refuses_the_task(toy, tmp_path):
+    """A Dask worker from another install (another stage version, other defaults) refuses to compute under the
+    driver's key: the task fails with status worker_mismatch naming what differs, and nothing is committed."""
+    import dataclasses
+
+    from eventcap.core.config import build_config, config_to_dict
+    from eventcap.core.registry import load_registry
+    from eventcap.core.runner import Task, base_doc, execute_task
+
+    spec = load_registry().get("toy_scale")
+    config = build_config(spec, {"factor": 3.0}, "stages.scale")
+    doc = base_doc(spec, config, "stages.scale")
+    Cache(tmp_path / "cache")  # made (and marked) as the driver makes it
+    task = Task(str(tmp_path / "cache"), "scale", "toy_scale", config_to_dict(config), "stages.scale", {}, "a" * 64,
+                doc, check_install=True)
+
+    older = execute_task(dataclasses.replace(task, doc={**doc, "version": spec.version + 1}))
+    assert older.status == "failed" and older.failure_status == "worker_mismatch"
+    assert f"version: here {spec.version}, the driver's {spec.version + 1}" in older.error
+    assert "install the same eventcap and plugins" in older.error
+    other_default = {**doc, "config": {**doc["config"], "factor": 2.5}}
+    res = execute_task(dataclasses.replace(task, doc=other_default))
+    assert res.failure_status == "worker_mismatch" and "config: here differs at factor" in res.error
+    assert Cache(tmp_path / "cache").lookup("toy_scale", "a" * 64) is None
+    # the same install passes the check (and then fails only for want of its input)
+    same = execute_task(task)
+    assert same.status == "failed" and same.failure_status != "worker_mismatch"

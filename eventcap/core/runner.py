@@ -12,6 +12,7 @@ import dataclasses
 import json
 import logging
 import os
+import socket
 import time
 import traceback
 from collections.abc import Iterator, Mapping, Sequence
@@ -77,6 +78,9 @@ class Task:
     #: another run is computing this entry: return "busy" at once instead of waiting for it (the driver runs the
     #: task again later, after the others)
     defer_if_busy: bool = False
+    #: the worker checks that its stage is the driver's before computing (:func:`_same_stage_as_driver`): set for
+    #: tasks sent to Dask, whose workers may run on other machines from other installs
+    check_install: bool = False
 
 
 @dataclass
@@ -218,6 +222,8 @@ def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
     try:
         spec = _registry().get(task.stage)
         config = build_config(spec, task.config, task.config_path)
+        if task.check_install:
+            _same_stage_as_driver(task, spec, config)
         _drop_capture_artifacts({(task.cache_root, r.stage, k, r.port) for r in task.inputs.values()
                                  if r.window is None for k in r.keys})
         inputs: dict[str, Any] = {}
@@ -253,6 +259,40 @@ def _compute(task: Task, t0: float, bidx: int | None) -> TaskResult:
             log.error("could not record failure of %s: %s", task.node, werr)
         return TaskResult(task.node, task.key, bidx, "failed", time.perf_counter() - t0,
                           f"{type(exc).__name__}: {exc}", status)
+
+
+class WorkerMismatch(ComputationFailed):
+    """A worker whose installed stage is not the one the driver keyed the task with (another version of eventcap or
+    of a plugin, other defaults, other data files): what it would compute is not what the key says."""
+
+
+def _same_stage_as_driver(task: Task, spec: StageSpec, config: Any) -> None:
+    """Refuse to compute a task on a worker whose stage differs from the driver's: the stage's name, version, full
+    config (its defaults included) and data files' digests, as this process sees them, must equal those the driver
+    put in the task's key document. Only a worker on another machine or another install can differ (a Dask worker
+    started from another checkout); the driver's own processes always agree."""
+    mine = base_doc(spec, config, task.config_path)
+    theirs = {k: task.doc.get(k) for k in mine}
+    if mine == theirs:
+        return
+    differ = [k for k in mine if mine[k] != theirs[k]]
+    detail = "; ".join(
+        f"{k}: here {mine[k]!r}, the driver's {theirs[k]!r}" if k in ("stage", "version") else
+        f"{k}: here differs at {', '.join(sorted(_differing_keys(mine[k], theirs[k]))[:5]) or 'the whole value'}"
+        for k in differ)
+    raise WorkerMismatch(f"{task.node}: this worker ({socket.gethostname()}, pid {os.getpid()}) has another stage "
+                         f"{task.stage!r} than the driver ({detail}); install the same eventcap and plugins, from "
+                         f"the same commit, with the same data files, on every worker", status="worker_mismatch")
+
+
+def _differing_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """The dotted keys at which two nested dicts differ (the top key when either is not a dict)."""
+    if not isinstance(a, Mapping) or not isinstance(b, Mapping):
+        return [prefix] if a != b and prefix else []
+    out = []
+    for k in sorted(set(a) | set(b), key=str):
+        out += _differing_keys(a.get(k), b.get(k), f"{prefix}.{k}" if prefix else str(k))
+    return out
 
 
 class _ProgressLog:
@@ -356,6 +396,7 @@ class _DaskPool:
         from distributed import as_completed
 
         # the waiting pass gets keys of its own: the scheduler would hand back the first pass's "busy" result
+        tasks = [dataclasses.replace(t, check_install=True) for t in tasks]  # workers may be other installs
         futures = [self.client.submit(fn, t, key=f"{t.node}-b{t.batch.index if t.batch else 'all'}-{t.key[:12]}"
                                       f"{'' if t.defer_if_busy else '-wait'}", retries=self.retries, pure=False)
                    for t in tasks]
