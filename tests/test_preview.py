@@ -112,3 +112,48 @@ def test_preview_of_the_real_davis346_recording(tmp_path, capsys):
     assert "UNCALIBRATED" in out
     assert "showing t = 0.018 s, the most active moment (22,129 events in 20 ms" in out
     assert cv2.imread(str(tmp_path / "d.png")).shape == (2 * 260, 2 * 2 * 346, 3)  # frame | events
+
+
+def grid_times(rng, seconds: float = 2.0, frame_us: float = 1e6 / 30, steps: int = 12, per_step: int = 40):
+    """Timestamps as a video-to-events converter makes them: each 33 ms frame interval cut into ``steps`` steps,
+    tens of events at each step (fewer later in the interval)."""
+    t = []
+    for k in range(int(seconds * 1e6 / frame_us)):
+        for j in range(steps):
+            n = max(1, int(per_step * 3 / (j + 1)) + int(rng.integers(0, 5)))
+            t.append(np.full(n, int(round(k * frame_us + j * frame_us / steps))))
+    return np.sort(np.concatenate(t))
+
+
+def test_timestamps_on_a_grid_are_named_sensor_timing_is_not():
+    from eventcap.io.checks import timing_note
+
+    rng = np.random.default_rng(3)
+    grid = grid_times(rng)
+    note = timing_note(grid)
+    assert note is not None and "lie on a grid" in note and "median step 2.8 ms" in note
+    assert "a motion at 1 ms between is the prior's" in note
+    # a sensor: Poisson arrivals at 8 per ms, distinct microseconds
+    sensor = np.sort(rng.integers(0, 2_000_000, 16_000))
+    assert timing_note(sensor) is None
+    # a vectorising sensor (EVT3): 25 events share each timestamp, a timestamp every 20 µs
+    vectors = np.repeat(np.arange(0, 2_000_000, 20), 25)
+    assert timing_note(vectors) is None
+    # bursts: a limb's flick fires 3,000 events within 5 ms every 50 ms, each at its own time
+    bursts = np.sort(np.concatenate([b * 50_000 + rng.integers(0, 5000, 3000) for b in range(40)]))
+    assert timing_note(bursts) is None
+    # a grid at 1 ms (a sensor's output binned per ms) is as fine as the motion: not named
+    assert timing_note(np.repeat(np.arange(0, 2_000_000, 1000), 25)) is None
+
+
+def test_preview_names_a_recording_on_a_timestamp_grid(tmp_path, capsys):
+    rng = np.random.default_rng(4)
+    t = grid_times(rng)
+    x, y = rng.integers(0, 128, t.size), rng.integers(0, 128, t.size)
+    path = tmp_path / "converted.csv"
+    np.savetxt(path, np.column_stack([t / 1e6, x, y, rng.integers(0, 2, t.size)]), fmt=["%.6f", "%d", "%d", "%d"],
+               delimiter=",")
+    code, out, err = preview(capsys, path, "--columns", "t,x,y,p", "--time-unit", "s", "--width", "128", "--height",
+                             "128", "--out", tmp_path / "c.png")
+    assert code == 0, err
+    assert "note: the events' timestamps lie on a grid" in out and "made from video frames by a converter" in out

@@ -447,10 +447,14 @@ def cmd_preview(args) -> int:
 
     from eventcap.artifacts import ArtifactError
     from eventcap.imaging.viz import describe_recording, most_active_time, recording_overview
+    from eventcap.io.checks import timing_note
 
     try:
         rec, fmt = _read_for_preview(args)
         print(f"read {args.recording}: {fmt}; {describe_recording(rec)}")
+        grid = timing_note(rec.events.events["t"])
+        if grid:
+            print(f"note: {grid}")
         latent = None
         if args.latent:
             from eventcap.artifacts.tracking import LatentFrames

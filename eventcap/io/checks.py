@@ -417,6 +417,47 @@ def check_time_unit(path, t_us: np.ndarray, unit: str) -> None:
                                f"(read_recording(time_unit=...), eventcap convert/preview --time-unit)")
 
 
+#: :func:`timing_note`: windows of this length whose events come at least GRID_RATE_PER_MS per ms are judged
+GRID_WINDOW_US = 50_000
+GRID_RATE_PER_MS = 4.0
+#: ... a recording is on a grid when its events share a timestamp with this many others on average (a sensor's
+#: readout shares one among a few events) and fill fewer than GRID_MAX_SHARE of those windows' milliseconds
+GRID_EVENTS_PER_STAMP = 20.0
+GRID_MAX_SHARE = 0.5
+
+
+def timing_note(t_us: np.ndarray) -> str | None:
+    """A sentence when the events' timestamps lie on a grid coarser than a millisecond (a recording made from
+    video frames by a converter, or re-timed in bins), else None: the events then carry no timing finer than the
+    grid's step, whatever their unit says. Judged where events come fast enough that a sensor's would fill nearly
+    every millisecond (at least GRID_RATE_PER_MS per ms over GRID_WINDOW_US): a sensor's timestamps are shared
+    by a few events of one readout, a grid's by tens, and fill few of the milliseconds."""
+    t = np.asarray(t_us, dtype=np.int64)
+    if t.size < 1000:
+        return None
+    stamps = np.unique(t)
+    per_stamp = t.size / stamps.size
+    if per_stamp < GRID_EVENTS_PER_STAMP:
+        return None
+    w_ms = GRID_WINDOW_US // 1000
+    first = int(t[0]) // GRID_WINDOW_US
+    counts = np.bincount(t // GRID_WINDOW_US - first)
+    occupied = np.bincount(np.unique(stamps // 1000) // w_ms - first, minlength=counts.size)
+    busy = counts >= GRID_RATE_PER_MS * w_ms
+    if busy.sum() < 3:
+        return None
+    share = float(np.median(occupied[busy] / w_ms))
+    if share >= GRID_MAX_SHARE:
+        return None
+    gaps = np.diff(stamps)
+    step_ms = float(np.median(gaps[gaps > 0])) / 1000.0
+    return (f"the events' timestamps lie on a grid: {t.size:,} events share {stamps.size:,} timestamps "
+            f"({per_stamp:.0f} per timestamp; a sensor's readout shares one among a few) and fill {share:.0%} of "
+            f"the milliseconds where events come at {GRID_RATE_PER_MS:g} or more per ms (median step "
+            f"{step_ms:.1f} ms): made from video frames by a converter, or re-timed in bins. The events carry no "
+            f"timing finer than that step; a motion at 1 ms between is the prior's, not the events'")
+
+
 def _span_words(us: int) -> str:
     """A duration in words: '104 µs', '2.5 s', '4.8 h', '11.6 days'."""
     us = abs(int(us))

@@ -9,6 +9,7 @@ import numpy as np
 
 from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.recording import EventStream, FrameStack, Recording
+from eventcap.io.checks import timing_note
 from eventcap.io.convert import is_project_recording, recording_from_raw, roi_from_corners, window_from_seconds
 from eventcap.core.stage import StageFailed
 
@@ -56,6 +57,9 @@ def _read_external(path: Path, config, ctx) -> Recording:
                          max_gap_s=config.max_gap_s or None)
     for r in raw.repairs:
         ctx.log.warning("%s: repaired: %s", path, r)
+    grid = timing_note(raw.events["t"])
+    if grid:
+        ctx.log.warning("%s: %s", path, grid)
     if not config.calibration and raw.calibration is None:
         ctx.log.warning("%s has no calibration; using a nominal pinhole camera (set source.calibration)", path)
     return recording_from_raw(raw, calibration=config.calibration or None, roi=roi, name=path.stem,
