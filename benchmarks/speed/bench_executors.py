@@ -16,7 +16,8 @@ recording is simulated once, and a 2-batch warm-up run fills numba's compile cac
 wall time and speed-up over serial, the CPU seconds of every process (``os.wait4`` on the driver: the Dask workers
 and nannies are its descendants and are waited for when the cluster closes), the wall time of each node (run.json),
 and for the solve node (per-batch spline windows, most of the time) the sum of its batches' own compute time
-(cache manifests) and the parallel efficiency ``compute / (workers x wall)``.
+(cache manifests) and the parallel efficiency ``compute / (workers x wall)``; and whether the setup's motion
+(``motion.npz``) equals the first setup's array by array, exactly (``np.array_equal``, NaNs equal).
 
 Setups are ``serial``, ``processes:N`` or ``dask:N`` (N workers, one thread each). The machine may be shared with
 other work: the load average after each run is printed. Nothing is asserted.
@@ -33,6 +34,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 EVENTCAP = [sys.executable, "-m", "eventcap.apps.cli", "run"]
 
@@ -53,6 +56,18 @@ def setup_overrides(setup: str) -> tuple[list[str], int]:
     raise SystemExit(f"--setups: expected serial, processes:N or dask:N, got {setup!r}")
 
 
+def motion_arrays(path: Path) -> dict:
+    """Every array of a run's motion.npz, by name."""
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def equal_arrays(a: dict, b: dict) -> bool:
+    """The same names and every array equal exactly (NaNs equal where both are NaN)."""
+    return a.keys() == b.keys() and all(
+        np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind in "fc") for k in a)
+
+
 def compute_s(cache: Path, stage: str, keys: list[str]) -> float:
     """Sum of the entries' own compute seconds (the runner's elapsed_s in each manifest)."""
     return sum(json.loads((cache / "entries" / stage / k / "manifest.json").read_text())["elapsed_s"] for k in keys)
@@ -65,7 +80,7 @@ def bench_track(args) -> None:
         cwd = Path(tmp)
         run(cwd, base, "warmup")  # recording, sharpening, and numba's compile caches
         print(f"{'executor':<14} {'batches':>7} {'wall s':>7} {'compute s':>9} {'overhead ms/batch':>17} {'speed-up':>8}")
-        serial_wall = None
+        serial_wall, first_motion = None, None
         for i, setup in enumerate(setups):
             ov, workers = setup_overrides(setup)
             summary = run(cwd, base + ov + [f"stages.track.stitch_px={4.0 + 1e-6 * (i + 1)}"], f"m{i}")
@@ -113,8 +128,8 @@ def bench_pipeline(args) -> None:
               f"(CPU: all processes), per-node wall s (run.json)")
         head = "".join(f"{n[:8]:>9}" for n in PIPELINE_NODES)
         print(f"{'setup':<12} {'wall s':>7} {'speed-up':>8} {'CPU s':>7} {'peak MB':>7} {'load':>5}{head}"
-              f" {'solve compute s':>15} {'solve eff.':>10}")
-        serial_wall = None
+              f" {'solve compute s':>15} {'solve eff.':>10} {'motion':>9}")
+        serial_wall, first_motion = None, None
         for i, setup in enumerate(setups):
             ov, workers = setup_overrides(setup)
             cache = cwd / f"cache{i}"
@@ -128,10 +143,14 @@ def bench_pipeline(args) -> None:
             serial_wall = serial_wall or res["wall_s"]
             cells = "".join(f"{nodes[n]['elapsed_s']:9.1f}" if n in nodes else f"{'-':>9}" for n in PIPELINE_NODES)
             eff = compute / (workers * solve["elapsed_s"]) if solve["elapsed_s"] else float("nan")
+            motion = motion_arrays(cwd / "runs" / f"m{i}" / "motion.npz")
+            first_motion = first_motion or motion
+            same = equal_arrays(first_motion, motion)
             print(f"{setup:<12} {res['wall_s']:7.1f} {serial_wall / res['wall_s']:8.2f} {res['cpu_s']:7.1f} "
-                  f"{res['peak_mb']:7.0f} {res['load']:5.1f}{cells} {compute:15.1f} {eff:10.2f}", flush=True)
+                  f"{res['peak_mb']:7.0f} {res['load']:5.1f}{cells} {compute:15.1f} {eff:10.2f} "
+                  f"{'equal' if same else 'DIFFERENT':>9}", flush=True)
             rows.append({"setup": setup, **res, "nodes": {n: v["elapsed_s"] for n, v in nodes.items()},
-                         "solve_batches": solve["computed"], "solve_compute_s": compute})
+                         "solve_batches": solve["computed"], "solve_compute_s": compute, "motion_equal": same})
             if args.json:
                 Path(args.json).write_text(json.dumps(rows, indent=1))
 
