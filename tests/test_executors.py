@@ -125,3 +125,81 @@ def test_a_worker_with_another_stage_refuses_the_task(toy, tmp_path):
     # the same install passes the check (and then fails only for want of its input)
     same = execute_task(task)
     assert same.status == "failed" and same.failure_status != "worker_mismatch"
+
+
+def _start(cmd, env):
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.fixture
+def dask_scheduler(tmp_path):
+    """A Dask scheduler on this machine, as `dask scheduler` starts one for a cluster; its address, and a function
+    that starts a worker process with a given environment (as on another machine)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    dask = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
+    procs = [_start([*dask, "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], dict(os.environ))]
+    address = f"tcp://127.0.0.1:{port}"
+
+    def worker(env):
+        procs.append(_start([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nworkers", "1",
+                             "--nthreads", "1", "--no-dashboard"], env))
+
+    deadline = time.time() + 60
+    while time.time() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                break
+        time.sleep(0.2)
+    try:
+        yield address, worker
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def _wait_for_workers(address, n):
+    from distributed import Client
+
+    with Client(address, timeout="30s") as client:
+        client.wait_for_workers(n, timeout=60)
+
+
+def test_a_cluster_at_an_address_gives_the_serial_result_and_refuses_another_install(toy_cfg, tmp_path,
+                                                                                      dask_scheduler):
+    """executor.address: the run's batches go to workers started apart (`dask worker`, their own environment, as on
+    other machines sharing the cache) and give what serial gives; a worker whose toy_scale is another version
+    refuses its batches (worker_mismatch), the run says so, and nothing of it is committed."""
+    address, worker = dask_scheduler
+    changes = {"signal": {"n_batches": 4, "seed": 2}}
+    serial, c_serial = run_with(toy_cfg, tmp_path, "serial", {"kind": "serial"}, **changes)
+    worker(toy_env())
+    _wait_for_workers(address, 1)
+    same, c_same = run_with(toy_cfg, tmp_path, "cluster", {"kind": "dask", "address": address, "retries": 0},
+                            **changes)
+    assert same.ok and same.metrics == serial.metrics and entries(c_same) == entries(c_serial)
+
+    from distributed import Client
+
+    with Client(address, timeout="30s") as client:  # its one worker replaced by another install's
+        client.retire_workers(close_workers=True)
+    env = toy_env()
+    env["EVENTCAP_STAGES"] = "toy_stages:SPECS,toy_stages:NEWER_SCALE"
+    worker(env)
+    _wait_for_workers(address, 1)
+    res, c_other = run_with(toy_cfg, tmp_path / "other", "cluster", {"kind": "dask", "address": address,
+                                                                     "retries": 0}, **changes)
+    assert not res.ok
+    failed = res.nodes["scale"].failed
+    assert len(failed) == 4 and {f["status"] for f in failed} == {"worker_mismatch"}
+    assert "version: here 2, the driver's 1" in failed[0]["error"]
+    stages = [e.stage for e in Cache(c_other).entries()]
+    assert res.nodes["total"].skipped and "toy_smooth" in stages and "toy_scale" not in stages

@@ -4,6 +4,7 @@ EVENTCAP_STAGES=toy_stages:SPECS with tests/ on PYTHONPATH."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import ClassVar
@@ -157,3 +158,7 @@ SPECS = [
               config=SumConfig, inputs={"chunks": Port(Series, all_batches=True)},
               outputs={"metrics": Port(Metrics)}, run="toy_stages:run_sum"),
 ]
+
+#: toy_scale as another install has it (a newer version): a worker whose EVENTCAP_STAGES adds this is not the
+#: driver's (tests/test_executors.py)
+NEWER_SCALE = [dataclasses.replace(next(s for s in SPECS if s.name == "toy_scale"), version=2)]
