@@ -85,7 +85,7 @@ def _factors(terms, inputs, rec, frames: np.ndarray | None = None):
     return factors_from_config(terms, rec.template, rec.camera, {k: t.size for k, t in times.items()})
 
 
-SPLINE_TERMS = ["landmarks_2d", "joints_3d", "cor", "sil", "still", "prior", "context", "damp", "temp", "stab",
+SPLINE_TERMS = ["landmarks_2d", "joints_3d", "cor", "sil", "flow", "still", "prior", "context", "damp", "temp", "stab",
                 "floor", "slide", "bones"]
 
 
@@ -101,6 +101,8 @@ def test_every_factor_on_a_spline_matches_finite_differences(term):
         terms = only(BatchTerms if term == "temp" else RefineTerms, term)
     elif term == "sil":
         terms = only(SplineTerms, "sil", loss="l2")  # the Huber loss: on frames, with its kink in a gap
+    elif term == "flow":  # the scene's events fire at every boundary pixel every ms: no edge sweeps; keep every fit
+        terms = only(SplineTerms, "flow", min_fit=0.0, min_cos=0.0, max_offset_px=1e6)
     else:
         terms = only(SplineTerms, term)
     if term in ("floor", "slide"):  # the scene's feet move: contact wherever they are slower than 3 m/s (and no

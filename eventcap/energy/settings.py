@@ -180,6 +180,26 @@ class SilNoise(SilSearch, NoiseConfig):
 
 
 @dataclass
+class FlowNoise(NoiseConfig):
+    """E_flow weighted by the noise of the normal flow the events measure at the silhouette's boundary."""
+
+    sigma_px_s: float = param(60.0, gt=0, help="noise of a boundary point's normal image speed as the events measure "
+                                               "it, px/s")
+    loss_scale: float = param(2.0, ge=0, help="Cauchy loss scale in sigmas: quadratic below it, logarithmic for "
+                                              "edges of something else (0: least squares)")
+    step_ms: float = param(5.0, gt=0, help="E_flow at the solved batches' tracking frames this many ms apart, ms")
+    radius_px: int = param(6, ge=1, help="the events within this many pixels of a boundary point (a square) give its "
+                                         "flow, px")
+    half_ms: float = param(10.0, gt=0, help="... and within ± this many ms of the frame, ms")
+    min_events: int = param(8, ge=4, help="fewest events a plane is fitted to")
+    min_fit: float = param(0.6, ge=0, le=1, help="share of the events' time spread the fitted plane must explain (R²): "
+                                                 "an edge sweeping the patch, not noise or texture")
+    min_cos: float = param(0.7, ge=0, le=1, help="the flow's direction within this cosine of the boundary's normal")
+    max_offset_px: float = param(3.0, gt=0, help="the fitted edge passes within this many pixels of the boundary "
+                                                 "point at the frame's time, px")
+
+
+@dataclass
 class StillNoise(NoiseConfig):
     """E_still weighted by the noise of a still joint's image speed."""
 
@@ -304,5 +324,5 @@ class IpoptConfig:
                               "monotone either way")
 
 
-__all__ = ["BonesNoise", "ContextNoise", "CorNoise", "FloorNoise", "Joints3DNoise", "Landmarks2DNoise", "NOISE_LOSSES",
+__all__ = ["BonesNoise", "ContextNoise", "CorNoise", "FloorNoise", "FlowNoise", "Joints3DNoise", "Landmarks2DNoise", "NOISE_LOSSES",
            "NoiseConfig", "PriorNoise", "SilNoise", "SilSearch", "SlideNoise", "StillNoise", "IpoptConfig", "ContactConfig", "CorConfig", "FactorConfig", "Joints3DConfig", "LOSSES", "Landmarks2DConfig", "PHI_SCOPES", "PRIOR_ORDERS", "SilConfig", "SmoothingConfig", "StabConfig", "StillnessConfig", "TempConfig"]

@@ -15,6 +15,7 @@ temp          E_temp, parts without tracks held (Eq. 8)       cor.TemporalStabil
 sil           E_sil, silhouette to events (Eq. 11)            sil.SilhouetteToEvents       spline, refine
 stab          E_stab, joints near the solve's (Eq. 10)        sil.JointStability           refine
 still         E_still, event silence (not in the paper)       silence.EventSilence         spline
+flow          E_flow, edges' normal flow (not in the paper)   flow.NormalFlow              spline
 prior         motion prior (not in the paper)                 prior.MotionPrior            spline
 context       context pull (not in the paper)                 prior.ContextPull            spline
 floor         on the floor in contact, never below it         floor.FloorContact           spline
@@ -35,7 +36,7 @@ import numpy as np
 from eventcap.body.template import Template
 from eventcap.camera import Camera
 
-from . import bones, cor, detections, floor, prior, sil, silence  # noqa: F401  (each module registers its factors)
+from . import bones, cor, detections, floor, flow, prior, sil, silence  # noqa: F401  (each module registers its factors)
 from .detections import DetectionWeights
 from .errors import EnergyError
 from .factor import FACTORS, Factor
