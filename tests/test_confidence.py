@@ -138,6 +138,13 @@ def test_the_calibration_is_the_detector_kinds_and_a_setting_given_takes_its_pla
     # trusted_mm given alone (above the table's unseen_mm, 120): unseen keeps the table's ratio (1.2), not refused
     c = confidence(calibration=table, trusted_mm=200.0)
     assert np.allclose(c.confidence, 1.0 / (1.0 + (c.uncertainty_mm / 200.0) ** 2))
+    # by frame rate: this capture's 25 fps takes its factor (2 x 1.5 x 20 = 60 mm), trusted_mm stays the table's;
+    # a scale given in the config is taken as it is
+    rated = _table(tmp_path, {"simulated": {"scale": 2.0, "factor_by_fps": {"10": 0.5, "25": 1.5}}})
+    c = confidence(calibration=rated)
+    assert np.allclose(c.uncertainty_mm, 60.0, atol=1.5)
+    assert np.allclose(c.confidence, 1.0 / (1.0 + (c.uncertainty_mm / 100.0) ** 2))
+    assert np.allclose(confidence(calibration=rated, scale=3.0).uncertainty_mm, 60.0, atol=1.5)
 
 
 def test_a_calibration_table_that_cannot_work_is_refused_naming_what_is_wrong(tmp_path):

@@ -221,7 +221,27 @@ def test_the_detector_kind_is_the_word_before_the_colon_and_a_table_gives_its_en
     assert detector_kind("file: a.json (openpose, layout body25)") == "file" and detector_kind("") == ""
     entry = {k: 1.0 for k in CALIBRATED}
     table = {"default": "simulated", "detectors": {"simulated": entry, "blazepose": {**entry, "scale": 2.0}}}
-    assert calibration(table, "blazepose") == ("blazepose", {**entry, "scale": 2.0})
-    assert calibration(table, "file") == ("simulated", entry)
+    assert calibration(table, "blazepose") == ("blazepose", {**entry, "scale": 2.0, "factor_by_fps": []})
+    assert calibration(table, "file") == ("simulated", {**entry, "factor_by_fps": []})
     with pytest.raises(ValueError, match=r"kind 'blazepose': trusted_mm must be a number >= 0, got None"):
         calibration({"detectors": {"blazepose": {**entry, "trusted_mm": None}}}, "blazepose")
+
+
+def test_a_calibration_by_frame_rate_is_interpolated_in_log_fps_and_bad_rates_are_named():
+    """factor_by_fps: each rate's factor on the kind's parts; between two calibrated rates linear in log(fps), the
+    nearest one's beyond them, 1 (the pooled) for a capture without intensity frames or a table without rates."""
+    from eventcap.analysis.uncertainty import CALIBRATED, calibration, frame_rate, rate_factor
+
+    entry = {**{k: 1.0 for k in CALIBRATED}, "factor_by_fps": {"25": 1.1, "10": 0.9}}
+    _, cal = calibration({"detectors": {"simulated": entry}}, "simulated")
+    points = cal["factor_by_fps"]
+    assert points == [(10.0, 0.9), (25.0, 1.1)]
+    assert rate_factor(points, 10.0) == pytest.approx(0.9) and rate_factor(points, 25.0) == pytest.approx(1.1)
+    mid = np.sqrt(10.0 * 25.0)  # half way in log fps
+    assert rate_factor(points, mid) == pytest.approx(1.0)
+    assert rate_factor(points, 5.0) == pytest.approx(0.9) and rate_factor(points, 100.0) == pytest.approx(1.1)
+    assert rate_factor(points, None) == 1.0 and rate_factor([], 25.0) == 1.0
+    assert frame_rate(np.arange(5) * 40_000 + 7) == pytest.approx(25.0) and frame_rate([3]) is None
+    for bad in ({"fast": 1.0}, {"10": 0.0}, {"-5": 1.0}, {"10": True}):
+        with pytest.raises(ValueError, match="factor_by_fps expects frame rates > 0"):
+            calibration({"detectors": {"simulated": {**entry, "factor_by_fps": bad}}}, "simulated")

@@ -13,7 +13,9 @@ kind of detector that made their detections (simulated, blazepose, file); per ki
    floor_mm) by coordinate descent over a grid of each, scored by the mean of the kind's pooled Spearman correlation
    and of each row's (the ranking is the same for any common factor); a cue whose leaving out costs less than
    MIN_GAIN is left out (it would only move the uncertainty about, e.g. colour a still torso untrusted);
-2. the common factor that puts the kind's pooled 2-sigma coverage at 93.5 % (the middle of the 90-97 % target);
+2. the common factor that puts the kind's pooled 2-sigma coverage at 93.5 % (the middle of the 90-97 % target),
+   and, when the runs come at more than one frame rate, each rate's own factor relative to it (``factor_by_fps``:
+   the confidence stage interpolates it in log fps at a capture's rate);
 3. trusted_mm: the 90th percentile of the uncertainty of the joints in view (so that nine in ten of them are
    trusted), and unseen_mm a fifth above it (a joint out of view is never trusted);
 4. each cue's worth: the Spearman correlation and sparsification area with that cue left out (issue 58 item 3).
@@ -94,7 +96,7 @@ def run_cues(run_dir: Path) -> dict:
             "gap": cues["gap"][k], "between": cues["between"][k], "step": cues["step"][k],
             "edge": np.nan_to_num(edge, nan=-1e9), "f_over_z": f_over_z,
             "radius_px": joint_radii(rec.template)[None] * f_over_z, "est": est,
-            "kind": np.array(detector_kind(cues["detector"]))}
+            "kind": np.array(detector_kind(cues["detector"])), "fps": np.array(cues["fps"] or 0.0)}
 
 
 def uncertainty(c: dict, w: dict, common: float = 1.0) -> np.ndarray:
@@ -168,6 +170,25 @@ def common_factor(runs, w) -> float:
     return float(factor)
 
 
+def rate_factors(runs, w, factor) -> dict[float, float]:
+    """{frames per second: the common factor of that rate's runs / the pooled one}, when the runs were made at more
+    than one rate (event-only runs, fps 0, take the pooled factor); {} otherwise."""
+    rates = sorted({round(float(r.get("fps", 0.0)), 1) for r in runs} - {0.0})
+    if len(rates) < 2:
+        return {}
+    out = {}
+    for fps in rates:
+        sel = [r for r in runs if round(float(r.get("fps", 0.0)), 1) == fps]
+        out[fps] = common_factor(sel, w) / factor
+        print(f"   at {fps:g} fps ({len(sel)} runs): factor {out[fps]:.4f} of the pooled")
+    return out
+
+
+def rate_of(r: dict, by_fps: dict[float, float]) -> float:
+    """A run's factor at its frame rate (1: the pooled)."""
+    return by_fps.get(round(float(r.get("fps", 0.0)), 1), 1.0)
+
+
 def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: float) -> dict:
     print(f"\n== detector kind {kind}: {len(runs)} tuning runs ({', '.join(sorted(set(groups)))})")
     base = {k: 0.0 for k in CUES}
@@ -183,7 +204,8 @@ def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: 
                 print(f"   {k} left out: it adds {obj - o:+.4f} to the objective (less than {MIN_GAIN})")
                 w, obj = {**w, k: 0.0}, o
     factor = common_factor(runs, w)
-    us = [uncertainty(r, w, factor) for r in runs]
+    by_fps = rate_factors(runs, w, factor)
+    us = [uncertainty(r, w, factor * rate_of(r, by_fps)) for r in runs]
     seen = np.concatenate([(in_view(r, u, margin) & r["est"][:, None]).ravel() for r, u in zip(runs, us)])
     uw = np.concatenate([u.ravel() for u in us])
     trusted = float(np.nanpercentile(uw[seen], 90))
@@ -192,10 +214,12 @@ def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: 
                                                                                  "events", "motion", "speed")},
              "between_mm": round(w["between_mm"] * factor, 2), "floor_mm": round(w["floor_mm"] * factor, 2),
              "trusted_mm": round(trusted, 1), "unseen_mm": round(unseen, 1)}
+    if by_fps:
+        entry["factor_by_fps"] = {f"{k:g}": round(v, 4) for k, v in sorted(by_fps.items())}
     print("2-3. settings:", json.dumps(entry))
 
     def full(r, w=w, factor=factor):
-        u = uncertainty(r, w, factor)
+        u = uncertainty(r, w, factor * rate_of(r, by_fps))
         return np.where(in_view(r, u, margin), u, np.maximum(u, unseen))
 
     final = score(runs, groups, full, cover=True)
@@ -244,9 +268,8 @@ def main(argv=None) -> int:
                 print(f"left out: {label}/{row} (no motion: failed or refused)")
                 continue
             cache = Path(args.cues) / f"{folder.name}_{label}_{row}.npz" if args.cues else None
-            if cache is not None and cache.is_file():
-                c = dict(np.load(cache))
-            else:
+            c = dict(np.load(cache)) if cache is not None and cache.is_file() else None
+            if c is None or "fps" not in c:  # none kept, or kept before the frame rate was
                 c = run_cues(run_dir)
                 if cache is not None:
                     cache.parent.mkdir(parents=True, exist_ok=True)

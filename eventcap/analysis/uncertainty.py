@@ -367,7 +367,46 @@ def calibration(table: dict, kind: str) -> tuple[str, dict]:
         out[key] = float(v)
     if out["scale"] <= 0 or out["trusted_mm"] <= 0:
         raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: scale and trusted_mm must be > 0")
+    by_fps = entry.get("factor_by_fps", {})
+    points = []
+    if not isinstance(by_fps, dict):
+        raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: factor_by_fps must be an object "
+                         f"{{frames per second: factor}}, got {by_fps!r}")
+    for k, v in by_fps.items():
+        try:
+            fps = float(k)
+        except ValueError:
+            fps = float("nan")
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0
+        if not (np.isfinite(fps) and fps > 0 and ok):
+            raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: factor_by_fps expects frame "
+                             f"rates > 0 as keys and factors > 0, got {k!r}: {v!r}")
+        points.append((fps, float(v)))
+    out["factor_by_fps"] = sorted(points)
     return name, out
+
+
+#: the calibrated settings a frame rate's factor multiplies (the uncertainty's parts; not where it is trusted)
+RATE_SCALED = ("scale", "detection_2d", "detection_3d", "events", "motion", "speed", "between_mm", "floor_mm")
+
+
+def rate_factor(points: list[tuple[float, float]], fps: float | None) -> float:
+    """The calibration's factor at a capture's frame rate: linear in log(fps) between the rates it was calibrated
+    at (``factor_by_fps``), the nearest one's beyond them; 1 when it states none or the capture has no intensity
+    frames (fps None: the kind's pooled calibration)."""
+    if not points or fps is None or not np.isfinite(fps) or fps <= 0:
+        return 1.0
+    x = np.log([p[0] for p in points])
+    return float(np.interp(np.log(fps), x, [p[1] for p in points]))
+
+
+def frame_rate(t_us) -> float | None:
+    """Intensity frames per second from their times (the median interval); None for fewer than 2 frames."""
+    t = np.asarray(t_us, dtype=np.int64)
+    if t.size < 2:
+        return None
+    d = float(np.median(np.diff(np.sort(t))))
+    return 1e6 / d if d > 0 else None
 
 
 def joint_uncertainty(model: UncertaintyModel, sigma_mm: np.ndarray | None, r2_mm: np.ndarray, r3_mm: np.ndarray,

@@ -11,6 +11,7 @@ from eventcap.analysis.confidence import OBSERVED, joints_in_view
 from eventcap.analysis.motion import join_batches
 from eventcap.analysis.uncertainty import (
     CALIBRATED,
+    RATE_SCALED,
     UncertaintyModel,
     at_times,
     body_mm,
@@ -19,10 +20,12 @@ from eventcap.analysis.uncertainty import (
     detection_residuals,
     detector_kind,
     event_gap_mm,
+    frame_rate,
     joined_sigma,
     joint_uncertainty,
     motion_mm,
     out_of_view,
+    rate_factor,
 )
 from eventcap.core.stage import StageFailed
 
@@ -73,15 +76,19 @@ def read_calibration(config) -> dict:
     return table
 
 
-def settings_of(config, detector: str) -> tuple[str, dict]:
+def settings_of(config, detector: str, fps: float | None = None) -> tuple[str, dict]:
     """(the calibration entry used, the uncertainty's settings) for detections made by ``detector`` (the Detections'
-    text): the detector kind's calibration from the table, each setting given in the config taking its place (a
-    trusted_mm given without unseen_mm keeps the table's unseen / trusted ratio)."""
+    text) on a capture of ``fps`` intensity frames per second (None: none): the detector kind's calibration from
+    the table, its parts times the entry's factor at that frame rate (:func:`rate_factor`), each setting given in
+    the config taking its place (a trusted_mm given without unseen_mm keeps the table's unseen / trusted ratio)."""
     kind = detector_kind(detector)
     try:
         name, cal = calibration(read_calibration(config), kind)
     except ValueError as exc:
         raise StageFailed(f"stages.confidence.calibration: {exc}", status="invalid_config") from None
+    cal["rate_factor"] = rate_factor(cal.pop("factor_by_fps"), fps)
+    for key in RATE_SCALED:
+        cal[key] *= cal["rate_factor"]
     ratio = cal["unseen_mm"] / cal["trusted_mm"]
     for key in CALIBRATED:
         v = getattr(config, key, None)
@@ -92,10 +99,10 @@ def settings_of(config, detector: str) -> tuple[str, dict]:
     return name, cal
 
 
-def model_of(config, detector: str = "") -> tuple[UncertaintyModel, dict]:
-    """The uncertainty's model and its settings (trusted_mm, unseen_mm, the entry used) for the detector, from the
-    stage's config (StageFailed naming a key whose value cannot work)."""
-    name, cal = settings_of(config, detector)
+def model_of(config, detector: str = "", fps: float | None = None) -> tuple[UncertaintyModel, dict]:
+    """The uncertainty's model and its settings (trusted_mm, unseen_mm, the entry used) for the detector at the
+    capture's frame rate, from the stage's config (StageFailed naming a key whose value cannot work)."""
+    name, cal = settings_of(config, detector, fps)
     if cal["unseen_mm"] < cal["trusted_mm"]:
         raise StageFailed(f"stages.confidence.unseen_mm: expected at least trusted_mm ({cal['trusted_mm']:g} mm: a "
                           f"joint out of view must never be marked observed), got {cal['unseen_mm']:g}",
@@ -128,14 +135,22 @@ def motion_cues(rec, det, parts, config) -> dict:
     return {"t_us": t_us, "estimated": est, "sigma": joined_sigma(parts, t_us), "r2": at_times(t_us, t_det, r2),
             "r3": at_times(t_us, t_det, r3), "gap": event_gap_mm(tpl, cam, t_us, poses, t_det[hit], ev),
             "events": ev, "poses": poses, "body": body_mm(tpl, poses), "between": between, "step": step,
-            "detector": str(det.detector)}
+            "detector": str(det.detector), "fps": capture_fps(rec)}
+
+
+def capture_fps(rec) -> float | None:
+    """The capture's intensity frames per second (None: an event-only capture, whose images come from the events)."""
+    frames = rec.frames
+    if frames is None or frames.origin == "events":
+        return None
+    return frame_rate(frames.t_us)
 
 
 def motion_uncertainty(rec, cues: dict, config) -> tuple[np.ndarray, np.ndarray]:
     """(uncertainty (T, 24) mm, in view (T, 24)) from the cues (:func:`motion_cues`) with the stage's settings: a
     joint is in view with ``view_margin`` times its uncertainty around it, and one out of view is raised to
     ``unseen_mm``."""
-    model, _ = model_of(config, cues.get("detector", ""))
+    model, _ = model_of(config, cues.get("detector", ""), cues.get("fps"))
     u = joint_uncertainty(model, cues["sigma"], cues["r2"], cues["r3"], cues["gap"], cues["estimated"],
                           cues.get("body"), cues.get("between"), cues.get("step"))
     seen = joints_in_view(rec.template, rec.camera, cues["poses"],
@@ -154,12 +169,13 @@ def run_confidence(inputs, config, ctx):
     parts = [seq[i] for i in range(len(seq))]
     cues = motion_cues(rec, det, parts, config)
     t_us, est = cues["t_us"], cues["estimated"]
-    _, cal = model_of(config, cues["detector"])
+    _, cal = model_of(config, cues["detector"], cues["fps"])
     u, seen = motion_uncertainty(rec, cues, config)
     c = confidence_of(u, cal["trusted_mm"])
-    ctx.log.info("confidence: the uncertainty calibrated for detector kind %r (entry %r of %s): scale %g, trusted "
-                 "%g mm", detector_kind(cues["detector"]), cal["entry"], config.calibration, cal["scale"],
-                 cal["trusted_mm"])
+    rate = ("no intensity frames" if cues["fps"] is None else f"{cues['fps']:.3g} fps")
+    ctx.log.info("confidence: the uncertainty calibrated for detector kind %r (entry %r of %s) at %s: factor %.3g, "
+                 "scale %.3g, trusted %g mm", detector_kind(cues["detector"]), cal["entry"], config.calibration, rate,
+                 cal["rate_factor"], cal["scale"], cal["trusted_mm"])
     if cues["sigma"] is None:
         ctx.log.warning("confidence: the poses carry no σ of their solve (a solve without a Laplace approximation): "
                         "stages.confidence.fallback_mm (%g mm) stands for it, so the uncertainty is only that of "
@@ -173,7 +189,8 @@ def run_confidence(inputs, config, ctx):
                  ", ".join(f"{n} {100 * observed[j]:.0f}%" for j, n in _least_seen(observed)))
     ctx.stats.update({"observed_share": [round(float(v), 4) for v in observed], "gap_frames": int((~est).sum()),
                       "uncertainty_median_mm": [round(float(v), 1) for v in _column_medians(u[est])],
-                      "solve_sigma": cues["sigma"] is not None, "calibration": cal["entry"]})
+                      "solve_sigma": cues["sigma"] is not None, "calibration": cal["entry"],
+                      "rate_factor": round(float(cal["rate_factor"]), 4)})
     return {"confidence": JointConfidence(t_us=t_us, confidence=c.astype(np.float32),
                                           uncertainty_mm=u.astype(np.float32), estimated=est)}
 
