@@ -58,8 +58,7 @@ class SplineTerms:
                           help="E_sil (paper Sec. 3.3): the silhouette boundary against its closest events at the "
                                "solved batches' frames (an effective noise; Huber beyond 1 px)")
     flow: FlowNoise = group(FlowNoise, gain=0.0, help="E_flow (not in the paper): the silhouette boundary's normal "
-                                                      "image speed against the events' local planes (off by default: "
-                                                      "docs/results/events-add.md says why)")
+                                                      "image speed against the events' local planes (off by default)")
     still: StillNoise = group(StillNoise, sigma_px_s=2.24, help="E_still (not in the paper): joints the events call "
                                                                 "still do not move in the image")
     prior: PriorNoise = group(PriorNoise, q_default=5000.0, q_min=500.0, help="the motion prior (not in the paper): each pose parameter a "
