@@ -42,7 +42,7 @@ from .errors import EnergyError
 from .factor import Factor, Linearization
 from .kernels import premultiplied_weights, shared_kernels
 from .settings import FlowNoise
-from .sil import sil_frames
+from .sil import window_sil_frames
 
 _NP = NUM_POSE_PARAMS
 _MOMENTS = ("n", "x", "y", "xx", "yy", "xy", "t", "xt", "yt", "tt")
@@ -150,8 +150,7 @@ class NormalFlow(Factor):
 
     @classmethod
     def samples(cls, inputs, config) -> np.ndarray:
-        parts = [sil_frames(t, float(config.step_ms)) for t in inputs.track_times_us]
-        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+        return window_sil_frames(inputs.track_times_us, float(config.step_ms))
 
     def collect(self, inputs) -> None:
         super().collect(inputs)

@@ -86,6 +86,13 @@ def sil_frames(t_us: np.ndarray, step_ms: float) -> np.ndarray:
     return np.unique(np.append(t_us[::k], t_us[-1]))
 
 
+def window_sil_frames(track_times_us, step_ms: float) -> np.ndarray:
+    """The frames of a window's batches (their tracking frames, one array per batch) every ``step_ms``
+    (:func:`sil_frames` of each batch, together, sorted)."""
+    parts = [sil_frames(t, step_ms) for t in track_times_us]
+    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+
+
 class SilhouetteToEvents(Factor):
     """E_sil (Eq. 11): λ_sil Σ_b ρ(n_bᵀ(π(v_b(S_f)) - u_b) / f) at its frames (module doc), ρ the loss ``loss``
     (l2 | huber, threshold ``huber_px``); the boundary's closest events are searched again at each ICP round;
@@ -123,8 +130,7 @@ class SilhouetteToEvents(Factor):
 
     @classmethod
     def samples(cls, inputs, config) -> np.ndarray:
-        parts = [sil_frames(t, float(config.step_ms)) for t in inputs.track_times_us]
-        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+        return window_sil_frames(inputs.track_times_us, float(config.step_ms))
 
     def collect(self, inputs) -> None:
         super().collect(inputs)
@@ -320,5 +326,5 @@ def find_silhouette_correspondences(template: Template, camera: Camera, poses: n
 
 
 __all__ = ["LOSSES", "JointStability", "SilConfig", "SilhouetteCorrespondences", "SilhouetteToEvents", "StabConfig",
-           "sil_frames",
+           "sil_frames", "window_sil_frames",
            "find_silhouette_correspondences", "robust_loss"]
