@@ -17,7 +17,7 @@ A factor never knows how the poses are parametrised (a B-spline's control points
 :class:`eventcap.energy.problem.FactorProblem` maps the poses at every factor's samples to the decision variables
 and sums the factors. A new term is one module (a subclass of :class:`Factor` registers itself by its ``name``)
 and one config entry: a field ``<name>: <Factor>.Config`` in the ``terms`` group of each solve that should use it
-(:func:`eventcap.energy.terms.term_group`). A solve uses the factors of its ``terms`` whose weight is > 0, in the
+(:func:`eventcap.energy.terms.term_configs`). A solve uses the factors of its ``terms`` whose weight is > 0, in the
 order they are listed there.
 
 Hessian layout of one factor with n samples (each sample a 33-vector of pose parameters, or its derivative):
