@@ -145,6 +145,32 @@ def test_the_calibration_is_the_detector_kinds_and_a_setting_given_takes_its_pla
     assert np.allclose(c.uncertainty_mm, 60.0, atol=1.5)
     assert np.allclose(c.confidence, 1.0 / (1.0 + (c.uncertainty_mm / 100.0) ** 2))
     assert np.allclose(confidence(calibration=rated, scale=3.0).uncertainty_mm, 60.0, atol=1.5)
+    # by view: this whole-body capture with frames takes whole_frames' factor (2 x 1.5 x 0.5 x 20 = 30 mm), not the
+    # close-up's or the event-only camera's
+    viewed = _table(tmp_path, {"simulated": {"scale": 2.0, "factor_by_fps": {"10": 0.5, "25": 1.5},
+                                             "factor_by_view": {"whole_frames": 0.5, "close_up": 3.0,
+                                                                "event_only": 4.0}}})
+    assert np.allclose(confidence(calibration=viewed).uncertainty_mm, 30.0, atol=1.5)
+
+
+def test_the_view_is_what_the_method_sees():
+    """A capture's view (what its uncertainty is calibrated for) comes from the estimate, not the truth: the whole
+    body in the image with frames, the same poses from a camera without frames, and the body moved down by a third
+    of the image so that its legs leave it (a close-up)."""
+    from eventcap.analysis.confidence import joints_in_view
+    from eventcap_confidence._impl import capture_view
+
+    rec = posed_recording("jumping_jack", n_frames=4, speed=1.0, with_template=True)
+    gt, cam = rec.ground_truth, rec.camera
+    P = gt.poses[::50].copy()
+    assert capture_view(rec, P, 25.0) == "whole_frames" and capture_view(rec, P, None) == "event_only"
+    z = float(cam.depth(gt.poses[:1, 30:33])[0])
+    P[:, 30:33] += 0.35 * cam.height * z / cam.fy * np.asarray(cam.R)[1]  # the image's y points down
+    share = joints_in_view(rec.template, cam, P).mean()
+    assert 0.2 < share < 0.8
+    assert capture_view(rec, P, 25.0) == "close_up" and capture_view(rec, P, None) == "event_only"
+    P[:2] = np.nan  # frames without an estimate do not count
+    assert capture_view(rec, P, 10.0) == "close_up"
 
 
 def test_a_calibration_table_that_cannot_work_is_refused_naming_what_is_wrong(tmp_path):
@@ -154,6 +180,11 @@ def test_a_calibration_table_that_cannot_work_is_refused_naming_what_is_wrong(tm
         confidence(calibration=_table(tmp_path, {"blazepose": {}}, default=""))
     with pytest.raises(StageFailed, match=r"detector kind 'simulated': scale must be a number >= 0, got 'x'"):
         confidence(calibration=_table(tmp_path, {"simulated": {"scale": "x"}}))
+    with pytest.raises(StageFailed, match=r"factor_by_view expects a view \(whole_frames, close_up, event_only\) as "
+                                          r"key and a factor > 0, got 'closeup'"):
+        confidence(calibration=_table(tmp_path, {"simulated": {"factor_by_view": {"closeup": 2.0}}}))
+    with pytest.raises(StageFailed, match=r"factor_by_view .* got 'event_only'"):
+        confidence(calibration=_table(tmp_path, {"simulated": {"factor_by_view": {"event_only": 0}}}))
     bad = tmp_path / "bad.json"
     bad.write_text("[1, 2]")
     with pytest.raises(StageFailed, match=r"stages.confidence.calibration: .*bad.json: expected an object"):

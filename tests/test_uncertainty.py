@@ -221,10 +221,19 @@ def test_the_detector_kind_is_the_word_before_the_colon_and_a_table_gives_its_en
     assert detector_kind("file: a.json (openpose, layout body25)") == "file" and detector_kind("") == ""
     entry = {k: 1.0 for k in CALIBRATED}
     table = {"default": "simulated", "detectors": {"simulated": entry, "blazepose": {**entry, "scale": 2.0}}}
-    assert calibration(table, "blazepose") == ("blazepose", {**entry, "scale": 2.0, "factor_by_fps": []})
-    assert calibration(table, "file") == ("simulated", {**entry, "factor_by_fps": []})
+    none = {"factor_by_fps": [], "factor_by_view": {}}
+    assert calibration(table, "blazepose") == ("blazepose", {**entry, "scale": 2.0, **none})
+    assert calibration(table, "file") == ("simulated", {**entry, **none})
     with pytest.raises(ValueError, match=r"kind 'blazepose': trusted_mm must be a number >= 0, got None"):
         calibration({"detectors": {"blazepose": {**entry, "trusted_mm": None}}}, "blazepose")
+
+
+def test_the_view_is_event_only_without_frames_and_a_close_up_below_the_share_in_the_image():
+    from eventcap.analysis.uncertainty import CLOSE_UP_SHARE, view_of
+
+    assert view_of(None, 1.0) == view_of(float("nan"), 0.3) == view_of(0.0, 1.0) == "event_only"
+    assert view_of(25.0, 1.0) == view_of(10.0, CLOSE_UP_SHARE) == "whole_frames"
+    assert view_of(25.0, CLOSE_UP_SHARE - 0.01) == view_of(10.0, 0.0) == "close_up"
 
 
 def test_a_calibration_by_frame_rate_is_interpolated_in_log_fps_and_bad_rates_are_named():

@@ -96,7 +96,8 @@ def run_cues(run_dir: Path) -> dict:
             "gap": cues["gap"][k], "between": cues["between"][k], "step": cues["step"][k],
             "edge": np.nan_to_num(edge, nan=-1e9), "f_over_z": f_over_z,
             "radius_px": joint_radii(rec.template)[None] * f_over_z, "est": est,
-            "kind": np.array(detector_kind(cues["detector"])), "fps": np.array(cues["fps"] or 0.0)}
+            "kind": np.array(detector_kind(cues["detector"])), "fps": np.array(cues["fps"] or 0.0),
+            "view": np.array(cues["view"])}
 
 
 def uncertainty(c: dict, w: dict, common: float = 1.0) -> np.ndarray:
@@ -184,13 +185,74 @@ def rate_factors(runs, w, factor) -> dict[float, float]:
     return out
 
 
-def rate_of(r: dict, by_fps: dict[float, float]) -> float:
-    """A run's factor at its frame rate (1: the pooled)."""
-    return by_fps.get(round(float(r.get("fps", 0.0)), 1), 1.0)
+def rate_of(r: dict, by_fps: dict[float, float], by_view: dict[str, float] | None = None) -> float:
+    """A run's factor at its frame rate (1: the pooled), times its view's (1: none calibrated)."""
+    return by_fps.get(round(float(r.get("fps", 0.0)), 1), 1.0) * (by_view or {}).get(str(r.get("view", "")), 1.0)
 
 
-def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: float) -> dict:
+def view_factors(runs, w, factor, by_fps) -> dict[str, float]:
+    """{view: the common factor that puts that view's runs at the target coverage, over the one their kind and
+    frame rate already have}, for every view but whole_frames the runs come in (issue 58 item 2)."""
+    out = {}
+    for view in sorted({str(r.get("view", "whole_frames")) for r in runs} - {"whole_frames"}):
+        sel = [r for r in runs if str(r.get("view", "")) == view]
+        # the runs' own rate factors are in the bisection: uncertainty(r, w, f * rate) for f around 1
+        lo, hi = 1e-3, 1e3
+        for _ in range(60):
+            f = np.sqrt(lo * hi)
+            u, e = pooled(sel, lambda r, f=f: uncertainty(r, w, f * factor * rate_of(r, by_fps)))
+            lo, hi = (f, hi) if float(np.mean(e <= 2 * u)) < TARGET else (lo, f)
+        out[view] = float(f)
+        print(f"   view {view} ({len(sel)} runs): factor {f:.4f} of its kind's at its rate")
+    return out
+
+
+def entry_weights(entry: dict) -> tuple[dict, float, dict]:
+    """(relative weights, common factor, {fps: factor}) of a calibration table's entry (what calibrate_kind
+    wrote): the views calibrated on top of a kind's shipped calibration (``--views-only``)."""
+    scale = float(entry["scale"])
+    w = {k: float(entry.get(k, 0.0)) / scale for k in CUES}
+    return w, scale, {float(k): float(v) for k, v in entry.get("factor_by_fps", {}).items()}
+
+
+def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: float,
+                   base: dict | None = None) -> tuple[dict, dict]:
+    """The kind's calibration entry from its tuning runs (module doc, 1-4); with ``base`` (its shipped entry), only
+    the views' factors on top of it (the rest of the entry kept)."""
     print(f"\n== detector kind {kind}: {len(runs)} tuning runs ({', '.join(sorted(set(groups)))})")
+    if base is not None:
+        w, factor, by_fps = entry_weights(base)
+        by_view = view_factors(runs, w, factor, by_fps)
+        entry = {**base, "factor_by_view": {k: round(v, 4) for k, v in by_view.items()}}
+        unseen = float(base["unseen_mm"])
+    else:
+        w, factor, by_fps, entry = fit_kind(runs, groups)
+        by_view = view_factors(runs, w, factor, by_fps)
+        us = [uncertainty(r, w, factor * rate_of(r, by_fps, by_view)) for r in runs]
+        seen = np.concatenate([(in_view(r, u, margin) & r["est"][:, None]).ravel() for r, u in zip(runs, us)])
+        trusted = float(np.nanpercentile(np.concatenate([u.ravel() for u in us])[seen], 90))
+        unseen = unseen_over_trusted * trusted
+        entry.update(trusted_mm=round(trusted, 1), unseen_mm=round(unseen, 1))
+        if by_view:
+            entry["factor_by_view"] = {k: round(v, 4) for k, v in by_view.items()}
+    print("2-3. settings:", json.dumps(entry))
+
+    def full(r, w=w, factor=factor):
+        u = uncertainty(r, w, factor * rate_of(r, by_fps, by_view))
+        return np.where(in_view(r, u, margin), u, np.maximum(u, unseen))
+
+    final = score(runs, groups, full, cover=True)
+    for g, v in final.items():
+        print(f"   {g:<18} runs {v['runs']:>2}  spearman {v['spearman']:.3f}  ause/random {v['ause_ratio']:.3f}  "
+              f"2-sigma {100 * v['cover2']:.1f}%  u median {v['u_median']:.1f}  error median {v['e_median']:.1f} mm")
+    if base is None:
+        cue_worth(runs, groups, w, final)
+    entry["view_margin"] = margin
+    return entry, final
+
+
+def fit_kind(runs, groups) -> tuple[dict, float, dict, dict]:
+    """Steps 1-2 of the module doc: (relative weights, common factor, {fps: factor}, the entry's parts)."""
     base = {k: 0.0 for k in CUES}
     s0 = score(runs, groups, lambda r: uncertainty(r, base), cover=True)
     print("   the solve's sigma alone:  " + "  ".join(f"{g} sp {v['spearman']:.3f} ause {v['ause_ratio']:.3f}"
@@ -205,27 +267,16 @@ def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: 
                 w, obj = {**w, k: 0.0}, o
     factor = common_factor(runs, w)
     by_fps = rate_factors(runs, w, factor)
-    us = [uncertainty(r, w, factor * rate_of(r, by_fps)) for r in runs]
-    seen = np.concatenate([(in_view(r, u, margin) & r["est"][:, None]).ravel() for r, u in zip(runs, us)])
-    uw = np.concatenate([u.ravel() for u in us])
-    trusted = float(np.nanpercentile(uw[seen], 90))
-    unseen = unseen_over_trusted * trusted
     entry = {"scale": round(factor, 4), **{k: round(w[k] * factor, 4) for k in ("detection_2d", "detection_3d",
                                                                                  "events", "motion", "speed")},
-             "between_mm": round(w["between_mm"] * factor, 2), "floor_mm": round(w["floor_mm"] * factor, 2),
-             "trusted_mm": round(trusted, 1), "unseen_mm": round(unseen, 1)}
+             "between_mm": round(w["between_mm"] * factor, 2), "floor_mm": round(w["floor_mm"] * factor, 2)}
     if by_fps:
         entry["factor_by_fps"] = {f"{k:g}": round(v, 4) for k, v in sorted(by_fps.items())}
-    print("2-3. settings:", json.dumps(entry))
+    return w, factor, by_fps, entry
 
-    def full(r, w=w, factor=factor):
-        u = uncertainty(r, w, factor * rate_of(r, by_fps))
-        return np.where(in_view(r, u, margin), u, np.maximum(u, unseen))
 
-    final = score(runs, groups, full, cover=True)
-    for g, v in final.items():
-        print(f"   {g:<18} runs {v['runs']:>2}  spearman {v['spearman']:.3f}  ause/random {v['ause_ratio']:.3f}  "
-              f"2-sigma {100 * v['cover2']:.1f}%  u median {v['u_median']:.1f}  error median {v['e_median']:.1f} mm")
+def cue_worth(runs, groups, w, final) -> None:
+    """Step 4: each cue left out, and the weights refitted without it."""
     print("4. each cue left out (the others kept; pooled spearman, ause/random; then refitted without it):")
     for k in CUES:
         if w[k] == 0:
@@ -238,8 +289,6 @@ def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: 
         print(f"   without {k:<13} spearman {s['spearman']:.3f} ause {s['ause_ratio']:.3f} | refitted "
               f"spearman {s2['spearman']:.3f} ause {s2['ause_ratio']:.3f} (with it: "
               f"{final['pooled']['spearman']:.3f} / {final['pooled']['ause_ratio']:.3f})")
-    entry["view_margin"] = margin
-    return entry, final
 
 
 def main(argv=None) -> int:
@@ -254,6 +303,8 @@ def main(argv=None) -> int:
     ap.add_argument("--base", default=str(Path(__file__).resolve().parents[2] / "plugins" / "eventcap_confidence"
                                           / "calibration.json"))
     ap.add_argument("--source", default="", help="text stored as each written entry's source")
+    ap.add_argument("--views-only", action="store_true", help="keep each kind's entry of --base and calibrate only "
+                                                              "the views' factors on top of it (factor_by_view)")
     args = ap.parse_args(argv)
     by_kind: dict[str, tuple[list, list, list]] = {}
     for folder in map(Path, args.folders):
@@ -269,7 +320,7 @@ def main(argv=None) -> int:
                 continue
             cache = Path(args.cues) / f"{folder.name}_{label}_{row}.npz" if args.cues else None
             c = dict(np.load(cache)) if cache is not None and cache.is_file() else None
-            if c is None or "fps" not in c:  # none kept, or kept before the frame rate was
+            if c is None or "view" not in c:  # none kept, or kept before the frame rate or the view was
                 c = run_cues(run_dir)
                 if cache is not None:
                     cache.parent.mkdir(parents=True, exist_ok=True)
@@ -282,9 +333,13 @@ def main(argv=None) -> int:
     table = json.loads(Path(args.base).read_text())
     for kind, (runs, groups, names) in sorted(by_kind.items()):
         print(f"{kind}: " + ", ".join(names))
-        entry, _ = calibrate_kind(kind, runs, groups, args.view_margin, args.unseen_over_trusted)
+        base = table["detectors"].get(kind) if args.views_only else None
+        if args.views_only and base is None:
+            sys.exit(f"--views-only: {args.base} has no entry for detector kind {kind!r} to calibrate views on")
+        entry, _ = calibrate_kind(kind, runs, groups, args.view_margin, args.unseen_over_trusted, base)
         entry.pop("view_margin")
-        entry["source"] = args.source or f"calibrate_uncertainty.py on {len(runs)} tuning runs"
+        if args.source or base is None:
+            entry["source"] = args.source or f"calibrate_uncertainty.py on {len(runs)} tuning runs"
         table["detectors"][kind] = entry
     if args.write:
         Path(args.write).write_text(json.dumps(table, indent=1) + "\n")

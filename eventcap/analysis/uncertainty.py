@@ -383,6 +383,13 @@ def calibration(table: dict, kind: str) -> tuple[str, dict]:
                              f"rates > 0 as keys and factors > 0, got {k!r}: {v!r}")
         points.append((fps, float(v)))
     out["factor_by_fps"] = sorted(points)
+    by_view = entry.get("factor_by_view", {})
+    bad = [k for k, v in by_view.items() if k not in VIEWS or isinstance(v, bool) or not isinstance(v, (int, float))
+           or not np.isfinite(v) or v <= 0] if isinstance(by_view, dict) else [by_view]
+    if bad:
+        raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: factor_by_view expects a view "
+                         f"({', '.join(VIEWS)}) as key and a factor > 0, got {bad[0]!r}")
+    out["factor_by_view"] = {k: float(v) for k, v in by_view.items()}
     return name, out
 
 
@@ -398,6 +405,22 @@ def rate_factor(points: list[tuple[float, float]], fps: float | None) -> float:
         return 1.0
     x = np.log([p[0] for p in points])
     return float(np.interp(np.log(fps), x, [p[1] for p in points]))
+
+
+#: the views the uncertainty is calibrated apart for (:func:`view_of`): with intensity frames and most of the body in
+#: the image, a close-up (much of the body out of the image), a camera without intensity frames
+VIEWS = ("whole_frames", "close_up", "event_only")
+#: below this share of the joints in the image (over the estimated frames) a capture with frames is a close-up
+CLOSE_UP_SHARE = 0.8
+
+
+def view_of(fps: float | None, in_image_share: float) -> str:
+    """The view a capture's uncertainty is calibrated for (:data:`VIEWS`), from what the method sees: no intensity
+    frames (fps None) is ``event_only``; with frames, less than :data:`CLOSE_UP_SHARE` of the joints inside the
+    image over the estimated frames is a ``close_up``; else ``whole_frames``."""
+    if fps is None or not np.isfinite(fps) or fps <= 0:
+        return "event_only"
+    return "close_up" if in_image_share < CLOSE_UP_SHARE else "whole_frames"
 
 
 def frame_rate(t_us) -> float | None:
@@ -447,6 +470,7 @@ def confidence_of(u_mm: np.ndarray, trusted_mm: float) -> np.ndarray:
     return np.where(np.isfinite(u), 1.0 / (1.0 + (np.nan_to_num(u) / trusted_mm) ** 2), 0.0)
 
 
-__all__ = ["CALIBRATED", "UncertaintyModel", "at_times", "between_frames", "body_mm", "calibration", "confidence_of",
-           "coverage", "detection_residuals", "detector_kind", "event_gap_mm", "fill_from_neighbours", "joined_sigma",
-           "joint_uncertainty", "motion_mm", "out_of_view", "sparsification", "spearman"]
+__all__ = ["CALIBRATED", "CLOSE_UP_SHARE", "UncertaintyModel", "VIEWS", "at_times", "between_frames", "body_mm",
+           "calibration", "confidence_of", "coverage", "detection_residuals", "detector_kind", "event_gap_mm",
+           "fill_from_neighbours", "frame_rate", "joined_sigma", "joint_uncertainty", "motion_mm", "out_of_view",
+           "rate_factor", "sparsification", "spearman", "view_of"]

@@ -26,6 +26,7 @@ from eventcap.analysis.uncertainty import (
     motion_mm,
     out_of_view,
     rate_factor,
+    view_of,
 )
 from eventcap.core.stage import StageFailed
 
@@ -76,19 +77,22 @@ def read_calibration(config) -> dict:
     return table
 
 
-def settings_of(config, detector: str, fps: float | None = None) -> tuple[str, dict]:
+def settings_of(config, detector: str, fps: float | None = None, view: str = "whole_frames") -> tuple[str, dict]:
     """(the calibration entry used, the uncertainty's settings) for detections made by ``detector`` (the Detections'
-    text) on a capture of ``fps`` intensity frames per second (None: none): the detector kind's calibration from
-    the table, its parts times the entry's factor at that frame rate (:func:`rate_factor`), each setting given in
-    the config taking its place (a trusted_mm given without unseen_mm keeps the table's unseen / trusted ratio)."""
+    text) on a capture of ``fps`` intensity frames per second (None: none) seen as ``view`` (:func:`view_of`): the
+    detector kind's calibration from the table, its parts times the entry's factor at that frame rate
+    (:func:`rate_factor`) and its factor for that view (``factor_by_view``, 1 where it states none), each setting
+    given in the config taking its place (a trusted_mm given without unseen_mm keeps the table's unseen / trusted
+    ratio)."""
     kind = detector_kind(detector)
     try:
         name, cal = calibration(read_calibration(config), kind)
     except ValueError as exc:
         raise StageFailed(f"stages.confidence.calibration: {exc}", status="invalid_config") from None
     cal["rate_factor"] = rate_factor(cal.pop("factor_by_fps"), fps)
+    cal["view"], cal["view_factor"] = view, cal.pop("factor_by_view").get(view, 1.0)
     for key in RATE_SCALED:
-        cal[key] *= cal["rate_factor"]
+        cal[key] *= cal["rate_factor"] * cal["view_factor"]
     ratio = cal["unseen_mm"] / cal["trusted_mm"]
     for key in CALIBRATED:
         v = getattr(config, key, None)
@@ -99,10 +103,11 @@ def settings_of(config, detector: str, fps: float | None = None) -> tuple[str, d
     return name, cal
 
 
-def model_of(config, detector: str = "", fps: float | None = None) -> tuple[UncertaintyModel, dict]:
+def model_of(config, detector: str = "", fps: float | None = None,
+             view: str = "whole_frames") -> tuple[UncertaintyModel, dict]:
     """The uncertainty's model and its settings (trusted_mm, unseen_mm, the entry used) for the detector at the
-    capture's frame rate, from the stage's config (StageFailed naming a key whose value cannot work)."""
-    name, cal = settings_of(config, detector, fps)
+    capture's frame rate and view, from the stage's config (StageFailed naming a key whose value cannot work)."""
+    name, cal = settings_of(config, detector, fps, view)
     if cal["unseen_mm"] < cal["trusted_mm"]:
         raise StageFailed(f"stages.confidence.unseen_mm: expected at least trusted_mm ({cal['trusted_mm']:g} mm: a "
                           f"joint out of view must never be marked observed), got {cal['unseen_mm']:g}",
@@ -135,7 +140,15 @@ def motion_cues(rec, det, parts, config) -> dict:
     return {"t_us": t_us, "estimated": est, "sigma": joined_sigma(parts, t_us), "r2": at_times(t_us, t_det, r2),
             "r3": at_times(t_us, t_det, r3), "gap": event_gap_mm(tpl, cam, t_us, poses, t_det[hit], ev),
             "events": ev, "poses": poses, "body": body_mm(tpl, poses), "between": between, "step": step,
-            "detector": str(det.detector), "fps": capture_fps(rec)}
+            "detector": str(det.detector), "fps": capture_fps(rec), "view": capture_view(rec, poses, capture_fps(rec))}
+
+
+def capture_view(rec, poses: np.ndarray, fps: float | None) -> str:
+    """The view the uncertainty is calibrated for (:func:`eventcap.analysis.uncertainty.view_of`): the capture's
+    frames, and the share of the estimate's joints inside the image over its estimated frames."""
+    est = np.isfinite(poses).all(axis=1)
+    share = float(joints_in_view(rec.template, rec.camera, poses)[est].mean()) if est.any() else 1.0
+    return view_of(fps, share)
 
 
 def capture_fps(rec) -> float | None:
@@ -150,7 +163,7 @@ def motion_uncertainty(rec, cues: dict, config) -> tuple[np.ndarray, np.ndarray]
     """(uncertainty (T, 24) mm, in view (T, 24)) from the cues (:func:`motion_cues`) with the stage's settings: a
     joint is in view with ``view_margin`` times its uncertainty around it, and one out of view is raised to
     ``unseen_mm``."""
-    model, _ = model_of(config, cues.get("detector", ""), cues.get("fps"))
+    model, _ = model_of(config, cues.get("detector", ""), cues.get("fps"), cues.get("view", "whole_frames"))
     u = joint_uncertainty(model, cues["sigma"], cues["r2"], cues["r3"], cues["gap"], cues["estimated"],
                           cues.get("body"), cues.get("between"), cues.get("step"))
     seen = joints_in_view(rec.template, rec.camera, cues["poses"],
@@ -169,13 +182,14 @@ def run_confidence(inputs, config, ctx):
     parts = [seq[i] for i in range(len(seq))]
     cues = motion_cues(rec, det, parts, config)
     t_us, est = cues["t_us"], cues["estimated"]
-    _, cal = model_of(config, cues["detector"], cues["fps"])
+    _, cal = model_of(config, cues["detector"], cues["fps"], cues["view"])
     u, seen = motion_uncertainty(rec, cues, config)
     c = confidence_of(u, cal["trusted_mm"])
     rate = ("no intensity frames" if cues["fps"] is None else f"{cues['fps']:.3g} fps")
-    ctx.log.info("confidence: the uncertainty calibrated for detector kind %r (entry %r of %s) at %s: factor %.3g, "
-                 "scale %.3g, trusted %g mm", detector_kind(cues["detector"]), cal["entry"], config.calibration, rate,
-                 cal["rate_factor"], cal["scale"], cal["trusted_mm"])
+    ctx.log.info("confidence: the uncertainty calibrated for detector kind %r (entry %r of %s) at %s: factor %.3g; "
+                 "view %s: factor %.3g; scale %.3g, trusted %g mm", detector_kind(cues["detector"]), cal["entry"],
+                 config.calibration, rate, cal["rate_factor"], cal["view"], cal["view_factor"], cal["scale"],
+                 cal["trusted_mm"])
     if cues["sigma"] is None:
         ctx.log.warning("confidence: the poses carry no σ of their solve (a solve without a Laplace approximation): "
                         "stages.confidence.fallback_mm (%g mm) stands for it, so the uncertainty is only that of "
@@ -190,7 +204,8 @@ def run_confidence(inputs, config, ctx):
     ctx.stats.update({"observed_share": [round(float(v), 4) for v in observed], "gap_frames": int((~est).sum()),
                       "uncertainty_median_mm": [round(float(v), 1) for v in _column_medians(u[est])],
                       "solve_sigma": cues["sigma"] is not None, "calibration": cal["entry"],
-                      "rate_factor": round(float(cal["rate_factor"]), 4)})
+                      "rate_factor": round(float(cal["rate_factor"]), 4), "view": cal["view"],
+                      "view_factor": round(float(cal["view_factor"]), 4)})
     return {"confidence": JointConfidence(t_us=t_us, confidence=c.astype(np.float32),
                                           uncertainty_mm=u.astype(np.float32), estimated=est)}
 

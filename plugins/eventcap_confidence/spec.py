@@ -82,7 +82,7 @@ class ConfidenceConfig:
 
 
 CONFIDENCE = StageSpec(
-    name="confidence", kind="analyse", version=5,
+    name="confidence", kind="analyse", version=6,
     description="uncertainty (mm) per frame and joint of the estimated motion: the solve's own σ (its Laplace "
                 "approximation, calibrated per detector kind) inflated where the detections, the events and the "
                 "estimate disagree, between the frames where the joint moves fast, and for joints out of view; the "
