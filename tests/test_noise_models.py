@@ -185,7 +185,8 @@ def test_blazepose_states_its_measured_noise_per_image_kind_and_camera_axis(tmp_
     """The detector's table (models/blazepose_noise.json, measured by benchmarks/accuracy/detector_noise.py): 2D white
     noise per landmark, the capture's offset apart; 3D an effective figure per joint and camera axis, the pelvis
     exact (the measured 3D kept beside: depth, z, is BlazePose's worst axis); latent images between the frames take
-    the latent figures; a kind the table lacks is named."""
+    the latent figures, images made from the events their own (the raw frames' where it has none); a kind the table
+    lacks is named."""
     import json
 
     from eventcap_detect._impl import BLAZEPOSE_NOISE, blazepose_noise
@@ -204,6 +205,20 @@ def test_blazepose_states_its_measured_noise_per_image_kind_and_camera_axis(tmp_
     table = json.loads(BLAZEPOSE_NOISE.read_text())
     bias = np.array(table["measured_3d"]["bias_3d_mm"]["latent"])[1:]
     assert np.median(bias[:, 2]) > 2 * np.median(bias[:, :2])
+    # images made from the events (an event-only camera): their own figures where the table measures them, else the
+    # raw frames'
+    events = blazepose_noise("frames", frames, np.zeros(0, np.int64), event_images=True)
+    want = "events" if "events" in table["landmarks_2d_px"] else "frames"
+    inflate = np.sqrt(table["inflation_2d"][want])
+    np.testing.assert_allclose(events.sigma_2d_px[0], np.array(table["landmarks_2d_px"][want]) * inflate)
+    np.testing.assert_allclose(events.bias_2d_px, np.array(table["bias_2d_px"][want]) * inflate)
+    no_events = {k: ({kk: vv for kk, vv in v.items() if kk != "events"} if isinstance(v, dict) else v)
+                 for k, v in table.items()}
+    no_events["landmarks_2d_px"]["frames"] = [9.0] * 25
+    plain = tmp_path / "plain.json"
+    plain.write_text(json.dumps(no_events))
+    m = blazepose_noise("frames", frames, np.zeros(0, np.int64), plain, event_images=True)
+    np.testing.assert_allclose(m.sigma_2d_px, 9.0 * np.sqrt(table["inflation_2d"]["frames"]))
     del table["landmarks_2d_px"]["frames"]
     bad = tmp_path / "noise.json"
     bad.write_text(json.dumps(table))

@@ -1,7 +1,7 @@
 """A detector's noise model, measured on tuning captures: each landmark's 2D error and each joint's 3D error as the
 solve's E_3D sees it (root-relative, a free translation per image, along the camera's axes: x right, y down, z the
 line of sight), split into what changes from image to image (white noise, per kind of image: the raw frames, the EDI
-latent images at the frames, latent images between the frames) and what stays over a capture (the offset's spread
+latent images at the frames, latent images between the frames, images made from the events of an event-only camera) and what stays over a capture (the offset's spread
 over captures: one capture's mean error), written as the table the detector states
 (`plugins/eventcap_detect/models/blazepose_noise.json`, read by the detect stage into the detections' noise model).
 
@@ -39,12 +39,14 @@ from eventcap.core.runner import Runner  # noqa: E402
 def outputs_of(run_dir: Path):
     data = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=True)
     data.update(log_level="WARNING", executor={"kind": "serial"}, outputs={})
-    keep = ("template", "source", "sharpen", "detect")
+    keep = ("template", "source", "sharpen", "reconstruct", "detect")
     data["pipeline"]["nodes"] = {k: v for k, v in data["pipeline"]["nodes"].items() if k in keep}
     runner = Runner(data)
     with tempfile.TemporaryDirectory() as tmp:
         result = runner.run(Path(tmp))
-        return runner.load_output(result, "source.recording")[None], runner.load_output(result, "detect.detections")[None]
+        rec = data["pipeline"]["nodes"]["detect"]["inputs"].get("recording", "source.recording")  # event-only: the
+        # recording with the images made from the events (reconstruct.recording)
+        return runner.load_output(result, rec)[None], runner.load_output(result, "detect.detections")[None]
 
 
 def errors(run_dir: Path) -> dict:
@@ -73,7 +75,9 @@ def errors(run_dir: Path) -> dict:
     frames = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)
     at = str(OmegaConf.load(run_dir / "config.yaml").stages.detect.get("at", "latent"))
     kind = np.full(t.size, "frames" if at == "frames" else "latent", dtype=object)
-    if at == "tracking":
+    if rec.frames is not None and rec.frames.origin == "events":  # an event-only camera's images
+        kind[:] = "events"
+    elif at == "tracking":
         kind[~np.isin(t, frames)] = "between"
     return {k: (e2[kind == k], r3[kind == k]) for k in np.unique(kind)}
 
@@ -100,6 +104,10 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--write", type=Path, default=None, help="write the detector's noise table here")
     ap.add_argument("--source", default="", help="what to say the table comes from (the captures, the commit)")
+    ap.add_argument("--add-to", type=Path, default=None, help="add the kinds measured here to this table (the "
+                    "shipped one) instead of writing a new one: their 2D figures as measured, their 3D the table's "
+                    "effective figure for the raw frames (the measured 3D kept under measured_3d), the rest of the "
+                    "table untouched; --source is appended to its source")
     args = ap.parse_args()
     pooled: dict[str, list] = {}
     for run in args.runs:
@@ -142,11 +150,30 @@ def main() -> None:
               f"3D {table['inflation_3d'][kind]}")
     table["outlier_share"] = round(float(np.mean(shares)), 3) if shares else 0.0
     table["source"] = args.source or f"measured by benchmarks/accuracy/detector_noise.py on {len(args.runs)} runs"
-    if args.write:
+    if args.add_to:
+        add_kinds(args.add_to, table, args.source)
+    elif args.write:
         order = ("source", "landmarks_2d_px", "bias_2d_px", "joints_3d_mm", "bias_3d_mm", "inflation_2d",
                  "inflation_3d", "images", "outlier_share")
         args.write.write_text(json.dumps({k: table[k] for k in order}, indent=1) + "\n")
         print(f"wrote {args.write}")
+
+
+def add_kinds(path: Path, measured: dict, source: str) -> None:
+    """Add the measured kinds of image to the table at ``path`` (``--add-to``)."""
+    table = json.loads(path.read_text())
+    for kind in measured["images"]:
+        for key in ("landmarks_2d_px", "bias_2d_px", "inflation_2d", "images"):
+            if kind in measured[key]:
+                table.setdefault(key, {})[kind] = measured[key][kind]
+        table["joints_3d_mm"][kind] = table["joints_3d_mm"]["frames"]
+        for key in ("joints_3d_mm", "bias_3d_mm", "inflation_3d"):
+            if kind in measured[key]:
+                table.setdefault("measured_3d", {}).setdefault(key, {})[kind] = measured[key][kind]
+        print(f"added the {kind!r} images to {path}")
+    if source:
+        table["source"] = f"{table['source']}. {source}"
+    path.write_text(json.dumps(table, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -421,16 +421,24 @@ def run_blazepose(inputs, config, ctx):
                 f"track={config.track}, find={config.find}")
     frames = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)
     return {"detections": _detections(times, kp, conf, joints, conf3, detector, view,
-                                      blazepose_noise(config.at, times, frames))}
+                                      blazepose_noise(config.at, times, frames, event_images=event_images(rec)))}
+
+
+def event_images(rec) -> bool:
+    """Whether the recording's images were made from its events (an event-only camera's reconstructed images), not
+    taken by the camera."""
+    return rec.frames is not None and rec.frames.origin == "events"
 
 
 #: BlazePose's noise model, measured on tuning captures (benchmarks/accuracy/detector_noise.py writes it).
 BLAZEPOSE_NOISE = Path(__file__).resolve().parent / "models" / "blazepose_noise.json"
 
 
-def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Path = BLAZEPOSE_NOISE) -> NoiseModel:
+def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Path = BLAZEPOSE_NOISE,
+                    event_images: bool = False) -> NoiseModel:
     """BlazePose's noise model for images at ``times``: the measured noise of each kind of image (the raw frames,
-    the EDI latent images at the frames, and latent images between the frames), per landmark and joint or one
+    the EDI latent images at the frames, latent images between the frames, and images made from the events alone:
+    ``event_images``, an event-only camera's; the raw frames' where the table measures none), per landmark and joint or one
     figure for all, from ``models/blazepose_noise.json`` (benchmarks/accuracy/detector_noise.py): white noise per
     image and a capture's offset (none where the table states none: BlazePose's 3D is an effective figure, the
     table's ``source`` says why), the 2D ones times √ of the table's ``inflation_2d`` (the landmarks of an image err
@@ -443,7 +451,9 @@ def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Pa
     table = json.loads(path.read_text())
     t = np.asarray(times, dtype=np.int64)
     kind = np.full(t.size, "frames" if at == "frames" else "latent", dtype=object)
-    if at == "tracking":
+    if event_images:
+        kind[:] = "events" if "events" in table["landmarks_2d_px"] else "frames"
+    elif at == "tracking":
         kind[~np.isin(t, np.asarray(frame_t_us, dtype=np.int64))] = "between"
 
     def per(name: str, k: str, shape: tuple, unit: float) -> np.ndarray:
@@ -461,7 +471,8 @@ def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Pa
     s3 = (np.stack([per("joints_3d_mm", k, (NUM_JOINTS, 3), 1e-3) for k in kind]) if t.size
           else np.zeros((0, NUM_JOINTS, 3)))
     s3[:, 0] = 0.0  # the joints are relative to the pelvis
-    most = "frames" if at == "frames" else "latent"  # a capture's offset: that of the images it mostly holds
+    most = str(kind[0]) if event_images and t.size else ("frames" if at == "frames" else "latent")  # a capture's
+    # offset: that of the images it mostly holds
     # an image's landmarks err together: each counts as its spread times √(d / n_eff), the table's inflation
     inflate = table.get("inflation_2d", {})
     s2 = s2 * np.sqrt(np.array([float(inflate.get(k if k in inflate else "latent", 1.0)) for k in kind]))[:, None]
