@@ -225,3 +225,27 @@ def test_blazepose_states_its_measured_noise_per_image_kind_and_camera_axis(tmp_
     with pytest.raises(ValueError, match=r"noise.json: landmarks_2d_px: no figure for the 'frames' images "
                                          r"\(expected one of \['latent'\]\)"):
         blazepose_noise("frames", frames, frames, bad)
+
+
+def test_blazepose_noise_table_is_in_the_detect_stage_key_and_a_table_given_is_stated(tmp_path):
+    """The table the detections state their noise from is part of the stage's cache key (a changed table detects
+    again); a table given in the config (stages.detect.noise) is the one read."""
+    import json
+
+    from eventcap.core.config import build_config, file_digests
+    from eventcap.core.registry import load_registry
+    from eventcap_detect._impl import blazepose_noise
+    from eventcap_detect.spec import SHIPPED_NOISE, noise_files
+
+    spec = load_registry().get("blazepose")
+    table = json.loads(SHIPPED_NOISE.read_text())
+    a = file_digests(spec, build_config(spec, {}, "stages.detect"), "stages.detect")
+    other = tmp_path / "noise.json"
+    table["landmarks_2d_px"]["latent"] = [5.0] * 25
+    other.write_text(json.dumps(table))
+    b = file_digests(spec, build_config(spec, {"noise": str(other)}, "stages.detect"), "stages.detect")
+    assert set(a) == set(b) == {"noise"} and a != b
+    assert noise_files("shipped") == [str(SHIPPED_NOISE)]
+    frames = np.array([0, 100_000])
+    m = blazepose_noise("latent", frames, frames, noise_files(str(other))[0])
+    np.testing.assert_allclose(m.sigma_2d_px, 5.0 * np.sqrt(table["inflation_2d"]["latent"]))

@@ -71,9 +71,9 @@ def run_cues(run_dir: Path) -> dict:
 
     runner, result = load_finished_run(run_dir)
     get = lambda key: runner.load_output(result, key)  # noqa: E731
-    det = get("detect.detections")[None]
-    rec = upright(get("source.recording")[None], det)
     node = runner.by_name["confidence"]
+    det = get("detect.detections")[None]
+    rec = upright(get(node.inputs.get("recording", "source.recording"))[None], det)  # the body stage's, if any
     poses = get(node.inputs["poses"] if isinstance(node.inputs, dict) and "poses" in node.inputs else "cut.poses")
     cues = motion_cues(rec, det, [poses[k] for k in sorted(poses)], node.config)
     errors = get("evaluate.errors")[None]

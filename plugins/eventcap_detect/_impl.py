@@ -10,6 +10,8 @@ import numpy as np
 from eventcap.artifacts.pose import Detections
 from eventcap.core.stage import StageFailed
 
+from .spec import SHIPPED_NOISE, noise_files
+
 
 def _frame_times(rec, stage: str) -> np.ndarray:
     if rec.frames is None or rec.frames.t_us.size == 0:
@@ -421,7 +423,8 @@ def run_blazepose(inputs, config, ctx):
                 f"track={config.track}, find={config.find}")
     frames = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)
     return {"detections": _detections(times, kp, conf, joints, conf3, detector, view,
-                                      blazepose_noise(config.at, times, frames, event_images=event_images(rec)))}
+                                      blazepose_noise(config.at, times, frames, noise_files(config.noise)[0],
+                                                      event_images=event_images(rec)))}
 
 
 def event_images(rec) -> bool:
@@ -431,7 +434,7 @@ def event_images(rec) -> bool:
 
 
 #: BlazePose's noise model, measured on tuning captures (benchmarks/accuracy/detector_noise.py writes it).
-BLAZEPOSE_NOISE = Path(__file__).resolve().parent / "models" / "blazepose_noise.json"
+BLAZEPOSE_NOISE = SHIPPED_NOISE
 
 
 def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Path = BLAZEPOSE_NOISE,
@@ -448,6 +451,7 @@ def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Pa
 
     from eventcap.body.skeleton import NUM_JOINTS, NUM_LANDMARKS
 
+    path = Path(path)
     table = json.loads(path.read_text())
     t = np.asarray(times, dtype=np.int64)
     kind = np.full(t.size, "frames" if at == "frames" else "latent", dtype=object)

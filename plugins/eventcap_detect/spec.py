@@ -3,11 +3,21 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from eventcap.artifacts.pose import Detections
 from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import LatentFrames
 from eventcap.core.stage import Port, StageSpec, param
+
+#: BlazePose's noise model shipped with the stage, measured on tuning captures (benchmarks/accuracy/detector_noise.py)
+SHIPPED_NOISE = Path(__file__).resolve().parent / "models" / "blazepose_noise.json"
+
+
+def noise_files(value: str) -> list[str]:
+    """The file a ``noise`` setting names (``shipped``: the table shipped with the stage): its digest is part of the
+    stage's cache key, so a changed table detects again (the detections carry the noise they state)."""
+    return [str(SHIPPED_NOISE if value == "shipped" else value)]
 
 
 @dataclass
@@ -100,6 +110,10 @@ class DetectionsFileConfig(ViewChecksConfig):
 class BlazePoseConfig(ViewChecksConfig):
     model: str = param("full", help="landmark network: full (the larger, more exact one) | lite (faster, less exact)",
                        choices=("full", "lite"))
+    noise: str = param("shipped", file=noise_files,
+                       help="the noise model the detections state, per kind of image (raw frames, latent images, "
+                            "images made from the events): a JSON table of the shipped one's form, or shipped (the "
+                            "stage's own table)")
     at: str = param("latent", help="images it looks at: frames (the raw, blurred intensity frames: the paper's "
                                    "*_linear) | latent (EDI latent images at the frame times: the method) | "
                                    "tracking (EDI latent images every tracking_step_us: the paper's *_all)",
