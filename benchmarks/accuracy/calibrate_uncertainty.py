@@ -291,6 +291,56 @@ def cue_worth(runs, groups, w, final) -> None:
               f"{final['pooled']['spearman']:.3f} / {final['pooled']['ause_ratio']:.3f})")
 
 
+def read_runs(args) -> dict[str, tuple[list, list, list]]:
+    """{detector kind: (each run's cues, its group label, its name)} of the finished runs in the folders."""
+    by_kind: dict[str, tuple[list, list, list]] = {}
+    for folder in map(Path, args.folders):
+        gmap = capture_groups(folder)
+        for run_dir in sorted((folder / "runs").glob("*/*")):
+            label, row = run_dir.parent.name, run_dir.name
+            if (args.rows is None and not row.endswith("default")) or (args.rows is not None and row not in args.rows):
+                continue
+            if not args.evaluate and not is_tuning(label):
+                sys.exit(f"{run_dir}: {label} is not a tuning capture: calibrate on tuning seeds only")
+            if not (run_dir / "motion.npz").is_file():
+                print(f"left out: {label}/{row} (no motion: failed or refused)")
+                continue
+            cache = Path(args.cues) / f"{folder.name}_{label}_{row}.npz" if args.cues else None
+            c = dict(np.load(cache)) if cache is not None and cache.is_file() else None
+            if c is None or "view" not in c:  # none kept, or kept before the frame rate or the view was
+                c = run_cues(run_dir)
+                if cache is not None:
+                    cache.parent.mkdir(parents=True, exist_ok=True)
+                    np.savez_compressed(cache, **c)
+            runs, groups, names = by_kind.setdefault(str(c["kind"]), ([], [], []))
+            runs.append(c)
+            groups.append(f"{folder.name}:{row}:{gmap.get(label, 'whole_frames')}")
+            names.append(f"{label}/{row}")
+    return by_kind
+
+
+def evaluate(table: dict, by_kind, margin: float) -> None:
+    """``--evaluate``: the table's uncertainty on the runs (check captures too), per kind and per view."""
+    from eventcap.analysis.uncertainty import calibration
+
+    for kind, (runs, _, names) in sorted(by_kind.items()):
+        name, _ = calibration(table, kind)
+        entry = table["detectors"][name]
+        w, factor, by_fps = entry_weights(entry)
+        by_view, unseen = entry.get("factor_by_view", {}), float(entry["unseen_mm"])
+
+        def full(r):
+            u = uncertainty(r, w, factor * rate_of(r, by_fps, by_view))
+            return np.where(in_view(r, u, margin), u, np.maximum(u, unseen))
+
+        views = [f"{r['view']}@{float(r['fps']):g}fps" for r in runs]
+        print(f"\n== {kind} (entry {name!r}): " + ", ".join(f"{n} ({v})" for n, v in zip(names, views)))
+        for g, v in score(runs, views, full, cover=True).items():
+            print(f"   {g:<22} runs {v['runs']:>2}  spearman {v['spearman']:.3f}  ause/random {v['ause_ratio']:.3f}  "
+                  f"2-sigma {100 * v['cover2']:.1f}%  u median {v['u_median']:.1f}  error median "
+                  f"{v['e_median']:.1f} mm")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("folders", nargs="+")
@@ -305,32 +355,14 @@ def main(argv=None) -> int:
     ap.add_argument("--source", default="", help="text stored as each written entry's source")
     ap.add_argument("--views-only", action="store_true", help="keep each kind's entry of --base and calibrate only "
                                                               "the views' factors on top of it (factor_by_view)")
+    ap.add_argument("--evaluate", action="store_true", help="calibrate nothing: the --base table's uncertainty on "
+                                                            "the runs (check captures allowed), per view and rate")
     args = ap.parse_args(argv)
-    by_kind: dict[str, tuple[list, list, list]] = {}
-    for folder in map(Path, args.folders):
-        gmap = capture_groups(folder)
-        for run_dir in sorted((folder / "runs").glob("*/*")):
-            label, row = run_dir.parent.name, run_dir.name
-            if (args.rows is None and not row.endswith("default")) or (args.rows is not None and row not in args.rows):
-                continue
-            if not is_tuning(label):
-                sys.exit(f"{run_dir}: {label} is not a tuning capture: calibrate on tuning seeds only")
-            if not (run_dir / "motion.npz").is_file():
-                print(f"left out: {label}/{row} (no motion: failed or refused)")
-                continue
-            cache = Path(args.cues) / f"{folder.name}_{label}_{row}.npz" if args.cues else None
-            c = dict(np.load(cache)) if cache is not None and cache.is_file() else None
-            if c is None or "view" not in c:  # none kept, or kept before the frame rate or the view was
-                c = run_cues(run_dir)
-                if cache is not None:
-                    cache.parent.mkdir(parents=True, exist_ok=True)
-                    np.savez_compressed(cache, **c)
-            kind = str(c["kind"])
-            runs, groups, names = by_kind.setdefault(kind, ([], [], []))
-            runs.append(c)
-            groups.append(f"{folder.name}:{row}:{gmap.get(label, 'whole_frames')}")
-            names.append(f"{label}/{row}")
+    by_kind = read_runs(args)
     table = json.loads(Path(args.base).read_text())
+    if args.evaluate:
+        evaluate(table, by_kind, args.view_margin)
+        return 0
     for kind, (runs, groups, names) in sorted(by_kind.items()):
         print(f"{kind}: " + ", ".join(names))
         base = table["detectors"].get(kind) if args.views_only else None
