@@ -154,9 +154,9 @@ def test_the_calibration_is_the_detector_kinds_and_a_setting_given_takes_its_pla
 
 
 def test_the_view_is_what_the_method_sees():
-    """A capture's view (what its uncertainty is calibrated for) comes from the estimate, not the truth: the whole
-    body in the image with frames, the same poses from a camera without frames, and the body moved down by a third
-    of the image so that its legs leave it (a close-up)."""
+    """A capture's view (what its uncertainty is calibrated for) comes from what the method sees, not the truth: the
+    whole body in the image with frames, the same poses from a camera without frames, the body moved down by a third
+    of the image so that its legs leave it (a close-up), and detections that saw only the upper body."""
     from eventcap.analysis.confidence import joints_in_view
     from eventcap_confidence._impl import capture_view
 
@@ -171,6 +171,20 @@ def test_the_view_is_what_the_method_sees():
     assert capture_view(rec, P, 25.0) == "close_up" and capture_view(rec, P, None) == "event_only"
     P[:2] = np.nan  # frames without an estimate do not count
     assert capture_view(rec, P, 10.0) == "close_up"
+    # the detections: a detector that saw only the upper body makes a close-up of an estimate drawn whole
+    import dataclasses
+
+    from eventcap.body.skeleton import LANDMARK_NAMES
+
+    det = detect("simulated", rec, **EXACT)
+    whole = gt.poses[::50]
+    assert capture_view(rec, whole, 25.0, det) == "whole_frames"
+    low = [i for i, n in enumerate(LANDMARK_NAMES) if any(k in n for k in ("hip", "knee", "ankle", "heel", "foot"))]
+    conf, seen = np.array(det.confidence_2d, copy=True), det.observed()
+    conf[:, low], seen[:, low] = 0.0, False
+    top = dataclasses.replace(det, confidence_2d=conf, in_view=seen if det.in_view is not None else None)
+    assert top.observed().any(axis=1).all() and top.observed().mean() < 0.8
+    assert capture_view(rec, whole, 25.0, top) == "close_up"
 
 
 def test_a_calibration_table_that_cannot_work_is_refused_naming_what_is_wrong(tmp_path):

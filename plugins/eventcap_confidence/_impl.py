@@ -140,14 +140,21 @@ def motion_cues(rec, det, parts, config) -> dict:
     return {"t_us": t_us, "estimated": est, "sigma": joined_sigma(parts, t_us), "r2": at_times(t_us, t_det, r2),
             "r3": at_times(t_us, t_det, r3), "gap": event_gap_mm(tpl, cam, t_us, poses, t_det[hit], ev),
             "events": ev, "poses": poses, "body": body_mm(tpl, poses), "between": between, "step": step,
-            "detector": str(det.detector), "fps": capture_fps(rec), "view": capture_view(rec, poses, capture_fps(rec))}
+            "detector": str(det.detector), "fps": capture_fps(rec),
+            "view": capture_view(rec, poses, capture_fps(rec), det)}
 
 
-def capture_view(rec, poses: np.ndarray, fps: float | None) -> str:
+def capture_view(rec, poses: np.ndarray, fps: float | None, det=None) -> str:
     """The view the uncertainty is calibrated for (:func:`eventcap.analysis.uncertainty.view_of`): the capture's
-    frames, and the share of the estimate's joints inside the image over its estimated frames."""
+    frames, and the share of the body in the image: the smaller of the estimate's joints inside the image over its
+    estimated frames and the detections' landmarks observed over the images where the detector saw a person (a
+    close-up the solve draws as a small whole body is still one the detector saw only the top of)."""
     est = np.isfinite(poses).all(axis=1)
     share = float(joints_in_view(rec.template, rec.camera, poses)[est].mean()) if est.any() else 1.0
+    if det is not None:
+        seen = det.observed()
+        found = seen.any(axis=1)
+        share = min(share, float(seen[found].mean())) if found.any() else share
     return view_of(fps, share)
 
 
