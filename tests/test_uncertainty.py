@@ -127,7 +127,11 @@ def test_the_uncertainty_adds_its_parts_as_variances_and_out_of_view_raises_it()
     seen = np.ones((T, NUM_JOINTS), bool)
     seen[0, 3] = False
     v = out_of_view(u, seen, m.unseen_mm)
-    assert v[0, 3] == 150.0 and v[0, 0] == u[0, 0] and np.isnan(v[2]).all()
+    assert v[0, 3] == pytest.approx(np.hypot(u[0, 3], 150.0)) and v[0, 0] == u[0, 0] and np.isnan(v[2]).all()
+    seen[0, 4] = False  # out of view, ranked by its own: the one with the larger σ stays the more uncertain
+    u[0, 4] = 2.0 * u[0, 3]
+    v = out_of_view(u, seen, m.unseen_mm)
+    assert v[0, 4] > v[0, 3] > 150.0
     c = confidence_of(v, 100.0)
     assert c[0, 3] < 0.5 < c[0, 0] and np.all(c[2] == 0.0)
     assert confidence_of(np.array([100.0]), 100.0)[0] == pytest.approx(0.5)

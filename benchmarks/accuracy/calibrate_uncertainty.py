@@ -239,7 +239,7 @@ def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: 
 
     def full(r, w=w, factor=factor):
         u = uncertainty(r, w, factor * rate_of(r, by_fps, by_view))
-        return np.where(in_view(r, u, margin), u, np.maximum(u, unseen))
+        return np.where(in_view(r, u, margin), u, np.hypot(u, unseen))  # out_of_view's rule
 
     final = score(runs, groups, full, cover=True)
     for g, v in final.items():
@@ -331,7 +331,7 @@ def evaluate(table: dict, by_kind, margin: float) -> None:
 
         def full(r):
             u = uncertainty(r, w, factor * rate_of(r, by_fps, by_view))
-            return np.where(in_view(r, u, margin), u, np.maximum(u, unseen))
+            return np.where(in_view(r, u, margin), u, np.hypot(u, unseen))  # out_of_view's rule
 
         views = [f"{r['view']}@{float(r['fps']):g}fps" for r in runs]
         print(f"\n== {kind} (entry {name!r}): " + ", ".join(f"{n} ({v})" for n, v in zip(names, views)))

@@ -31,7 +31,8 @@ one every figure of this module measures): the true 3D distance lies within 2 u 
      joints at every frame, less their mean (what the rigid alignment takes away), added as variances
      (:func:`body_mm`), times the ``body`` weight;
 
-3. **Out of view**: a joint outside the image has at least ``unseen_mm``: nobody saw it. Its place is only known to
+3. **Out of view**: a joint outside the image has more than ``unseen_mm`` (its own uncertainty and unseen_mm added as
+   variances): nobody saw it. Its place is only known to
    within its uncertainty, so a joint counts as in view only when the ball of its body's depth around it, and of
    ``view_margin`` times its uncertainty, projects inside every edge (:func:`eventcap.analysis.confidence.joints_in_view`):
    a joint the solve puts just inside the edge, where the detector extrapolates a landmark, is not claimed.
@@ -457,10 +458,11 @@ def joint_uncertainty(model: UncertaintyModel, sigma_mm: np.ndarray | None, r2_m
 
 
 def out_of_view(u_mm: np.ndarray, in_view: np.ndarray, unseen_mm: float) -> np.ndarray:
-    """The uncertainty (T, 24) with every joint out of view (in_view (T, 24) False) raised to at least unseen_mm
-    (module doc, 3); NaN stays NaN."""
+    """The uncertainty (T, 24) with every joint out of view (in_view (T, 24) False) raised above unseen_mm: its own
+    uncertainty and unseen_mm added as variances, so that joints out of view still rank among themselves by their
+    own (module doc, 3; a floor made them all alike); NaN stays NaN."""
     u = np.asarray(u_mm, dtype=np.float64)
-    return np.where(np.asarray(in_view, dtype=bool) | ~np.isfinite(u), u, np.maximum(u, unseen_mm))
+    return np.where(np.asarray(in_view, dtype=bool) | ~np.isfinite(u), u, np.hypot(u, unseen_mm))
 
 
 def confidence_of(u_mm: np.ndarray, trusted_mm: float) -> np.ndarray:
