@@ -223,7 +223,7 @@ def test_blazepose_states_its_measured_noise_per_image_kind_and_camera_axis(tmp_
     bad = tmp_path / "noise.json"
     bad.write_text(json.dumps(table))
     with pytest.raises(ValueError, match=r"noise.json: landmarks_2d_px: no figure for the 'frames' images "
-                                         r"\(expected one of \['latent'\]\)"):
+                                         r"\(expected one of \['events', 'latent'\]\)"):
         blazepose_noise("frames", frames, frames, bad)
 
 
