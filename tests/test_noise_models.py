@@ -189,7 +189,8 @@ def test_blazepose_states_its_measured_noise_per_image_kind_and_camera_axis(tmp_
     lacks is named."""
     import json
 
-    from eventcap_detect._impl import BLAZEPOSE_NOISE, blazepose_noise
+    from eventcap_detect._impl import blazepose_noise
+    from eventcap_detect.spec import SHIPPED_NOISE
 
     frames = np.array([0, 100_000, 200_000])
     m = blazepose_noise("tracking", np.array([0, 50_000, 100_000]), frames)
@@ -202,7 +203,7 @@ def test_blazepose_states_its_measured_noise_per_image_kind_and_camera_axis(tmp_
     # the 3D: an effective figure (no offset); the measured ones kept beside, depth the worst axis
     np.testing.assert_allclose(m.sigma_3d_m[:, 1:], 0.745)
     np.testing.assert_array_equal(m.bias_3d_m, 0.0)
-    table = json.loads(BLAZEPOSE_NOISE.read_text())
+    table = json.loads(SHIPPED_NOISE.read_text())
     bias = np.array(table["measured_3d"]["bias_3d_mm"]["latent"])[1:]
     assert np.median(bias[:, 2]) > 2 * np.median(bias[:, :2])
     # images made from the events (an event-only camera): their own figures where the table measures them, else the

@@ -161,12 +161,14 @@ def fit_weights(runs, groups, fixed: dict | None = None, sweeps: int = 3) -> tup
     return w, best
 
 
-def common_factor(runs, w) -> float:
+def common_factor(runs, w, base=lambda r: 1.0) -> float:
+    """The factor f (bisected in log) that puts the runs' pooled 2-sigma coverage at TARGET, each run's uncertainty
+    being uncertainty(r, w, f * base(r)) (base: the factors it already has, e.g. its rate's)."""
     lo, hi = 1e-3, 1e3
     factor = 1.0
     for _ in range(60):
         factor = np.sqrt(lo * hi)
-        u, e = pooled(runs, lambda r, f=factor: uncertainty(r, w, f))
+        u, e = pooled(runs, lambda r, f=factor: uncertainty(r, w, f * base(r)))
         lo, hi = (factor, hi) if float(np.mean(e <= 2 * u)) < TARGET else (lo, factor)
     return float(factor)
 
@@ -196,13 +198,7 @@ def view_factors(runs, w, factor, by_fps) -> dict[str, float]:
     out = {}
     for view in sorted({str(r.get("view", "whole_frames")) for r in runs} - {"whole_frames"}):
         sel = [r for r in runs if str(r.get("view", "")) == view]
-        # the runs' own rate factors are in the bisection: uncertainty(r, w, f * rate) for f around 1
-        lo, hi = 1e-3, 1e3
-        for _ in range(60):
-            f = np.sqrt(lo * hi)
-            u, e = pooled(sel, lambda r, f=f: uncertainty(r, w, f * factor * rate_of(r, by_fps)))
-            lo, hi = (f, hi) if float(np.mean(e <= 2 * u)) < TARGET else (lo, f)
-        out[view] = float(f)
+        f = out[view] = common_factor(sel, w, lambda r: factor * rate_of(r, by_fps))
         print(f"   view {view} ({len(sel)} runs): factor {f:.4f} of its kind's at its rate")
     return out
 

@@ -75,7 +75,7 @@ def errors(run_dir: Path) -> dict:
     frames = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)
     at = str(OmegaConf.load(run_dir / "config.yaml").stages.detect.get("at", "latent"))
     kind = np.full(t.size, "frames" if at == "frames" else "latent", dtype=object)
-    if rec.frames is not None and rec.frames.origin == "events":  # an event-only camera's images
+    if rec.images_from_events:  # an event-only camera's images
         kind[:] = "events"
     elif at == "tracking":
         kind[~np.isin(t, frames)] = "between"

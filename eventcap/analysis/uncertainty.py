@@ -378,20 +378,23 @@ def calibration(table: dict, kind: str) -> tuple[str, dict]:
             fps = float(k)
         except ValueError:
             fps = float("nan")
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0
-        if not (np.isfinite(fps) and fps > 0 and ok):
+        if not (np.isfinite(fps) and fps > 0 and _positive(v)):
             raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: factor_by_fps expects frame "
                              f"rates > 0 as keys and factors > 0, got {k!r}: {v!r}")
         points.append((fps, float(v)))
     out["factor_by_fps"] = sorted(points)
     by_view = entry.get("factor_by_view", {})
-    bad = [k for k, v in by_view.items() if k not in VIEWS or isinstance(v, bool) or not isinstance(v, (int, float))
-           or not np.isfinite(v) or v <= 0] if isinstance(by_view, dict) else [by_view]
-    if bad:
-        raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: factor_by_view expects a view "
-                         f"({', '.join(VIEWS)}) as key and a factor > 0, got {bad[0]!r}")
+    for k, v in by_view.items() if isinstance(by_view, dict) else [(by_view, None)]:
+        if k not in VIEWS or not _positive(v):
+            raise ValueError(f"the uncertainty's calibration for detector kind {name!r}: factor_by_view expects a "
+                             f"view ({', '.join(VIEWS)}) as key and a factor > 0, got {k!r}")
     out["factor_by_view"] = {k: float(v) for k, v in by_view.items()}
     return name, out
+
+
+def _positive(v) -> bool:
+    """Whether a table's value is a finite number > 0 (not a bool)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v)) and v > 0
 
 
 #: the calibrated settings a frame rate's factor multiplies (the uncertainty's parts; not where it is trusted)

@@ -155,6 +155,12 @@ class Recording(Artifact):
         return self.camera.width
 
     @property
+    def images_from_events(self) -> bool:
+        """Whether the recording's images were made from its events (an event-only camera's reconstructions,
+        ``FrameStack.origin`` 'events'), not taken by the camera."""
+        return self.frames is not None and self.frames.origin == "events"
+
+    @property
     def height(self) -> int:
         return self.camera.height
 

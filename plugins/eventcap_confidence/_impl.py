@@ -137,11 +137,11 @@ def motion_cues(rec, det, parts, config) -> dict:
     r2, r3 = detection_residuals(tpl, cam, P_det, det.keypoints_2d, det.observed(), det.joints_3d, det.confidence_3d)
     ev = event_support(rec, tpl, t_us, poses, config) if est.any() else np.zeros((t_us.size, 24))
     between, step = motion_mm(tpl, t_us, poses, t_det[hit])
+    fps = capture_fps(rec)
     return {"t_us": t_us, "estimated": est, "sigma": joined_sigma(parts, t_us), "r2": at_times(t_us, t_det, r2),
             "r3": at_times(t_us, t_det, r3), "gap": event_gap_mm(tpl, cam, t_us, poses, t_det[hit], ev),
             "events": ev, "poses": poses, "body": body_mm(tpl, poses), "between": between, "step": step,
-            "detector": str(det.detector), "fps": capture_fps(rec),
-            "view": capture_view(rec, poses, capture_fps(rec), det)}
+            "detector": str(det.detector), "fps": fps, "view": capture_view(rec, poses, fps, det)}
 
 
 def capture_view(rec, poses: np.ndarray, fps: float | None, det=None) -> str:
@@ -160,10 +160,7 @@ def capture_view(rec, poses: np.ndarray, fps: float | None, det=None) -> str:
 
 def capture_fps(rec) -> float | None:
     """The capture's intensity frames per second (None: an event-only capture, whose images come from the events)."""
-    frames = rec.frames
-    if frames is None or frames.origin == "events":
-        return None
-    return frame_rate(frames.t_us)
+    return None if rec.frames is None or rec.images_from_events else frame_rate(rec.frames.t_us)
 
 
 def motion_uncertainty(rec, cues: dict, config) -> tuple[np.ndarray, np.ndarray]:

@@ -197,7 +197,7 @@ def finish(rec, t_us, kp, conf, joints, conf3, in_view, found, config, ctx, what
         if b - a + 1 >= 10:  # a stretch worth solving on its own: say how to cut it out
             why += (f"; the longest stretch with a person is images {a}-{b}: source.t_start_s={t_us[a] / 1e6:.2f} "
                     f"source.t_end_s={t_us[b] / 1e6:.2f} keeps it")
-        hint = checks.refusal_hint(status, why_rejected, rec.frames is not None and rec.frames.origin == "events")
+        hint = checks.refusal_hint(status, why_rejected, rec.images_from_events)
         raise StageFailed(f"{checks.found_message(status, what, enough=False)}{why}; {hint}",
                           status="too_few_detections" if ok.any() else "no_person")
     level = ctx.log.warning if ok.sum() < n else ctx.log.info
@@ -346,9 +346,8 @@ def _event_alternatives(rec, times, config, log):
             parse_kind(k)
         except ValueError as exc:
             raise ValueError(f"stages.detect.event_images: {exc}") from None
-    frames = rec.frames
     # at=latent on an event-only pipeline: its latent images are the same reconstructions
-    if not kinds or config.at not in ("frames", "latent") or frames is None or frames.origin != "events":
+    if not kinds or config.at not in ("frames", "latent") or not rec.images_from_events:
         return None
     if kinds == ["reconstruction"]:
         return None
@@ -424,20 +423,10 @@ def run_blazepose(inputs, config, ctx):
     frames = rec.frames.t_us if rec.frames is not None else np.zeros(0, np.int64)
     return {"detections": _detections(times, kp, conf, joints, conf3, detector, view,
                                       blazepose_noise(config.at, times, frames, noise_files(config.noise)[0],
-                                                      event_images=event_images(rec)))}
+                                                      event_images=rec.images_from_events))}
 
 
-def event_images(rec) -> bool:
-    """Whether the recording's images were made from its events (an event-only camera's reconstructed images), not
-    taken by the camera."""
-    return rec.frames is not None and rec.frames.origin == "events"
-
-
-#: BlazePose's noise model, measured on tuning captures (benchmarks/accuracy/detector_noise.py writes it).
-BLAZEPOSE_NOISE = SHIPPED_NOISE
-
-
-def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Path = BLAZEPOSE_NOISE,
+def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Path = SHIPPED_NOISE,
                     event_images: bool = False) -> NoiseModel:
     """BlazePose's noise model for images at ``times``: the measured noise of each kind of image (the raw frames,
     the EDI latent images at the frames, latent images between the frames, and images made from the events alone:
@@ -475,8 +464,8 @@ def blazepose_noise(at: str, times: np.ndarray, frame_t_us: np.ndarray, path: Pa
     s3 = (np.stack([per("joints_3d_mm", k, (NUM_JOINTS, 3), 1e-3) for k in kind]) if t.size
           else np.zeros((0, NUM_JOINTS, 3)))
     s3[:, 0] = 0.0  # the joints are relative to the pelvis
-    most = str(kind[0]) if event_images and t.size else ("frames" if at == "frames" else "latent")  # a capture's
-    # offset: that of the images it mostly holds
+    # a capture's offset: that of the images it mostly holds
+    most = str(kind[0]) if event_images and t.size else ("frames" if at == "frames" else "latent")
     # an image's landmarks err together: each counts as its spread times √(d / n_eff), the table's inflation
     inflate = table.get("inflation_2d", {})
     s2 = s2 * np.sqrt(np.array([float(inflate.get(k if k in inflate else "latent", 1.0)) for k in kind]))[:, None]
