@@ -192,6 +192,15 @@ def rate_of(r: dict, by_fps: dict[float, float], by_view: dict[str, float] | Non
     return by_fps.get(round(float(r.get("fps", 0.0)), 1), 1.0) * (by_view or {}).get(str(r.get("view", "")), 1.0)
 
 
+def shipped(w, factor, by_fps, by_view, unseen, margin):
+    """A run's uncertainty as the confidence stage makes it with these settings (the factors of its rate and view,
+    and out of view its own added to unseen_mm as variances: out_of_view's rule)."""
+    def full(r):
+        u = uncertainty(r, w, factor * rate_of(r, by_fps, by_view))
+        return np.where(in_view(r, u, margin), u, np.hypot(u, unseen))
+    return full
+
+
 def view_factors(runs, w, factor, by_fps) -> dict[str, float]:
     """{view: the common factor that puts that view's runs at the target coverage, over the one their kind and
     frame rate already have}, for every view but whole_frames the runs come in (issue 58 item 2)."""
@@ -233,11 +242,7 @@ def calibrate_kind(kind: str, runs, groups, margin: float, unseen_over_trusted: 
             entry["factor_by_view"] = {k: round(v, 4) for k, v in by_view.items()}
     print("2-3. settings:", json.dumps(entry))
 
-    def full(r, w=w, factor=factor):
-        u = uncertainty(r, w, factor * rate_of(r, by_fps, by_view))
-        return np.where(in_view(r, u, margin), u, np.hypot(u, unseen))  # out_of_view's rule
-
-    final = score(runs, groups, full, cover=True)
+    final = score(runs, groups, shipped(w, factor, by_fps, by_view, unseen, margin), cover=True)
     for g, v in final.items():
         print(f"   {g:<18} runs {v['runs']:>2}  spearman {v['spearman']:.3f}  ause/random {v['ause_ratio']:.3f}  "
               f"2-sigma {100 * v['cover2']:.1f}%  u median {v['u_median']:.1f}  error median {v['e_median']:.1f} mm")
@@ -324,11 +329,7 @@ def evaluate(table: dict, by_kind, margin: float) -> None:
         entry = table["detectors"][name]
         w, factor, by_fps = entry_weights(entry)
         by_view, unseen = entry.get("factor_by_view", {}), float(entry["unseen_mm"])
-
-        def full(r):
-            u = uncertainty(r, w, factor * rate_of(r, by_fps, by_view))
-            return np.where(in_view(r, u, margin), u, np.hypot(u, unseen))  # out_of_view's rule
-
+        full = shipped(w, factor, by_fps, by_view, unseen, margin)
         views = [f"{r['view']}@{float(r['fps']):g}fps" for r in runs]
         print(f"\n== {kind} (entry {name!r}): " + ", ".join(f"{n} ({v})" for n, v in zip(names, views)))
         for g, v in score(runs, views, full, cover=True).items():
