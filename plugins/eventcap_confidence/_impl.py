@@ -163,11 +163,10 @@ def capture_fps(rec) -> float | None:
     return None if rec.frames is None or rec.images_from_events else frame_rate(rec.frames.t_us)
 
 
-def motion_uncertainty(rec, cues: dict, config) -> tuple[np.ndarray, np.ndarray]:
-    """(uncertainty (T, 24) mm, in view (T, 24)) from the cues (:func:`motion_cues`) with the stage's settings: a
-    joint is in view with ``view_margin`` times its uncertainty around it, and one out of view is raised to
-    ``unseen_mm``."""
-    model, _ = model_of(config, cues.get("detector", ""), cues.get("fps"), cues.get("view", "whole_frames"))
+def motion_uncertainty(rec, cues: dict, config, model: UncertaintyModel) -> tuple[np.ndarray, np.ndarray]:
+    """(uncertainty (T, 24) mm, in view (T, 24)) from the cues (:func:`motion_cues`) with the stage's settings and
+    the model (:func:`model_of`) for the cues' detector, frame rate and view: a joint is in view with
+    ``view_margin`` times its uncertainty around it, and one out of view is raised to ``unseen_mm``."""
     u = joint_uncertainty(model, cues["sigma"], cues["r2"], cues["r3"], cues["gap"], cues["estimated"],
                           cues.get("body"), cues.get("between"), cues.get("step"))
     seen = joints_in_view(rec.template, rec.camera, cues["poses"],
@@ -186,8 +185,8 @@ def run_confidence(inputs, config, ctx):
     parts = [seq[i] for i in range(len(seq))]
     cues = motion_cues(rec, det, parts, config)
     t_us, est = cues["t_us"], cues["estimated"]
-    _, cal = model_of(config, cues["detector"], cues["fps"], cues["view"])
-    u, seen = motion_uncertainty(rec, cues, config)
+    model, cal = model_of(config, cues["detector"], cues["fps"], cues["view"])
+    u, seen = motion_uncertainty(rec, cues, config, model)
     c = confidence_of(u, cal["trusted_mm"])
     rate = ("no intensity frames" if cues["fps"] is None else f"{cues['fps']:.3g} fps")
     ctx.log.info("confidence: the uncertainty calibrated for detector kind %r (entry %r of %s) at %s: factor %.3g; "
