@@ -315,8 +315,8 @@ class Artifact:
                 continue
             at = f"{where}/{fname}"
             if window is not None and not ctype.has_time_dims():  # the same in every window: read once
-                kwargs[fname], kept[fname] = _WINDOW_STATIC.get((at, ctype), lambda: ctype._read(
-                    group[fname], at, None, {})[0])[0], {}
+                kwargs[fname], kept[fname] = _WINDOW_STATIC.get((at, ctype), lambda c=ctype, f=fname, a=at: c._read(
+                    group[f], a, None, {})[0])[0], {}
                 continue
             links = {d: kept[s][sd] for d, (s, sd) in cls.window_links.get(fname, {}).items()
                      if sd in kept.get(s, {})}

@@ -80,7 +80,7 @@ def bench_track(args) -> None:
         cwd = Path(tmp)
         run(cwd, base, "warmup")  # recording, sharpening, and numba's compile caches
         print(f"{'executor':<14} {'batches':>7} {'wall s':>7} {'compute s':>9} {'overhead ms/batch':>17} {'speed-up':>8}")
-        serial_wall, first_motion = None, None
+        serial_wall = None
         for i, setup in enumerate(setups):
             ov, workers = setup_overrides(setup)
             summary = run(cwd, base + ov + [f"stages.track.stitch_px={4.0 + 1e-6 * (i + 1)}"], f"m{i}")
