@@ -92,7 +92,9 @@ def run_cues(run_dir: Path) -> dict:
                               cam.height - 0.5 - px[..., 1]])  # px inside the nearest edge (in_image's measure)
     f_over_z = max(cam.fx, cam.fy) / np.maximum(z, 0.05)
     sig = cues["sigma"] if cues["sigma"] is not None else np.full((t.size, 24), np.nan)
+    body = cues["body"][k] if cues["body"] is not None else np.zeros((k.size, 24))  # an exact body: none
     return {"E": errors.error_m * 1000.0, "sig": sig[k], "r2": cues["r2"][k], "r3": cues["r3"][k],
+            "body": np.nan_to_num(body), "body_weight": np.array(float(node.config.body)),
             "gap": cues["gap"][k], "between": cues["between"][k], "step": cues["step"][k],
             "edge": np.nan_to_num(edge, nan=-1e9), "f_over_z": f_over_z,
             "radius_px": joint_radii(rec.template)[None] * f_over_z, "est": est,
@@ -101,14 +103,15 @@ def run_cues(run_dir: Path) -> dict:
 
 
 def uncertainty(c: dict, w: dict, common: float = 1.0) -> np.ndarray:
-    """The uncertainty of one run's cues with relative weights w, times the common factor (before out of view):
-    joint_uncertainty's sum of variances, in the same order."""
+    """The uncertainty of one run's cues with relative weights w, the calibrated parts times the common factor
+    (before out of view): joint_uncertainty's sum of variances, in the same order, with the body's own uncertainty
+    (an estimated body's; the stage's ``body`` weight, not calibrated) added as the stage adds it."""
     m = c["between"][:, None]
     d = np.nan_to_num(c["step"])
     var = (c["sig"] ** 2 + (w["detection_3d"] * np.nan_to_num(c["r3"])) ** 2
            + (w["detection_2d"] * np.nan_to_num(c["r2"])) ** 2 + (w["events"] * np.nan_to_num(c["gap"])) ** 2
            + w["floor_mm"] ** 2 + (w["between_mm"] * m) ** 2 + (w["motion"] * m * d) ** 2 + (w["speed"] * d) ** 2)
-    return common * np.sqrt(var)
+    return np.sqrt(common ** 2 * var + (float(c["body_weight"]) * c["body"]) ** 2)
 
 
 def in_view(c: dict, u: np.ndarray, margin: float) -> np.ndarray:
@@ -308,7 +311,7 @@ def read_runs(args) -> dict[str, tuple[list, list, list]]:
                 continue
             cache = Path(args.cues) / f"{folder.name}_{label}_{row}.npz" if args.cues else None
             c = dict(np.load(cache)) if cache is not None and cache.is_file() else None
-            if c is None or "view" not in c:  # none kept, or kept before the frame rate or the view was
+            if c is None or "body" not in c:  # none kept, or kept before the view or the body's uncertainty was
                 c = run_cues(run_dir)
                 if cache is not None:
                     cache.parent.mkdir(parents=True, exist_ok=True)
