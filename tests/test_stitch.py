@@ -96,3 +96,49 @@ def test_cut_gives_each_batch_its_own_frames_ends_included():
     short = PoseSequence(t_us=t[:50], poses=truth(t[:50]), status="stitched")
     with pytest.raises(StageFailed, match=r"cut: the stitched motion has no frames spanning batch 2 \[85000, 125000\]"):
         run("cut", {"motion": short, "batches": PLAN}, batch=PLAN.batch(2))
+
+
+def test_windows_that_disagree_raise_the_sigma_by_their_spread_where_they_overlap():
+    """Given the body, each joint's σ where windows overlap is the mixture's: its blended σ and the windows' spread
+    about the blend added as variances (each window's joints relative to their mean over the joints). Windows that
+    agree keep the blended σ; a frame one window alone holds keeps its σ; the spread of two windows at the frame
+    where their weights are equal is half their (translation-free) distance."""
+    from eventcap.body.kinematics import joint_positions
+    from helpers.poses import small_template
+
+    tpl = small_template()
+    seq = windows((0.0, 0.0, 0.3, 0.0))  # batch 2's window turns every joint by 0.3 rad more
+    seq = BatchSeq([PoseSequence(t_us=p.t_us, poses=p.poses, sigma_mm=np.full((p.t_us.size, 24), 10.0, np.float32),
+                                 status=p.status, iterations=p.iterations) for p in seq], seq.batches)
+    alone = run("stitch", {"windows": seq})["motion"]
+    both = run("stitch", {"windows": seq, "template": tpl})["motion"]
+    np.testing.assert_allclose(alone.sigma_mm, 10.0, rtol=1e-6)  # without the body: the σ blended alone
+    np.testing.assert_allclose(both.poses, alone.poses)  # the motion itself does not change
+    extra = np.sqrt(np.maximum(both.sigma_mm.astype(float) ** 2 - 100.0, 0.0))
+    t = np.asarray(both.t_us)
+    only_first = t < PLAN.batch(1).t0_us  # window 0 (batches 0..1) and window 1 (0..2) agree there: no spread
+    assert np.all(extra[only_first] < 1e-3)
+    assert extra.max() > 50.0  # 0.3 rad over the limbs' lengths
+    # at a frame windows 1, 2 and 3 all hold: the weighted RMS of their joints about their weighted mean
+    from eventcap_spline.stitch import window_weights
+
+    k = int(np.searchsorted(t, PLAN.batch(2).t0_us + 20_000))
+    ws = [(np.asarray(p.t_us), np.asarray(p.poses)) for p in seq]
+    weights = [float(w[idx == k][0]) if np.any(idx == k) else 0.0 for idx, w in window_weights(ws, 0.5, t)]
+    J = [joint_positions(truth(t[k:k + 1]) + off, tpl)[0] * 1000.0 for off in (0.0, 0.0, 0.3, 0.0)]
+    J = np.stack([j - j.mean(axis=0) for j in J])
+    a = np.asarray(weights) / np.sum(weights)
+    mean = np.tensordot(a, J, axes=1)
+    expect = np.sqrt(np.tensordot(a, np.sum((J - mean) ** 2, axis=-1), axes=1))
+    assert sum(w > 0 for w in weights) == 3
+    np.testing.assert_allclose(extra[k], expect, rtol=1e-3, atol=1e-2)
+
+
+def test_windows_that_agree_keep_their_sigma_given_the_body():
+    from helpers.poses import small_template
+
+    seq = windows()
+    seq = BatchSeq([PoseSequence(t_us=p.t_us, poses=p.poses, sigma_mm=np.full((p.t_us.size, 24), 12.0, np.float32),
+                                 status=p.status, iterations=p.iterations) for p in seq], seq.batches)
+    motion = run("stitch", {"windows": seq, "template": small_template()})["motion"]
+    np.testing.assert_allclose(motion.sigma_mm, 12.0, atol=1e-3)

@@ -9,6 +9,7 @@ from eventcap.artifacts import BatchPlan
 from eventcap.artifacts.pose import Detections, PoseSequence
 from eventcap.artifacts.recording import Recording
 from eventcap.artifacts.tracking import SlicedTracks
+from eventcap.body.template import Template
 from eventcap.core.stage import Port, StageSpec, group, param
 from eventcap.energy.settings import (
     BonesNoise,
@@ -203,11 +204,13 @@ class StitchConfig:
 
 
 STITCH = StageSpec(
-    name="stitch", kind="fuse", version=4,
+    name="stitch", kind="fuse", version=5,
     description="the spline solve's overlapping windows blended into one motion over the whole recording, each "
                 "window weighted by a C² bump over its span (no seam where batches meet; not in the paper)",
     config=StitchConfig,
-    inputs={"windows": Port(PoseSequence, "every batch's spline-solve window", all_batches=True)},
+    inputs={"windows": Port(PoseSequence, "every batch's spline-solve window", all_batches=True),
+            "template": Port(Template, "the body the windows pose: where they overlap, their disagreement in mm is "
+                                      "added to the σ (not connected: σ blended alone)", optional=True)},
     outputs={"motion": Port(PoseSequence, doc="the joined motion at every tracking frame")},
     run="eventcap_spline.stitch:run_stitch",
 )

@@ -22,7 +22,11 @@ are moved by multiples of 2π so each window continues the ones before it. ``cut
 frames of the blended motion, so everything downstream (evaluate, outputs) keeps the batch boundaries.
 
 Each window's joint σ (the Laplace approximation of its solve, ``PoseSequence.sigma_mm``) is blended with the same
-weights, as variances (:func:`blend_sigma`), and cut with the poses.
+weights, as variances (:func:`blend_sigma`), and cut with the poses. Where windows overlap and disagree, the blend
+is neither window's estimate: given the body they pose (the ``template`` input), each joint's spread of the windows
+about the blend (after removing each window's mean over the joints, as the error is measured after a rigid
+alignment) is added to its variance, the variance of a mixture (:func:`disagreement_mm`). Two chunks that solved
+their shared stretch differently are marked as uncertain there as they are.
 """
 
 from __future__ import annotations
@@ -109,6 +113,38 @@ def window_weights(windows: list[tuple[np.ndarray, np.ndarray]], taper: float, t
     return out
 
 
+def disagreement_mm(windows: list[tuple[np.ndarray, np.ndarray]], taper: float, t_all: np.ndarray,
+                    template) -> np.ndarray:
+    """(T, 24) mm at t_all: the root-mean-square spread of the windows' joint positions about their blend, with the
+    blend's weights, each window's and the blend's joints taken relative to their mean over the joints (the
+    translation a rigid alignment removes); 0 where one window alone holds a frame."""
+    from eventcap.body.kinematics import joint_positions
+
+    ww = window_weights(windows, taper, t_all)
+    count = np.zeros(t_all.size, dtype=int)
+    for idx, _ in ww:
+        count[idx] += 1
+    shared = count > 1
+    num = np.zeros((t_all.size, 24, 3))
+    sq = np.zeros((t_all.size, 24))
+    den = np.zeros(t_all.size)
+    for (_, P), (idx, w) in zip(windows, ww):
+        keep = shared[idx]
+        if not keep.any():
+            continue
+        J = joint_positions(np.asarray(P, dtype=np.float64)[keep], template) * 1000.0
+        J -= J.mean(axis=1, keepdims=True)
+        i, wk = idx[keep], w[keep]
+        num[i] += wk[:, None, None] * J
+        sq[i] += wk[:, None] * np.sum(J * J, axis=-1)
+        den[i] += wk
+    out = np.zeros((t_all.size, 24))
+    ok = den > 0
+    mean = num[ok] / den[ok, None, None]
+    out[ok] = np.sqrt(np.maximum(sq[ok] / den[ok, None] - np.sum(mean * mean, axis=-1), 0.0))
+    return out
+
+
 def blend_sigma(windows: list[tuple[np.ndarray, np.ndarray]], sigmas: list[np.ndarray | None], taper: float,
                 t_all: np.ndarray) -> np.ndarray:
     """(T, 24) the windows' joint σ (mm; sigmas[k] (T_k, 24) at window k's times, or None) blended as variances with
@@ -166,6 +202,13 @@ def run_stitch(inputs, config, ctx):
         sigma = blend_sigma([estimated[k] for k in used],
                             [None if sigmas[k] is None else sigmas[k][rows[k]] for k in used], float(config.taper),
                             t_out)
+        if inputs.get("template") is not None and len(used) > 1:
+            spread = disagreement_mm([estimated[k] for k in used], float(config.taper), t_out, inputs["template"])
+            sigma = np.hypot(sigma, spread)
+            ctx.log.info("stitch: the windows' disagreement where they overlap, added to the σ: median %.0f mm, "
+                         "largest %.0f mm", float(np.median(spread[spread > 0])) if (spread > 0).any() else 0.0,
+                         float(spread.max()))
+            ctx.stats["disagreement_mm_max"] = round(float(spread.max()), 1)
         sigma[~np.isfinite(poses).all(axis=1)] = np.nan
         sigma = sigma.astype(np.float32)
     missing = int(np.sum(~np.isfinite(poses).all(axis=1)))
