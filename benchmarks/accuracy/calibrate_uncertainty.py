@@ -95,6 +95,7 @@ def run_cues(run_dir: Path) -> dict:
     body = cues["body"][k] if cues["body"] is not None else np.zeros((k.size, 24))  # an exact body: none
     return {"E": errors.error_m * 1000.0, "sig": sig[k], "r2": cues["r2"][k], "r3": cues["r3"][k],
             "body": np.nan_to_num(body), "body_weight": np.array(float(node.config.body)),
+            "fallback_mm": np.array(float(node.config.fallback_mm)),
             "gap": cues["gap"][k], "between": cues["between"][k], "step": cues["step"][k],
             "edge": np.nan_to_num(edge, nan=-1e9), "f_over_z": f_over_z,
             "radius_px": joint_radii(rec.template)[None] * f_over_z, "est": est,
@@ -104,14 +105,17 @@ def run_cues(run_dir: Path) -> dict:
 
 def uncertainty(c: dict, w: dict, common: float = 1.0) -> np.ndarray:
     """The uncertainty of one run's cues with relative weights w, the calibrated parts times the common factor
-    (before out of view): joint_uncertainty's sum of variances, in the same order, with the body's own uncertainty
-    (an estimated body's; the stage's ``body`` weight, not calibrated) added as the stage adds it."""
-    m = c["between"][:, None]
-    d = np.nan_to_num(c["step"])
-    var = (c["sig"] ** 2 + (w["detection_3d"] * np.nan_to_num(c["r3"])) ** 2
-           + (w["detection_2d"] * np.nan_to_num(c["r2"])) ** 2 + (w["events"] * np.nan_to_num(c["gap"])) ** 2
-           + w["floor_mm"] ** 2 + (w["between_mm"] * m) ** 2 + (w["motion"] * m * d) ** 2 + (w["speed"] * d) ** 2)
-    return np.sqrt(common ** 2 * var + (float(c["body_weight"]) * c["body"]) ** 2)
+    (before out of view): the confidence stage's own sum (eventcap.analysis.uncertainty.joint_uncertainty) with the
+    settings these make, the estimated body's uncertainty at the run's weight (not calibrated) included."""
+    from eventcap.analysis.uncertainty import UncertaintyModel, joint_uncertainty
+
+    model = UncertaintyModel(scale=common, detection_2d=common * w["detection_2d"],
+                             detection_3d=common * w["detection_3d"], events=common * w["events"], unseen_mm=0.0,
+                             floor_mm=common * w["floor_mm"], fallback_mm=float(c["fallback_mm"]),
+                             body=float(c["body_weight"]), motion=common * w["motion"], speed=common * w["speed"],
+                             between_mm=common * w["between_mm"])
+    return joint_uncertainty(model, c["sig"], c["r2"], c["r3"], c["gap"], c["est"], c["body"], c["between"],
+                             c["step"])
 
 
 def in_view(c: dict, u: np.ndarray, margin: float) -> np.ndarray:
@@ -311,7 +315,7 @@ def read_runs(args) -> dict[str, tuple[list, list, list]]:
                 continue
             cache = Path(args.cues) / f"{folder.name}_{label}_{row}.npz" if args.cues else None
             c = dict(np.load(cache)) if cache is not None and cache.is_file() else None
-            if c is None or "body" not in c:  # none kept, or kept before the view or the body's uncertainty was
+            if c is None or "fallback_mm" not in c:  # none kept, or kept before the body's uncertainty was
                 c = run_cues(run_dir)
                 if cache is not None:
                     cache.parent.mkdir(parents=True, exist_ok=True)
