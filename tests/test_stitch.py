@@ -82,6 +82,30 @@ def test_windows_that_disagree_blend_between_them_without_a_step():
     assert np.abs(np.diff(blend)).max() < 0.06 / 40  # 0.06 rad of spread over the 40 ms a taper rises in, at most
 
 
+def test_two_chunks_windows_hand_over_across_their_whole_overlap():
+    """Two 1.16 s windows that overlap by 160 ms (two chunks' windows across their margins) and disagree by 1 rad:
+    the later window takes over across the whole 160 ms (weights summing to 1 there, the blend's steepest slope that
+    of the quintic smoothstep, 1.875 rad over 160 ms), not within a few tens of ms in its middle as bumps over each
+    whole window would (the 2 s seam of a real recording: a 0.5 rad disagreement became a 55 rad/s turn)."""
+    from eventcap_spline.stitch import blend, ramps_us, window_weights
+
+    t1 = np.arange(920_000, 2_080_001, 1000, dtype=np.int64)
+    t2 = np.arange(1_920_000, 3_080_001, 1000, dtype=np.int64)
+    ws = [(t1, np.zeros((t1.size, 33))), (t2, np.ones((t2.size, 33)))]
+    assert ramps_us([(920_000, 2_080_000), (1_920_000, 3_080_000)], 0.5) == [(None, 160_000), (160_000, None)]
+    t, P = blend(ws, 0.5)
+    x = P[:, 27]
+    rate = np.abs(np.diff(x)) / 1e-3  # rad/s
+    assert rate.max() == pytest.approx(1.875 / 0.16, rel=0.01)
+    assert np.all(x[t <= 1_920_000] == 0.0) and np.all(x[t >= 2_080_000] == 1.0)
+    assert x[np.searchsorted(t, 2_000_000)] == pytest.approx(0.5, abs=1e-9)
+    total = np.zeros(t.size)
+    for idx, w in window_weights(ws, 0.5, t):
+        total[idx] += w
+    inside = (t >= 1_920_000) & (t <= 2_080_000)
+    np.testing.assert_allclose(total[inside], 1.0, atol=1e-12)
+
+
 def test_cut_gives_each_batch_its_own_frames_ends_included():
     t = np.arange(FRAMES_US[0], FRAMES_US[-1] + 1, 1_000, dtype=np.int64)
     motion = PoseSequence(t_us=t, poses=truth(t), status="stitched")

@@ -199,12 +199,13 @@ CHUNKS = StageSpec(
 @dataclass
 class StitchConfig:
     taper: float = param(0.5, gt=0, le=0.5, help="fraction of a window's length over which its blending weight rises from 0 to 1 "
-                                   "at each of its ends (0.5: a bump over the whole window); a window's end at the "
-                                   "start or end of the recording is not tapered")
+                                   "at each of its ends (0.5: a bump over the whole window), or over its overlap with "
+                                   "its neighbour where that is shorter; a window's end at the start or end of the "
+                                   "recording is not tapered")
 
 
 STITCH = StageSpec(
-    name="stitch", kind="fuse", version=5,
+    name="stitch", kind="fuse", version=6,
     description="the spline solve's overlapping windows blended into one motion over the whole recording, each "
                 "window weighted by a C² bump over its span (no seam where batches meet; not in the paper)",
     config=StitchConfig,

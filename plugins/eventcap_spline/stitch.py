@@ -10,8 +10,11 @@ batch boundary, the largest part of the velocity error (docs/results/implementat
     S(t) = Σ_k w_k(t) S_k(t) / Σ_k w_k(t),
 
 with w_k a C² bump over window k's span (the quintic smoothstep 6u⁵ - 15u⁴ + 10u³ over the first and last
-``taper`` of the window, 1 between; a window's end at the start or end of the recording is not tapered, so every
-frame has weight; likewise a window's end at the edge of a gap). With ``stages.solve.window_step`` > 1 only every
+``taper`` of the window, or over its overlap with its neighbour where that is shorter, 1 between; a window's end at
+the start or end of the recording is not tapered, so every frame has weight; likewise a window's end at the edge of a
+gap). Where windows overlap little (two chunks' windows across their margins) the later one so takes over across the
+whole stretch both solved, the weights summing to 1 there: bumps over each whole window would both be near 0 there
+and hand over within a few tens of ms, a quick jump wherever two chunks disagree. With ``stages.solve.window_step`` > 1 only every
 few batches solve a window (each keeping a run of batches); the others return no frames (status ``in_window``: not
 a gap) and the windows that exist are blended the same way. Each S_k is a C² cubic B-spline and every weight
 and its first two derivatives vanish at the window's ends, so the blend is C² everywhere: no seam, and overlapping
@@ -45,16 +48,31 @@ def smootherstep(u: np.ndarray) -> np.ndarray:
     return u * u * u * (u * (6.0 * u - 15.0) + 10.0)
 
 
-def window_weight(t_us: np.ndarray, a_us: int, b_us: int, taper: float, open_start: bool, open_end: bool):
-    """Blending weight of a window spanning [a_us, b_us] at times t_us (0 outside)."""
+def window_weight(t_us: np.ndarray, a_us: int, b_us: int, ramp_start_us: float | None, ramp_end_us: float | None):
+    """Blending weight of a window spanning [a_us, b_us] at times t_us (0 outside): the quintic smoothstep over
+    ``ramp_start_us`` after its start and ``ramp_end_us`` before its end (None: that end not tapered), 1 between."""
     t = np.asarray(t_us, dtype=np.float64)
-    ramp = max(taper * (b_us - a_us), 1.0)
     w = np.ones_like(t)
-    if not open_start:
-        w *= smootherstep((t - a_us) / ramp)
-    if not open_end:
-        w *= smootherstep((b_us - t) / ramp)
+    if ramp_start_us is not None:
+        w *= smootherstep((t - a_us) / max(float(ramp_start_us), 1.0))
+    if ramp_end_us is not None:
+        w *= smootherstep((b_us - t) / max(float(ramp_end_us), 1.0))
     return np.where((t >= a_us) & (t <= b_us), w, 0.0)
+
+
+def ramps_us(spans: list[tuple[int, int]], taper: float) -> list[tuple[float | None, float | None]]:
+    """Each window's ramps (µs) at its start and end, from the windows' spans [(a, b)]: ``taper`` of its length,
+    or its overlap with the windows around it where that is shorter (so that where two windows meet, as two chunks'
+    windows do across their margins, the later one takes over across the whole stretch both solved: their weights
+    then sum to 1 there, no quick switch in its middle); None at an end nothing overlaps (the recording's ends, the
+    edges of gaps, where two windows only touch)."""
+    out = []
+    for k, (a, b) in enumerate(spans):
+        before = max((min(bb, b) - a for j, (aa, bb) in enumerate(spans) if j != k and aa < a < bb), default=0)
+        after = max((b - max(aa, a) for j, (aa, bb) in enumerate(spans) if j != k and aa < b < bb), default=0)
+        full = taper * (b - a)
+        out.append((min(full, before) if before > 0 else None, min(full, after) if after > 0 else None))
+    return out
 
 
 def _covered_spans(windows: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[int, int]]:
@@ -80,7 +98,7 @@ def blend(windows: list[tuple[np.ndarray, np.ndarray]], taper: float,
     spans = _covered_spans(windows)
     num = np.zeros((t_all.size, 33))
     den = np.zeros(t_all.size)
-    for (_, P), (idx, w) in zip(windows, window_weights(windows, taper, t_all, spans)):
+    for (_, P), (idx, w) in zip(windows, window_weights(windows, taper, t_all)):
         P = np.asarray(P, dtype=np.float64).copy()
         have = den[idx] > 0  # the blend so far: the root branch of this window continues it
         if have.any():
@@ -100,17 +118,13 @@ def blend(windows: list[tuple[np.ndarray, np.ndarray]], taper: float,
     return t_all, out
 
 
-def window_weights(windows: list[tuple[np.ndarray, np.ndarray]], taper: float, t_all: np.ndarray,
-                   spans: list[tuple[int, int]] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Each estimated window's (rows of t_all at its times, its blending weights there) (:func:`blend`)."""
-    spans = _covered_spans(windows) if spans is None else spans
-    out = []
-    for t, _ in windows:
-        t = np.asarray(t, dtype=np.int64)
-        a, b = int(t[0]), int(t[-1])
-        sa, sb = next(s for s in spans if s[0] <= a and b <= s[1])
-        out.append((np.searchsorted(t_all, t), window_weight(t, a, b, taper, a == sa, b == sb)))
-    return out
+def window_weights(windows: list[tuple[np.ndarray, np.ndarray]], taper: float,
+                   t_all: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each estimated window's (rows of t_all at its times, its blending weights there) (:func:`blend`; its ramps:
+    :func:`ramps_us`)."""
+    ts = [np.asarray(t, dtype=np.int64) for t, _ in windows]
+    ramps = ramps_us([(int(t[0]), int(t[-1])) for t in ts], taper)
+    return [(np.searchsorted(t_all, t), window_weight(t, int(t[0]), int(t[-1]), *r)) for t, r in zip(ts, ramps)]
 
 
 def disagreement_mm(windows: list[tuple[np.ndarray, np.ndarray]], taper: float, t_all: np.ndarray,
