@@ -227,17 +227,31 @@ class Artifact:
     def to_zarr(self, group) -> None:
         """Write this artifact into an (empty) zarr v3 group; validates first."""
         self.validate()
+        group.attrs.update(self._group_attrs())
+        self._write_members(group)
+
+    def write_zarr(self, parent, name: str):
+        """Write this artifact as the new group ``name`` of a zarr group (its attributes written with the group: one
+        metadata write, not two; otherwise :meth:`to_zarr`); validates first. Returns the group."""
+        self.validate()
+        group = parent.create_group(name, attributes=self._group_attrs())
+        self._write_members(group)
+        return group
+
+    def _group_attrs(self) -> dict[str, Any]:
         cls = type(self)
-        group.attrs.update(
-            {"artifact": cls.type_name(), "schema_version": cls.schema_version, "attrs": self._attr_values()}
-        )
+        return {"artifact": cls.type_name(), "schema_version": cls.schema_version, "attrs": self._attr_values()}
+
+    def _write_members(self, group) -> None:
+        """The arrays and the child artifacts into the artifact's group."""
+        cls = type(self)
         for fname, spec in cls.array_fields().items():
             value = getattr(self, fname)
             if value is None:
                 continue
             if spec.dtype.names:
-                sub = group.create_group(fname)
-                sub.attrs["structured"] = [[n, spec.dtype.fields[n][0].str] for n in spec.dtype.names]
+                sub = group.create_group(fname, attributes={
+                    "structured": [[n, spec.dtype.fields[n][0].str] for n in spec.dtype.names]})
                 for n in spec.dtype.names:
                     _write_array(sub, n, np.ascontiguousarray(value[n]), spec.units)
             else:
@@ -245,7 +259,7 @@ class Artifact:
         for fname in cls.child_fields():
             value = getattr(self, fname)
             if value is not None:
-                value.to_zarr(group.create_group(fname))
+                value.write_zarr(group, fname)
 
     def _attr_values(self) -> dict[str, Any]:
         return {n: _jsonable(getattr(self, n)) for n in type(self).attr_fields()}

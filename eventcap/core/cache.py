@@ -213,7 +213,7 @@ class Cache:
         try:
             group = zarr.open_group(str(tmp / "data"), mode="w")
             for port, artifact in outputs.items():
-                artifact.to_zarr(group.create_group(port))
+                artifact.write_zarr(group, port)
             files = {}
             for f in sorted(p for p in (tmp / "data").rglob("*") if p.is_file()):
                 rel = str(f.relative_to(tmp))

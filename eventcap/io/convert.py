@@ -377,12 +377,12 @@ def _write_frames_and_camera(root, chunks, seen: _Pass, window, roi, infer: bool
         if repair not in logged:
             logger.warning("%s: %s", path, repair)
     cam, note = choose_camera(w, h, file_calibration=calib, calibration=calibration, roi=roi)
-    cam.to_zarr(root.create_group("camera"))
+    cam.write_zarr(root, "camera")
     stack = frame_stack(frames)
     if stack is not None:
         if (stack.width, stack.height) != (w, h):
             raise ArtifactError(f"Recording: frames are {stack.width}x{stack.height}, camera {w}x{h}")
-        stack.to_zarr(root.create_group("frames"))
+        stack.write_zarr(root, "frames")
     return w, h, stack, note, repairs
 
 
