@@ -93,3 +93,15 @@ def test_format_real_says_motion_or_refusal_per_recording():
     assert "| walk " in text and "motion" in text and "61%" in text and "42%; 70% (12 moments)" in text
     assert "3.2 (p90 7.9)" in text and "refused: detect: no person in 3 of 3" in text
     assert text.splitlines()[-1] == "1 of 2 recordings gave a motion, 1 of them with no plausibility finding"
+
+
+def test_format_real_names_the_chunk_seams_apart():
+    runs = [{"motion_name": "walk", "person": "whole body", "has_motion": True, "ok": True, "observed_share": 0.55,
+             "plausibility": [], "seams": 3, "seams_apart": 3, "seam_pose_mm_max": 249.2, "seam_shift_mm_max": 451.0},
+            {"motion_name": "wave", "person": "whole body", "has_motion": True, "ok": True, "observed_share": 0.8,
+             "plausibility": [], "seams": 1, "seams_apart": 0, "seam_pose_mm_max": 12.0, "seam_shift_mm_max": 3.0}]
+    text = format_real(runs)
+    assert "3 of 3 (249; 451 mm)" in text and "0 of 1 (12; 3 mm)" in text
+    assert text.splitlines()[-1] == ("2 of 2 recordings gave a motion, 2 of them with no plausibility finding (1 of "
+                                     "these with chunk seams apart: the motion hands over between two solutions "
+                                     "there)")

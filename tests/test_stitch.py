@@ -166,3 +166,33 @@ def test_windows_that_agree_keep_their_sigma_given_the_body():
                                  status=p.status, iterations=p.iterations) for p in seq], seq.batches)
     motion = run("stitch", {"windows": seq, "template": small_template()})["motion"]
     np.testing.assert_allclose(motion.sigma_mm, 12.0, atol=1e-3)
+
+
+def test_windows_apart_in_place_or_pose_are_named_as_seams_given_the_body(caplog):
+    """Given the body, each seam's disagreement in the middle of the overlap is measured (pose: the joints' RMS
+    distance with each body's mean removed; place: between the means) and a seam beyond 50 mm in pose or 100 mm in
+    place is named in a warning: a root moved 0.3 m by one window is 300 mm in place, 0 in pose; windows that agree
+    are not named."""
+    import logging
+
+    from helpers.poses import small_template
+
+    tpl = small_template()
+    spec = load_registry().get("stitch")
+    for shift, apart in ((0.0, 0), (0.3, 2)):
+        seq = windows()
+        moved = [np.array(p.poses) for p in seq]
+        moved[2][:, 30] += shift  # batch 2's window puts the body 0.3 m along x
+        seq = BatchSeq([PoseSequence(t_us=p.t_us, poses=m, status=p.status, iterations=p.iterations)
+                        for p, m in zip(seq, moved)], seq.batches)
+        ctx = StageContext(node="stitch", stage="stitch")
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            spec.load_run()({"windows": seq, "template": tpl}, build_config(spec, {}, "stages.stitch"), ctx)
+        assert ctx.stats["seam_shift_mm_max"] == pytest.approx(1000.0 * shift, abs=0.5)
+        assert ctx.stats["seam_pose_mm_max"] < 0.5
+        assert ctx.stats["seams_apart"] == apart and ctx.stats["seams"] == 3  # apart: windows 1-2 and 2-3
+        named = [r.getMessage() for r in caplog.records if "solved their shared stretch differently" in r.getMessage()]
+        assert len(named) == (1 if apart else 0)
+        if apart:
+            assert "300 mm in place" in named[0] and "2 of 3 seams" in named[0]

@@ -9,6 +9,9 @@ truth; per recording the report gives what a user gets and how well it explains 
 - the share of joint-frames observed (``confidence`` >= 0.5 in motion.npz, over every frame of the recording's
   motion, gaps included) and of frames estimated;
 - the plausibility findings (plausibility.json: speeds beyond human limits, flips, joints behind the camera);
+- the seams between chunks where the two chunks solved their shared stretch differently (the stitch's stats: how
+  many of them, and the largest disagreement in pose and in place): the motion there hands over between two
+  solutions, which no plausibility limit need catch;
 - the share of the projected silhouette's outline within 2 px of an event of its millisecond and the 2D
   reprojection error against the accepted detections (:mod:`eventcap.analysis.event_fit`).
 
@@ -102,6 +105,7 @@ def real_figures(runner, result, run_dir: Path) -> dict[str, Any]:
         out["plausibility"] = [{"kind": f["kind"], "count": f["count"], "total": f["total"], "peak": f["peak"],
                                 "unit": f["unit"], "message": f["message"]}
                                for f in json.loads(pl.read_text()).get("findings", [])]
+    out.update(_seams(runner, result))
     rec, template, det = _context(runner, result)
     if rec is None or template is None:
         return out
@@ -117,6 +121,19 @@ def real_figures(runner, result, run_dir: Path) -> dict[str, Any]:
         r = reprojection_error(rec.camera, template, t_us, poses, det)
         out.update(reproj_median_px=r["median_px"], reproj_p90_px=r["p90_px"], reproj_points=r["points"])
     return out
+
+
+def _seams(runner, result) -> dict[str, Any]:
+    """The stitch's seams between chunks (its stats: how many, how many apart, the largest disagreements in pose and
+    in place, mm; plugins/eventcap_spline/stitch.py); {} when the run has no stitch or it measured none."""
+    node = runner.by_name.get("stitch")
+    key = result.node_keys.get("stitch")
+    entry = runner.cache.lookup(node.spec.name, key) if node is not None and key else None
+    stats = (entry.manifest.get("stats") or {}) if entry is not None else {}
+    if "seam_pose_mm_max" not in stats:
+        return {}
+    return {"seams": int(stats.get("seams", 0)), "seams_apart": int(stats.get("seams_apart", 0)),
+            "seam_pose_mm_max": float(stats["seam_pose_mm_max"]), "seam_shift_mm_max": float(stats["seam_shift_mm_max"])}
 
 
 def _context(runner, result):
@@ -143,8 +160,8 @@ def _pct(x) -> str:
 
 def format_real(records: Sequence[Mapping[str, Any]]) -> str:
     """The per-recording table of the real suite."""
-    head = ["recording", "person", "result", "observed", "plausibility", "outline <= 2 px (1 ms; 10 ms)",
-            "reprojection px"]
+    head = ["recording", "person", "result", "observed", "plausibility", "chunk seams apart (largest: pose; place)",
+            "outline <= 2 px (1 ms; 10 ms)", "reprojection px"]
     rows = []
     for r in records:
         if r.get("has_motion"):
@@ -157,8 +174,10 @@ def format_real(records: Sequence[Mapping[str, Any]]) -> str:
             f"{r['reproj_median_px']:.1f} (p90 {r['reproj_p90_px']:.1f})"
         outline = "-" if r.get("outline_share") is None else \
             f"{_pct(r['outline_share'])}; {_pct(r.get('outline_share_10ms'))} ({r.get('outline_frames', 0)} moments)"
-        rows.append([r["motion_name"], r.get("person") or "", result, _pct(r.get("observed_share")), pl, outline,
-                     reproj])
+        seams = "-" if r.get("seam_pose_mm_max") is None else \
+            f"{r['seams_apart']} of {r['seams']} ({r['seam_pose_mm_max']:.0f}; {r['seam_shift_mm_max']:.0f} mm)"
+        rows.append([r["motion_name"], r.get("person") or "", result, _pct(r.get("observed_share")), pl, seams,
+                     outline, reproj])
     widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
     lines = ["| " + " | ".join(h.ljust(w) for h, w in zip(head, widths)) + " |",
              "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
@@ -166,5 +185,9 @@ def format_real(records: Sequence[Mapping[str, Any]]) -> str:
     n = len(records)
     got = sum(bool(r.get("has_motion")) for r in records)
     clean = sum(bool(r.get("has_motion")) and not r.get("plausibility") for r in records)
-    lines.append(f"{got} of {n} recordings gave a motion, {clean} of them with no plausibility finding")
+    apart = sum(bool(r.get("has_motion")) and not r.get("plausibility") and bool(r.get("seams_apart"))
+                for r in records)
+    lines.append(f"{got} of {n} recordings gave a motion, {clean} of them with no plausibility finding"
+                 + (f" ({apart} of these with chunk seams apart: the motion hands over between two solutions there)"
+                    if apart else ""))
     return "\n".join(lines)

@@ -205,7 +205,7 @@ class StitchConfig:
 
 
 STITCH = StageSpec(
-    name="stitch", kind="fuse", version=6,
+    name="stitch", kind="fuse", version=7,
     description="the spline solve's overlapping windows blended into one motion over the whole recording, each "
                 "window weighted by a C² bump over its span (no seam where batches meet; not in the paper)",
     config=StitchConfig,
