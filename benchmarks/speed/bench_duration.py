@@ -114,7 +114,7 @@ def source_overrides(args, duration: float) -> list[str]:
 def base_cache(args, duration: float) -> tuple[Path, dict | None]:
     """The cache holding only the template and the recording (made and measured once), and its figures."""
     tag = hashlib.sha256(f"{args.motion}|{duration:g}|{args.seed}|{args.source}".encode()).hexdigest()[:10]
-    base = Path(args.base_dir) / f"base-{args.motion}-{duration:g}s-{tag}"
+    base = Path(args.base_dir).resolve() / f"base-{args.motion}-{duration:g}s-{tag}"  # the child runs elsewhere
     if (base / "entries").is_dir():
         info = base / "source.json"
         return base, json.loads(info.read_text()) if info.is_file() else None
