@@ -65,20 +65,30 @@ def ramps_us(spans: list[tuple[int, int]], taper: float) -> list[tuple[float | N
     or its overlap with the windows around it where that is shorter (so that where two windows meet, as two chunks'
     windows do across their margins, the later one takes over across the whole stretch both solved: their weights
     then sum to 1 there, no quick switch in its middle); None at an end nothing overlaps (the recording's ends, the
-    edges of gaps, where two windows only touch)."""
-    out = []
-    for k, (a, b) in enumerate(spans):
-        before = max((min(bb, b) - a for j, (aa, bb) in enumerate(spans) if j != k and aa < a < bb), default=0)
-        after = max((b - max(aa, a) for j, (aa, bb) in enumerate(spans) if j != k and aa < b < bb), default=0)
-        full = taper * (b - a)
-        out.append((min(full, before) if before > 0 else None, min(full, after) if after > 0 else None))
-    return out
+    edges of gaps, where two windows only touch). In O(K log K): the overlap before a window's start is with the
+    latest end of the windows that start before it, the overlap before its end with the earliest start of the
+    windows that end after it."""
+    if not spans:
+        return []
+    a, b = (np.asarray(x, dtype=np.float64) for x in zip(*spans))
+    k = a.size
+    by_a = np.argsort(a, kind="stable")
+    n_before = np.searchsorted(a[by_a], a, side="left")  # windows starting strictly earlier
+    latest_end = np.maximum.accumulate(b[by_a])[np.maximum(n_before - 1, 0)]
+    before = np.where((n_before > 0) & (latest_end > a), np.minimum(latest_end, b) - a, 0.0)
+    by_b = np.argsort(b, kind="stable")
+    first_after = np.searchsorted(b[by_b], b, side="right")  # windows ending strictly later
+    earliest_start = np.minimum.accumulate(a[by_b][::-1])[::-1][np.minimum(first_after, k - 1)]
+    after = np.where((first_after < k) & (earliest_start < b), b - np.maximum(earliest_start, a), 0.0)
+    full = taper * (b - a)
+    return [(float(min(f, x)) if x > 0 else None, float(min(f, y)) if y > 0 else None)
+            for f, x, y in zip(full, before, after)]
 
 
 def _covered_spans(windows: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[int, int]]:
     """The time spans [a, b] µs the estimated windows (finite poses) cover together, each a union of overlapping
-    windows: a window's end at a span's end is not tapered (the recording's ends, the edges of gaps, and where two
-    windows only touch, as beside a window that saw nothing: each is then untapered up to the frame they share)."""
+    windows (two windows that only touch, as beside a window that saw nothing, start a new span): outside them the
+    blend is a gap."""
     spans: list[list[int]] = []
     for t, _ in sorted(windows, key=lambda w: int(w[0][0])):
         a, b = int(t[0]), int(t[-1])
@@ -263,23 +273,25 @@ def check_cover(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int], b
                               "the spline stage's?", status="invalid_input")
 
 
-def window_seams(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int]) -> list[float]:
-    """The seams the blend removed: for each two consecutive windows (of the batches ``kept``), the largest
-    joint-angle disagreement (rad) at the tracking frame nearest the middle of their overlap (where their blending
-    weights are equal; with a window per batch, the boundary where the later batch starts), when both estimated it."""
-    seams = []
+def seam_frames(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int]):
+    """For each two consecutive windows (of the batches ``kept``) that overlap: (the tracking frame nearest the middle
+    of their overlap, where their blending weights are equal; with a window per batch, the boundary where the later
+    batch starts, µs, the earlier window's pose there, the later one's), when both estimated it."""
     for p, q in zip(kept[:-1], kept[1:]):
         (t_p, P_p), (t_q, P_q) = windows[p], windows[q]
-        if t_q[0] > t_p[-1]:
-            continue
         common = np.intersect1d(t_p, t_q)
         if common.size == 0:
             continue
         tm = common[np.argmin(np.abs(common - 0.5 * (float(t_q[0]) + float(t_p[-1]))))]
-        i, j = np.searchsorted(t_p, tm), np.searchsorted(t_q, tm)
-        if np.isfinite(P_p[i]).all() and np.isfinite(P_q[j]).all():
-            seams.append(float(np.abs(P_p[i, :27] - P_q[j, :27]).max()))
-    return seams
+        a, b = P_p[np.searchsorted(t_p, tm)], P_q[np.searchsorted(t_q, tm)]
+        if np.isfinite(a).all() and np.isfinite(b).all():
+            yield int(tm), a, b
+
+
+def window_seams(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int]) -> list[float]:
+    """The seams the blend removed: the largest joint-angle disagreement (rad) of each two consecutive windows at
+    their :func:`seam_frames`."""
+    return [float(np.abs(a[:27] - b[:27]).max()) for _, a, b in seam_frames(windows, kept)]
 
 
 #: Two neighbouring windows whose bodies in the middle of their overlap differ by more than this (mm, the joints' RMS
@@ -292,25 +304,17 @@ SEAM_SHIFT_MM = 100.0
 
 
 def seam_bodies(windows: list[tuple[np.ndarray, np.ndarray]], kept: list[int], template) -> list[dict]:
-    """For each two consecutive overlapping windows (of the batches ``kept``) that both estimated the frame nearest
-    the middle of their overlap: that time (µs), how much their bodies differ there in pose (``pose_mm``: the joints'
-    RMS distance, each body's mean over the joints removed) and in place (``shift_mm``: between the joints' means)."""
+    """For each two consecutive windows at their :func:`seam_frames`: that time (µs), how much their bodies differ
+    there in pose (``pose_mm``: the joints' RMS distance, each body's mean over the joints removed) and in place
+    (``shift_mm``: between the joints' means)."""
     from eventcap.body.kinematics import joint_positions
 
     out = []
-    for p, q in zip(kept[:-1], kept[1:]):
-        (t_p, P_p), (t_q, P_q) = windows[p], windows[q]
-        common = np.intersect1d(t_p, t_q)
-        if common.size == 0:
-            continue
-        tm = common[np.argmin(np.abs(common - 0.5 * (float(t_q[0]) + float(t_p[-1]))))]
-        a, b = P_p[np.searchsorted(t_p, tm)], P_q[np.searchsorted(t_q, tm)]
-        if not (np.isfinite(a).all() and np.isfinite(b).all()):
-            continue
+    for tm, a, b in seam_frames(windows, kept):
         J = joint_positions(np.stack([a, b]).astype(np.float64), template) * 1000.0
         mean = J.mean(axis=1)
         d = (J[0] - mean[0]) - (J[1] - mean[1])
-        out.append({"t_us": int(tm), "pose_mm": float(np.sqrt(np.mean(np.sum(d * d, axis=1)))),
+        out.append({"t_us": tm, "pose_mm": float(np.sqrt(np.mean(np.sum(d * d, axis=1)))),
                     "shift_mm": float(np.linalg.norm(mean[0] - mean[1]))})
     return out
 
