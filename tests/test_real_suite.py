@@ -97,9 +97,11 @@ def test_format_real_says_motion_or_refusal_per_recording():
 
 def test_format_real_names_the_chunk_seams_apart():
     runs = [{"motion_name": "walk", "person": "whole body", "has_motion": True, "ok": True, "observed_share": 0.55,
-             "plausibility": [], "seams": 3, "seams_apart": 3, "seam_pose_mm_max": 249.2, "seam_shift_mm_max": 451.0},
+             "plausibility": [], "stats": {"stitch": {"seams": 3.0, "seams_apart": 3.0, "seam_pose_mm_max": 249.2,
+                                                      "seam_shift_mm_max": 451.0}}},
             {"motion_name": "wave", "person": "whole body", "has_motion": True, "ok": True, "observed_share": 0.8,
-             "plausibility": [], "seams": 1, "seams_apart": 0, "seam_pose_mm_max": 12.0, "seam_shift_mm_max": 3.0}]
+             "plausibility": [], "stats": {"stitch": {"seams": 1.0, "seams_apart": 0.0, "seam_pose_mm_max": 12.0,
+                                                      "seam_shift_mm_max": 3.0}}}]
     text = format_real(runs)
     assert "3 of 3 (249; 451 mm)" in text and "0 of 1 (12; 3 mm)" in text
     assert text.splitlines()[-1] == ("2 of 2 recordings gave a motion, 2 of them with no plausibility finding (1 of "

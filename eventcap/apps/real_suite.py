@@ -105,7 +105,6 @@ def real_figures(runner, result, run_dir: Path) -> dict[str, Any]:
         out["plausibility"] = [{"kind": f["kind"], "count": f["count"], "total": f["total"], "peak": f["peak"],
                                 "unit": f["unit"], "message": f["message"]}
                                for f in json.loads(pl.read_text()).get("findings", [])]
-    out.update(_seams(runner, result))
     rec, template, det = _context(runner, result)
     if rec is None or template is None:
         return out
@@ -123,17 +122,14 @@ def real_figures(runner, result, run_dir: Path) -> dict[str, Any]:
     return out
 
 
-def _seams(runner, result) -> dict[str, Any]:
-    """The stitch's seams between chunks (its stats: how many, how many apart, the largest disagreements in pose and
-    in place, mm; plugins/eventcap_spline/stitch.py); {} when the run has no stitch or it measured none."""
-    node = runner.by_name.get("stitch")
-    key = result.node_keys.get("stitch")
-    entry = runner.cache.lookup(node.spec.name, key) if node is not None and key else None
-    stats = (entry.manifest.get("stats") or {}) if entry is not None else {}
-    if "seam_pose_mm_max" not in stats:
-        return {}
-    return {"seams": int(stats.get("seams", 0)), "seams_apart": int(stats.get("seams_apart", 0)),
-            "seam_pose_mm_max": float(stats["seam_pose_mm_max"]), "seam_shift_mm_max": float(stats["seam_shift_mm_max"])}
+def _seams(r: Mapping[str, Any]) -> str:
+    """A run's seams between chunks as the stitch counted them (its stats, which the benchmark collects with every
+    run: :func:`eventcap.apps.benchmark.stage_times`): "apart of all (largest: pose; place mm)", "-" without them."""
+    st = (r.get("stats") or {}).get("stitch") or {}
+    if "seam_pose_mm_max" not in st:
+        return "-"
+    return (f"{int(st.get('seams_apart', 0))} of {int(st.get('seams', 0))} ({st['seam_pose_mm_max']:.0f}; "
+            f"{st['seam_shift_mm_max']:.0f} mm)")
 
 
 def _context(runner, result):
@@ -174,9 +170,7 @@ def format_real(records: Sequence[Mapping[str, Any]]) -> str:
             f"{r['reproj_median_px']:.1f} (p90 {r['reproj_p90_px']:.1f})"
         outline = "-" if r.get("outline_share") is None else \
             f"{_pct(r['outline_share'])}; {_pct(r.get('outline_share_10ms'))} ({r.get('outline_frames', 0)} moments)"
-        seams = "-" if r.get("seam_pose_mm_max") is None else \
-            f"{r['seams_apart']} of {r['seams']} ({r['seam_pose_mm_max']:.0f}; {r['seam_shift_mm_max']:.0f} mm)"
-        rows.append([r["motion_name"], r.get("person") or "", result, _pct(r.get("observed_share")), pl, seams,
+        rows.append([r["motion_name"], r.get("person") or "", result, _pct(r.get("observed_share")), pl, _seams(r),
                      outline, reproj])
     widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
     lines = ["| " + " | ".join(h.ljust(w) for h, w in zip(head, widths)) + " |",
@@ -185,8 +179,8 @@ def format_real(records: Sequence[Mapping[str, Any]]) -> str:
     n = len(records)
     got = sum(bool(r.get("has_motion")) for r in records)
     clean = sum(bool(r.get("has_motion")) and not r.get("plausibility") for r in records)
-    apart = sum(bool(r.get("has_motion")) and not r.get("plausibility") and bool(r.get("seams_apart"))
-                for r in records)
+    apart = sum(bool(r.get("has_motion")) and not r.get("plausibility")
+                and bool(((r.get("stats") or {}).get("stitch") or {}).get("seams_apart")) for r in records)
     lines.append(f"{got} of {n} recordings gave a motion, {clean} of them with no plausibility finding"
                  + (f" ({apart} of these with chunk seams apart: the motion hands over between two solutions there)"
                     if apart else ""))
